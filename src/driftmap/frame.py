@@ -1,0 +1,259 @@
+"""The :class:`Frame`: one sensor observation as a typed state estimate.
+
+A frame keeps its points in the **sensor frame** together with everything needed to trust or replay it:
+stamp, sensor, intrinsics and depth scale (for depth images), extrinsics ``T_base_sensor``, the pose
+estimate that placed it in the world (``T_world_sensor``, its revision and source), per-frame quality and
+provenance. Points are float32 (N, 3) and read-only; a frame is immutable (use :meth:`Frame.with_pose`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from types import MappingProxyType
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.errors import GeometryError, IntrinsicsError
+
+
+class SensorKind(enum.Enum):
+    """What produced a frame's points."""
+
+    DEPTH_CAMERA = "depth_camera"
+    LIDAR = "lidar"
+
+
+class PoseSource(enum.Enum):
+    """Where a pose estimate came from (also used for ledger revisions)."""
+
+    ODOMETRY = "odometry"
+    LOG = "log"
+    GROUND_TRUTH = "ground_truth"
+    LOOP_CLOSURE = "loop_closure"
+    EXTERNAL_FILE = "external_file"
+    ROLLBACK = "rollback"
+    SYNTHETIC = "synthetic"
+
+
+@dataclass(frozen=True, slots=True)
+class PinholeIntrinsics:
+    """Pinhole camera intrinsics in pixels; ``width`` x ``height`` is the image size they belong to."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    def __post_init__(self) -> None:
+        for name in ("fx", "fy", "cx", "cy"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float, np.floating, np.integer)) or not math.isfinite(float(value)):
+                raise IntrinsicsError(f"PinholeIntrinsics.{name} must be a finite number, got {value!r}")
+            object.__setattr__(self, name, float(value))
+        if self.fx <= 0 or self.fy <= 0:
+            raise IntrinsicsError(f"PinholeIntrinsics: focal lengths must be positive, got fx={self.fx}, fy={self.fy}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or int(value) != value or int(value) <= 0:
+                raise IntrinsicsError(f"PinholeIntrinsics.{name} must be a positive integer, got {value!r}")
+            object.__setattr__(self, name, int(value))
+
+    @property
+    def K(self) -> NDArray[np.float64]:
+        """The 3x3 camera matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def check_image_shape(self, shape: tuple[int, ...], what: str = "depth image") -> None:
+        """Raise :class:`IntrinsicsError` unless ``shape`` is ``(height, width)``."""
+        if len(shape) != 2 or shape[0] != self.height or shape[1] != self.width:
+            raise IntrinsicsError(
+                f"{what} has shape {tuple(shape)} (rows, cols) but the intrinsics are for "
+                f"{self.width}x{self.height} (width x height)"
+            )
+
+    def scaled(self, factor: float) -> PinholeIntrinsics:
+        """Intrinsics of the image resized by ``factor`` (pixel-centre convention)."""
+        return PinholeIntrinsics(
+            fx=self.fx * factor,
+            fy=self.fy * factor,
+            cx=(self.cx + 0.5) * factor - 0.5,
+            cy=(self.cy + 0.5) * factor - 0.5,
+            width=round(self.width * factor),
+            height=round(self.height * factor),
+        )
+
+    def to_dict(self) -> dict[str, float | int]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True, slots=True)
+class PoseEstimate:
+    """A pose estimate ``T_world_sensor`` and where it came from."""
+
+    T_world_sensor: NDArray[np.float64]
+    revision: int = 0
+    source: PoseSource = PoseSource.ODOMETRY
+    covariance_6x6: NDArray[np.float64] | None = None
+    world_frame: str = "world"
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "T_world_sensor", geometry.as_rigid(self.T_world_sensor, "PoseEstimate.T_world_sensor"))
+        if not isinstance(self.source, PoseSource):
+            object.__setattr__(self, "source", PoseSource(self.source))
+        if self.covariance_6x6 is not None:
+            cov = np.array(self.covariance_6x6, dtype=np.float64)
+            if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
+                raise GeometryError(f"PoseEstimate.covariance_6x6: expected a finite 6x6 matrix, got shape {cov.shape}")
+            if not np.allclose(cov, cov.T, atol=1e-12 + 1e-9 * np.abs(cov).max()):
+                raise GeometryError("PoseEstimate.covariance_6x6 is not symmetric")
+            cov.setflags(write=False)
+            object.__setattr__(self, "covariance_6x6", cov)
+
+
+@dataclass(frozen=True, slots=True)
+class FrameQuality:
+    """Per-frame quality of the raw measurement.
+
+    ``invalid_counts`` maps an invalid-pixel reason (see :class:`driftmap.preprocess.depth.InvalidReason`)
+    to how many pixels were rejected for it. ``flags`` lists human-readable reasons a frame is suspicious.
+    """
+
+    n_measurements: int
+    n_valid: int
+    invalid_counts: Mapping[str, int] = field(default_factory=dict)
+    flags: tuple[str, ...] = ()
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "invalid_counts", MappingProxyType(dict(self.invalid_counts)))
+        object.__setattr__(self, "flags", tuple(self.flags))
+
+    @property
+    def valid_fraction(self) -> float:
+        return self.n_valid / self.n_measurements if self.n_measurements else 0.0
+
+    @property
+    def invalid_fraction(self) -> float:
+        return 1.0 - self.valid_fraction if self.n_measurements else 0.0
+
+    @property
+    def flagged(self) -> bool:
+        return bool(self.flags)
+
+
+@dataclass(frozen=True, slots=True)
+class Provenance:
+    """Where a frame came from: a URI (file, log + topic) and the index inside it."""
+
+    source_uri: str
+    index: int
+
+
+def _readonly(array: Any, dtype: Any, shape_tail: tuple[int, ...], name: str, n: int | None) -> NDArray[Any]:
+    arr = np.asarray(array)
+    if arr.dtype != dtype or not arr.flags.c_contiguous or arr.flags.writeable:
+        # copy anything the caller could still write through, so a frame can never change under us
+        arr = np.array(arr, dtype=dtype, order="C", copy=True)
+    if arr.shape[1:] != shape_tail or (n is not None and arr.shape[0] != n):
+        expected = ("N" if n is None else str(n),) + tuple(str(s) for s in shape_tail)
+        raise GeometryError(f"{name}: expected shape ({', '.join(expected)}), got {arr.shape}")
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True, slots=True)
+class PointAttributes:
+    """Optional per-point attributes, each aligned with the frame's points."""
+
+    intensity: NDArray[np.float32] | None = None
+    color_rgb: NDArray[np.uint8] | None = None
+    normal_sensor: NDArray[np.float32] | None = None
+    time_offset_ns: NDArray[np.int64] | None = None
+
+    _SPEC = {
+        "intensity": (np.float32, ()),
+        "color_rgb": (np.uint8, (3,)),
+        "normal_sensor": (np.float32, (3,)),
+        "time_offset_ns": (np.int64, ()),
+    }
+
+    def validated(self, n: int) -> PointAttributes:
+        values = {}
+        for name, (dtype, tail) in self._SPEC.items():
+            value = getattr(self, name)
+            values[name] = None if value is None else _readonly(value, dtype, tail, f"PointAttributes.{name}", n)
+        return PointAttributes(**values)
+
+    def subset(self, index: NDArray[np.integer] | NDArray[np.bool_]) -> PointAttributes:
+        """Attributes of the selected points (an index array or a boolean mask)."""
+        return PointAttributes(
+            **{name: None if getattr(self, name) is None else getattr(self, name)[index] for name in self._SPEC}
+        )
+
+    def names(self) -> list[str]:
+        return [name for name in self._SPEC if getattr(self, name) is not None]
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One observation: sensor-frame points plus the metadata needed to trust or replay it."""
+
+    frame_id: int
+    stamp_ns: int
+    sensor_name: str
+    sensor_kind: SensorKind
+    points_sensor: NDArray[np.float32]
+    pose: PoseEstimate
+    T_base_sensor: NDArray[np.float64] = field(default_factory=geometry.identity)
+    attributes: PointAttributes = field(default_factory=PointAttributes)
+    intrinsics: PinholeIntrinsics | None = None
+    depth_scale: float | None = None
+    quality: FrameQuality | None = None
+    provenance: Provenance | None = None
+    sensor_frame: str = "sensor"
+    base_frame: str = "base_link"
+
+    def __post_init__(self) -> None:
+        if isinstance(self.frame_id, bool) or int(self.frame_id) != self.frame_id:
+            raise GeometryError(f"Frame.frame_id must be an integer, got {self.frame_id!r}")
+        object.__setattr__(self, "frame_id", int(self.frame_id))
+        if isinstance(self.stamp_ns, float) or int(self.stamp_ns) != self.stamp_ns:
+            raise GeometryError(f"frame {self.frame_id}: stamp_ns must be an integer number of nanoseconds")
+        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        if not isinstance(self.sensor_kind, SensorKind):
+            object.__setattr__(self, "sensor_kind", SensorKind(self.sensor_kind))
+        pts = _readonly(self.points_sensor, np.float32, (3,), f"frame {self.frame_id}: points_sensor", None)
+        object.__setattr__(self, "points_sensor", pts)
+        object.__setattr__(self, "attributes", self.attributes.validated(len(pts)))
+        object.__setattr__(self, "T_base_sensor", geometry.as_rigid(self.T_base_sensor, f"frame {self.frame_id}: T_base_sensor"))
+        if self.depth_scale is not None and not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise GeometryError(f"frame {self.frame_id}: depth_scale must be positive, got {self.depth_scale}")
+
+    @property
+    def n_points(self) -> int:
+        return int(self.points_sensor.shape[0])
+
+    @property
+    def T_world_sensor(self) -> NDArray[np.float64]:
+        return self.pose.T_world_sensor
+
+    def points_world(self, T_world_sensor: NDArray[np.float64] | None = None) -> NDArray[np.float32]:
+        """Points in the world frame, with this frame's pose or an explicit ``T_world_sensor``."""
+        T = self.pose.T_world_sensor if T_world_sensor is None else T_world_sensor
+        return geometry.transform_points(T, self.points_sensor)
+
+    def with_pose(self, pose: PoseEstimate) -> Frame:
+        """A copy of this frame carrying another pose estimate (points are shared, not copied)."""
+        return dataclasses.replace(self, pose=pose)
+
+    def with_points(self, points_sensor: NDArray[np.float32], attributes: PointAttributes | None = None) -> Frame:
+        """A copy with other sensor-frame points (e.g. after downsampling); attributes must match them."""
+        return dataclasses.replace(self, points_sensor=points_sensor, attributes=attributes or PointAttributes())

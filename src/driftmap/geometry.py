@@ -1,0 +1,105 @@
+"""Rigid-transform helpers.
+
+Conventions: a transform ``T_a_b`` is a 4x4 float64 matrix that maps points expressed in frame ``b`` into
+frame ``a`` (``p_a = T_a_b @ p_b``); transforms compose left to right, ``T_a_c = T_a_b @ T_b_c``.
+Rotations use scipy's :class:`~scipy.spatial.transform.Rotation`; quaternions are named by their order
+(``quat_xyzw`` as in TUM files, ``quat_wxyz`` where a library wants that).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from driftmap.errors import GeometryError, TransformError
+
+#: Tolerance on ``R^T R - I`` (max abs entry) and on ``det(R) - 1`` for a matrix to count as rigid.
+RIGID_TOLERANCE = 1e-5
+
+
+def identity() -> NDArray[np.float64]:
+    """A fresh 4x4 identity (never use a shared module-level array as a default)."""
+    return np.eye(4)
+
+
+def as_rigid(T: ArrayLike, name: str = "transform", *, tolerance: float = RIGID_TOLERANCE) -> NDArray[np.float64]:
+    """Validate ``T`` as a rigid 4x4 transform and return it as a read-only float64 copy.
+
+    Raises :class:`TransformError` naming ``name`` when the shape is wrong, an entry is not finite, the
+    rotation block is not orthonormal with determinant +1, or the last row is not ``[0, 0, 0, 1]``.
+    """
+    M = np.array(T, dtype=np.float64, copy=True)
+    if M.shape != (4, 4):
+        raise TransformError(f"{name}: expected a 4x4 matrix, got shape {M.shape}")
+    if not np.all(np.isfinite(M)):
+        raise TransformError(f"{name}: contains NaN or inf")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance, rtol=0.0):
+        raise TransformError(f"{name}: last row must be [0, 0, 0, 1], got {M[3].tolist()}")
+    R = M[:3, :3]
+    ortho_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    if ortho_err > tolerance:
+        raise TransformError(f"{name}: rotation block is not orthonormal (max |R^T R - I| = {ortho_err:.3g})")
+    det = float(np.linalg.det(R))
+    if abs(det - 1.0) > tolerance:
+        raise TransformError(f"{name}: rotation block has determinant {det:.6g}, expected +1 (a reflection?)")
+    M[3] = (0.0, 0.0, 0.0, 1.0)
+    M.setflags(write=False)
+    return M
+
+
+def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Inverse of a rigid transform (uses ``R^T``, not a general matrix inverse)."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def make_transform(rotation: ArrayLike | Rotation | None = None, translation_m: ArrayLike | None = None) -> NDArray[np.float64]:
+    """Build ``T`` from a 3x3 rotation (or a scipy Rotation) and a translation in metres."""
+    T = np.eye(4)
+    if rotation is not None:
+        T[:3, :3] = rotation.as_matrix() if isinstance(rotation, Rotation) else np.asarray(rotation, dtype=np.float64)
+    if translation_m is not None:
+        T[:3, 3] = np.asarray(translation_m, dtype=np.float64)
+    return T
+
+
+def from_tum(translation_m: ArrayLike, quat_xyzw: ArrayLike) -> NDArray[np.float64]:
+    """Transform from a TUM-style translation and ``(qx, qy, qz, qw)`` quaternion."""
+    return make_transform(Rotation.from_quat(np.asarray(quat_xyzw, dtype=np.float64)), translation_m)
+
+
+def to_tum(T: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(translation_m, quat_xyzw)`` of a rigid transform."""
+    return np.array(T[:3, 3]), Rotation.from_matrix(T[:3, :3]).as_quat()
+
+
+def transform_points(T: NDArray[np.float64], points: NDArray[np.floating]) -> NDArray[np.float32]:
+    """Apply ``T`` to an (N, 3) array; the product is computed in float64 and returned as float32."""
+    pts = np.asarray(points)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise GeometryError(f"points: expected shape (N, 3), got {pts.shape}")
+    R = np.asarray(T[:3, :3], dtype=np.float64)
+    t = np.asarray(T[:3, 3], dtype=np.float64)
+    return (pts.astype(np.float64, copy=False) @ R.T + t).astype(np.float32)
+
+
+def rotate_vectors(T: NDArray[np.float64], vectors: NDArray[np.floating]) -> NDArray[np.float32]:
+    """Apply only the rotation of ``T`` to (N, 3) direction vectors (normals)."""
+    v = np.asarray(vectors, dtype=np.float64)
+    return (v @ np.asarray(T[:3, :3]).T).astype(np.float32)
+
+
+def translation_distance_m(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
+    """Distance between the origins of two poses, in metres."""
+    return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
+
+
+def rotation_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
+    """Angle of the relative rotation between two poses, in degrees."""
+    R = T_a[:3, :3].T @ T_b[:3, :3]
+    c = (np.trace(R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))

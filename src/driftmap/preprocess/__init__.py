@@ -1,0 +1,1 @@
+"""Per-frame pre-processing: depth validation and back-projection, downsampling, outliers, normals."""

@@ -1,0 +1,351 @@
+"""Depth-image validation and back-projection (``P_c = z K^-1 [u v 1]^T``).
+
+* uint16 images are converted with ``depth_scale`` (units per metre: 1000 for millimetres, 5000 for TUM);
+  float32/float64 images are already in metres and ``depth_scale`` is ignored.
+* Every rejected pixel is counted under one :class:`InvalidReason`.
+* Points come out float32, in the sensor (optical) frame, in row-major pixel order -- the order Open3D's
+  ``PointCloud.create_from_depth_image`` uses -- so results can be compared point for point.
+* A pixel is valid when ``min_depth_m <= z < max_depth_m``; the upper bound is exclusive, exactly like
+  Open3D's ``depth_trunc``.
+
+The hot path is vectorised: uint16 depth is converted through a 65536-entry lookup table (0 marks an
+invalid code), and the per-pixel rays ``K^-1 [u v 1]`` are cached per intrinsics.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import logging
+import math
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap.errors import DepthError, DepthScaleError
+from driftmap.frame import (
+    Frame,
+    FrameQuality,
+    PinholeIntrinsics,
+    PointAttributes,
+    PoseEstimate,
+    Provenance,
+    SensorKind,
+)
+
+logger = logging.getLogger(__name__)
+
+#: uint16 "no reading" value used by Kinect-class sensors and 7-Scenes.
+UINT16_NO_READING = 65535
+
+DEFAULT_MIN_DEPTH_M = 0.1
+DEFAULT_MAX_DEPTH_M = 10.0
+
+#: Median depth (of the pixels that carry a reading) that a depth camera can plausibly see, in metres.
+PLAUSIBLE_MEDIAN_DEPTH_M = (0.15, 30.0)
+#: Scales tried when suggesting the right ``depth_scale`` for a uint16 image (units per metre).
+COMMON_DEPTH_SCALES = (1000.0, 5000.0, 4000.0, 10000.0, 100.0, 1.0)
+
+
+class InvalidReason(enum.Enum):
+    """Why a depth pixel was rejected."""
+
+    ZERO = "zero"
+    NAN = "nan"
+    INF = "inf"
+    NO_READING_65535 = "no_reading_65535"
+    NEGATIVE = "negative"
+    BELOW_MIN = "below_min"
+    BEYOND_MAX = "beyond_max"
+
+
+@dataclass(frozen=True, slots=True)
+class BackprojectionResult:
+    """Valid points of one depth image in the sensor frame plus per-reason rejection counts."""
+
+    points: NDArray[np.float32]
+    """(N, 3) float32, sensor (optical) frame: x right, y down, z forward; row-major pixel order."""
+    pixel_index: NDArray[np.int64]
+    """Flat pixel index ``v * width + u`` of each point (to look up colour or other per-pixel data)."""
+    invalid_counts: dict[str, int]
+    n_pixels: int
+    depth_scale: float | None
+    """The scale used for a uint16 image, ``None`` for float images (already metres)."""
+
+    @property
+    def n_valid(self) -> int:
+        return int(self.points.shape[0])
+
+    @property
+    def valid_fraction(self) -> float:
+        return self.n_valid / self.n_pixels if self.n_pixels else 0.0
+
+    @property
+    def invalid_fraction(self) -> float:
+        return 1.0 - self.valid_fraction
+
+    def quality(self, flags: tuple[str, ...] = ()) -> FrameQuality:
+        return FrameQuality(self.n_pixels, self.n_valid, self.invalid_counts, flags)
+
+
+@functools.lru_cache(maxsize=16)
+def _rays(intrinsics: PinholeIntrinsics) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
+    """Per-pixel ``(u - cx) / fx`` and ``(v - cy) / fy``, flattened row-major, read-only."""
+    u = np.arange(intrinsics.width, dtype=np.float64)
+    v = np.arange(intrinsics.height, dtype=np.float64)
+    ray_x = np.tile((u - intrinsics.cx) / intrinsics.fx, intrinsics.height).astype(np.float32)
+    ray_y = np.repeat((v - intrinsics.cy) / intrinsics.fy, intrinsics.width).astype(np.float32)
+    ray_x.setflags(write=False)
+    ray_y.setflags(write=False)
+    return ray_x, ray_y
+
+
+@functools.lru_cache(maxsize=16)
+def _uint16_lut(depth_scale: float, min_depth_m: float, max_depth_m: float) -> tuple[NDArray[np.float32], int, int]:
+    """Lookup table code -> metres (0 where invalid), and the first codes at/above min and max depth."""
+    z = (np.arange(65536, dtype=np.float32) / np.float32(depth_scale)).astype(np.float32)
+    valid = (z >= np.float32(min_depth_m)) & (z < np.float32(max_depth_m))
+    valid[0] = False
+    valid[UINT16_NO_READING] = False
+    lut = np.where(valid, z, np.float32(0.0)).astype(np.float32)
+    lut.setflags(write=False)
+    min_code = int(np.searchsorted(z, np.float32(min_depth_m), side="left"))
+    max_code = int(np.searchsorted(z, np.float32(max_depth_m), side="left"))
+    return lut, min_code, max_code
+
+
+def _suggest_scale(median_code: float) -> float | None:
+    """The common depth scale that puts a uint16 median reading closest to 2 m, if any is plausible."""
+    lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+    plausible = [s for s in COMMON_DEPTH_SCALES if lo <= median_code / s <= hi]
+    if not plausible:
+        return None
+    return min(plausible, key=lambda s: abs(math.log(median_code / s / 2.0)))
+
+
+def check_depth_scale(depth: NDArray, depth_scale: float, *, what: str = "depth image") -> None:
+    """Raise :class:`DepthScaleError` when the scale puts the scene at an implausible distance.
+
+    Uses the median of the pixels that carry a reading (sampled on a 4x4 grid); ranges are not applied
+    first, so a wrong scale cannot hide behind ``max_depth_m``.
+    """
+    sample = np.asarray(depth)[::4, ::4].ravel()
+    if depth.dtype == np.uint16:
+        sample = sample[(sample != 0) & (sample != UINT16_NO_READING)]
+        if sample.size == 0:
+            return
+        median_code = float(np.median(sample))
+        median_m = median_code / depth_scale
+        lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+        if lo <= median_m <= hi:
+            return
+        suggested = _suggest_scale(median_code)
+        hint = f"the data suggests depth_scale={suggested:g}" if suggested else "no common depth scale fits the data"
+        raise DepthScaleError(
+            f"{what}: depth_scale={depth_scale:g} units/m puts the median reading ({median_code:g} units) at "
+            f"{median_m:.4g} m, outside the plausible {lo:g}..{hi:g} m for a depth camera; {hint}",
+            depth_scale_used=depth_scale,
+            depth_scale_suggested=suggested,
+        )
+    sample = sample[np.isfinite(sample) & (sample > 0)]
+    if sample.size == 0:
+        return
+    median_m = float(np.median(sample))
+    lo, hi = PLAUSIBLE_MEDIAN_DEPTH_M
+    if lo <= median_m <= hi:
+        return
+    suggested = _suggest_scale(median_m)
+    hint = (
+        f"the values look like units of 1/{suggested:g} m: divide by {suggested:g} (or pass the raw uint16 "
+        f"image with depth_scale={suggested:g})"
+        if suggested
+        else "no common unit fits the data"
+    )
+    raise DepthScaleError(
+        f"{what}: float depth is read as metres, which puts the median reading at {median_m:.4g} m, outside "
+        f"the plausible {lo:g}..{hi:g} m for a depth camera; {hint}",
+        depth_scale_used=1.0,
+        depth_scale_suggested=suggested,
+    )
+
+
+def backproject(
+    depth: NDArray,
+    intrinsics: PinholeIntrinsics,
+    *,
+    depth_scale: float = 1000.0,
+    min_depth_m: float = DEFAULT_MIN_DEPTH_M,
+    max_depth_m: float = DEFAULT_MAX_DEPTH_M,
+    check_scale: bool = True,
+    what: str = "depth image",
+) -> BackprojectionResult:
+    """Validate a depth image and back-project its valid pixels into the sensor frame.
+
+    Args:
+        depth: (height, width) uint16 (scaled by ``depth_scale``) or float32/float64 (metres).
+        intrinsics: pinhole intrinsics; their size must match the image.
+        depth_scale: units per metre for uint16 images (1000 for millimetres, 5000 for TUM); ignored
+            for float images.
+        min_depth_m, max_depth_m: valid range ``min_depth_m <= z < max_depth_m``.
+        check_scale: raise :class:`DepthScaleError` when the scale puts the scene at an implausible
+            distance (the classic millimetres-vs-metres mistake).
+        what: how to name the image in error messages (e.g. the file and frame).
+
+    Returns:
+        :class:`BackprojectionResult` with ``.points`` (N, 3) float32 in row-major pixel order.
+    """
+    depth = np.asarray(depth)
+    if depth.ndim != 2:
+        raise DepthError(f"{what}: expected a single-channel (height, width) image, got shape {depth.shape}")
+    intrinsics.check_image_shape(depth.shape, what)
+    if not (min_depth_m >= 0 and max_depth_m > min_depth_m):
+        raise DepthError(f"{what}: need 0 <= min_depth_m < max_depth_m, got {min_depth_m}, {max_depth_m}")
+    ray_x, ray_y = _rays(intrinsics)
+    flat = depth.ravel()
+    n_pixels = flat.size
+
+    if depth.dtype == np.uint16:
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            raise DepthScaleError(f"{what}: depth_scale must be positive, got {depth_scale}",
+                                  depth_scale_used=depth_scale, depth_scale_suggested=None)
+        if check_scale:
+            check_depth_scale(depth, depth_scale, what=what)
+        lut, min_code, max_code = _uint16_lut(float(depth_scale), float(min_depth_m), float(max_depth_m))
+        z = np.take(lut, flat)
+        valid = z != 0
+        n_zero = int(np.count_nonzero(flat == 0))
+        n_sentinel = int(np.count_nonzero(flat == UINT16_NO_READING))
+        n_below = int(np.count_nonzero(flat < min_code)) - n_zero if min_code > 0 else 0
+        n_beyond = int(np.count_nonzero(flat >= max_code)) - n_sentinel if max_code <= UINT16_NO_READING else 0
+        counts = {
+            InvalidReason.ZERO.value: n_zero,
+            InvalidReason.NO_READING_65535.value: n_sentinel,
+            InvalidReason.BELOW_MIN.value: max(n_below, 0),
+            InvalidReason.BEYOND_MAX.value: max(n_beyond, 0),
+        }
+        used_scale: float | None = float(depth_scale)
+    elif depth.dtype in (np.float32, np.float64):
+        if check_scale:
+            check_depth_scale(depth, 1.0, what=what)
+        z = flat.astype(np.float32, copy=False)
+        valid = (z >= np.float32(min_depth_m)) & (z < np.float32(max_depth_m))
+        if min_depth_m == 0:
+            valid &= z != 0
+        finite = np.isfinite(z)
+        n_nan = int(np.count_nonzero(np.isnan(z)))
+        n_inf = n_pixels - n_nan - int(np.count_nonzero(finite))
+        n_zero = int(np.count_nonzero(z == 0))
+        n_negative = int(np.count_nonzero(finite & (z < 0)))
+        n_below = int(np.count_nonzero((z > 0) & (z < np.float32(min_depth_m))))
+        n_beyond = int(np.count_nonzero(finite & (z >= np.float32(max_depth_m))))
+        counts = {
+            InvalidReason.ZERO.value: n_zero,
+            InvalidReason.NAN.value: n_nan,
+            InvalidReason.INF.value: n_inf,
+            InvalidReason.NEGATIVE.value: n_negative,
+            InvalidReason.BELOW_MIN.value: n_below,
+            InvalidReason.BEYOND_MAX.value: n_beyond,
+        }
+        used_scale = None
+    else:
+        raise DepthError(f"{what}: unsupported depth dtype {depth.dtype} (expected uint16, float32 or float64)")
+
+    pixel_index = np.flatnonzero(valid)
+    zv = z[pixel_index]
+    points = np.empty((zv.size, 3), dtype=np.float32)
+    np.multiply(ray_x[pixel_index], zv, out=points[:, 0])
+    np.multiply(ray_y[pixel_index], zv, out=points[:, 1])
+    points[:, 2] = zv
+    result = BackprojectionResult(points, pixel_index, counts, n_pixels, used_scale)
+    if sum(counts.values()) + result.n_valid != n_pixels:  # pragma: no cover - internal consistency guard
+        raise DepthError(f"{what}: invalid-pixel accounting does not add up ({counts}, valid={result.n_valid})")
+    logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
+    return result
+
+
+def depth_frame(
+    depth: NDArray,
+    intrinsics: PinholeIntrinsics,
+    *,
+    frame_id: int,
+    stamp_ns: int,
+    pose: PoseEstimate,
+    sensor_name: str = "depth_camera",
+    sensor_frame: str = "camera_depth_optical_frame",
+    T_base_sensor: NDArray[np.float64] | None = None,
+    depth_scale: float = 1000.0,
+    min_depth_m: float = DEFAULT_MIN_DEPTH_M,
+    max_depth_m: float = DEFAULT_MAX_DEPTH_M,
+    provenance: Provenance | None = None,
+    monitor: InvalidFractionMonitor | None = None,
+    color_rgb: NDArray[np.uint8] | None = None,
+) -> Frame:
+    """Validate and back-project one depth image into a :class:`Frame` (points in the sensor frame).
+
+    ``monitor`` (one per sensor stream) flags frames whose invalid fraction jumps above recent history.
+    ``color_rgb`` is an optional (height, width, 3) image registered to the depth image.
+    """
+    what = f"frame {frame_id}" + (f" ({provenance.source_uri})" if provenance else "")
+    result = backproject(depth, intrinsics, depth_scale=depth_scale, min_depth_m=min_depth_m,
+                         max_depth_m=max_depth_m, what=what)
+    flags: tuple[str, ...] = ()
+    if monitor is not None:
+        reason = monitor.update(result.invalid_fraction, what)
+        flags = (reason,) if reason else ()
+    attributes = PointAttributes()
+    if color_rgb is not None:
+        color = np.asarray(color_rgb)
+        if color.shape != (intrinsics.height, intrinsics.width, 3):
+            raise DepthError(f"{what}: colour image shape {color.shape} does not match the depth image")
+        attributes = PointAttributes(color_rgb=color.reshape(-1, 3)[result.pixel_index])
+    return Frame(
+        frame_id=frame_id,
+        stamp_ns=stamp_ns,
+        sensor_name=sensor_name,
+        sensor_kind=SensorKind.DEPTH_CAMERA,
+        points_sensor=result.points,
+        pose=pose,
+        T_base_sensor=np.eye(4) if T_base_sensor is None else T_base_sensor,
+        attributes=attributes,
+        intrinsics=intrinsics,
+        depth_scale=result.depth_scale,
+        quality=result.quality(flags),
+        provenance=provenance,
+        sensor_frame=sensor_frame,
+    )
+
+
+class InvalidFractionMonitor:
+    """Flags frames whose invalid-pixel fraction jumps far above the recent history of the same sensor.
+
+    A sudden jump usually means a material the sensor cannot see (glass, black or shiny surfaces) or a
+    sensor fault. The threshold is ``median + max(min_jump, k * 1.4826 * MAD)`` over the last ``window``
+    frames; nothing is flagged until ``min_history`` frames have been seen.
+    """
+
+    def __init__(self, window: int = 30, min_history: int = 5, min_jump: float = 0.15, k_mad: float = 5.0):
+        self.window = window
+        self.min_history = min_history
+        self.min_jump = min_jump
+        self.k_mad = k_mad
+        self._history: deque[float] = deque(maxlen=window)
+
+    def update(self, invalid_fraction: float, what: str = "frame") -> str | None:
+        """Record a frame's invalid fraction; return a flag reason if it jumped, else ``None``."""
+        reason = None
+        if len(self._history) >= self.min_history:
+            hist = np.fromiter(self._history, dtype=np.float64)
+            median = float(np.median(hist))
+            mad = float(np.median(np.abs(hist - median)))
+            threshold = median + max(self.min_jump, self.k_mad * 1.4826 * mad)
+            if invalid_fraction > threshold:
+                reason = (
+                    f"invalid_fraction_jump: {invalid_fraction:.3f} invalid vs recent median {median:.3f} "
+                    f"(threshold {threshold:.3f})"
+                )
+                logger.warning("%s: %s", what, reason)
+        logger.info("%s: invalid pixel fraction %.3f", what, invalid_fraction)
+        self._history.append(invalid_fraction)
+        return reason
