@@ -1,0 +1,1 @@
+"""Map-consistency diagnostics (double walls, smearing, drift attribution)."""

@@ -1,0 +1,1 @@
+"""Maps: world-frame point clouds materialised from stored frames and their poses."""

@@ -1,0 +1,72 @@
+"""Fuse frames into one world-frame cloud with per-point provenance (which frame each point came from).
+
+This is the simple batch fusion used by the demo and the tests; the incremental, revision-aware map view
+lives with the store.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.errors import ConfigError, DriftmapError
+from driftmap.frame import Frame
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class FusedCloud:
+    """World-frame points and, per point, the ``frame_id`` that observed it."""
+
+    points_world: NDArray[np.float32]
+    frame_ids: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.points_world.shape[0])
+
+    def voxel_downsample(self, voxel_size_m: float) -> FusedCloud:
+        """One point per occupied voxel (the first one seen, so provenance stays a real frame id)."""
+        if not voxel_size_m > 0:
+            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
+        if len(self) == 0:
+            return self
+        keys = np.floor(self.points_world / voxel_size_m).astype(np.int64)
+        _, first = np.unique(keys, axis=0, return_index=True)
+        first.sort()
+        return FusedCloud(self.points_world[first], self.frame_ids[first])
+
+
+def fuse(frames: Iterable[Frame], poses: Mapping[int, NDArray[np.float64]] | None = None) -> FusedCloud:
+    """Transform every frame to the world with its own pose, or with ``poses[frame_id]`` when given."""
+    chunks: list[NDArray[np.float32]] = []
+    ids: list[NDArray[np.int64]] = []
+    for frame in frames:
+        T = frame.T_world_sensor if poses is None else poses[frame.frame_id]
+        chunks.append(geometry.transform_points(T, frame.points_sensor))
+        ids.append(np.full(frame.n_points, frame.frame_id, dtype=np.int64))
+    if not chunks:
+        return FusedCloud(np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
+    return FusedCloud(np.concatenate(chunks), np.concatenate(ids))
+
+
+def write_cloud(path: str | Path, points_world: NDArray[np.floating], colors_rgb01: NDArray[np.floating] | None = None) -> Path:
+    """Write a PLY or PCD file with Open3D (binary, readable by CloudCompare)."""
+    path = Path(path)
+    if path.suffix.lower() not in (".ply", ".pcd"):
+        raise ConfigError(f"{path}: map export supports .ply and .pcd")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_world, dtype=np.float64)))
+    if colors_rgb01 is not None:
+        pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors_rgb01, dtype=np.float64))
+    if not o3d.io.write_point_cloud(str(path), pcd, write_ascii=False, compressed=False):
+        raise DriftmapError(f"{path}: Open3D could not write the point cloud")
+    logger.info("wrote %d points to %s", len(pcd.points), path)
+    return path

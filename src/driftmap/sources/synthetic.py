@@ -1,0 +1,385 @@
+"""The embedded default data: a deterministic synthetic drifting-robot log.
+
+A robot drives a loop (a little more than one full circle) through a furnished room. Open3D's
+``RaycastingScene`` renders what a Kinect-like depth camera sees (axial noise
+``sigma_z = 0.0012 + 0.0019 (z - 0.4)^2`` m after Nguyen et al. 2012, millimetre quantisation, random
+dropouts, no reading on a glass patch) and, optionally, a 16-beam spinning LiDAR. The room has walls,
+floor, ceiling, a table, a chair with thin legs, a 2 cm board and a 5 cm door recess.
+
+Two pose streams are written: the ground truth and a drifting odometry (known yaw drift in deg/m, scale
+drift in %, and one known translation step at a known frame). Everything is seeded, so the same config
+gives the same log.
+
+On-disk layout (a folder)::
+
+    synthetic.json        metadata: config, intrinsics, depth_scale, T_base_sensor, frames (id, stamp, file)
+    depth/NNNNNN.png      uint16 depth, depth_scale units per metre (0 = no reading)
+    groundtruth.txt       TUM, T_world_sensor of the depth camera (ground truth)
+    odometry.txt          TUM, T_world_sensor of the depth camera from the drifting odometry
+    lidar/NNNNNN.bin      optional, KITTI layout float32 x y z intensity in the LiDAR frame
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from driftmap import geometry
+from driftmap.errors import SourceError
+from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, PoseSource, Provenance, SensorKind
+from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
+from driftmap.trajectory import Trajectory, read_tum, write_tum
+
+logger = logging.getLogger(__name__)
+
+FORMAT_NAME = "driftmap-synthetic"
+FORMAT_VERSION = 1
+METADATA_FILE = "synthetic.json"
+
+
+@dataclass(frozen=True)
+class SyntheticLogConfig:
+    """Everything that determines a synthetic log (with the seed, it fixes every byte of the depth)."""
+
+    seed: int = 7
+    n_frames: int = 60
+    loop_turns: float = 1.1
+    """How many times the robot goes round the circle (> 1 means it revisits the start: a loop)."""
+    circle_radius_m: float = 1.0
+    frame_period_ns: int = 200_000_000
+    start_stamp_ns: int = 1_700_000_000_000_000_000
+    width: int = 320
+    height: int = 240
+    fx: float = 262.5
+    fy: float = 262.5
+    cx: float = 159.5
+    cy: float = 119.5
+    depth_scale: float = 1000.0
+    max_range_m: float = 8.0
+    dropout_fraction: float = 0.003
+    camera_height_m: float = 1.0
+    camera_pitch_down_deg: float = 15.0
+    yaw_drift_deg_per_m: float = 0.6
+    scale_drift_percent: float = 1.0
+    step_frame: int = 30
+    step_m: tuple[float, float, float] = (0.0, 0.03, 0.0)
+    """Translation step (base frame of the robot, metres) added to the odometry increment at ``step_frame``."""
+    odometry_noise_m: float = 0.001
+    odometry_noise_deg: float = 0.05
+    lidar: bool = False
+    lidar_beams: int = 16
+    lidar_azimuth_steps: int = 720
+    lidar_range_sigma_m: float = 0.01
+
+
+@dataclass(frozen=True)
+class SceneBox:
+    name: str
+    min_m: tuple[float, float, float]
+    max_m: tuple[float, float, float]
+    glass: bool = False
+
+
+ROOM_MIN_M = (-3.0, -2.5, 0.0)
+ROOM_MAX_M = (3.0, 2.5, 2.6)
+WALL_THICKNESS_M = 0.1
+DOOR_RECESS_M = 0.05
+BOARD_THICKNESS_M = 0.02
+
+
+def scene_boxes() -> list[SceneBox]:
+    """The room as axis-aligned boxes (world frame, z up, floor at z = 0)."""
+    (x0, y0, z0), (x1, y1, z1) = ROOM_MIN_M, ROOM_MAX_M
+    w = WALL_THICKNESS_M
+    door_y, door_h = (-0.45, 0.45), 2.0
+    boxes = [
+        SceneBox("floor", (x0 - w, y0 - w, z0 - w), (x1 + w, y1 + w, z0)),
+        SceneBox("ceiling", (x0 - w, y0 - w, z1), (x1 + w, y1 + w, z1 + w)),
+        SceneBox("wall_-x", (x0 - w, y0 - w, z0), (x0, y1 + w, z1)),
+        SceneBox("wall_-y", (x0 - w, y0 - w, z0), (x1 + w, y0, z1)),
+        SceneBox("wall_+y", (x0 - w, y1, z0), (x1 + w, y1 + w, z1)),
+        # +x wall with a door opening; the door panel sits DOOR_RECESS_M behind the wall face
+        SceneBox("wall_+x_left", (x1, y0 - w, z0), (x1 + w, door_y[0], z1)),
+        SceneBox("wall_+x_right", (x1, door_y[1], z0), (x1 + w, y1 + w, z1)),
+        SceneBox("wall_+x_top", (x1, door_y[0], door_h), (x1 + w, door_y[1], z1)),
+        SceneBox("door_panel", (x1 + DOOR_RECESS_M, door_y[0], z0), (x1 + DOOR_RECESS_M + 0.04, door_y[1], door_h)),
+        # a glass pane just in front of the -x wall: the depth camera gets no reading there
+        SceneBox("glass", (x0, -1.0, 0.8), (x0 + 0.01, 0.0, 1.8), glass=True),
+        # table near the +y wall
+        SceneBox("table_top", (-0.6, 1.4, 0.72), (0.6, 2.2, 0.76)),
+        *[
+            SceneBox(f"table_leg_{i}", (lx, ly, 0.0), (lx + 0.05, ly + 0.05, 0.72))
+            for i, (lx, ly) in enumerate([(-0.6, 1.4), (0.55, 1.4), (-0.6, 2.15), (0.55, 2.15)])
+        ],
+        # chair near the -y wall: thin legs (2.4 cm) and a seat
+        SceneBox("chair_seat", (0.8, -2.0, 0.45), (1.25, -1.55, 0.48)),
+        *[
+            SceneBox(f"chair_leg_{i}", (lx, ly, 0.0), (lx + 0.024, ly + 0.024, 0.45))
+            for i, (lx, ly) in enumerate([(0.8, -2.0), (1.226, -2.0), (0.8, -1.574), (1.226, -1.574)])
+        ],
+        # a 2 cm board standing half a metre in front of the -y wall
+        SceneBox("thin_board", (-1.8, -2.0 - BOARD_THICKNESS_M, 0.0), (-0.8, -2.0, 1.2)),
+    ]
+    return boxes
+
+
+def _build_scene() -> tuple[o3d.t.geometry.RaycastingScene, set[int]]:
+    scene = o3d.t.geometry.RaycastingScene()
+    glass_ids: set[int] = set()
+    for box in scene_boxes():
+        size = np.subtract(box.max_m, box.min_m)
+        mesh = o3d.geometry.TriangleMesh.create_box(*size)
+        mesh.translate(box.min_m)
+        gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        if box.glass:
+            glass_ids.add(int(gid))
+    return scene, glass_ids
+
+
+def T_base_camera(config: SyntheticLogConfig) -> NDArray[np.float64]:
+    """Depth camera (optical frame: x right, y down, z forward) on the robot base (x forward, z up)."""
+    R_base_optical = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    R_pitch = Rotation.from_euler("y", config.camera_pitch_down_deg, degrees=True).as_matrix()
+    return geometry.make_transform(R_pitch @ R_base_optical, (0.1, 0.0, config.camera_height_m))
+
+
+def T_base_lidar(config: SyntheticLogConfig) -> NDArray[np.float64]:
+    """LiDAR frame (x forward, z up) on the robot base."""
+    return geometry.make_transform(None, (0.0, 0.0, 1.3))
+
+
+def ground_truth_base_poses(config: SyntheticLogConfig) -> NDArray[np.float64]:
+    """``T_world_base`` along a counter-clockwise circle, heading along the tangent."""
+    angles = np.linspace(0.0, 2.0 * math.pi * config.loop_turns, config.n_frames)
+    poses = np.tile(np.eye(4), (config.n_frames, 1, 1))
+    for k, a in enumerate(angles):
+        poses[k, :3, :3] = Rotation.from_euler("z", a + math.pi / 2).as_matrix()
+        poses[k, :3, 3] = (config.circle_radius_m * math.cos(a), config.circle_radius_m * math.sin(a), 0.0)
+    return poses
+
+
+def drifting_base_poses(config: SyntheticLogConfig, gt: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
+    """Integrate the ground-truth increments with yaw drift, scale drift, noise and one translation step."""
+    odom = np.empty_like(gt)
+    odom[0] = gt[0]
+    for k in range(1, len(gt)):
+        delta = geometry.invert(gt[k - 1]) @ gt[k]
+        dist = float(np.linalg.norm(delta[:3, 3]))
+        t = delta[:3, 3] * (1.0 + config.scale_drift_percent / 100.0) + rng.normal(0.0, config.odometry_noise_m, 3) * [1, 1, 0]
+        if k == config.step_frame:
+            t = t + np.asarray(config.step_m)
+        yaw_err = math.radians(config.yaw_drift_deg_per_m * dist + rng.normal(0.0, config.odometry_noise_deg))
+        R = Rotation.from_euler("z", yaw_err).as_matrix() @ delta[:3, :3]
+        odom[k] = odom[k - 1] @ geometry.make_transform(R, t)
+    return odom
+
+
+def _camera_rays(config: SyntheticLogConfig) -> NDArray[np.float64]:
+    u, v = np.meshgrid(np.arange(config.width, dtype=np.float64), np.arange(config.height, dtype=np.float64))
+    return np.stack([(u - config.cx) / config.fx, (v - config.cy) / config.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
+
+
+def render_depth(
+    scene: o3d.t.geometry.RaycastingScene,
+    glass_ids: set[int],
+    T_world_camera: NDArray[np.float64],
+    config: SyntheticLogConfig,
+    rng: np.random.Generator,
+) -> NDArray[np.uint16]:
+    """One noisy uint16 depth image (``config.depth_scale`` units per metre, 0 = no reading)."""
+    rays_cam = _camera_rays(config)
+    dirs = rays_cam @ T_world_camera[:3, :3].T  # z-component 1 in the camera => t_hit is the depth z
+    origins = np.broadcast_to(T_world_camera[:3, 3], dirs.shape)
+    ans = scene.cast_rays(o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32)))
+    z = ans["t_hit"].numpy().astype(np.float64)
+    gid = ans["geometry_ids"].numpy()
+    sigma = 0.0012 + 0.0019 * (z - 0.4) ** 2
+    noisy = z + rng.normal(0.0, 1.0, z.shape) * np.where(np.isfinite(sigma), sigma, 0.0)
+    invalid = ~np.isfinite(z) | (z > config.max_range_m) | (rng.random(z.shape) < config.dropout_fraction)
+    for g in glass_ids:
+        invalid |= gid == g
+    codes = np.where(invalid, 0.0, np.rint(noisy * config.depth_scale))
+    return np.clip(codes, 0, 65534).astype(np.uint16).reshape(config.height, config.width)
+
+
+def render_lidar(
+    scene: o3d.t.geometry.RaycastingScene,
+    T_world_lidar: NDArray[np.float64],
+    config: SyntheticLogConfig,
+    rng: np.random.Generator,
+) -> NDArray[np.float32]:
+    """One spinning-LiDAR scan in the LiDAR frame: (N, 4) float32 x, y, z, intensity."""
+    elev = np.radians(np.linspace(-15.0, 15.0, config.lidar_beams))
+    azim = np.linspace(0.0, 2 * math.pi, config.lidar_azimuth_steps, endpoint=False)
+    ee, aa = np.meshgrid(elev, azim, indexing="ij")
+    dirs_l = np.stack([np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1).reshape(-1, 3)
+    dirs_w = dirs_l @ T_world_lidar[:3, :3].T
+    origins = np.broadcast_to(T_world_lidar[:3, 3], dirs_w.shape)
+    ans = scene.cast_rays(o3d.core.Tensor(np.hstack([origins, dirs_w]).astype(np.float32)))
+    r = ans["t_hit"].numpy().astype(np.float64)
+    ok = np.isfinite(r) & (r < 30.0)
+    normals = ans["primitive_normals"].numpy()
+    r_noisy = r + rng.normal(0.0, config.lidar_range_sigma_m, r.shape)
+    pts = dirs_l[ok] * r_noisy[ok, None]
+    intensity = np.abs(np.einsum("ij,ij->i", normals[ok], dirs_w[ok]))
+    return np.hstack([pts, intensity[:, None]]).astype(np.float32)
+
+
+def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | None = None) -> Path:
+    """Write a synthetic log to ``out_dir`` (created; existing files of the same names are replaced)."""
+    config = config or SyntheticLogConfig()
+    out = Path(out_dir)
+    (out / "depth").mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(config.seed)
+    scene, glass_ids = _build_scene()
+    T_bc = T_base_camera(config)
+    gt_base = ground_truth_base_poses(config)
+    odom_base = drifting_base_poses(config, gt_base, rng)
+    stamps = config.start_stamp_ns + config.frame_period_ns * np.arange(config.n_frames, dtype=np.int64)
+    frames_meta = []
+    if config.lidar:
+        (out / "lidar").mkdir(exist_ok=True)
+    for k in range(config.n_frames):
+        depth = render_depth(scene, glass_ids, gt_base[k] @ T_bc, config, rng)
+        name = f"depth/{k:06d}.png"
+        Image.fromarray(depth).save(out / name, optimize=True)
+        entry = {"frame_id": k, "stamp_ns": int(stamps[k]), "depth": name}
+        if config.lidar:
+            scan = render_lidar(scene, gt_base[k] @ T_base_lidar(config), config, rng)
+            entry["lidar"] = f"lidar/{k:06d}.bin"
+            scan.tofile(out / entry["lidar"])
+        frames_meta.append(entry)
+    write_tum(out / "groundtruth.txt", Trajectory(stamps, gt_base @ T_bc))
+    write_tum(out / "odometry.txt", Trajectory(stamps, odom_base @ T_bc))
+    meta = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "config": asdict(config),
+        "intrinsics": PinholeIntrinsics(config.fx, config.fy, config.cx, config.cy, config.width, config.height).to_dict(),
+        "depth_scale": config.depth_scale,
+        "sensor_name": "depth_camera",
+        "sensor_frame": "camera_depth_optical_frame",
+        "base_frame": "base_link",
+        "T_base_sensor": T_bc.tolist(),
+        "T_base_lidar": T_base_lidar(config).tolist(),
+        "ground_truth": "groundtruth.txt",
+        "odometry": "odometry.txt",
+        "scene": [asdict(b) for b in scene_boxes()],
+        "frames": frames_meta,
+    }
+    (out / METADATA_FILE).write_text(json.dumps(meta, indent=1))
+    logger.info("wrote synthetic log with %d frames to %s", config.n_frames, out)
+    return out
+
+
+@dataclass
+class SyntheticLog:
+    """Reader for a synthetic log folder: frames carry the drifting odometry as their pose estimate.
+
+    Ground truth is available separately through :meth:`ground_truth` and is never used as the estimate.
+    """
+
+    path: Path
+    min_depth_m: float = 0.3
+    max_depth_m: float = 8.0
+    meta: dict = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        meta_file = self.path / METADATA_FILE
+        try:
+            self.meta = json.loads(meta_file.read_text())
+        except FileNotFoundError as exc:
+            raise SourceError(f"{meta_file}: not a driftmap synthetic log (metadata file missing)") from exc
+        except json.JSONDecodeError as exc:
+            raise SourceError(f"{meta_file}: corrupt metadata ({exc})") from exc
+        if self.meta.get("format") != FORMAT_NAME:
+            raise SourceError(f"{meta_file}: format is {self.meta.get('format')!r}, expected {FORMAT_NAME!r}")
+        self.intrinsics = PinholeIntrinsics(**self.meta["intrinsics"])
+        self.depth_scale = float(self.meta["depth_scale"])
+        self.T_base_sensor = np.asarray(self.meta["T_base_sensor"], dtype=np.float64)
+        self.config = SyntheticLogConfig(**{**self.meta["config"], "step_m": tuple(self.meta["config"]["step_m"])})
+        self._odometry = read_tum(self.path / self.meta["odometry"])
+        if len(self._odometry) != len(self.meta["frames"]):
+            raise SourceError(
+                f"{self.path / self.meta['odometry']}: {len(self._odometry)} poses for {len(self.meta['frames'])} frames"
+            )
+
+    def __len__(self) -> int:
+        return len(self.meta["frames"])
+
+    def frame_ids(self) -> list[int]:
+        return [int(f["frame_id"]) for f in self.meta["frames"]]
+
+    def read_depth(self, index: int) -> NDArray[np.uint16]:
+        entry = self.meta["frames"][index]
+        file = self.path / entry["depth"]
+        try:
+            return np.asarray(Image.open(file))
+        except OSError as exc:
+            raise SourceError(f"{file}: cannot read depth image of frame {entry['frame_id']} ({exc})") from exc
+
+    def frame(self, index: int, monitor: InvalidFractionMonitor | None = None) -> Frame:
+        entry = self.meta["frames"][index]
+        pose = PoseEstimate(self._odometry.poses[index], revision=0, source=PoseSource.ODOMETRY)
+        return depth_frame(
+            self.read_depth(index),
+            self.intrinsics,
+            frame_id=int(entry["frame_id"]),
+            stamp_ns=int(entry["stamp_ns"]),
+            pose=pose,
+            sensor_name=self.meta["sensor_name"],
+            sensor_frame=self.meta["sensor_frame"],
+            T_base_sensor=self.T_base_sensor,
+            depth_scale=self.depth_scale,
+            min_depth_m=self.min_depth_m,
+            max_depth_m=self.max_depth_m,
+            provenance=Provenance(str((self.path / entry["depth"]).resolve()), index),
+            monitor=monitor,
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        monitor = InvalidFractionMonitor()
+        for i in range(len(self)):
+            yield self.frame(i, monitor)
+
+    def lidar_frame(self, index: int) -> Frame:
+        """The LiDAR scan of frame ``index`` (only in logs generated with ``lidar=True``)."""
+        entry = self.meta["frames"][index]
+        if "lidar" not in entry:
+            raise SourceError(f"{self.path}: this log has no LiDAR scans (generate with lidar=True)")
+        file = self.path / entry["lidar"]
+        raw = np.fromfile(file, dtype=np.float32)
+        if raw.size % 4:
+            raise SourceError(f"{file}: size {raw.nbytes} bytes is not a multiple of 16 (x, y, z, intensity float32)")
+        scan = raw.reshape(-1, 4)
+        T_base_lidar = np.asarray(self.meta["T_base_lidar"])
+        T_world_lidar = self._odometry.poses[index] @ geometry.invert(self.T_base_sensor) @ T_base_lidar
+        return Frame(
+            frame_id=int(entry["frame_id"]),
+            stamp_ns=int(entry["stamp_ns"]),
+            sensor_name="lidar",
+            sensor_kind=SensorKind.LIDAR,
+            points_sensor=scan[:, :3],
+            pose=PoseEstimate(T_world_lidar, revision=0, source=PoseSource.ODOMETRY),
+            T_base_sensor=T_base_lidar,
+            sensor_frame="lidar",
+            provenance=Provenance(str(file.resolve()), index),
+        )
+
+    def odometry(self) -> Trajectory:
+        return self._odometry
+
+    def ground_truth(self) -> Trajectory:
+        """Ground-truth ``T_world_sensor`` of the depth camera (for evaluation only)."""
+        return read_tum(self.path / self.meta["ground_truth"])
