@@ -1,0 +1,55 @@
+"""The demo and the command line: what a newcomer runs first."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+
+from driftmap import __version__
+from driftmap.demo import run_demo
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *args], capture_output=True, text=True, timeout=300)
+
+
+def test_version() -> None:
+    out = _cli("--version")
+    assert out.returncode == 0
+    assert __version__ in out.stdout
+
+
+def test_demo_library_outputs(tmp_path: Path) -> None:
+    result = run_demo(tmp_path / "demo")
+    summary = json.loads((tmp_path / "demo" / "summary.json").read_text())
+    assert summary["n_frames"] == result.n_frames == 60
+    # the doubled loop wall of the drifting map is measured, and the ground-truth map is single-walled
+    assert summary["wall_spread_odometry_m"] > 2.5 * summary["wall_spread_ground_truth_m"]
+    png = np.asarray(Image.open(result.files["top_view_png"]).convert("L"))
+    assert png.shape[0] > 300 and png.shape[1] > 600
+    assert png.std() > 10, "the top view should not be a blank image"
+    for key in ("map_odometry_ply", "map_ground_truth_ply"):
+        assert Path(result.files[key]).stat().st_size > 100_000
+    assert json.loads((tmp_path / "demo" / "config.json").read_text())["depth"]["max_depth_m"] > 0
+
+
+def test_demo_cli_prints_summary_and_results_path(tmp_path: Path) -> None:
+    out = _cli("demo", "--frames", "8", "--out", str(tmp_path / "d"))
+    assert out.returncode == 0, out.stderr
+    assert "loop wall spread" in out.stdout
+    assert str((tmp_path / "d").resolve()) in out.stdout.replace("\n", "")
+
+
+def test_cli_error_is_one_line_without_traceback(tmp_path: Path) -> None:
+    out = _cli("demo", "--log", str(tmp_path / "missing"), "--out", str(tmp_path / "d"))
+    assert out.returncode == 1
+    assert "Traceback" not in out.stderr
+    lines = [line for line in out.stderr.strip().splitlines() if line.strip()]
+    assert lines[-1].startswith("error:") and "synthetic.json" in out.stderr
+    debug = _cli("--debug", "demo", "--log", str(tmp_path / "missing"), "--out", str(tmp_path / "d"))
+    assert debug.returncode != 0 and "Traceback" in debug.stderr

@@ -1,0 +1,153 @@
+"""The embedded synthetic drifting-robot log: deterministic, realistic enough, and drifting as configured."""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from driftmap import SensorKind, geometry
+from driftmap.demo import LOOP_WALL, embedded_log_path
+from driftmap.diagnostics.walls import wall_spread
+from driftmap.map.fusion import fuse
+from driftmap.sources.synthetic import (
+    ROOM_MAX_M,
+    ROOM_MIN_M,
+    SyntheticLog,
+    SyntheticLogConfig,
+    generate_synthetic_log,
+    ground_truth_base_poses,
+)
+
+SMALL = SyntheticLogConfig(n_frames=6, width=80, height=60, fx=65.6, fy=65.6, cx=39.5, cy=29.5)
+
+
+def _digest(folder: Path) -> dict[str, str]:
+    return {str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def test_generator_is_deterministic(tmp_path: Path) -> None:
+    a = generate_synthetic_log(tmp_path / "a", SMALL)
+    b = generate_synthetic_log(tmp_path / "b", SMALL)
+    assert _digest(a) == _digest(b)
+    c = generate_synthetic_log(tmp_path / "c", replace(SMALL, seed=SMALL.seed + 1))
+    assert _digest(a)["depth/000001.png"] != _digest(c)["depth/000001.png"], "the seed must matter"
+
+
+def test_embedded_log_matches_its_generator(tmp_path: Path) -> None:
+    embedded = SyntheticLog(embedded_log_path(generate_if_missing=False))
+    fresh = SyntheticLog(generate_synthetic_log(tmp_path / "fresh", embedded.config))
+    assert len(fresh) == len(embedded)
+    np.testing.assert_allclose(fresh.ground_truth().poses, embedded.ground_truth().poses, atol=1e-9)
+    np.testing.assert_allclose(fresh.odometry().poses, embedded.odometry().poses, atol=1e-9)
+    for i in (0, len(embedded) // 2, len(embedded) - 1):
+        d_new, d_old = fresh.read_depth(i).astype(np.int32), embedded.read_depth(i).astype(np.int32)
+        same = np.mean(d_new == d_old)
+        assert same > 0.999, f"frame {i}: only {same:.4f} of the pixels match"
+
+
+@pytest.fixture(scope="module")
+def embedded() -> SyntheticLog:
+    return SyntheticLog(embedded_log_path(generate_if_missing=False))
+
+
+@pytest.fixture(scope="module")
+def embedded_frames(embedded: SyntheticLog) -> list:
+    return list(embedded)
+
+
+def test_ground_truth_fusion_is_single_walled_and_odometry_fusion_is_doubled(embedded: SyntheticLog, embedded_frames: list) -> None:
+    gt = embedded.ground_truth()
+    gt_map = fuse(embedded_frames, {f.frame_id: gt.poses[i] for i, f in enumerate(embedded_frames)})
+    odom_map = fuse(embedded_frames)
+    gt_spread = wall_spread(gt_map.points_world, **LOOP_WALL)
+    odom_spread = wall_spread(odom_map.points_world, **LOOP_WALL)
+    # ground truth: every strip of the loop wall is as thin as the depth noise at 2-4 m (~1-3 cm)
+    assert gt_spread.spread_m.size >= 15
+    assert gt_spread.max_m < 0.03
+    # drifting odometry: the wall is seen twice (start and end of the loop) a few cm to decimetres apart
+    assert odom_spread.median_m > 2.5 * gt_spread.median_m
+    assert odom_spread.max_m > 0.06
+    # ... while a wall seen only once in the middle of the loop (-y) is single in both maps
+    mid_wall = dict(normal=(0.0, -1.0, 0.0), offset_m=-ROOM_MIN_M[1], tangent=(1.0, 0.0, 0.0), z_range_m=(1.3, 2.4),
+                    tangent_range_m=(0.0, ROOM_MAX_M[0] - 0.4))
+    assert wall_spread(odom_map.points_world, **mid_wall).max_m < 0.03
+
+
+def test_ground_truth_points_lie_on_the_scene(embedded: SyntheticLog, embedded_frames: list) -> None:
+    """Back-projected points placed with ground truth land on the room's surfaces within the depth noise."""
+    import open3d as o3d
+
+    from driftmap.sources.synthetic import scene_boxes
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for box in scene_boxes():
+        mesh = o3d.geometry.TriangleMesh.create_box(*np.subtract(box.max_m, box.min_m))
+        mesh.translate(box.min_m)
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+    gt = embedded.ground_truth()
+    frame = embedded_frames[10]
+    pts = frame.points_world(gt.poses[10])
+    dist = scene.compute_distance(o3d.core.Tensor(pts)).numpy()
+    z = frame.points_sensor[:, 2]
+    sigma = 0.0012 + 0.0019 * (z - 0.4) ** 2
+    assert np.median(dist) < 0.01
+    assert np.mean(dist < 4 * sigma + 0.002) > 0.97
+
+
+def test_glass_and_dropouts_are_invalid_pixels(embedded_frames: list) -> None:
+    fractions = np.array([f.quality.invalid_fraction for f in embedded_frames])
+    zeros = np.array([f.quality.invalid_counts["zero"] for f in embedded_frames])
+    assert np.all(fractions > 0.001)  # random dropouts everywhere
+    assert fractions.max() > 0.03  # frames that look at the glass pane lose a visible patch
+    assert np.all(zeros == np.array([f.quality.n_measurements - f.quality.n_valid for f in embedded_frames]))
+
+
+def test_odometry_drifts_in_the_configured_direction(embedded: SyntheticLog) -> None:
+    cfg = embedded.config
+    gt = embedded.ground_truth().poses
+    odom = embedded.odometry().poses
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    # yaw error about the world z axis grows with path length at the configured rate (deg per metre)
+    yaw_err = np.array([Rotation.from_matrix(o[:3, :3] @ g[:3, :3].T).as_rotvec()[2] for o, g in zip(odom, gt)])
+    rate = np.polyfit(path, np.degrees(yaw_err), 1)[0]
+    assert rate == pytest.approx(cfg.yaw_drift_deg_per_m, rel=0.15)
+    # the injected step shows as a jump in the odometry-vs-ground-truth offset at the step frame
+    k = cfg.step_frame
+    err = [geometry.invert(g) @ o for g, o in zip(gt, odom)]
+    jumps = [geometry.translation_distance_m(err[i], err[i - 1]) for i in range(1, len(err))]
+    assert int(np.argmax(jumps)) + 1 == k
+    assert jumps[k - 1] == pytest.approx(np.linalg.norm(cfg.step_m), rel=0.35)
+
+
+def test_trajectory_is_a_loop() -> None:
+    poses = ground_truth_base_poses(SyntheticLogConfig())
+    start, end = poses[0, :3, 3], poses[-1, :3, 3]
+    # more than one full turn: the last frames revisit the first ones' place
+    assert np.linalg.norm(poses[5, :3, 3] - end) < np.linalg.norm(start - poses[len(poses) // 2, :3, 3])
+
+
+def test_lidar_scans(tmp_path: Path) -> None:
+    log = SyntheticLog(generate_synthetic_log(tmp_path / "lidar", replace(SMALL, n_frames=3, lidar=True)))
+    scan = log.lidar_frame(1)
+    assert scan.sensor_kind is SensorKind.LIDAR
+    assert scan.n_points > 0.9 * SMALL.lidar_beams * SMALL.lidar_azimuth_steps
+    gt_camera = log.ground_truth().poses[1]
+    T_world_lidar = gt_camera @ geometry.invert(log.T_base_sensor) @ scan.T_base_sensor
+    pts = scan.points_world(T_world_lidar)
+    lo, hi = np.array(ROOM_MIN_M) - 0.2, np.array(ROOM_MAX_M) + 0.2
+    assert np.all((pts >= lo) & (pts <= hi))
+
+
+def test_bad_log_folder_gives_a_source_error(tmp_path: Path) -> None:
+    from driftmap import SourceError
+
+    with pytest.raises(SourceError, match="synthetic.json"):
+        SyntheticLog(tmp_path)
+    (tmp_path / "synthetic.json").write_text("{not json")
+    with pytest.raises(SourceError, match="corrupt"):
+        SyntheticLog(tmp_path)
