@@ -151,3 +151,20 @@ def test_bad_log_folder_gives_a_source_error(tmp_path: Path) -> None:
     (tmp_path / "synthetic.json").write_text("{not json")
     with pytest.raises(SourceError, match="corrupt"):
         SyntheticLog(tmp_path)
+
+
+def test_process_frame_chain_on_a_synthetic_frame(embedded_frames: list) -> None:
+    from driftmap.config import PreprocessConfig
+    from driftmap.preprocess.cloud import SphereROI, process_frame
+
+    frame = embedded_frames[3]
+    cfg = PreprocessConfig(voxel_size_m=0.05, statistical_outlier_neighbors=20, normals_k=15)
+    roi = SphereROI(center_m=tuple(frame.points_world()[1000].tolist()), radius_m=0.2, in_world=True)
+    out, reports = process_frame(frame, roi=roi, **cfg.model_dump())
+    assert [r.step for r in reports] == ["voxel_downsample", "statistical_outliers", "normals"]
+    assert reports[0].n_in == frame.n_points and reports[0].n_out < frame.n_points / 5
+    assert reports[1].n_in == reports[0].n_out and reports[-1].n_out == out.n_points
+    assert out.attributes.normal_sensor is not None
+    # normals face the sensor: n . (0 - p) > 0 in the sensor frame
+    facing = np.einsum("ij,ij->i", out.attributes.normal_sensor, -out.points_sensor)
+    assert np.mean(facing > 0) > 0.99

@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import math
+import weakref
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -157,15 +158,21 @@ class Provenance:
     index: int
 
 
+#: Arrays this module made read-only itself (id -> array); only these are shared without a copy.
+_OWNED: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
+
+
 def _readonly(array: Any, dtype: Any, shape_tail: tuple[int, ...], name: str, n: int | None) -> NDArray[Any]:
     arr = np.asarray(array)
-    if arr.dtype != dtype or not arr.flags.c_contiguous or arr.flags.writeable:
-        # copy anything the caller could still write through, so a frame can never change under us
+    if _OWNED.get(id(arr)) is not arr or arr.dtype != dtype or arr.flags.writeable:
+        # copy anything the caller could still write through (even a read-only view of a writable
+        # base), so a frame can never change under us; arrays we froze ourselves are shared
         arr = np.array(arr, dtype=dtype, order="C", copy=True)
-    if arr.shape[1:] != shape_tail or (n is not None and arr.shape[0] != n):
+    if arr.ndim != 1 + len(shape_tail) or arr.shape[1:] != shape_tail or (n is not None and arr.shape[0] != n):
         expected = ("N" if n is None else str(n),) + tuple(str(s) for s in shape_tail)
         raise GeometryError(f"{name}: expected shape ({', '.join(expected)}), got {arr.shape}")
     arr.setflags(write=False)
+    _OWNED[id(arr)] = arr
     return arr
 
 
@@ -230,6 +237,12 @@ class Frame:
         object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
         if not isinstance(self.sensor_kind, SensorKind):
             object.__setattr__(self, "sensor_kind", SensorKind(self.sensor_kind))
+        if not isinstance(self.pose, PoseEstimate):
+            geometry.as_rigid(self.pose, f"frame {self.frame_id}: pose")  # a malformed matrix: TransformError
+            raise GeometryError(
+                f"frame {self.frame_id}: pose must be a PoseEstimate (T_world_sensor with its revision and source), "
+                f"got {type(self.pose).__name__}"
+            )
         pts = _readonly(self.points_sensor, np.float32, (3,), f"frame {self.frame_id}: points_sensor", None)
         object.__setattr__(self, "points_sensor", pts)
         object.__setattr__(self, "attributes", self.attributes.validated(len(pts)))

@@ -104,7 +104,7 @@ def voxel_downsample(
     """Voxel-grid downsampling (Open3D: one averaged point per occupied voxel, attributes averaged).
 
     Points inside ``roi`` are kept at full resolution; only the rest is downsampled. Per-point time
-    offsets cannot be averaged meaningfully and are dropped outside the ROI (kept inside it).
+    offsets cannot be averaged meaningfully: they are kept only when no point had to be averaged.
     """
     if not voxel_size_m > 0:
         raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
@@ -114,8 +114,11 @@ def voxel_downsample(
     keep = roi_mask(frame, roi) if roi is not None else np.zeros(n_in, dtype=bool)
     rest = ~keep
     rest_attrs = frame.attributes.subset(rest)
-    pcd = _to_tensor_cloud(frame.points_sensor[rest], rest_attrs).voxel_down_sample(voxel_size_m)
-    down_points, down_attrs = _from_tensor_cloud(pcd, rest_attrs)
+    if rest.any():
+        pcd = _to_tensor_cloud(frame.points_sensor[rest], rest_attrs).voxel_down_sample(voxel_size_m)
+        down_points, down_attrs = _from_tensor_cloud(pcd, rest_attrs)
+    else:  # everything is inside the ROI: nothing to downsample
+        down_points, down_attrs = frame.points_sensor[rest], rest_attrs
     if roi is None:
         points, attrs = down_points, down_attrs
     else:
@@ -233,3 +236,36 @@ def frame_with_normals(frame: Frame, *, k: int = 20, radius_m: float | None = No
     )
     return frame.with_points(frame.points_sensor, attrs), result
 
+
+
+def process_frame(
+    frame: Frame,
+    *,
+    voxel_size_m: float | None = None,
+    roi: RegionOfInterest | None = None,
+    statistical_outlier_neighbors: int | None = None,
+    statistical_outlier_std_ratio: float = 2.0,
+    radius_outlier_min_points: int | None = None,
+    radius_outlier_radius_m: float = 0.05,
+    normals_k: int | None = None,
+) -> tuple[Frame, list[StepReport]]:
+    """The per-frame chain: voxel downsampling (ROI kept at full resolution), outlier removal, normals.
+
+    Each step runs only when configured; the reports say how many points each one removed.
+    Keyword names match :class:`driftmap.config.PreprocessConfig` (``process_frame(f, **cfg.model_dump())``
+    works after dropping unknown keys).
+    """
+    reports: list[StepReport] = []
+    if voxel_size_m is not None:
+        frame, report = voxel_downsample(frame, voxel_size_m, roi)
+        reports.append(report)
+    if statistical_outlier_neighbors is not None:
+        frame, report = remove_statistical_outliers(frame, statistical_outlier_neighbors, statistical_outlier_std_ratio)
+        reports.append(report)
+    if radius_outlier_min_points is not None:
+        frame, report = remove_radius_outliers(frame, radius_outlier_min_points, radius_outlier_radius_m)
+        reports.append(report)
+    if normals_k is not None:
+        frame, _ = frame_with_normals(frame, k=normals_k)
+        reports.append(StepReport("normals", frame.n_points, frame.n_points))
+    return frame, reports

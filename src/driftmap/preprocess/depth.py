@@ -61,18 +61,23 @@ class InvalidReason(enum.Enum):
     BEYOND_MAX = "beyond_max"
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True)
 class BackprojectionResult:
     """Valid points of one depth image in the sensor frame plus per-reason rejection counts."""
 
     points: NDArray[np.float32]
     """(N, 3) float32, sensor (optical) frame: x right, y down, z forward; row-major pixel order."""
-    pixel_index: NDArray[np.int64]
-    """Flat pixel index ``v * width + u`` of each point (to look up colour or other per-pixel data)."""
+    valid_mask: NDArray[np.bool_]
+    """Flat (height * width,) mask of the pixels that became points."""
     invalid_counts: dict[str, int]
     n_pixels: int
     depth_scale: float | None
     """The scale used for a uint16 image, ``None`` for float images (already metres)."""
+
+    @functools.cached_property
+    def pixel_index(self) -> NDArray[np.int64]:
+        """Flat pixel index ``v * width + u`` of each point (to look up colour or other per-pixel data)."""
+        return np.flatnonzero(self.valid_mask)
 
     @property
     def n_valid(self) -> int:
@@ -90,29 +95,42 @@ class BackprojectionResult:
         return FrameQuality(self.n_pixels, self.n_valid, self.invalid_counts, flags)
 
 
+_RAY_ITEM = np.dtype((np.void, 12))
+
+
 @functools.lru_cache(maxsize=16)
-def _rays(intrinsics: PinholeIntrinsics) -> tuple[NDArray[np.float32], NDArray[np.float32]]:
-    """Per-pixel ``(u - cx) / fx`` and ``(v - cy) / fy``, flattened row-major, read-only."""
+def _rays(intrinsics: PinholeIntrinsics) -> NDArray[np.void]:
+    """Per-pixel rays ``K^-1 [u v 1] = ((u - cx) / fx, (v - cy) / fy, 1)``, row-major, read-only.
+
+    Stored as one 12-byte item per pixel so the valid rays are gathered with a single 1-D compress.
+    """
     u = np.arange(intrinsics.width, dtype=np.float64)
     v = np.arange(intrinsics.height, dtype=np.float64)
-    ray_x = np.tile((u - intrinsics.cx) / intrinsics.fx, intrinsics.height).astype(np.float32)
-    ray_y = np.repeat((v - intrinsics.cy) / intrinsics.fy, intrinsics.width).astype(np.float32)
-    ray_x.setflags(write=False)
-    ray_y.setflags(write=False)
-    return ray_x, ray_y
+    rays = np.empty((intrinsics.height * intrinsics.width, 3), dtype=np.float32)
+    rays[:, 0] = np.tile((u - intrinsics.cx) / intrinsics.fx, intrinsics.height)
+    rays[:, 1] = np.repeat((v - intrinsics.cy) / intrinsics.fy, intrinsics.width)
+    rays[:, 2] = 1.0
+    items = rays.view(_RAY_ITEM).ravel()
+    items.setflags(write=False)
+    return items
 
 
 @functools.lru_cache(maxsize=16)
 def _uint16_lut(depth_scale: float, min_depth_m: float, max_depth_m: float) -> tuple[NDArray[np.float32], int, int]:
-    """Lookup table code -> metres (0 where invalid), and the first codes at/above min and max depth."""
-    z = (np.arange(65536, dtype=np.float32) / np.float32(depth_scale)).astype(np.float32)
-    valid = (z >= np.float32(min_depth_m)) & (z < np.float32(max_depth_m))
+    """Lookup table code -> metres (0 where the code is invalid), and the first codes at/above min and max depth.
+
+    Like Open3D, a code becomes the float32 ``code / depth_scale`` and that float32 value is compared with
+    the (double) bounds, so the kept pixels are exactly Open3D's for the same ``depth_trunc``.
+    """
+    z = (np.arange(65536, dtype=np.float64) / depth_scale).astype(np.float32)
+    z64 = z.astype(np.float64)
+    valid = (z64 >= min_depth_m) & (z64 < max_depth_m)
     valid[0] = False
     valid[UINT16_NO_READING] = False
     lut = np.where(valid, z, np.float32(0.0)).astype(np.float32)
     lut.setflags(write=False)
-    min_code = int(np.searchsorted(z, np.float32(min_depth_m), side="left"))
-    max_code = int(np.searchsorted(z, np.float32(max_depth_m), side="left"))
+    min_code = int(np.searchsorted(z64, min_depth_m, side="left"))
+    max_code = int(np.searchsorted(z64, max_depth_m, side="left"))
     return lut, min_code, max_code
 
 
@@ -202,7 +220,7 @@ def backproject(
     intrinsics.check_image_shape(depth.shape, what)
     if not (min_depth_m >= 0 and max_depth_m > min_depth_m):
         raise DepthError(f"{what}: need 0 <= min_depth_m < max_depth_m, got {min_depth_m}, {max_depth_m}")
-    ray_x, ray_y = _rays(intrinsics)
+    rays = _rays(intrinsics)
     flat = depth.ravel()
     n_pixels = flat.size
 
@@ -225,21 +243,22 @@ def backproject(
             InvalidReason.BELOW_MIN.value: max(n_below, 0),
             InvalidReason.BEYOND_MAX.value: max(n_beyond, 0),
         }
+        zv = z[valid]
         used_scale: float | None = float(depth_scale)
     elif depth.dtype in (np.float32, np.float64):
         if check_scale:
             check_depth_scale(depth, 1.0, what=what)
-        z = flat.astype(np.float32, copy=False)
-        valid = (z >= np.float32(min_depth_m)) & (z < np.float32(max_depth_m))
+        # classify in the image's own precision; only the kept depths become float32
+        valid = (flat >= min_depth_m) & (flat < max_depth_m)
         if min_depth_m == 0:
-            valid &= z != 0
-        finite = np.isfinite(z)
-        n_nan = int(np.count_nonzero(np.isnan(z)))
+            valid &= flat != 0
+        finite = np.isfinite(flat)
+        n_nan = int(np.count_nonzero(np.isnan(flat)))
         n_inf = n_pixels - n_nan - int(np.count_nonzero(finite))
-        n_zero = int(np.count_nonzero(z == 0))
-        n_negative = int(np.count_nonzero(finite & (z < 0)))
-        n_below = int(np.count_nonzero((z > 0) & (z < np.float32(min_depth_m))))
-        n_beyond = int(np.count_nonzero(finite & (z >= np.float32(max_depth_m))))
+        n_zero = int(np.count_nonzero(flat == 0))
+        n_negative = int(np.count_nonzero(finite & (flat < 0)))
+        n_below = int(np.count_nonzero((flat > 0) & (flat < min_depth_m)))
+        n_beyond = int(np.count_nonzero(finite & (flat >= max_depth_m)))
         counts = {
             InvalidReason.ZERO.value: n_zero,
             InvalidReason.NAN.value: n_nan,
@@ -248,17 +267,17 @@ def backproject(
             InvalidReason.BELOW_MIN.value: n_below,
             InvalidReason.BEYOND_MAX.value: n_beyond,
         }
+        zv = flat[valid].astype(np.float32)
         used_scale = None
     else:
         raise DepthError(f"{what}: unsupported depth dtype {depth.dtype} (expected uint16, float32 or float64)")
 
-    pixel_index = np.flatnonzero(valid)
-    zv = z[pixel_index]
-    points = np.empty((zv.size, 3), dtype=np.float32)
-    np.multiply(ray_x[pixel_index], zv, out=points[:, 0])
-    np.multiply(ray_y[pixel_index], zv, out=points[:, 1])
+    # gather the valid rays (x, y, 1) in one compress, then scale by depth: (x z, y z, z)
+    points = rays[valid].view(np.float32).reshape(-1, 3)
+    np.multiply(points[:, 0], zv, out=points[:, 0])
+    np.multiply(points[:, 1], zv, out=points[:, 1])
     points[:, 2] = zv
-    result = BackprojectionResult(points, pixel_index, counts, n_pixels, used_scale)
+    result = BackprojectionResult(points, valid, counts, n_pixels, used_scale)
     if sum(counts.values()) + result.n_valid != n_pixels:  # pragma: no cover - internal consistency guard
         raise DepthError(f"{what}: invalid-pixel accounting does not add up ({counts}, valid={result.n_valid})")
     logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
