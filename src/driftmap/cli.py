@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 from typing import Annotated, Optional
 
+import numpy as np
 import typer
 from rich.console import Console
 from rich.logging import RichHandler
@@ -110,6 +111,108 @@ def synth(
     with console.status("ray-casting the synthetic room"):
         path = generate_synthetic_log(out, cfg)
     console.print(f"synthetic log: [bold]{path.resolve()}[/bold]")
+
+
+# ------------------------------------------------------------------------------------------ store / ledger
+
+
+def _open_store(path: Path, mode: str = "r"):
+    from driftmap.store.frame_store import FrameStore
+
+    store = FrameStore.open(path, mode)
+    for event in store.recovery_events:
+        err_console.print(f"[yellow]recovered:[/yellow] {event}", highlight=False)
+    return store
+
+
+@app.command()
+def correct(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    poses: Annotated[Path, typer.Option("--poses", help="Pose file (T_world_sensor per frame).")],
+    format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
+    match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM, index for KITTI: row i = frame_id i)")] = None,
+    source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", help="Stamp matching tolerance (ms).")] = 10.0,
+    no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
+) -> None:
+    """Import a pose file as a new revision (a correction); nothing is overwritten."""
+    with _open_store(store_path, "a") as store:
+        revision, matched = store.import_poses(poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
+                                               source=source, propagate=not no_propagate)
+        d = store.diff(revision.parent_id, revision.revision_id)
+    console.print(f"revision {revision.revision_id} (parent {revision.parent_id}, source {revision.source.value}): "
+                  f"{len(revision.set_directly)} frames set from {poses.name}, {len(revision.propagated)} propagated; "
+                  f"max change {d.max_translation_m:.4f} m / {d.max_rotation_deg:.3f} deg")
+    if matched.unmatched_rows:
+        console.print(f"  {len(matched.unmatched_rows)} rows of {poses.name} matched no stored frame (ignored)")
+
+
+@app.command()
+def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """List the pose revisions: id, parent, source, frames changed, max displacement."""
+    import datetime
+
+    with _open_store(store_path) as store:
+        table = Table(title=f"pose revisions of {store_path}")
+        for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
+            table.add_column(col, justify="right" if col not in ("source", "note", "created") else "left")
+        for rev in store.revisions:
+            if rev.parent_id is None:
+                table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")
+                continue
+            d = store.diff(rev.parent_id, rev.revision_id)
+            changed = int(np.count_nonzero((d.translation_m > 0) | (d.rotation_deg > 0)))
+            created = datetime.datetime.fromtimestamp(rev.created_ns / 1e9).isoformat(timespec="seconds")
+            table.add_row(str(rev.revision_id), str(rev.parent_id), rev.source.value, created, str(changed),
+                          f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note)
+        console.print(table)
+
+
+@app.command()
+def rollback(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    to: Annotated[int, typer.Option("--to", help="Revision to restore.")],
+) -> None:
+    """Create a new revision equal to revision N (history is kept)."""
+    with _open_store(store_path, "a") as store:
+        rev = store.rollback(to)
+    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({len(rev.set_directly)} frames changed)")
+
+
+@app.command()
+def export(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", help="Voxel-deduplicate the map (default: every point).")] = None,
+    trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
+    format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
+) -> None:
+    """Export the map (world frame of a revision) and/or the trajectory."""
+    if map_path is None and trajectory is None:
+        raise typer.BadParameter("nothing to export: give --map and/or --trajectory")
+    with _open_store(store_path) as store:
+        rev = store.head if revision is None else revision
+        store.ledger.revision(rev)
+        if trajectory is not None:
+            store.export_trajectory(trajectory, revision=rev, format=format)
+            console.print(f"trajectory (revision {rev}, {format}): {trajectory}")
+        if map_path is not None:
+            view = store.map(rev)
+            view.export(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
+            console.print(f"map (revision {rev}, {view.n_points:,} points{f', voxel {voxel_size_m} m' if voxel_size_m else ''}): {map_path}")
+
+
+@app.command()
+def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """Salvage every intact frame and revision of a damaged store (damaged files are kept beside)."""
+    from driftmap.store.frame_store import FrameStore
+
+    events = FrameStore.recover(store_path)
+    if not events:
+        console.print(f"{store_path}: every segment is intact; nothing to do")
+    for event in events:
+        console.print(f"recovered {event}")
 
 
 def main() -> None:

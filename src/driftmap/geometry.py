@@ -109,3 +109,103 @@ def rotation_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> fl
     R = T_a[:3, :3].T @ T_b[:3, :3]
     c = (np.trace(R) - 1.0) / 2.0
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# SE(3) exponential / logarithm and interpolation
+#
+# A twist ``xi = [rho, phi]`` (6,) holds the translational part ``rho`` (metres) first and the rotation vector
+# ``phi`` (radians) second; ``T = exp(xi)`` has ``R = exp(hat(phi))`` and ``t = V(phi) @ rho``. Every function
+# below also accepts a leading batch of shape (..., 6) or (..., 4, 4) and works on it without a Python loop.
+# --------------------------------------------------------------------------------------------------------------
+
+#: Below this rotation angle (radians) the SE(3) coefficients use their Taylor series instead of the closed form.
+_SMALL_ANGLE_RAD = 1e-3
+
+
+def _hat(phi: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Skew-symmetric (..., 3, 3) matrices of (..., 3) vectors: ``hat(a) @ b == cross(a, b)``."""
+    x, y, z = phi[..., 0], phi[..., 1], phi[..., 2]
+    o = np.zeros_like(x)
+    return np.stack(
+        [np.stack([o, -z, y], axis=-1), np.stack([z, o, -x], axis=-1), np.stack([-y, x, o], axis=-1)], axis=-2
+    )
+
+
+def _invert_rigid(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """:func:`invert` for a (..., 4, 4) stack of rigid transforms."""
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros(T.shape, dtype=np.float64)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
+    """``T = exp(xi)`` for a twist ``xi = [rho(3), phi(3)]`` (or a (..., 6) stack); exact ``I`` for ``xi = 0``.
+
+    ``R = I + A W + B W^2`` and ``V = I + B W + C W^2`` with ``W = hat(phi)``, ``theta = |phi|``,
+    ``A = sin(theta)/theta``, ``B = (1 - cos(theta))/theta^2``, ``C = (theta - sin(theta))/theta^3``; small
+    angles use the Taylor series of ``A``, ``B``, ``C`` so there is no division by (almost) zero.
+    """
+    xi = np.asarray(xi, dtype=np.float64)
+    if xi.shape[-1:] != (6,):
+        raise GeometryError(f"se3_exp: expected a twist of shape (..., 6), got {xi.shape}")
+    rho, phi = xi[..., :3], xi[..., 3:]
+    theta = np.linalg.norm(phi, axis=-1)
+    theta2 = theta * theta
+    small = theta < _SMALL_ANGLE_RAD
+    th = np.where(small, 1.0, theta)  # a safe divisor; the small-angle entries use the series below
+    A = np.where(small, 1.0 - theta2 / 6.0 + theta2 * theta2 / 120.0, np.sin(th) / th)
+    B = np.where(small, 0.5 - theta2 / 24.0 + theta2 * theta2 / 720.0, 2.0 * np.sin(th / 2.0) ** 2 / th**2)
+    C = np.where(small, 1.0 / 6.0 - theta2 / 120.0 + theta2 * theta2 / 5040.0, (th - np.sin(th)) / th**3)
+    W = _hat(phi)
+    W2 = W @ W
+    eye = np.eye(3)
+    R = eye + A[..., None, None] * W + B[..., None, None] * W2
+    V = eye + B[..., None, None] * W + C[..., None, None] * W2
+    T = np.zeros(xi.shape[:-1] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = np.einsum("...ij,...j->...i", V, rho)
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def se3_log(T: ArrayLike) -> NDArray[np.float64]:
+    """Twist ``[rho(3), phi(3)]`` with ``exp(xi) == T`` (or a (..., 6) stack for (..., 4, 4)); ``|phi| <= pi``.
+
+    The rotation vector comes from scipy (robust up to and at ``pi``); ``rho = V^-1 t`` with
+    ``V^-1 = I - W/2 + D W^2``, ``D = (1 - (theta/2) cot(theta/2)) / theta^2`` (Taylor series near zero).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape[-2:] != (4, 4):
+        raise GeometryError(f"se3_log: expected (..., 4, 4) transforms, got {T.shape}")
+    batch = T.shape[:-2]
+    phi = Rotation.from_matrix(T[..., :3, :3].reshape(-1, 3, 3)).as_rotvec().reshape(batch + (3,))
+    theta = np.linalg.norm(phi, axis=-1)
+    theta2 = theta * theta
+    small = theta < _SMALL_ANGLE_RAD
+    half = np.where(small, 1.0, theta) / 2.0
+    D = np.where(
+        small,
+        1.0 / 12.0 + theta2 / 720.0 + theta2 * theta2 / 30240.0,
+        (1.0 - half * np.cos(half) / np.sin(half)) / (4.0 * half * half),
+    )
+    W = _hat(phi)
+    V_inv = np.eye(3) - 0.5 * W + D[..., None, None] * (W @ W)
+    rho = np.einsum("...ij,...j->...i", V_inv, T[..., :3, 3])
+    return np.concatenate([rho, phi], axis=-1)
+
+
+def interpolate_se3(T_a: ArrayLike, T_b: ArrayLike, alpha: ArrayLike) -> NDArray[np.float64]:
+    """``T_a @ exp(alpha * log(inv(T_a) @ T_b))``: constant-velocity (screw) motion from ``T_a`` (alpha 0)
+    to ``T_b`` (alpha 1). ``alpha`` may be a scalar or an (N,) array; ``T_a``/``T_b`` (4, 4) or (N, 4, 4)
+    stacks broadcast against it. ``alpha = 0`` returns ``T_a`` exactly; the relative rotation must be < pi.
+    """
+    T_a = np.asarray(T_a, dtype=np.float64)
+    T_b = np.asarray(T_b, dtype=np.float64)
+    alpha = np.asarray(alpha, dtype=np.float64)
+    delta = se3_log(_invert_rigid(T_a) @ T_b)
+    xi = alpha[..., None] * delta
+    return T_a @ se3_exp(xi)

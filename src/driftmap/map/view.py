@@ -1,0 +1,488 @@
+"""The map view: world-frame points of stored frames in one pose revision, re-transformed incrementally.
+
+Sensor-frame points stay where they are (memory-mapped from the store's segments, or the frames' own
+arrays); the view holds one float32 (N, 3) array of world points plus a small per-frame table. Moving to
+another revision (:meth:`MapView.apply`) re-transforms only the frames whose pose changed, always from
+their sensor-frame points (never world-to-world), so after any chain of corrections and rollbacks the
+map equals, point for point, the map built from scratch with the final poses.
+"""
+
+from __future__ import annotations
+
+import logging
+import mmap
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.errors import ConfigError, StoreError
+from driftmap.frame import Frame
+from driftmap.map._kernels import frame_bounds, transform_frames
+from driftmap.map.fusion import write_cloud
+from driftmap.preprocess.cloud import RegionOfInterest
+
+if TYPE_CHECKING:
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+#: Poses whose 4x4 matrices differ by no more than this (max abs entry) count as unchanged.
+POSE_EPSILON = 1e-12
+#: Mapped sensor pages are released after every this many bytes of re-transformed payload.
+RELEASE_WINDOW_BYTES = 64 << 20
+_PAGE = mmap.PAGESIZE
+
+
+@dataclass(frozen=True, slots=True)
+class FrameChange:
+    """How one frame moved between two revisions, and the world-space region it touched."""
+
+    frame_id: int
+    stamp_ns: int
+    translation_m: float
+    rotation_deg: float
+    box_before_m: NDArray[np.float32]
+    """(2, 3): min and max corner of the frame's points before."""
+    box_after_m: NDArray[np.float32]
+    voxels_before: NDArray[np.int64] | None = None
+    """Unique integer voxel keys ``floor(p / voxel_size_m)`` of the frame's points before (if asked)."""
+    voxels_after: NDArray[np.int64] | None = None
+
+
+@dataclass(frozen=True)
+class ChangeSet:
+    """The frames a revision change moved; a navigation stack refreshes only these regions."""
+
+    from_revision: int
+    to_revision: int
+    changes: list[FrameChange]
+    voxel_size_m: float | None = None
+
+    @property
+    def frame_ids(self) -> NDArray[np.int64]:
+        return np.array([c.frame_id for c in self.changes], dtype=np.int64)
+
+    @property
+    def max_translation_m(self) -> float:
+        return max((c.translation_m for c in self.changes), default=0.0)
+
+    def boxes_m(self) -> NDArray[np.float32]:
+        """(2K, 2, 3) every before and after box."""
+        if not self.changes:
+            return np.zeros((0, 2, 3), np.float32)
+        return np.stack([b for c in self.changes for b in (c.box_before_m, c.box_after_m)])
+
+    def voxels(self) -> NDArray[np.int64]:
+        """Union of all before and after voxel keys (needs ``voxel_size_m`` at apply time)."""
+        if self.voxel_size_m is None:
+            raise ConfigError("voxel keys were not computed: pass voxel_size_m to apply()")
+        keys = [k for c in self.changes for k in (c.voxels_before, c.voxels_after) if k is not None and len(k)]
+        return np.unique(np.concatenate(keys), axis=0) if keys else np.zeros((0, 3), np.int64)
+
+
+@dataclass(frozen=True, slots=True)
+class QueryResult:
+    points_world: NDArray[np.float32]
+    frame_ids: NDArray[np.int64]
+
+
+@dataclass(frozen=True, slots=True)
+class Nearest:
+    distance_m: float
+    point_world: NDArray[np.float32]
+    frame_id: int
+
+
+@dataclass(frozen=True)
+class FusedMap:
+    """A voxel-deduplicated map with per-voxel provenance.
+
+    ``points_world[i]`` is the centroid of voxel i (or a full-resolution ROI point); the frames that
+    contributed to it are ``provenance_frame_ids[provenance_offsets[i]:provenance_offsets[i + 1]]``.
+    """
+
+    points_world: NDArray[np.float32]
+    provenance_offsets: NDArray[np.int64]
+    provenance_frame_ids: NDArray[np.int64]
+    voxel_size_m: float | None
+    n_roi_points: int
+
+    def frames_of(self, index: int) -> NDArray[np.int64]:
+        return self.provenance_frame_ids[self.provenance_offsets[index] : self.provenance_offsets[index + 1]]
+
+    def n_frames_per_point(self) -> NDArray[np.int64]:
+        return np.diff(self.provenance_offsets)
+
+
+def _packed_voxel_keys(points_or_keys: NDArray, voxel_size_m: float | None) -> NDArray[np.int64]:
+    """One int64 per point identifying its voxel (``floor(p / voxel_size_m)``, or given integer keys)."""
+    keys = points_or_keys if voxel_size_m is None else np.floor(points_or_keys / voxel_size_m).astype(np.int64)
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    keys = keys - keys.min(axis=0)
+    span = keys.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        raise ConfigError("voxel grid too large to index (voxel_size_m too small for the map extent)")
+    return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+
+
+@dataclass
+class _Buffer:
+    flat: NDArray[np.float32]
+    mm: mmap.mmap | None = None
+
+
+class MapView:
+    """World points of a set of frames in one pose revision.
+
+    Build it with :meth:`FrameStore.map` (sensor points memory-mapped from the store) or
+    :meth:`from_frames` (points held by the frames). ``revision`` is the revision currently materialised.
+    """
+
+    def __init__(self, *, store: FrameStore | None = None, release_pages: bool = True):
+        self._store = store
+        self._release_pages = release_pages
+        self._buffers: list[_Buffer] = []
+        self._buffer_index: dict[int, int] = {}
+        self.frame_ids = np.zeros(0, np.int64)
+        self.stamps_ns = np.zeros(0, np.int64)
+        self._buf = np.zeros(0, np.int64)
+        self._start = np.zeros(0, np.int64)
+        self._stride = np.zeros(0, np.int64)
+        self._count = np.zeros(0, np.int64)
+        self._offsets = np.zeros(1, np.int64)
+        self._T = np.zeros((0, 4, 4))
+        self._boxes = np.zeros((0, 6), np.float32)
+        self._world = np.zeros((0, 3), np.float32)
+        self._index: dict[int, int] = {}
+        self.revision = 0
+
+    # ------------------------------------------------------------------------------------------ building
+
+    @classmethod
+    def from_store(cls, store: FrameStore, revision: int, *, release_pages: bool = True) -> MapView:
+        view = cls(store=store, release_pages=release_pages)
+        view.revision = revision
+        view.refresh()
+        return view
+
+    @classmethod
+    def from_frames(cls, frames: Iterable[Frame], poses: dict[int, NDArray[np.float64]] | None = None) -> MapView:
+        """A view over in-memory frames, placed with their own poses (or ``poses[frame_id]``)."""
+        view = cls()
+        frames = list(frames)
+        view._add(
+            [f.frame_id for f in frames],
+            [f.stamp_ns for f in frames],
+            [view._register(np.ascontiguousarray(f.points_sensor).reshape(-1), None) for f in frames],
+            [0] * len(frames),
+            [3] * len(frames),
+            [f.n_points for f in frames],
+            np.array([f.T_world_sensor if poses is None else poses[f.frame_id] for f in frames]).reshape(-1, 4, 4),
+        )
+        return view
+
+    def _register(self, flat: NDArray[np.float32], mm: mmap.mmap | None) -> int:
+        key = id(mm) if mm is not None else id(flat)
+        if key not in self._buffer_index:
+            self._buffer_index[key] = len(self._buffers)
+            self._buffers.append(_Buffer(flat, mm))
+        return self._buffer_index[key]
+
+    def refresh(self) -> list[int]:
+        """Add the store's frames that are not in the view yet (placed in the view's revision)."""
+        if self._store is None:
+            return []
+        new = [int(f) for f in self._store.frame_ids if int(f) not in self._index]
+        if not new:
+            return []
+        ids, stamps, bufs, starts, strides, counts = [], [], [], [], [], []
+        for fid in new:
+            ref = self._store.frame_ref(fid)
+            if ref.payload_copy is None and ref.payload_offset % 4 == 0:
+                mm = self._store.payload_map(ref)
+                flat = np.frombuffer(mm, dtype="<f4", count=len(mm) // 4)
+                b, start = self._register(flat, mm), ref.payload_offset // 4
+                stride = ref.point_stride // 4
+            else:  # compressed or unaligned payload: one private copy of the xyz columns
+                points = self._store.frame(fid).points_sensor
+                b, start, stride = self._register(np.ascontiguousarray(points).reshape(-1), None), 0, 3
+            ids.append(fid)
+            stamps.append(int(ref.info["stamp_ns"]))
+            bufs.append(b)
+            starts.append(start)
+            strides.append(stride)
+            counts.append(ref.n_points)
+        all_poses = self._store.poses(self.revision)
+        rows = np.searchsorted(self._store.frame_ids, np.asarray(ids))
+        self._add(ids, stamps, bufs, starts, strides, counts, all_poses[rows])
+        return ids
+
+    def _add(self, ids: Sequence[int], stamps: Sequence[int], bufs: Sequence[int], starts: Sequence[int],
+             strides: Sequence[int], counts: Sequence[int], poses: NDArray[np.float64]) -> None:
+        for fid in ids:
+            if fid in self._index:
+                raise StoreError(f"frame {fid} is already in the map")
+        m0, n0 = len(self.frame_ids), int(self._offsets[-1])
+        counts_arr = np.asarray(counts, dtype=np.int64)
+        self.frame_ids = np.concatenate([self.frame_ids, np.asarray(ids, dtype=np.int64)])
+        self.stamps_ns = np.concatenate([self.stamps_ns, np.asarray(stamps, dtype=np.int64)])
+        self._buf = np.concatenate([self._buf, np.asarray(bufs, dtype=np.int64)])
+        self._start = np.concatenate([self._start, np.asarray(starts, dtype=np.int64)])
+        self._stride = np.concatenate([self._stride, np.asarray(strides, dtype=np.int64)])
+        self._count = np.concatenate([self._count, counts_arr])
+        self._offsets = np.concatenate([self._offsets, n0 + np.cumsum(counts_arr)])
+        self._T = np.concatenate([self._T, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)])
+        self._boxes = np.concatenate([self._boxes, np.zeros((len(ids), 6), np.float32)])
+        for k, fid in enumerate(ids):
+            self._index[int(fid)] = m0 + k
+        n_total = int(self._offsets[-1])
+        if n_total > len(self._world):
+            grown = np.empty((max(n_total, int(len(self._world) * 1.5)), 3), np.float32)
+            grown[:n0] = self._world[:n0]
+            self._world = grown
+        self._transform(np.arange(m0, len(self.frame_ids)))
+
+    # ------------------------------------------------------------------------------------------ core
+
+    def _transform(self, rows: NDArray[np.int64]) -> None:
+        """Re-transform the given frames (map rows) from their sensor points with ``self._T``."""
+        if rows.size == 0:
+            return
+        for b in np.unique(self._buf[rows]):
+            sel = rows[self._buf[rows] == b]
+            buffer = self._buffers[int(b)]
+            sel = sel[np.argsort(self._start[sel], kind="stable")]
+            nbytes = self._count[sel] * self._stride[sel] * 4
+            if buffer.mm is None or not self._release_pages:
+                batches = [sel]
+            else:
+                cut = np.searchsorted(np.cumsum(nbytes), np.arange(1, 1 + int(nbytes.sum()) // RELEASE_WINDOW_BYTES) * RELEASE_WINDOW_BYTES)
+                batches = [s for s in np.split(sel, np.unique(cut)) if s.size]
+            for batch in batches:
+                boxes = np.empty((batch.size, 6), np.float32)
+                transform_frames(buffer.flat, self._start[batch], self._stride[batch], self._count[batch],
+                                 np.ascontiguousarray(self._T[batch]), self._world, self._offsets[batch], boxes)
+                self._boxes[batch] = boxes
+                if buffer.mm is not None and self._release_pages:
+                    first = int(self._start[batch].min()) * 4
+                    last = int((self._start[batch] + self._count[batch] * self._stride[batch]).max()) * 4
+                    lo = first - first % _PAGE
+                    buffer.mm.madvise(mmap.MADV_DONTNEED, lo, min(last, len(buffer.mm)) - lo)
+
+    def apply(self, revision: int, *, voxel_size_m: float | None = None, poses: NDArray[np.float64] | None = None) -> ChangeSet:
+        """Move the map to ``revision``: re-transform only the frames whose pose changed.
+
+        Returns per moved frame its displacement and world boxes before and after (and, with
+        ``voxel_size_m``, the voxel keys it occupied before and after).
+        """
+        if poses is None:
+            if self._store is None:
+                raise StoreError("this map has no store; pass the target poses explicitly")
+            ledger = self._store.ledger
+            rows = np.searchsorted(ledger.frame_ids, self.frame_ids)
+            target = ledger.poses(revision)[rows]
+        else:
+            target = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+            if len(target) != len(self.frame_ids):
+                raise StoreError(f"apply: {len(target)} poses for {len(self.frame_ids)} frames")
+        moved = np.flatnonzero(np.any(np.abs(target - self._T) > POSE_EPSILON, axis=(1, 2)))
+        before_boxes = self._boxes[moved].copy()
+        before_voxels = [self._voxels(r, voxel_size_m) for r in moved] if voxel_size_m else None
+        old_T = self._T[moved].copy()
+        self._T[moved] = target[moved]
+        self._transform(moved)
+        changes = []
+        for k, r in enumerate(moved):
+            changes.append(FrameChange(
+                frame_id=int(self.frame_ids[r]),
+                stamp_ns=int(self.stamps_ns[r]),
+                translation_m=geometry.translation_distance_m(old_T[k], target[r]),
+                rotation_deg=geometry.rotation_angle_deg(old_T[k], target[r]),
+                box_before_m=before_boxes[k].reshape(2, 3),
+                box_after_m=self._boxes[r].reshape(2, 3).copy(),
+                voxels_before=None if before_voxels is None else before_voxels[k],
+                voxels_after=self._voxels(r, voxel_size_m) if voxel_size_m else None,
+            ))
+        result = ChangeSet(self.revision, revision, changes, voxel_size_m)
+        logger.info("map: revision %d -> %d re-transformed %d of %d frames (%d points)", self.revision, revision,
+                    len(moved), len(self.frame_ids), int(self._count[moved].sum()))
+        self.revision = revision
+        return result
+
+    def changed_since(self, revision: int) -> ChangeSet:
+        """The frames whose pose differs between ``revision`` and the map's current revision, with the
+        regions they occupied then (conservative boxes: transformed sensor-frame bounds) and now."""
+        if self._store is None:
+            raise StoreError("this map has no store")
+        ledger = self._store.ledger
+        old = ledger.poses(revision)[np.searchsorted(ledger.frame_ids, self.frame_ids)]
+        moved = np.flatnonzero(np.any(np.abs(old - self._T) > POSE_EPSILON, axis=(1, 2)))
+        sensor_boxes = self._sensor_boxes(moved)
+        changes = []
+        for k, r in enumerate(moved):
+            lo, hi = sensor_boxes[k, :3].astype(np.float64), sensor_boxes[k, 3:].astype(np.float64)
+            corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+            world = corners @ old[r, :3, :3].T + old[r, :3, 3]
+            changes.append(FrameChange(
+                frame_id=int(self.frame_ids[r]), stamp_ns=int(self.stamps_ns[r]),
+                translation_m=geometry.translation_distance_m(old[r], self._T[r]),
+                rotation_deg=geometry.rotation_angle_deg(old[r], self._T[r]),
+                box_before_m=np.stack([world.min(0), world.max(0)]).astype(np.float32),
+                box_after_m=self._boxes[r].reshape(2, 3).copy(),
+            ))
+        return ChangeSet(revision, self.revision, changes)
+
+    def _sensor_boxes(self, rows: NDArray[np.int64]) -> NDArray[np.float32]:
+        out = np.empty((rows.size, 6), np.float32)
+        for b in np.unique(self._buf[rows]) if rows.size else []:
+            sel = np.flatnonzero(self._buf[rows] == b)
+            boxes = np.empty((sel.size, 6), np.float32)
+            r = rows[sel]
+            frame_bounds(self._buffers[int(b)].flat, self._start[r], self._stride[r], self._count[r], boxes)
+            out[sel] = boxes
+        return out
+
+    def _voxels(self, row: int, voxel_size_m: float) -> NDArray[np.int64]:
+        if not voxel_size_m > 0:
+            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
+        keys = np.floor(self.frame_points_world(int(self.frame_ids[row])) / voxel_size_m).astype(np.int64)
+        if len(keys) == 0:
+            return keys
+        _, first = np.unique(_packed_voxel_keys(keys, None), return_index=True)
+        return keys[first]
+
+    # ------------------------------------------------------------------------------------------ access
+
+    @property
+    def n_points(self) -> int:
+        return int(self._offsets[-1])
+
+    @property
+    def points_world(self) -> NDArray[np.float32]:
+        """(N, 3) float32 world points of every frame, frame after frame (a read-only view)."""
+        view = self._world[: self.n_points]
+        view.flags.writeable = False
+        return view
+
+    def point_frame_ids(self) -> NDArray[np.int64]:
+        """The frame id of every point (provenance), aligned with :attr:`points_world`."""
+        return np.repeat(self.frame_ids, self._count)
+
+    def frame_points_world(self, frame_id: int) -> NDArray[np.float32]:
+        r = self._row(frame_id)
+        view = self._world[self._offsets[r] : self._offsets[r + 1]]
+        view.flags.writeable = False
+        return view
+
+    def pose(self, frame_id: int) -> NDArray[np.float64]:
+        return self._T[self._row(frame_id)].copy()
+
+    def frame_box_m(self, frame_id: int) -> NDArray[np.float32]:
+        return self._boxes[self._row(frame_id)].reshape(2, 3).copy()
+
+    def _row(self, frame_id: int) -> int:
+        try:
+            return self._index[int(frame_id)]
+        except KeyError:
+            raise StoreError(f"frame {frame_id} is not in the map") from None
+
+    # ------------------------------------------------------------------------------------------ queries
+
+    def _candidates(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.int64]:
+        b = self._boxes
+        return np.flatnonzero(np.all(b[:, :3] <= hi, axis=1) & np.all(b[:, 3:] >= lo, axis=1) & (self._count > 0))
+
+    def _collect(self, rows: NDArray[np.int64], select) -> QueryResult:
+        pts, ids = [], []
+        for r in rows:
+            p = self._world[self._offsets[r] : self._offsets[r + 1]]
+            m = select(p)
+            if m.any():
+                pts.append(p[m])
+                ids.append(np.full(int(m.sum()), self.frame_ids[r], np.int64))
+        if not pts:
+            return QueryResult(np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
+        return QueryResult(np.concatenate(pts), np.concatenate(ids))
+
+    def query_box(self, min_m: Sequence[float], max_m: Sequence[float]) -> QueryResult:
+        """Points inside an axis-aligned world box (inclusive)."""
+        lo, hi = np.asarray(min_m, np.float64), np.asarray(max_m, np.float64)
+        return self._collect(self._candidates(lo, hi), lambda p: np.all((p >= lo) & (p <= hi), axis=1))
+
+    def query_radius(self, center_m: Sequence[float], radius_m: float) -> QueryResult:
+        """Points within ``radius_m`` of a world position."""
+        c = np.asarray(center_m, np.float64)
+        return self._collect(self._candidates(c - radius_m, c + radius_m),
+                             lambda p: np.sum((p - c) ** 2, axis=1) <= radius_m**2)
+
+    def nearest(self, position_m: Sequence[float]) -> Nearest:
+        """The map point closest to a world position (clearance)."""
+        q = np.asarray(position_m, np.float64)
+        b = self._boxes.astype(np.float64)
+        gap = np.maximum(0.0, np.maximum(b[:, :3] - q, q - b[:, 3:]))
+        box_dist = np.where(self._count > 0, np.linalg.norm(gap, axis=1), np.inf)
+        best = (np.inf, -1, -1)
+        for r in np.argsort(box_dist):
+            if box_dist[r] >= best[0]:
+                break
+            p = self._world[self._offsets[r] : self._offsets[r + 1]]
+            d2 = np.sum((p - q) ** 2, axis=1)
+            i = int(np.argmin(d2))
+            if np.sqrt(d2[i]) < best[0]:
+                best = (float(np.sqrt(d2[i])), int(r), i)
+        if best[1] < 0:
+            raise StoreError("nearest: the map has no points")
+        r, i = best[1], best[2]
+        return Nearest(best[0], self._world[self._offsets[r] + i].copy(), int(self.frame_ids[r]))
+
+    # ------------------------------------------------------------------------------------------ export
+
+    def fused(self, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None) -> FusedMap:
+        """Voxel-deduplicated map (centroid per voxel) with per-voxel provenance; points inside ``roi``
+        (world-frame ROI) are kept at full resolution. Without ``voxel_size_m`` every point is kept."""
+        pts = self.points_world
+        ids = self.point_frame_ids()
+        keep = np.zeros(len(pts), bool)
+        if roi is not None:
+            if not roi.in_world:
+                raise ConfigError("fused(): the region of interest must be in the world frame")
+            keep = roi.contains(pts.astype(np.float64))
+        if voxel_size_m is None:
+            offsets = np.arange(len(pts) + 1, dtype=np.int64)
+            return FusedMap(pts.copy(), offsets, ids, None, int(keep.sum()))
+        if not voxel_size_m > 0:
+            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
+        rest = ~keep
+        p, f = pts[rest], ids[rest]
+        _, inverse, counts = np.unique(_packed_voxel_keys(p, voxel_size_m), return_inverse=True, return_counts=True)
+        centroids = np.stack([np.bincount(inverse, weights=p[:, k].astype(np.float64)) for k in range(3)], axis=1) / counts[:, None]
+        frame_rank = np.searchsorted(self._sorted_ids(), f)
+        pairs = np.unique(inverse.astype(np.int64) * len(self.frame_ids) + frame_rank)
+        voxel_of_pair = pairs // len(self.frame_ids)
+        prov_ids = self._sorted_ids()[pairs % len(self.frame_ids)]
+        prov_offsets = np.concatenate([[0], np.cumsum(np.bincount(voxel_of_pair, minlength=len(counts)))])
+        n_roi = int(keep.sum())
+        if n_roi:
+            centroids = np.concatenate([centroids, pts[keep]])
+            prov_ids = np.concatenate([prov_ids, ids[keep]])
+            prov_offsets = np.concatenate([prov_offsets, prov_offsets[-1] + np.arange(1, n_roi + 1)])
+        return FusedMap(centroids.astype(np.float32), prov_offsets.astype(np.int64), prov_ids.astype(np.int64), voxel_size_m, n_roi)
+
+    def _sorted_ids(self) -> NDArray[np.int64]:
+        return np.sort(self.frame_ids)
+
+    def export(self, path: str | Path, *, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None,
+               provenance: bool = False) -> Path:
+        """Write the map as PLY or PCD (Open3D); with ``provenance`` also ``<path>.provenance.npz``."""
+        fused = self.fused(voxel_size_m, roi)
+        out = write_cloud(path, fused.points_world)
+        if provenance:
+            np.savez_compressed(Path(str(out) + ".provenance.npz"), offsets=fused.provenance_offsets,
+                                frame_ids=fused.provenance_frame_ids)
+        return out

@@ -1,0 +1,587 @@
+"""The frame store: an append-only directory of MCAP segments holding every frame in its sensor frame,
+with all its metadata and every pose revision.
+
+Layout::
+
+    STORE/
+      store.json             manifest: format, version, uuid, segments and their state (open / closed)
+      segment-000000.mcap    frames and revisions, one chunk per append (see driftmap.store.segment)
+      segment-000001.mcap    a later writer session appends to a new segment
+      writer.lock            held (flock) by the one process that appends
+
+Crash safety: every append is flushed as a complete chunk before it counts. A writer killed mid-append
+leaves its segment ``open`` in the manifest with at most one incomplete chunk at its end. The next
+writer that opens the store recovers that segment automatically: it rewrites the complete chunks into
+a clean, closed segment and keeps the dropped tail bytes in ``segment-NNNNNN.dropped-tail.bin``.
+A *closed* segment that is truncated or damaged is never repaired silently: opening raises
+:class:`StoreCorruptError` naming the file and offset; ``FrameStore.recover(path)`` (``driftmap recover``)
+salvages every intact frame and revision into a new segment and keeps the damaged file beside it.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import enum
+import errno
+import fcntl
+import json
+import logging
+import mmap
+import os
+import time
+import uuid
+from collections.abc import Iterator, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import __version__
+from driftmap.errors import StoreError
+from driftmap.frame import Frame, PoseEstimate, PoseSource
+from driftmap.store.ledger import PoseDiff, PoseLedger, PoseMatch, PoseMatchMode, Revision, match_trajectory
+from driftmap.store.segment import (
+    SegmentScan,
+    SegmentWriter,
+    StoredFrameRef,
+    frame_from_info,
+    iter_payload_bytes,
+    scan_segment,
+    unpack_attributes,
+)
+from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+
+logger = logging.getLogger(__name__)
+
+FORMAT_NAME = "driftmap-store"
+FORMAT_VERSION = 1
+MANIFEST = "store.json"
+LOCK_FILE = "writer.lock"
+
+
+class StoreCorruptError(StoreError):
+    """A store file is truncated or damaged; names the file and the byte offset."""
+
+    def __init__(self, message: str, *, path: Path, offset: int | None):
+        super().__init__(message)
+        self.path = path
+        self.offset = offset
+
+
+class TrajectoryFormat(enum.Enum):
+    TUM = "tum"
+    KITTI = "kitti"
+
+
+@dataclass(frozen=True)
+class RecoveryEvent:
+    """What opening or recovering a store had to drop or repair."""
+
+    segment: str
+    action: str
+    frames_kept: int
+    revisions_kept: int
+    dropped_bytes: int
+    detail: str
+
+    def __str__(self) -> str:
+        return (f"{self.segment}: {self.action}: kept {self.frames_kept} frames and {self.revisions_kept} revisions, "
+                f"dropped {self.dropped_bytes} bytes ({self.detail})")
+
+
+def _restrict_revision(revision_json: dict[str, Any], frame_ids: set[int]) -> dict[str, Any]:
+    """A revision's JSON without the poses of frames that were lost (recovery keeps the rest)."""
+    rev = Revision.from_json(revision_json)
+    keep = {k: v for k, v in rev.set_directly.items() if k in frame_ids}
+    prop = {k: v for k, v in rev.propagated.items() if k in frame_ids}
+    if len(keep) == len(rev.set_directly) and len(prop) == len(rev.propagated):
+        return revision_json
+    logger.warning("revision %d: dropping poses of %d lost frames", rev.revision_id,
+                   len(rev.set_directly) + len(rev.propagated) - len(keep) - len(prop))
+    return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns, rev.note, keep, prop, rev.restores).to_json()
+
+
+def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+@dataclass
+class _Segment:
+    name: str
+    state: str
+    bytes: int | None
+    scan: SegmentScan | None = None
+    mm: mmap.mmap | None = None
+
+
+class FrameStore:
+    """Every frame with the pose estimate that produced it, plus every pose revision; nothing overwritten.
+
+    Open with :meth:`create` or :meth:`open`; use as a context manager (or call :meth:`close`) so the
+    writer's segment is finished with an MCAP summary.
+    """
+
+    def __init__(self, path: Path, mode: str, manifest: dict[str, Any], *, fsync: bool = False):
+        self.path = path
+        self.mode = mode
+        self._manifest = manifest
+        self._fsync = fsync
+        self._segments: list[_Segment] = [_Segment(s["name"], s["state"], s.get("bytes")) for s in manifest["segments"]]
+        self._refs: dict[int, StoredFrameRef] = {}
+        self.ledger = PoseLedger()
+        self._writer: SegmentWriter | None = None
+        self._lock_fh: Any = None
+        self.recovery_events: list[RecoveryEvent] = []
+        self._closed = False
+
+    # ------------------------------------------------------------------------------------------ opening
+
+    @classmethod
+    def create(cls, path: str | Path, *, fsync: bool = False) -> FrameStore:
+        """Create a new, empty store directory (it must not exist or be empty) and open it for appending."""
+        path = Path(path)
+        if path.exists() and any(path.iterdir()):
+            raise StoreError(f"{path}: exists and is not empty; open it instead of creating it")
+        path.mkdir(parents=True, exist_ok=True)
+        manifest = {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "store_uuid": uuid.uuid4().hex,
+            "created_ns": time.time_ns(),
+            "driftmap_version": __version__,
+            "segments": [],
+        }
+        _atomic_write_json(path / MANIFEST, manifest)
+        store = cls(path, "a", manifest, fsync=fsync)
+        store._acquire_lock()
+        return store
+
+    @classmethod
+    def open(cls, path: str | Path, mode: str = "r", *, verify: bool = True, fsync: bool = False) -> FrameStore:
+        """Open an existing store for reading (``"r"``) or appending (``"a"``).
+
+        ``verify`` checks every chunk's CRC (reads all bytes once). A segment left open by a writer that
+        crashed is recovered automatically when opening for appending, and read up to its last complete
+        frame when opening for reading (a reader may also follow a live writer this way).
+        """
+        path = Path(path)
+        if mode not in ("r", "a"):
+            raise StoreError(f"mode must be 'r' or 'a', got {mode!r}")
+        manifest = cls._read_manifest(path)
+        store = cls(path, mode, manifest, fsync=fsync)
+        try:
+            if mode == "a":
+                store._acquire_lock()
+            store._load(verify=verify)
+        except BaseException:
+            store._release()
+            raise
+        return store
+
+    @staticmethod
+    def _read_manifest(path: Path) -> dict[str, Any]:
+        file = path / MANIFEST
+        try:
+            manifest = json.loads(file.read_text())
+        except FileNotFoundError as exc:
+            raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
+        except (OSError, json.JSONDecodeError) as exc:
+            raise StoreCorruptError(f"{file}: unreadable manifest ({exc})", path=file, offset=None) from exc
+        if manifest.get("format") != FORMAT_NAME:
+            raise StoreError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}")
+        if manifest.get("version") != FORMAT_VERSION:
+            raise StoreError(f"{file}: store format version {manifest.get('version')} is not supported "
+                             f"(this driftmap reads version {FORMAT_VERSION})")
+        return manifest
+
+    def _acquire_lock(self) -> None:
+        fh = open(self.path / LOCK_FILE, "a+")
+        try:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            fh.close()
+            if exc.errno in (errno.EAGAIN, errno.EACCES):
+                raise StoreError(f"{self.path}: another process is appending to this store") from exc
+            raise
+        fh.seek(0)
+        fh.truncate()
+        fh.write(f"{os.getpid()}\n")
+        fh.flush()
+        self._lock_fh = fh
+
+    def _writer_alive(self) -> bool:
+        """True if some process holds the writer lock (never true for the writer itself)."""
+        lock = self.path / LOCK_FILE
+        if self._lock_fh is not None or not lock.exists():
+            return False
+        with open(lock, "a+") as fh:
+            try:
+                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except OSError:
+                return True
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+        return False
+
+    def _load(self, *, verify: bool) -> None:
+        live_writer = self._writer_alive()
+        for seg in self._segments:
+            file = self.path / seg.name
+            if not file.exists():
+                raise StoreCorruptError(f"{file}: segment listed in the manifest is missing", path=file, offset=None)
+            scan = scan_segment(file, verify=verify)
+            if seg.state == "closed":
+                if seg.bytes is not None and scan.size != seg.bytes:
+                    raise StoreCorruptError(
+                        f"{file}: closed segment is {scan.size} bytes, the manifest says {seg.bytes} "
+                        f"(truncated or appended to at offset {min(scan.size, seg.bytes)}); run `driftmap recover {self.path}`",
+                        path=file, offset=min(scan.size, seg.bytes))
+                if scan.problem or not scan.complete:
+                    raise StoreCorruptError(
+                        f"{file}: damaged at offset {scan.problem_offset}: {scan.problem or 'no end of data'}; "
+                        f"run `driftmap recover {self.path}`", path=file, offset=scan.problem_offset)
+            elif scan.problem and seg is not self._segments[-1]:
+                raise StoreCorruptError(f"{file}: damaged at offset {scan.problem_offset}: {scan.problem}; run "
+                                        f"`driftmap recover {self.path}`", path=file, offset=scan.problem_offset)
+            elif scan.problem and not live_writer:
+                dropped = scan.size - scan.valid_bytes
+                logger.warning("%s: the writer stopped mid-append; %d trailing bytes at offset %d are an unfinished "
+                               "frame and are dropped (%s)", file, dropped, scan.valid_bytes, scan.problem)
+                self.recovery_events.append(RecoveryEvent(seg.name, "crashed writer: unfinished tail dropped",
+                                                          len(scan.frames), len(scan.revisions), dropped, scan.problem))
+            seg.scan = scan
+            self._ingest(scan)
+        if self.mode == "a":
+            self._recover_open_segments()
+
+    def _ingest(self, scan: SegmentScan) -> None:
+        """Add a scanned segment's frames and revisions in file order (revisions refer to earlier frames)."""
+        for ref in scan.frames:
+            if ref.frame_id in self._refs:
+                raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path, offset=ref.payload_offset)
+            self._refs[ref.frame_id] = ref
+            self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]), np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4))
+        for rev in scan.revisions:
+            self.ledger.commit(Revision.from_json(rev))
+
+    def _recover_open_segments(self) -> None:
+        """Rewrite segments left open by a crashed writer into clean, closed segments."""
+        for index, seg in enumerate(self._segments):
+            if seg.state != "open":
+                continue
+            file = self.path / seg.name
+            scan = seg.scan
+            assert scan is not None
+            tmp = file.with_name(file.name + ".recovering")
+            tmp.unlink(missing_ok=True)
+            writer = SegmentWriter(tmp, index, self._manifest["store_uuid"], fsync=True)
+            self._copy_scan_into(scan, writer)
+            size = writer.close()
+            if scan.valid_bytes < scan.size:
+                with open(file, "rb") as src, open(self.path / f"{Path(seg.name).stem}.dropped-tail.bin", "wb") as dst:
+                    src.seek(scan.valid_bytes)
+                    dst.write(src.read())
+            os.replace(tmp, file)
+            seg.state, seg.bytes = "closed", size
+            seg.scan = scan_segment(file, verify=False)
+            self._refs.update({ref.frame_id: ref for ref in seg.scan.frames})
+            self._write_manifest()
+            logger.info("%s: recovered %d frames and %d revisions into a closed segment", file, len(scan.frames), len(scan.revisions))
+            self.recovery_events.append(RecoveryEvent(seg.name, "rewritten as a closed segment", len(scan.frames),
+                                                      len(scan.revisions), scan.size - scan.valid_bytes,
+                                                      scan.problem or "writer did not close the segment"))
+
+    def _copy_scan_into(self, scan: SegmentScan, writer: SegmentWriter) -> None:
+        with open(scan.path, "rb") as fh:
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if scan.size else None
+            try:
+                items: list[tuple[int, str, Any]] = [(r.payload_offset, "frame", r) for r in scan.frames]
+                for rev in scan.revisions:
+                    items.append((-1, "revision", rev))
+                # frames keep their file order; revisions go after the frames they may refer to
+                for _, kind, item in sorted(items, key=lambda x: (x[1] == "revision", x[0])):
+                    if kind == "frame":
+                        writer.append_frame(self._frame_from_ref(item, mm))
+                    else:
+                        writer.append_revision(item, int(item.get("created_ns", 0)))
+            finally:
+                if mm is not None:
+                    mm.close()
+
+    def _write_manifest(self) -> None:
+        self._manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes} for s in self._segments]
+        _atomic_write_json(self.path / MANIFEST, self._manifest)
+
+    @classmethod
+    def recover(cls, path: str | Path) -> list[RecoveryEvent]:
+        """Salvage every intact frame and revision of a damaged store; returns what was done.
+
+        Each damaged segment is rewritten from its intact chunks (damaged chunks are skipped, a truncated
+        tail is cut); the damaged file is kept beside it as ``<name>.damaged``. Frames whose revisions
+        refer to lost frames keep their revision-0 poses. Safe to run on a healthy store (no-op).
+        """
+        path = Path(path)
+        manifest = cls._read_manifest(path)
+        store = cls(path, "a", manifest)
+        store._acquire_lock()
+        events: list[RecoveryEvent] = []
+        try:
+            known_frames: set[int] = set()
+            for index, seg in enumerate(store._segments):
+                file = path / seg.name
+                if not file.exists():
+                    events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0, "file not found"))
+                    seg.state = "missing"
+                    continue
+                scan = scan_segment(file, verify=True, stop_on_error=False)
+                healthy = (seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
+                           and scan.size == seg.bytes)
+                if healthy:
+                    known_frames.update(r.frame_id for r in scan.frames)
+                    continue
+                scan.frames = [r for r in scan.frames if r.frame_id not in known_frames]
+                known_frames.update(r.frame_id for r in scan.frames)
+                scan.revisions = [_restrict_revision(rev, known_frames) for rev in scan.revisions]
+                tmp = file.with_name(file.name + ".recovering")
+                tmp.unlink(missing_ok=True)
+                writer = SegmentWriter(tmp, index, manifest["store_uuid"], fsync=True)
+                store._copy_scan_into(scan, writer)
+                size = writer.close()
+                damaged = file.with_name(file.name + ".damaged")
+                os.replace(file, damaged)
+                os.replace(tmp, file)
+                seg.state, seg.bytes = "closed", size
+                problems = [f"{why} at offset {off}" for off, why in scan.damaged_chunks]
+                if scan.problem:
+                    problems.append(f"{scan.problem} at offset {scan.problem_offset}")
+                events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
+                                            len(scan.frames), len(scan.revisions), scan.size - scan.valid_bytes,
+                                            "; ".join(problems) or "segment was not closed"))
+            store._segments = [s for s in store._segments if s.state != "missing"]
+            store._write_manifest()
+        finally:
+            store._release()
+        for event in events:
+            logger.warning("recover %s: %s", path, event)
+        return events
+
+    # ------------------------------------------------------------------------------------------ frames
+
+    @property
+    def frame_ids(self) -> NDArray[np.int64]:
+        return self.ledger.frame_ids
+
+    def __len__(self) -> int:
+        return self.ledger.n_frames
+
+    def __contains__(self, frame_id: int) -> bool:
+        return frame_id in self.ledger
+
+    def _writable(self) -> SegmentWriter:
+        if self._closed:
+            raise StoreError(f"{self.path}: store is closed")
+        if self.mode != "a":
+            raise StoreError(f"{self.path}: opened read-only; open with mode='a' to append")
+        if self._writer is None:
+            index = len(self._segments)
+            name = f"segment-{index:06d}.mcap"
+            self._segments.append(_Segment(name, "open", None))
+            self._write_manifest()
+            self._writer = SegmentWriter(self.path / name, index, self._manifest["store_uuid"], fsync=self._fsync)
+        return self._writer
+
+    def append(self, frame: Frame) -> None:
+        """Store a frame (sensor-frame points and metadata) with the pose that produced it (revision 0).
+
+        A duplicate ``frame_id`` is rejected before anything is written.
+        """
+        if frame.frame_id in self.ledger:
+            raise StoreError(f"{self.path}: frame {frame.frame_id} is already stored; frame ids must be unique")
+        writer = self._writable()
+        payload_offset, info = writer.append_frame(frame)
+        self.ledger.add_frame(frame.frame_id, frame.stamp_ns, frame.pose.T_world_sensor)
+        self._refs[frame.frame_id] = StoredFrameRef(info, writer.path, payload_offset)
+
+    def frame_info(self, frame_id: int) -> dict[str, Any]:
+        """The stored metadata of a frame (JSON-like dict)."""
+        return self._ref(frame_id).info
+
+    def _ref(self, frame_id: int) -> StoredFrameRef:
+        try:
+            return self._refs[int(frame_id)]
+        except KeyError:
+            raise StoreError(f"{self.path}: no frame {frame_id} in the store") from None
+
+    def _segment_map(self, segment: Path, min_size: int = 0) -> mmap.mmap:
+        """A read-only map of a segment; remapped when the segment has grown past ``min_size``.
+
+        Arrays handed out earlier keep their (older, smaller) mapping alive; nothing is copied.
+        """
+        for seg in self._segments:
+            if self.path / seg.name == segment:
+                if seg.mm is None or len(seg.mm) < min_size:
+                    with open(segment, "rb") as fh:
+                        seg.mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+                return seg.mm
+        raise StoreError(f"{segment}: not a segment of {self.path}")
+
+    def _frame_from_ref(self, ref: StoredFrameRef, mm: mmap.mmap | None) -> Frame:
+        payload = np.frombuffer(iter_payload_bytes(ref, mm), dtype=np.uint8)
+        n, stride = ref.n_points, ref.point_stride
+        if stride == 12:
+            points = payload.view("<f4").reshape(n, 3)
+        else:
+            points = np.ascontiguousarray(payload.reshape(n, stride)[:, :12]).view("<f4").reshape(n, 3)
+        attributes = unpack_attributes(payload, n, stride, ref.info["points"]["fields"])
+        return frame_from_info(ref.info, points, attributes)
+
+    def frame(self, frame_id: int, revision: int | None = None) -> Frame:
+        """A stored frame (points copied out of the store), with its pose in ``revision`` (default 0)."""
+        ref = self._ref(frame_id)
+        frame = self._frame_from_ref(ref, None if ref.payload_copy is not None else self.payload_map(ref))
+        if revision:
+            T = self.ledger.pose(revision, frame.frame_id)
+            rev = self.ledger.revision(revision)
+            frame = frame.with_pose(PoseEstimate(T, revision=revision, source=rev.source, world_frame=frame.pose.world_frame))
+        return frame
+
+    def iter_frames(self, revision: int | None = None) -> Iterator[Frame]:
+        for frame_id in self.frame_ids:
+            yield self.frame(int(frame_id), revision)
+
+    def payload_map(self, ref: StoredFrameRef) -> mmap.mmap:
+        """The mapped segment holding a frame's payload (large enough to contain it)."""
+        return self._segment_map(ref.segment, ref.payload_offset + ref.n_points * ref.point_stride)
+
+    def frame_ref(self, frame_id: int) -> StoredFrameRef:
+        """Where a frame's metadata and point payload live."""
+        return self._ref(frame_id)
+
+    # ------------------------------------------------------------------------------------------ poses
+
+    @property
+    def revisions(self) -> list[Revision]:
+        return self.ledger.revisions
+
+    @property
+    def head(self) -> int:
+        return self.ledger.head
+
+    def poses(self, revision: int | None = None) -> NDArray[np.float64]:
+        """(M, 4, 4) ``T_world_sensor`` of every frame (in ``frame_ids`` order) in a revision (default head)."""
+        return self.ledger.poses(self.head if revision is None else revision)
+
+    def _persist(self, revision: Revision) -> Revision:
+        writer = self._writable()
+        writer.append_revision(revision.to_json(), revision.created_ns)
+        return self.ledger.commit(revision)
+
+    def add_revision(self, poses: Mapping[int, NDArray[np.float64]], *, source: PoseSource | str, parent: int | None = None,
+                     propagate: bool = True, note: str = "") -> Revision:
+        """Store a correction as a new revision. Poses given for a subset of frames (keyframes) propagate to
+        the others when ``propagate`` (see :meth:`PoseLedger.plan_correction`)."""
+        self._writable()
+        revision = self.ledger.plan_correction(poses, source=PoseSource(source), parent=parent, propagate=propagate, note=note)
+        return self._persist(revision)
+
+    def rollback(self, to: int, *, note: str = "") -> Revision:
+        """A new revision whose poses equal revision ``to`` (nothing is deleted)."""
+        self._writable()
+        return self._persist(self.ledger.plan_rollback(to, note=note))
+
+    def diff(self, a: int, b: int) -> PoseDiff:
+        return self.ledger.diff(a, b)
+
+    def import_poses(self, file: str | Path, *, format: TrajectoryFormat | str = TrajectoryFormat.TUM,
+                     match: PoseMatchMode | str | None = None, max_dt_ns: int = 10_000_000,
+                     source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True) -> tuple[Revision, PoseMatch]:
+        """Import a TUM or KITTI pose file as a new revision.
+
+        TUM files match by stamp (``max_dt_ns`` tolerance) unless ``match='index'``; KITTI files match by
+        index: row i is the pose of ``frame_id`` i. Rows for frames not in the store are ignored and
+        reported in the returned :class:`PoseMatch`; stored frames without a row are propagated from the
+        matched ones (``propagate``) or keep their pose.
+        """
+        fmt = TrajectoryFormat(format)
+        mode = PoseMatchMode(match) if match is not None else (PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX)
+        trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
+        matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+        if not matched.poses:
+            raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}); nothing imported")
+        if matched.unmatched_rows:
+            logger.warning("%s: %d rows matched no stored frame and were ignored", file, len(matched.unmatched_rows))
+        if matched.unmatched_frames:
+            logger.warning("%s: %d stored frames had no row (%s)", file, len(matched.unmatched_frames),
+                           "propagated from the matched frames" if propagate else "they keep their poses")
+        revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
+        return revision, matched
+
+    def export_trajectory(self, file: str | Path, *, revision: int | None = None,
+                          format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:
+        """Write the poses of a revision: TUM with the frames' stamps, or KITTI one row per stored frame in
+        frame order."""
+        fmt = TrajectoryFormat(format)
+        poses = self.poses(revision)
+        traj = Trajectory(self.ledger.stamps_ns.copy(), poses, self.ledger.frame_ids.copy())
+        file = Path(file)
+        file.parent.mkdir(parents=True, exist_ok=True)
+        (write_tum if fmt is TrajectoryFormat.TUM else write_kitti)(file, traj)
+        return file
+
+    # ------------------------------------------------------------------------------------------ maps
+
+    def map(self, revision: int | None = None) -> Any:
+        """A :class:`driftmap.map.view.MapView` of this store's frames in ``revision`` (default head)."""
+        from driftmap.map.view import MapView
+
+        return MapView.from_store(self, self.head if revision is None else revision)
+
+    # ------------------------------------------------------------------------------------------ closing
+
+    def size_bytes(self) -> int:
+        return sum((self.path / s.name).stat().st_size for s in self._segments if (self.path / s.name).exists())
+
+    def close(self) -> None:
+        if self._closed:
+            return
+        try:
+            if self._writer is not None:
+                size = self._writer.close()
+                self._segments[-1].state, self._segments[-1].bytes = "closed", size
+                self._writer = None
+                self._write_manifest()
+        finally:
+            self._release()
+            self._closed = True
+
+    def _release(self) -> None:
+        for seg in self._segments:
+            if seg.mm is not None:
+                with contextlib.suppress(BufferError):
+                    seg.mm.close()
+                seg.mm = None
+        if self._lock_fh is not None:
+            fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_UN)
+            self._lock_fh.close()
+            self._lock_fh = None
+
+    def __enter__(self) -> FrameStore:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"FrameStore({str(self.path)!r}, mode={self.mode!r}, frames={len(self)}, revisions={len(self.revisions)})"
+

@@ -1,0 +1,294 @@
+"""The frame store: bit-identical round trips, crash safety, damage detection and recovery, rejection of
+bad appends, and a store Foxglove can read."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from driftmap import Frame, PinholeIntrinsics, PointAttributes, PoseEstimate, PoseSource, StoreError
+from driftmap.preprocess.depth import depth_frame
+from driftmap.sources.synthetic import SyntheticLog
+from driftmap.demo import embedded_log_path
+from driftmap.store.frame_store import FrameStore, StoreCorruptError
+
+K_7SCENES = PinholeIntrinsics(fx=585, fy=585, cx=320, cy=240, width=640, height=480)
+
+
+def sevenscenes_frame(folder: Path, index: int, *, stride_px: int = 1) -> Frame:
+    depth = np.asarray(Image.open(folder / f"frame-{index:06d}.depth.png"))
+    T = np.loadtxt(folder / f"frame-{index:06d}.pose.txt")
+    frame = depth_frame(depth, K_7SCENES, frame_id=index, stamp_ns=index * 33_333_333, depth_scale=1000.0,
+                        min_depth_m=0.2, max_depth_m=4.0, sensor_name="kinect", sensor_frame="kinect_depth_optical",
+                        pose=PoseEstimate(T, source=PoseSource.GROUND_TRUTH))
+    if stride_px > 1:
+        frame = frame.with_points(frame.points_sensor[::stride_px])
+    return frame
+
+
+def assert_frames_identical(a: Frame, b: Frame) -> None:
+    assert a.frame_id == b.frame_id and a.stamp_ns == b.stamp_ns
+    assert a.sensor_name == b.sensor_name and a.sensor_kind == b.sensor_kind
+    assert a.sensor_frame == b.sensor_frame and a.base_frame == b.base_frame
+    assert a.points_sensor.tobytes() == b.points_sensor.tobytes()
+    assert a.T_base_sensor.tobytes() == b.T_base_sensor.tobytes()
+    assert a.pose.T_world_sensor.tobytes() == b.pose.T_world_sensor.tobytes()
+    assert a.pose.revision == b.pose.revision and a.pose.source == b.pose.source
+    assert (a.pose.covariance_6x6 is None) == (b.pose.covariance_6x6 is None)
+    if a.pose.covariance_6x6 is not None:
+        assert a.pose.covariance_6x6.tobytes() == b.pose.covariance_6x6.tobytes()
+    assert a.intrinsics == b.intrinsics and a.depth_scale == b.depth_scale
+    assert a.quality == b.quality or (a.quality.invalid_counts == b.quality.invalid_counts and a.quality.n_valid == b.quality.n_valid)
+    assert a.provenance == b.provenance
+    for name in ("intensity", "color_rgb", "normal_sensor", "time_offset_ns"):
+        x, y = getattr(a.attributes, name), getattr(b.attributes, name)
+        assert (x is None) == (y is None), name
+        if x is not None:
+            assert x.dtype == y.dtype and x.tobytes() == y.tobytes(), name
+
+
+@pytest.fixture(scope="module")
+def synthetic_frames() -> list[Frame]:
+    log = SyntheticLog(embedded_log_path(generate_if_missing=False))
+    return [log.frame(i) for i in range(12)]
+
+
+def with_attributes(frame: Frame, seed: int) -> Frame:
+    rng = np.random.default_rng(seed)
+    n = frame.n_points
+    normals = rng.normal(size=(n, 3)).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    attrs = PointAttributes(
+        intensity=rng.random(n, dtype=np.float32),
+        color_rgb=rng.integers(0, 256, (n, 3), dtype=np.uint8),
+        normal_sensor=normals,
+        time_offset_ns=rng.integers(-50_000_000, 50_000_000, n),
+    )
+    cov = np.diag(rng.random(6) + 0.1)
+    pose = PoseEstimate(frame.T_world_sensor, revision=0, source=PoseSource.ODOMETRY, covariance_6x6=cov)
+    return frame.with_points(frame.points_sensor, attrs).with_pose(pose)
+
+
+def test_round_trip_is_bit_identical(tmp_path: Path, synthetic_frames: list[Frame], sevenscenes_dir: Path) -> None:
+    frames = [with_attributes(synthetic_frames[0], 1), *synthetic_frames[1:4], sevenscenes_frame(sevenscenes_dir, 640)]
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in frames:
+            store.append(f)
+        assert_frames_identical(store.frame(frames[0].frame_id), frames[0])  # readable while writing
+    with FrameStore.open(tmp_path / "s") as store:
+        assert [int(i) for i in store.frame_ids] == sorted(f.frame_id for f in frames)
+        for f in frames:
+            assert_frames_identical(store.frame(f.frame_id), f)
+        assert store.recovery_events == []
+
+
+def test_reopen_and_append_creates_a_new_segment(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in synthetic_frames[:3]:
+            store.append(f)
+    with FrameStore.open(tmp_path / "s", "a") as store:
+        for f in synthetic_frames[3:6]:
+            store.append(f)
+    manifest = json.loads((tmp_path / "s" / "store.json").read_text())
+    assert [s["state"] for s in manifest["segments"]] == ["closed", "closed"]
+    with FrameStore.open(tmp_path / "s") as store:
+        assert len(store) == 6
+        for f in synthetic_frames[:6]:
+            assert_frames_identical(store.frame(f.frame_id), f)
+
+
+def test_bad_appends_are_rejected_and_change_nothing(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:4]:
+            store.append(f)
+        rev = store.add_revision({0: synthetic_frames[0].T_world_sensor @ np.diag([1.0, 1, 1, 1])}, source="loop_closure")
+        assert rev.revision_id == 1
+        size_before = store.size_bytes()
+        with pytest.raises(StoreError, match="frame 2 is already stored"):
+            store.append(synthetic_frames[2])
+        with pytest.raises(StoreError, match="999"):
+            store.add_revision({999: np.eye(4)}, source="external_file")
+        with pytest.raises(StoreError, match="(?i)parent"):
+            store.add_revision({1: np.eye(4)}, source="external_file", parent=7)
+        assert store.size_bytes() == size_before
+        assert len(store.revisions) == 2 and len(store) == 4
+    with FrameStore.open(path) as store:
+        assert len(store.revisions) == 2 and len(store) == 4
+
+
+def test_a_second_writer_is_refused(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    with FrameStore.create(tmp_path / "s") as store:
+        store.append(synthetic_frames[0])
+        with pytest.raises(StoreError, match="another process"):
+            FrameStore.open(tmp_path / "s", "a")
+        # a reader may open while the writer appends, and sees the committed frames
+        with FrameStore.open(tmp_path / "s") as reader:
+            assert [int(i) for i in reader.frame_ids] == [0]
+            assert_frames_identical(reader.frame(0), synthetic_frames[0])
+
+
+WRITER_SCRIPT = textwrap.dedent(
+    """
+    import sys, numpy as np
+    from driftmap import Frame, PoseEstimate, SensorKind
+    from driftmap.store.frame_store import FrameStore
+    path, n = sys.argv[1], int(sys.argv[2])
+    store = FrameStore.create(path)
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        pts = rng.normal(size=(400_000, 3)).astype(np.float32)
+        T = np.eye(4); T[0, 3] = i
+        print(f"begin {i}", flush=True)
+        store.append(Frame(frame_id=i, stamp_ns=i * 1000, sensor_name="lidar", sensor_kind=SensorKind.LIDAR,
+                           points_sensor=pts, pose=PoseEstimate(T)))
+        if i == 2:
+            store.add_revision({0: np.eye(4)}, source="loop_closure")
+    """
+)
+
+
+def _expected_points(i: int) -> np.ndarray:
+    rng = np.random.default_rng(0)
+    for _ in range(i):
+        rng.normal(size=(400_000, 3))
+    return rng.normal(size=(400_000, 3)).astype(np.float32)
+
+
+def test_sigkill_mid_append_loses_at_most_the_frame_in_flight(tmp_path: Path) -> None:
+    path = tmp_path / "s"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER_SCRIPT, str(path), "1000"], stdout=subprocess.PIPE, text=True)
+    started = -1
+    while started < 6:
+        line = proc.stdout.readline()
+        assert line, "writer died early"
+        started = int(line.split()[1])
+    time.sleep(0.004)  # let it get into the middle of writing frame 6 or 7
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    with FrameStore.open(path) as store:  # a reader after the crash: everything committed, the tail dropped
+        ids = [int(i) for i in store.frame_ids]
+        assert ids == list(range(len(ids))) and len(ids) >= 6
+        assert len(store.revisions) == 2
+        for i in (0, len(ids) - 1):
+            assert store.frame(i).points_sensor.tobytes() == _expected_points(i).tobytes()
+    with FrameStore.open(path, "a") as store:  # a writer recovers the segment and appends again
+        assert [int(i) for i in store.frame_ids] == ids
+        store.append(Frame(frame_id=5000, stamp_ns=10**12, sensor_name="lidar", sensor_kind="lidar",
+                           points_sensor=np.ones((10, 3), np.float32), pose=PoseEstimate(np.eye(4))))
+    with FrameStore.open(path) as store:
+        assert len(store) == len(ids) + 1 and len(store.revisions) == 2
+        assert store.frame(ids[-1]).points_sensor.tobytes() == _expected_points(ids[-1]).tobytes()
+        manifest = json.loads((path / "store.json").read_text())
+        assert all(s["state"] == "closed" for s in manifest["segments"])
+
+
+def _crashed_store(path: Path, frames: list[Frame], cut_into_last: int) -> int:
+    """A store whose writer 'died' while writing its last frame: the manifest says open, the file ends
+    ``cut_into_last`` bytes into the last frame's chunk. Returns the size of the intact part."""
+    with FrameStore.create(path) as store:
+        for f in frames[:-1]:
+            store.append(f)
+        intact = store.size_bytes()
+        store.append(frames[-1])
+        seg = path / "segment-000000.mcap"
+        writer = store._writer
+        store._writer = None  # simulate the crash: no summary, manifest left "open"
+        writer.abandon()
+    os.truncate(seg, intact + cut_into_last)
+    manifest = json.loads((path / "store.json").read_text())
+    manifest["segments"][0].update(state="open", bytes=None)
+    (path / "store.json").write_text(json.dumps(manifest))
+    return intact
+
+
+@pytest.mark.parametrize("cut", [5, 200, 60_000])
+def test_crash_tail_is_dropped_and_reported(tmp_path: Path, synthetic_frames: list[Frame], cut: int) -> None:
+    path = tmp_path / "s"
+    intact = _crashed_store(path, synthetic_frames[:5], cut)
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3]
+        assert len(store.recovery_events) == 1 and store.recovery_events[0].dropped_bytes == cut
+    with FrameStore.open(path, "a") as store:
+        store.append(synthetic_frames[4])  # the frame that was in flight can be appended again
+    assert (path / "segment-000000.dropped-tail.bin").stat().st_size == cut
+    with FrameStore.open(path) as store:
+        for f in synthetic_frames[:5]:
+            assert_frames_identical(store.frame(f.frame_id), f)
+    assert intact > 0
+
+
+def test_truncated_closed_segment_is_a_typed_error_and_recoverable(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        cut_at = store._refs[4].payload_offset + 1000  # in the middle of frame 4's points
+    seg = path / "segment-000000.mcap"
+    os.truncate(seg, cut_at)
+    with pytest.raises(StoreCorruptError) as err:
+        FrameStore.open(path)
+    assert err.value.path == seg and err.value.offset is not None and str(seg) in str(err.value)
+    assert "driftmap recover" in str(err.value)
+    events = FrameStore.recover(path)
+    assert len(events) == 1 and events[0].frames_kept == 4
+    assert (path / "segment-000000.mcap.damaged").exists()
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3]
+        for f in synthetic_frames[:4]:
+            assert_frames_identical(store.frame(f.frame_id), f)
+    assert FrameStore.recover(path) == []  # healthy now
+
+
+def test_corrupted_bytes_are_detected_and_only_the_damaged_frame_is_lost(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        damaged_at = store._refs[2].payload_offset + 4096
+    seg = path / "segment-000000.mcap"
+    with open(seg, "r+b") as fh:
+        fh.seek(damaged_at)
+        byte = fh.read(1)
+        fh.seek(damaged_at)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+    with pytest.raises(StoreCorruptError, match="CRC") as err:
+        FrameStore.open(path)
+    assert err.value.path == seg and err.value.offset is not None and err.value.offset <= damaged_at
+    events = FrameStore.recover(path)
+    assert events[0].frames_kept == 5
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 3, 4, 5]
+        assert_frames_identical(store.frame(5), synthetic_frames[5])
+
+
+def test_store_opens_in_a_generic_mcap_reader(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """The store's segments are standard MCAP with Foxglove schemas (what Foxglove reads)."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in synthetic_frames[:2]:
+            store.append(f)
+    with open(tmp_path / "s" / "segment-000000.mcap", "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        summary = reader.get_summary()
+        schemas = {s.name for s in summary.schemas.values()}
+        assert {"foxglove.PointCloud", "foxglove.FrameTransform"} <= schemas
+        clouds = [(m.log_time, d) for s, c, m, d in reader.iter_decoded_messages(topics=["/driftmap/depth_camera/points"])]
+    assert len(clouds) == 2
+    stamp, cloud = clouds[1]
+    assert stamp == synthetic_frames[1].stamp_ns
+    pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
+    np.testing.assert_array_equal(pts, synthetic_frames[1].points_sensor)
+    assert [f.name for f in cloud.fields] == ["x", "y", "z"]
