@@ -7,6 +7,7 @@ code 1; ``--debug`` shows the traceback and debug logs.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Annotated, Optional
@@ -28,7 +29,9 @@ app = typer.Typer(
     pretty_exceptions_enable=False,
     add_completion=False,
 )
-console = Console()
+# piped output (logs, other tools) gets wide tables instead of rich's 80-column default
+_PIPE_WIDTH = None if sys.stdout.isatty() else int(os.environ.get("COLUMNS", "160"))
+console = Console(width=_PIPE_WIDTH)
 err_console = Console(stderr=True)
 
 _state = {"debug": False}
@@ -155,7 +158,8 @@ def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="
     with _open_store(store_path) as store:
         table = Table(title=f"pose revisions of {store_path}")
         for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
-            table.add_column(col, justify="right" if col not in ("source", "note", "created") else "left")
+            table.add_column(col, justify="right" if col not in ("source", "note", "created") else "left",
+                             no_wrap=col != "note")
         for rev in store.revisions:
             if rev.parent_id is None:
                 table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")

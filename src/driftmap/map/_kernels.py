@@ -8,8 +8,14 @@ store segments.
 
 from __future__ import annotations
 
+import os
+
 import numba
 import numpy as np
+
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    # numba's own work queue is always available (the TBB layer warns about old TBB builds)
+    numba.config.THREADING_LAYER = "workqueue"
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)

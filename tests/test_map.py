@@ -1,0 +1,249 @@
+"""The map view: exact incremental re-transforms after corrections and rollbacks, changed regions, queries,
+fused export with provenance, and the store CLI round trip."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
+
+from driftmap import Frame, PointAttributes, geometry
+from driftmap.map.view import MapView
+from driftmap.preprocess.cloud import BoxROI
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+
+from test_store import sevenscenes_frame
+
+FRAME_IDS = list(range(0, 1000, 50))  # 20 real frames spread over the loop
+
+
+@pytest.fixture(scope="module")
+def kitchen_frames(sevenscenes_dir: Path) -> list[Frame]:
+    return [sevenscenes_frame(sevenscenes_dir, i, stride_px=5) for i in FRAME_IDS]
+
+
+@pytest.fixture()
+def kitchen_store(tmp_path: Path, kitchen_frames: list[Frame]) -> FrameStore:
+    store = FrameStore.create(tmp_path / "kitchen")
+    for f in kitchen_frames:
+        store.append(f)
+    yield store
+    store.close()
+
+
+def perturbation(seed: int, n: int, scale: float) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    out = np.tile(np.eye(4), (n, 1, 1))
+    out[:, :3, :3] = Rotation.from_rotvec(rng.normal(scale=scale, size=(n, 3))).as_matrix()
+    out[:, :3, 3] = rng.normal(scale=scale, size=(n, 3))
+    return out
+
+
+def reference_map(frames: list[Frame], poses: np.ndarray) -> np.ndarray:
+    """From scratch, in plain numpy float64: every frame transformed with its final pose."""
+    return np.concatenate([geometry.transform_points(T, f.points_sensor) for f, T in zip(frames, poses)])
+
+
+def test_map_is_exact_after_a_chain_of_corrections_and_a_rollback(kitchen_store: FrameStore, kitchen_frames: list[Frame]) -> None:
+    store = kitchen_store
+    view = store.map()
+    np.testing.assert_allclose(view.points_world, reference_map(kitchen_frames, store.poses(0)), atol=1e-6, rtol=0)
+    gt = store.poses(0)
+    ids = [int(i) for i in store.frame_ids]
+    # 1: every frame moved by its own small error; 2: keyframes only, propagated; 3: a subset, not propagated
+    rev1 = store.add_revision({i: gt[k] @ P for k, (i, P) in enumerate(zip(ids, perturbation(1, len(ids), 0.02)))}, source="external_file")
+    key = ids[::4]
+    rev2 = store.add_revision({i: perturbation(2, 1, 0.05)[0] @ store.poses()[ids.index(i)] for i in key}, source="loop_closure")
+    rev3 = store.add_revision({ids[3]: gt[3], ids[7]: gt[7]}, source="external_file", propagate=False)
+    back = store.rollback(to=rev1.revision_id)
+    rev5 = store.add_revision({ids[0]: gt[0] @ perturbation(5, 1, 0.01)[0]}, source="loop_closure")
+    for rev in (rev1, rev2, rev3, back, rev5):
+        view.apply(rev.revision_id)
+        expected = reference_map(kitchen_frames, store.poses(rev.revision_id))
+        assert np.max(np.abs(view.points_world - expected)) <= 1e-6
+    # the rollback restored revision 1 bit for bit, and a view built from scratch equals the incremental one
+    assert store.poses(back.revision_id).tobytes() == store.poses(rev1.revision_id).tobytes()
+    fresh = store.map(rev5.revision_id)
+    assert fresh.points_world.tobytes() == view.points_world.tobytes()
+
+
+def test_changed_regions_contain_exactly_the_moved_points(kitchen_store: FrameStore) -> None:
+    store = kitchen_store
+    view = store.map()
+    before = view.points_world.copy()
+    owner = view.point_frame_ids()
+    ids = [int(i) for i in store.frame_ids]
+    moved_ids = ids[5:8]
+    rev = store.add_revision({i: perturbation(9, 1, 0.03)[0] @ store.poses()[ids.index(i)] for i in moved_ids},
+                             source="external_file", propagate=False)
+    changes = view.apply(rev.revision_id, voxel_size_m=0.05)
+    assert sorted(changes.frame_ids.tolist()) == moved_ids
+    after = view.points_world
+    moved_mask = np.isin(owner, moved_ids)
+    assert np.array_equal(before[~moved_mask], after[~moved_mask]), "frames that did not move must not change"
+    assert np.all(np.any(before[moved_mask] != after[moved_mask], axis=1).mean() > 0.99)
+    for change in changes.changes:
+        sel = owner == change.frame_id
+        lo, hi = change.box_before_m
+        assert np.all((before[sel] >= lo) & (before[sel] <= hi))
+        assert np.allclose(before[sel].min(0), lo) and np.allclose(before[sel].max(0), hi)
+        lo, hi = change.box_after_m
+        assert np.all((after[sel] >= lo) & (after[sel] <= hi))
+        keys_before = {tuple(k) for k in np.floor(before[sel] / 0.05).astype(np.int64)}
+        keys_after = {tuple(k) for k in np.floor(after[sel] / 0.05).astype(np.int64)}
+        assert {tuple(k) for k in change.voxels_before} == keys_before
+        assert {tuple(k) for k in change.voxels_after} == keys_after
+        assert change.translation_m > 0
+    # since the previous revision, the same frames changed; their old region holds the old points
+    since = view.changed_since(rev.parent_id)
+    assert sorted(since.frame_ids.tolist()) == moved_ids
+    for change in since.changes:
+        sel = owner == change.frame_id
+        lo, hi = change.box_before_m
+        assert np.all((before[sel] >= lo - 1e-5) & (before[sel] <= hi + 1e-5))
+
+
+def test_incremental_apply_touches_only_changed_frames(kitchen_store: FrameStore) -> None:
+    store = kitchen_store
+    view = store.map()
+    rev = store.add_revision({int(store.frame_ids[0]): np.eye(4)}, source="external_file", propagate=False)
+    changes = view.apply(rev.revision_id)
+    assert changes.frame_ids.tolist() == [int(store.frame_ids[0])]
+    assert view.apply(rev.revision_id).changes == []  # nothing left to do
+
+
+def test_queries_agree_with_brute_force(kitchen_store: FrameStore) -> None:
+    view = kitchen_store.map()
+    pts = view.points_world.astype(np.float64)
+    owner = view.point_frame_ids()
+    center = pts[12345]
+    lo, hi = center - [0.3, 0.2, 0.1], center + [0.2, 0.3, 0.4]
+    box = view.query_box(lo, hi)
+    mask = np.all((pts >= lo) & (pts <= hi), axis=1)
+    assert len(box.points_world) == mask.sum() > 0
+    assert sorted(map(tuple, box.points_world.tolist())) == sorted(map(tuple, pts[mask].astype(np.float32).tolist()))
+    assert np.array_equal(np.sort(box.frame_ids), np.sort(owner[mask]))
+    ball = view.query_radius(center, 0.15)
+    assert len(ball.points_world) == int(np.sum(np.linalg.norm(pts - center, axis=1) <= 0.15))
+    tree = cKDTree(pts)
+    for q in (center + [0.05, 0.0, 0.02], [10.0, 10.0, 10.0], pts[-1] + 0.3):
+        d, i = tree.query(q)
+        near = view.nearest(q)
+        assert near.distance_m == pytest.approx(d, abs=1e-9)
+        assert np.allclose(near.point_world, pts[i])
+
+
+def test_fused_export_with_provenance_and_roi(kitchen_store: FrameStore, tmp_path: Path) -> None:
+    view = kitchen_store.map()
+    pts = view.points_world
+    owner = view.point_frame_ids()
+    roi = BoxROI(min_m=tuple(pts[500] - 0.1), max_m=tuple(pts[500] + 0.1), in_world=True)
+    fused = view.fused(0.05, roi)
+    in_roi = roi.contains(pts.astype(np.float64))
+    assert fused.n_roi_points == int(in_roi.sum()) > 0
+    # ROI points are kept verbatim, the rest is one centroid per occupied voxel
+    rest = pts[~in_roi]
+    keys = np.floor(rest / 0.05).astype(np.int64)
+    uniq = np.unique(keys, axis=0)
+    assert len(fused.points_world) == len(uniq) + fused.n_roi_points
+    np.testing.assert_array_equal(fused.points_world[-fused.n_roi_points:], pts[in_roi])
+    # provenance of a voxel = the set of frames that had a point in it; centroid = mean of its points
+    f_keys = np.floor(fused.points_world[: len(uniq)] / 0.05).astype(np.int64)
+    rest_owner = owner[~in_roi]
+    for i in np.random.default_rng(0).choice(len(uniq), 50, replace=False):
+        sel = np.all(keys == f_keys[i], axis=1)
+        assert sorted(fused.frames_of(i).tolist()) == sorted(set(rest_owner[sel].tolist()))
+        np.testing.assert_allclose(fused.points_world[i], rest[sel].astype(np.float64).mean(0), atol=1e-6)
+    assert fused.n_frames_per_point().max() > 1  # overlapping frames share voxels
+    for suffix in (".ply", ".pcd"):
+        out = view.export(tmp_path / f"map{suffix}", voxel_size_m=0.05, provenance=True)
+        read = np.asarray(o3d.io.read_point_cloud(str(out)).points)
+        np.testing.assert_allclose(read, view.fused(0.05).points_world, atol=1e-6)
+        assert Path(str(out) + ".provenance.npz").exists()
+    full = view.export(tmp_path / "full.ply")
+    np.testing.assert_allclose(np.asarray(o3d.io.read_point_cloud(str(full)).points), pts, atol=1e-6)
+
+
+def test_strided_sources_with_attributes_transform_exactly(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    f = kitchen_frames[0]
+    rng = np.random.default_rng(3)
+    g = f.with_points(f.points_sensor, PointAttributes(intensity=rng.random(f.n_points, dtype=np.float32),
+                                                       time_offset_ns=rng.integers(0, 10**6, f.n_points)))
+    with FrameStore.create(tmp_path / "s") as store:
+        store.append(g)
+        view = store.map()
+        assert store.frame_ref(g.frame_id).point_stride > 12
+        np.testing.assert_allclose(view.points_world, geometry.transform_points(g.T_world_sensor, g.points_sensor), atol=1e-6)
+
+
+def test_map_from_frames_without_a_store(kitchen_frames: list[Frame]) -> None:
+    view = MapView.from_frames(kitchen_frames[:3])
+    np.testing.assert_allclose(view.points_world, reference_map(kitchen_frames[:3], [f.T_world_sensor for f in kitchen_frames[:3]]), atol=1e-6)
+    new = np.array([f.T_world_sensor for f in kitchen_frames[:3]])
+    new[1, 0, 3] += 0.5
+    changes = view.apply(1, poses=new)
+    assert changes.frame_ids.tolist() == [kitchen_frames[1].frame_id]
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env=env)
+
+
+def test_cli_round_trip_tum_correct_export(kitchen_store: FrameStore, tmp_path: Path) -> None:
+    path = kitchen_store.path
+    kitchen_store.close()
+    out0 = tmp_path / "rev0.txt"
+    assert _cli("export", path, "--trajectory", out0, "--format", "tum").returncode == 0
+    traj = read_tum(out0)
+    np.testing.assert_allclose(traj.poses, FrameStore.open(path).poses(0), atol=1e-8)
+    # a corrected trajectory for every other frame (keyframes), written as a TUM file
+    corrected = traj.poses @ perturbation(4, len(traj), 0.01)
+    keep = np.arange(len(traj)) % 2 == 0
+    write_tum(tmp_path / "fix.txt", Trajectory(traj.stamps_ns[keep], corrected[keep]))
+    result = _cli("correct", path, "--poses", tmp_path / "fix.txt", "--format", "tum", "--match", "stamp")
+    assert result.returncode == 0, result.stderr
+    assert "revision 1" in result.stdout
+    out1 = tmp_path / "rev1.txt"
+    assert _cli("export", path, "--trajectory", out1).returncode == 0
+    exported = read_tum(out1)
+    np.testing.assert_allclose(exported.poses[keep], corrected[keep], atol=1e-8)  # set directly
+    assert not np.allclose(exported.poses[~keep], traj.poses[~keep], atol=1e-6)  # propagated, not left behind
+    table = _cli("revisions", path)
+    assert table.returncode == 0 and "external_file" in table.stdout
+    assert _cli("rollback", path, "--to", "0").returncode == 0
+    assert _cli("export", path, "--trajectory", tmp_path / "rev2.txt").returncode == 0
+    np.testing.assert_array_equal(read_tum(tmp_path / "rev2.txt").poses, traj.poses)
+    ply = tmp_path / "map.ply"
+    result = _cli("export", path, "--revision", "1", "--map", ply, "--voxel-size-m", "0.05")
+    assert result.returncode == 0, result.stderr
+    assert len(o3d.io.read_point_cloud(str(ply)).points) > 1000
+    bad = _cli("correct", path, "--poses", tmp_path / "missing.txt")
+    assert bad.returncode == 1 and bad.stderr.strip().splitlines()[-1].startswith("error:")
+
+
+def test_kitti_import_by_index_with_a_sliced_store(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    """Row i of a KITTI file is the pose of frame_id i: a full-length file works for a sliced store."""
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in kitchen_frames[:4]:  # frame ids 0, 50, 100, 150
+            store.append(f)
+        full = np.tile(np.eye(4), (200, 1, 1))
+        full[:, 0, 3] = np.arange(200) * 0.01
+        write_kitti(tmp_path / "poses.txt", Trajectory(np.arange(200), full))
+        rev, matched = store.import_poses(tmp_path / "poses.txt", format="kitti")
+        assert len(matched.unmatched_rows) == 196
+        for fid in (0, 50, 100, 150):
+            np.testing.assert_allclose(store.ledger.pose(rev.revision_id, fid), full[fid], atol=1e-12)
+        store.export_trajectory(tmp_path / "out.txt", format="kitti")
+    out = read_kitti(tmp_path / "out.txt")
+    assert len(out) == 4  # one row per stored frame, in frame order
+    np.testing.assert_allclose(out.poses, full[[0, 50, 100, 150]], atol=1e-9)
