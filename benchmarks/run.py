@@ -36,10 +36,15 @@ def discover() -> list[str]:
     return sorted(p.stem for p in HERE.glob("bench_*.py"))
 
 
+def value(measure: dict) -> float:
+    """A measurement's median: seconds (``median_s``) or bytes (``median_bytes``, memory benchmarks)."""
+    return measure["median_s"] if "median_s" in measure else measure["median_bytes"]
+
+
 def score(bench: dict) -> dict:
-    """Add the anchor (fastest one), ratio ours/anchor and PASS/MISS against the target."""
-    anchor = min(bench["anchors"], key=lambda name: bench["anchors"][name]["median_s"])
-    ratio = bench["ours"]["median_s"] / bench["anchors"][anchor]["median_s"]
+    """Add the anchor (smallest one), ratio ours/anchor and PASS/MISS against the target."""
+    anchor = min(bench["anchors"], key=lambda name: value(bench["anchors"][name]))
+    ratio = value(bench["ours"]) / value(bench["anchors"][anchor])
     return {**bench, "anchor": anchor, "ratio": ratio, "passed": ratio <= bench["target_ratio"]}
 
 
@@ -71,21 +76,25 @@ def fmt_time(seconds: float) -> str:
     return f"{seconds * 1e3:.3f} ms" if seconds >= 1e-3 else f"{seconds * 1e6:.1f} µs"
 
 
+def fmt(measure: dict) -> str:
+    return fmt_time(measure["median_s"]) if "median_s" in measure else f"{measure['median_bytes'] / 2**20:.1f} MiB"
+
+
 def print_report(console: Console, results: list[dict], errors: list[dict]) -> None:
-    table = Table(title="driftmap benchmarks (median per item; ratio = ours / anchor, lower is better)")
+    table = Table(title="driftmap benchmarks (median per item, or memory; ratio = ours / anchor, lower is better)")
     for column in ("benchmark", "ours", "anchor", "anchor time", "ratio", "target", "result"):
         justify = "right" if column in ("ours", "anchor time", "ratio") else "left"
         table.add_column(column, justify=justify, no_wrap=True)
     for bench in results:
-        for k, (name, timing) in enumerate(sorted(bench["anchors"].items(), key=lambda kv: kv[1]["median_s"])):
-            ratio = bench["ours"]["median_s"] / timing["median_s"]
+        for k, (name, timing) in enumerate(sorted(bench["anchors"].items(), key=lambda kv: value(kv[1]))):
+            ratio = value(bench["ours"]) / value(timing)
             is_target = name == bench["anchor"]
             result = ("[green]PASS" if bench["passed"] else "[yellow]MISS") if is_target else ""
             table.add_row(
                 bench["name"] if k == 0 else "",
-                fmt_time(bench["ours"]["median_s"]) if k == 0 else "",
+                fmt(bench["ours"]) if k == 0 else "",
                 name + (" (target)" if is_target else ""),
-                fmt_time(timing["median_s"]),
+                fmt(timing),
                 f"{ratio:.2f}x",
                 f"<= {bench['target_ratio']:g}x" if is_target else "",
                 result,
@@ -96,8 +105,8 @@ def print_report(console: Console, results: list[dict], errors: list[dict]) -> N
     for bench in results:
         console.print(f"[bold]{bench['name']}[/]: {bench['description']}")
         console.print(f"  check OK: {bench['check']}")
-        faults = {"ours": bench["ours"]["page_faults_per_item"]}
-        faults |= {name: t["page_faults_per_item"] for name, t in bench["anchors"].items()}
+        faults = {"ours": bench["ours"].get("page_faults_per_item", 0)}
+        faults |= {name: t.get("page_faults_per_item", 0) for name, t in bench["anchors"].items()}
         if any(v >= 1 for v in faults.values()):
             listed = ", ".join(f"{k} {v:.0f}" for k, v in faults.items())
             console.print(f"  [yellow]page faults per item while timing (allocator churn is in the times): {listed}")

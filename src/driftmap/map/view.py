@@ -34,7 +34,7 @@ logger = logging.getLogger(__name__)
 #: Poses whose 4x4 matrices differ by no more than this (max abs entry) count as unchanged.
 POSE_EPSILON = 1e-12
 #: Mapped sensor pages are released after every this many bytes of re-transformed payload.
-RELEASE_WINDOW_BYTES = 64 << 20
+RELEASE_WINDOW_BYTES = 8 << 20
 _PAGE = mmap.PAGESIZE
 
 
@@ -265,15 +265,26 @@ class MapView:
                 cut = np.searchsorted(np.cumsum(nbytes), np.arange(1, 1 + int(nbytes.sum()) // RELEASE_WINDOW_BYTES) * RELEASE_WINDOW_BYTES)
                 batches = [s for s in np.split(sel, np.unique(cut)) if s.size]
             for batch in batches:
+                ranges = self._page_ranges(batch) if buffer.mm is not None and self._release_pages else []
                 boxes = np.empty((batch.size, 6), np.float32)
                 transform_frames(buffer.flat, self._start[batch], self._stride[batch], self._count[batch],
                                  np.ascontiguousarray(self._T[batch]), self._world, self._offsets[batch], boxes)
                 self._boxes[batch] = boxes
-                if buffer.mm is not None and self._release_pages:
-                    first = int(self._start[batch].min()) * 4
-                    last = int((self._start[batch] + self._count[batch] * self._stride[batch]).max()) * 4
-                    lo = first - first % _PAGE
-                    buffer.mm.madvise(mmap.MADV_DONTNEED, lo, min(last, len(buffer.mm)) - lo)
+                for lo, span in ranges:
+                    buffer.mm.madvise(mmap.MADV_DONTNEED, lo, span)
+
+    def _page_ranges(self, rows: NDArray[np.int64]) -> list[tuple[int, int]]:
+        """Page-aligned byte ranges covering the payloads of ``rows`` (sorted by start), merged when adjacent."""
+        first = self._start[rows] * 4
+        last = (self._start[rows] + self._count[rows] * self._stride[rows]) * 4
+        ranges: list[tuple[int, int]] = []
+        for a, b in zip(first - first % _PAGE, last):
+            if ranges and a <= ranges[-1][0] + ranges[-1][1]:
+                lo = ranges[-1][0]
+                ranges[-1] = (lo, max(ranges[-1][1], int(b) - lo))
+            else:
+                ranges.append((int(a), int(b) - int(a)))
+        return ranges
 
     def apply(self, revision: int, *, voxel_size_m: float | None = None, poses: NDArray[np.float64] | None = None) -> ChangeSet:
         """Move the map to ``revision``: re-transform only the frames whose pose changed.
