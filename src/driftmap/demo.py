@@ -87,7 +87,7 @@ def run_demo(
     monitor = InvalidFractionMonitor()
     frames: list[Frame] = []
     for i in range(n):
-        frames.append(log.frame(i, monitor))
+        frames.append(log.depth_frame(i, monitor))
         if progress:
             progress(i + 1, n)
     gt = log.ground_truth()

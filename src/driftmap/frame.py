@@ -34,6 +34,8 @@ class SensorKind(enum.Enum):
 class PoseSource(enum.Enum):
     """Where a pose estimate came from (also used for ledger revisions)."""
 
+    NONE = "none"
+    """No estimate yet (the source had none): odometry or ``--poses`` must provide one."""
     ODOMETRY = "odometry"
     LOG = "log"
     GROUND_TRUTH = "ground_truth"

@@ -24,8 +24,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from collections.abc import Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -38,6 +37,7 @@ from driftmap import geometry
 from driftmap.errors import SourceError
 from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
+from driftmap.sources.base import FrameSource, register_source
 from driftmap.trajectory import Trajectory, read_tum, write_tum
 
 logger = logging.getLogger(__name__)
@@ -282,20 +282,24 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
     return out
 
 
-@dataclass
-class SyntheticLog:
+class SyntheticLog(FrameSource):
     """Reader for a synthetic log folder: frames carry the drifting odometry as their pose estimate.
 
     Ground truth is available separately through :meth:`ground_truth` and is never used as the estimate.
+    ``sensor="lidar"`` yields the LiDAR scans instead (logs generated with ``lidar=True``).
     """
 
-    path: Path
-    min_depth_m: float = 0.3
-    max_depth_m: float = 8.0
-    meta: dict = field(init=False, repr=False)
+    format_name = "synthetic"
 
-    def __post_init__(self) -> None:
-        self.path = Path(self.path)
+    def __init__(self, path: str | Path, *, min_depth_m: float = 0.3, max_depth_m: float = 8.0, sensor: str = "depth",
+                 frames: str | slice | None = None, lenient: bool = False):
+        super().__init__(str(path), frames=frames, lenient=lenient)
+        self.path = Path(path)
+        self.min_depth_m = min_depth_m
+        self.max_depth_m = max_depth_m
+        if sensor not in ("depth", "lidar"):
+            raise SourceError(f"{self.path}: sensor must be 'depth' or 'lidar', got {sensor!r}")
+        self.sensor = sensor
         meta_file = self.path / METADATA_FILE
         try:
             self.meta = json.loads(meta_file.read_text())
@@ -314,12 +318,19 @@ class SyntheticLog:
             raise SourceError(
                 f"{self.path / self.meta['odometry']}: {len(self._odometry)} poses for {len(self.meta['frames'])} frames"
             )
+        self._monitor = InvalidFractionMonitor()
 
-    def __len__(self) -> int:
+    def _count(self) -> int:
         return len(self.meta["frames"])
 
-    def frame_ids(self) -> list[int]:
-        return [int(f["frame_id"]) for f in self.meta["frames"]]
+    def _frame_id(self, index: int) -> int:
+        return int(self.meta["frames"][index]["frame_id"])
+
+    def _stamp_ns(self, index: int) -> int:
+        return int(self.meta["frames"][index]["stamp_ns"])
+
+    def _load(self, index: int) -> Frame:
+        return self.lidar_frame(index) if self.sensor == "lidar" else self.depth_frame(index, self._monitor)
 
     def read_depth(self, index: int) -> NDArray[np.uint16]:
         entry = self.meta["frames"][index]
@@ -329,7 +340,8 @@ class SyntheticLog:
         except OSError as exc:
             raise SourceError(f"{file}: cannot read depth image of frame {entry['frame_id']} ({exc})") from exc
 
-    def frame(self, index: int, monitor: InvalidFractionMonitor | None = None) -> Frame:
+    def depth_frame(self, index: int, monitor: InvalidFractionMonitor | None = None) -> Frame:
+        """The depth frame at underlying ``index`` (validated and back-projected)."""
         entry = self.meta["frames"][index]
         pose = PoseEstimate(self._odometry.poses[index], revision=0, source=PoseSource.ODOMETRY)
         return depth_frame(
@@ -347,11 +359,6 @@ class SyntheticLog:
             provenance=Provenance(str((self.path / entry["depth"]).resolve()), index),
             monitor=monitor,
         )
-
-    def __iter__(self) -> Iterator[Frame]:
-        monitor = InvalidFractionMonitor()
-        for i in range(len(self)):
-            yield self.frame(i, monitor)
 
     def lidar_frame(self, index: int) -> Frame:
         """The LiDAR scan of frame ``index`` (only in logs generated with ``lidar=True``)."""
@@ -381,5 +388,14 @@ class SyntheticLog:
         return self._odometry
 
     def ground_truth(self) -> Trajectory:
-        """Ground-truth ``T_world_sensor`` of the depth camera (for evaluation only)."""
-        return read_tum(self.path / self.meta["ground_truth"])
+        """Ground-truth ``T_world_sensor`` of the depth camera (for evaluation only), all frames."""
+        gt = read_tum(self.path / self.meta["ground_truth"])
+        ids = np.array([int(f["frame_id"]) for f in self.meta["frames"]], dtype=np.int64)
+        return Trajectory(gt.stamps_ns, gt.poses, ids)
+
+
+def _detect(path: Path) -> bool:
+    return (path / METADATA_FILE).is_file()
+
+
+register_source("synthetic", _detect, SyntheticLog, "driftmap's synthetic drifting-robot log (synthetic.json + depth/)")

@@ -1,0 +1,197 @@
+"""The frame-source contract and the format registry.
+
+A :class:`FrameSource` yields :class:`~driftmap.Frame` objects in time order, says how many it has when
+it knows, and gives random access by index (and by time range) where the format allows. ``frame_id`` is
+the data set's own frame number where it has one (7-Scenes ``frame-000640`` -> 640, KITTI ``000007.bin``
+-> 7), also after slicing; otherwise the message index in the log. Ground truth, when a data set has it,
+is only available through :meth:`FrameSource.ground_truth` and is never used as a frame's estimate.
+
+Formats register themselves with :func:`register_source`; :func:`open_source` picks one from the path
+and contents (or ``format=``) and names every format it tried when none fits.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from driftmap.errors import SourceError
+from driftmap.frame import Frame
+from driftmap.trajectory import Trajectory
+
+logger = logging.getLogger(__name__)
+
+
+def parse_frame_slice(spec: str | slice | None) -> slice | None:
+    """``"START:STOP[:STEP]"`` (any part may be empty) -> ``slice``; ``None`` stays ``None``."""
+    if spec is None or isinstance(spec, slice):
+        return spec
+    parts = spec.split(":")
+    if not 1 <= len(parts) <= 3:
+        raise SourceError(f"--frames {spec!r}: expected START:STOP[:STEP]")
+    try:
+        values = [int(p) if p.strip() else None for p in parts]
+    except ValueError as exc:
+        raise SourceError(f"--frames {spec!r}: START, STOP and STEP must be integers") from exc
+    if len(values) == 1:  # "N" means just frame index N
+        return slice(values[0], values[0] + 1 if values[0] is not None else None)
+    if len(values) == 3 and values[2] is not None and values[2] <= 0:
+        raise SourceError(f"--frames {spec!r}: STEP must be positive")
+    return slice(*values)
+
+
+class FrameSource:
+    """Base class of every source. Subclasses implement ``_count``, ``_load(i)`` and ``_frame_id(i)`` over
+    their *underlying* indices; slicing, iteration, time ranges and ids are handled here.
+
+    ``lenient``: a frame that cannot be read is skipped with a logged reason instead of raising.
+    """
+
+    format_name: str = "?"
+
+    def __init__(self, uri: str, *, frames: str | slice | None = None, lenient: bool = False):
+        self.uri = uri
+        self.lenient = lenient
+        self._selection: slice | None = parse_frame_slice(frames)
+        self.skipped: list[tuple[int, str]] = []
+        """(underlying index, reason) of frames skipped in lenient mode."""
+
+    # ---- to implement
+    def _count(self) -> int | None:
+        raise NotImplementedError
+
+    def _load(self, index: int) -> Frame:
+        raise NotImplementedError
+
+    def _frame_id(self, index: int) -> int:
+        return index
+
+    def _stamp_ns(self, index: int) -> int | None:
+        """Stamp without loading the frame, if the format knows it cheaply (enables time ranges)."""
+        return None
+
+    # ---- provided
+    def _indices(self) -> range:
+        n = self._count()
+        if n is None:
+            raise SourceError(f"{self.uri}: the number of frames is unknown for this {self.format_name} source")
+        return range(n)[self._selection] if self._selection is not None else range(n)
+
+    def __len__(self) -> int:
+        return len(self._indices())
+
+    def frame_ids(self) -> list[int]:
+        return [self._frame_id(i) for i in self._indices()]
+
+    def frame(self, index: int) -> Frame:
+        """The ``index``-th frame of this (possibly sliced) source."""
+        indices = self._indices()
+        try:
+            underlying = indices[index]
+        except IndexError:
+            raise SourceError(f"{self.uri}: frame index {index} out of range (0..{len(indices) - 1})") from None
+        return self._load(underlying)
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in self._indices():
+            try:
+                yield self._load(i)
+            except SourceError as exc:
+                if not self.lenient:
+                    raise
+                logger.warning("%s: skipping frame at index %d: %s", self.uri, i, exc)
+                self.skipped.append((i, str(exc)))
+
+    def between(self, start_ns: int | None = None, end_ns: int | None = None) -> Iterator[Frame]:
+        """Frames with ``start_ns <= stamp_ns < end_ns`` (uses cheap stamps when the format has them)."""
+        for i in self._indices():
+            stamp = self._stamp_ns(i)
+            if stamp is not None and ((start_ns is not None and stamp < start_ns) or (end_ns is not None and stamp >= end_ns)):
+                continue
+            frame = self._load(i)
+            if (start_ns is None or frame.stamp_ns >= start_ns) and (end_ns is None or frame.stamp_ns < end_ns):
+                yield frame
+
+    def ground_truth(self) -> Trajectory | None:
+        """Ground-truth ``T_world_sensor`` per frame (``frame_ids`` set), if the data set has it."""
+        return None
+
+    def describe(self) -> dict[str, Any]:
+        n = self._count()
+        return {"format": self.format_name, "uri": self.uri, "frames": None if n is None else len(self)}
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.uri!r})"
+
+
+@dataclass(frozen=True)
+class SourceFormat:
+    name: str
+    detect: Callable[[Path], bool]
+    open: Callable[..., FrameSource]
+    description: str
+
+
+_REGISTRY: dict[str, SourceFormat] = {}
+
+
+def register_source(name: str, detect: Callable[[Path], bool], opener: Callable[..., FrameSource], description: str) -> None:
+    """Register a format: ``detect(path)`` must be cheap and never raise; ``opener(path, **options)``."""
+    _REGISTRY[name] = SourceFormat(name, detect, opener, description)
+
+
+def registered_formats() -> dict[str, SourceFormat]:
+    _load_builtin_formats()
+    return dict(_REGISTRY)
+
+
+def _load_builtin_formats() -> None:
+    import importlib
+
+    for module in _BUILTIN_MODULES:
+        try:
+            importlib.import_module(module)
+        except ModuleNotFoundError as exc:  # a format module not written yet must not break the others
+            if exc.name != module:
+                raise
+
+
+#: Modules that register formats on import (their registration runs once).
+_BUILTIN_MODULES = [
+    "driftmap.sources.synthetic",
+    "driftmap.sources.sevenscenes",
+    "driftmap.sources.tum",
+    "driftmap.sources.kitti",
+    "driftmap.sources.redwood",
+    "driftmap.sources.cloud_folder",
+    "driftmap.sources.ros",
+]
+
+
+def open_source(path: str | Path, format: str | None = None, **options: Any) -> FrameSource:
+    """Open a data set or log; ``format`` skips detection. Options go to the format's opener
+    (``frames="START:STOP[:STEP]"``, ``lenient=True``, and format-specific ones)."""
+    formats = registered_formats()
+    path = Path(path)
+    if not path.exists():
+        raise SourceError(f"{path}: no such file or folder")
+    if format is not None:
+        if format not in formats:
+            raise SourceError(f"unknown format {format!r}; known formats: {', '.join(sorted(formats))}")
+        return formats[format].open(path, **options)
+    tried = []
+    for spec in formats.values():
+        tried.append(spec.name)
+        try:
+            if spec.detect(path):
+                logger.info("%s: detected format %s", path, spec.name)
+                return spec.open(path, **options)
+        except SourceError:
+            raise
+        except Exception as exc:  # a detector must not hide the others
+            logger.debug("%s: detector %s failed: %s", path, spec.name, exc)
+    raise SourceError(f"{path}: cannot tell the format; tried {', '.join(tried)} (pass format= / --format)")
+
