@@ -1,0 +1,255 @@
+"""KITTI odometry sequences (Velodyne HDL-64E scans).
+
+Layout of a sequence folder (``sequences/NN/`` in the official archive)::
+
+    velodyne/NNNNNN.bin   float32 x, y, z, intensity per point, Velodyne frame (metres)
+    calib.txt             line "Tr: 12 numbers" = T_cam0_velo (3x4 row-major), Velodyne -> left camera cam0
+    times.txt             seconds since the start of the sequence, row k = frame k
+    poses.txt             ground truth T_world_cam0 (KITTI 3x4 rows), row k = frame k; also looked up as
+                          ../../poses/NN.txt (the official layout) or given with poses=
+
+``frame_id`` is the number in the ``.bin`` name. Ground truth is converted to the Velodyne frame:
+``T_world_velo = inv(Tr) @ T_cam0 @ Tr`` (so the world is the Velodyne frame of frame 0). Frames carry no
+estimate (``PoseSource.NONE``) unless ``poses_from_ground_truth=True``. Points are the raw scan (no range
+filtering); intensity is a per-point attribute.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.errors import SourceError, TransformError
+from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
+from driftmap.sources.base import FrameSource, register_source
+from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
+from driftmap.trajectory import Trajectory, _stamp_s_to_ns, read_kitti
+
+logger = logging.getLogger(__name__)
+
+NOMINAL_PERIOD_NS = 100_000_000
+"""Nominal 10 Hz (the Velodyne spin rate; real times.txt steps are ~0.1037 s), used only without times.txt."""
+POINT_BYTES = 16  # float32 x, y, z, intensity
+
+
+def read_calib_tr(file: Path) -> NDArray[np.float64]:
+    """``T_cam0_velo`` from the ``Tr:`` line of a KITTI odometry ``calib.txt``."""
+    try:
+        lines = file.read_text().splitlines()
+    except FileNotFoundError:
+        raise SourceError(f"{file}: calibration not found (needed for the Velodyne ground truth)") from None
+    except OSError as exc:
+        raise SourceError(f"{file}: cannot read calibration ({exc})") from exc
+    for lineno, line in enumerate(lines, start=1):
+        key, _, rest = line.partition(":")
+        if key.strip() != "Tr":
+            continue
+        try:
+            values = [float(v) for v in rest.split()]
+        except ValueError as exc:
+            raise SourceError(f"{file}:{lineno}: field Tr: not a number ({exc})") from exc
+        if len(values) != 12:
+            raise SourceError(f"{file}:{lineno}: field Tr: expected 12 numbers (3x4 row-major), got {len(values)}")
+        T = np.eye(4)
+        T[:3, :] = np.reshape(values, (3, 4))
+        try:
+            return geometry.as_rigid(T, f"{file}:{lineno} field Tr")
+        except TransformError as exc:
+            raise SourceError(str(exc)) from exc
+    raise SourceError(f"{file}: no 'Tr:' line (Velodyne-to-cam0 transform)")
+
+
+def read_times(file: Path) -> list[int]:
+    """``times.txt`` (seconds, one row per frame) as int ns, exactly as written."""
+    try:
+        lines = file.read_text().splitlines()
+    except OSError as exc:
+        raise SourceError(f"{file}: cannot read ({exc})") from exc
+    out = []
+    for lineno, line in enumerate(lines, start=1):
+        if not line.strip():
+            continue
+        try:
+            out.append(_stamp_s_to_ns(line))
+        except ValueError as exc:
+            raise SourceError(f"{file}:{lineno}: {line.strip()!r} is not a number of seconds") from exc
+    return out
+
+
+def velo_poses_from_cam0(T_world_cam0: NDArray[np.float64], T_cam0_velo: NDArray[np.float64]) -> NDArray[np.float64]:
+    """KITTI ground truth in the Velodyne frame: ``inv(Tr) @ T_cam0 @ Tr`` for a (N, 4, 4) stack."""
+    return geometry.invert(T_cam0_velo) @ np.asarray(T_world_cam0) @ T_cam0_velo
+
+
+class KittiOdometry(FrameSource):
+    """A KITTI odometry sequence folder (see the module docstring).
+
+    Options:
+        poses: ground-truth pose file (KITTI format, cam0); default ``poses.txt`` in the folder or
+            ``../../poses/<folder name>.txt``.
+        poses_from_ground_truth: frames carry the Velodyne ground truth (``PoseSource.GROUND_TRUTH``).
+
+    Bad input: a ``.bin`` whose size is not a multiple of 16 bytes raises :class:`SourceError` naming the
+    file (lenient: the frame is skipped); a pose file with fewer rows than frames raises naming the file and
+    the first frame without a pose (lenient: a warning, those frames have no ground truth); ``times.txt``
+    must have a row per frame and increasing stamps (lenient: offending frames are skipped).
+    """
+
+    format_name = "kitti"
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        poses: str | Path | None = None,
+        poses_from_ground_truth: bool = False,
+        frames: str | slice | None = None,
+        lenient: bool = False,
+    ):
+        super().__init__(str(path), frames=frames, lenient=lenient)
+        self.path = Path(path)
+        self.poses_from_ground_truth = poses_from_ground_truth
+        scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin")
+        ids = [n for n, _ in scans]
+
+        # stamps: times.txt row k = frame k
+        times_file = self.path / "times.txt"
+        if times_file.is_file():
+            times = read_times(times_file)
+            stamp_of = {}
+            for n in ids:
+                if n < len(times):
+                    stamp_of[n] = times[n]
+                    continue
+                reason = f"{times_file}: {len(times)} rows, no stamp for frame {n}"
+                if not lenient:
+                    raise SourceError(reason)
+                logger.warning("%s (frame skipped)", reason)
+                self.skipped.append((ids.index(n), reason))
+            scans = [(n, f) for n, f in scans if n in stamp_of]
+            stamps = [stamp_of[n] for n, _ in scans]
+            stamps_what = str(times_file)
+        else:
+            logger.warning("%s: no times.txt; stamps are frame_id * %d ns (nominal 10 Hz)", self.path,
+                           NOMINAL_PERIOD_NS)
+            stamps = [n * NOMINAL_PERIOD_NS for n, _ in scans]
+            stamps_what = str(self.path)
+        keep = check_increasing_stamps(stamps, [n for n, _ in scans], stamps_what, lenient=lenient,
+                                       skipped=self.skipped)
+        self._entries: list[tuple[int, Path, int]] = [(scans[k][0], scans[k][1], stamps[k]) for k in keep]
+
+        # ground truth: cam0 poses -> Velodyne frame
+        self.poses_file = self._find_poses(poses)
+        self._gt: dict[int, NDArray[np.float64]] = {}
+        self.T_cam0_velo: NDArray[np.float64] | None = None
+        if self.poses_file is not None:
+            cam0 = read_kitti(self.poses_file)
+            self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
+            velo = velo_poses_from_cam0(cam0.poses, self.T_cam0_velo)
+            for n, _, _ in self._entries:
+                if n < len(velo):
+                    try:  # KITTI rows have 7 digits: project onto SO(3) like every stored pose
+                        self._gt[n] = geometry.as_rigid(velo[n], f"{self.poses_file} row {n + 1} (frame {n})")
+                    except TransformError as exc:
+                        raise SourceError(str(exc)) from exc
+            missing = [n for n, _, _ in self._entries if n >= len(velo)]
+            if missing:
+                reason = (f"{self.poses_file}: {len(velo)} pose rows for {len(self._entries)} frames; the first frame "
+                          f"without a pose is frame {missing[0]}")
+                if not lenient:
+                    raise SourceError(reason)
+                logger.warning("%s (%d frames have no ground truth)", reason, len(missing))
+        elif poses_from_ground_truth:
+            raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) but poses_from_ground_truth=True")
+        elif (self.path / "calib.txt").is_file():
+            self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
+
+    def _find_poses(self, poses: str | Path | None) -> Path | None:
+        if poses is not None:
+            if not Path(poses).is_file():
+                raise SourceError(f"{poses}: ground-truth pose file not found")
+            return Path(poses)
+        sequence = self.path.resolve()
+        for candidate in (self.path / "poses.txt", sequence.parent.parent / "poses" / f"{sequence.name}.txt"):
+            if candidate.is_file():
+                return candidate
+        return None
+
+    def _count(self) -> int:
+        return len(self._entries)
+
+    def _frame_id(self, index: int) -> int:
+        return self._entries[index][0]
+
+    def _stamp_ns(self, index: int) -> int:
+        return self._entries[index][2]
+
+    def read_scan(self, index: int) -> NDArray[np.float32]:
+        """The raw (N, 4) float32 scan ``x, y, z, intensity`` at ``index``."""
+        frame_id, file, _ = self._entries[index]
+        try:
+            size = file.stat().st_size
+        except FileNotFoundError:
+            raise SourceError(f"{file}: scan of frame {frame_id} not found") from None
+        if size == 0 or size % POINT_BYTES:
+            raise SourceError(
+                f"{file}: size {size} bytes of frame {frame_id} is not a positive multiple of {POINT_BYTES} "
+                f"(float32 x, y, z, intensity per point): truncated or not a KITTI scan"
+            )
+        try:
+            return np.fromfile(file, dtype="<f4").reshape(-1, 4)
+        except OSError as exc:
+            raise SourceError(f"{file}: cannot read scan of frame {frame_id} ({exc})") from exc
+
+    def _load(self, index: int) -> Frame:
+        frame_id, file, stamp_ns = self._entries[index]
+        if self.poses_from_ground_truth:
+            if frame_id not in self._gt:
+                raise SourceError(f"{self.poses_file}: no ground-truth pose for frame {frame_id}")
+            pose = pose_or_none(self._gt[frame_id], PoseSource.GROUND_TRUTH)
+        else:
+            pose = pose_or_none(None, PoseSource.NONE)
+        scan = self.read_scan(index)
+        return Frame(
+            frame_id=frame_id,
+            stamp_ns=stamp_ns,
+            sensor_name="velodyne",
+            sensor_kind=SensorKind.LIDAR,
+            points_sensor=scan[:, :3],
+            pose=pose,
+            attributes=PointAttributes(intensity=scan[:, 3]),
+            provenance=Provenance(str(file.resolve()), frame_id),
+            sensor_frame="velodyne",
+        )
+
+    def ground_truth(self) -> Trajectory | None:
+        """Ground truth ``T_world_velo`` of the selected frames that have a pose (``frame_ids`` set), at the
+        frames' stamps; ``None`` without a pose file."""
+        if self.poses_file is None:
+            return None
+        idx = [i for i in self._indices() if self._entries[i][0] in self._gt]
+        return Trajectory(
+            np.array([self._entries[i][2] for i in idx], dtype=np.int64),
+            np.array([self._gt[self._entries[i][0]] for i in idx], dtype=np.float64).reshape(-1, 4, 4),
+            np.array([self._entries[i][0] for i in idx], dtype=np.int64),
+        )
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "ground_truth": None if self.poses_file is None else str(self.poses_file),
+                "estimate": None}
+
+
+def _detect(path: Path) -> bool:
+    try:
+        return path.is_dir() and (path / "velodyne").is_dir()
+    except OSError:
+        return False
+
+
+register_source("kitti", _detect, opener_for(KittiOdometry),
+                "KITTI odometry sequence (velodyne/*.bin, calib.txt Tr, times.txt, poses.txt)")

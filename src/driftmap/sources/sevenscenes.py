@@ -1,0 +1,195 @@
+"""Microsoft 7-Scenes sequences (Kinect v1 RGB-D with KinectFusion ground truth).
+
+Layout of a sequence folder (``seq-01/`` in the official archives)::
+
+    frame-NNNNNN.depth.png   uint16 depth in millimetres; 0 and 65535 mean "no reading"
+    frame-NNNNNN.pose.txt    4x4 camera-to-world T_world_camera (ground truth, KinectFusion)
+    frame-NNNNNN.color.jpg   colour, NOT registered to the depth image (never attached to points)
+    camera-intrinsics.txt    optional 3x3 K; default fx = fy = 585, cx = 320, cy = 240 (640x480)
+
+``frame_id`` is the number in the file name. 7-Scenes has no time stamps: ``stamp_ns`` is
+``frame_id * 33_333_333`` (the Kinect's nominal 30 Hz). Frames carry no pose estimate
+(``PoseSource.NONE``) unless ``poses_from_ground_truth=True``.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.errors import SourceError, TransformError
+from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
+from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
+from driftmap.sources.base import FrameSource, register_source
+from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
+from driftmap.sources.redwood import (
+    KINECT_RANGE_M,
+    NOMINAL_30HZ_PERIOD_NS,
+    check_sensor_range,
+    intrinsics_from_option,
+    read_depth_png,
+)
+from driftmap.trajectory import Trajectory
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_INTRINSICS = PinholeIntrinsics(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
+INTRINSICS_FILE = "camera-intrinsics.txt"
+
+
+def read_pose_txt(file: Path, frame_id: int) -> NDArray[np.float64]:
+    """A 7-Scenes ``frame-NNNNNN.pose.txt``: 4x4 camera-to-world, validated as rigid (projected onto SO(3))."""
+    try:
+        T = np.loadtxt(file, ndmin=2)
+    except FileNotFoundError:
+        raise SourceError(f"{file}: ground-truth pose of frame {frame_id} not found") from None
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{file}: cannot read the pose of frame {frame_id} ({exc})") from exc
+    if T.shape != (4, 4):
+        raise SourceError(f"{file}: pose of frame {frame_id} must be a 4x4 matrix, got shape {T.shape}")
+    try:
+        return geometry.as_rigid(T, f"{file} (frame {frame_id} pose)")
+    except TransformError as exc:
+        raise SourceError(str(exc)) from exc
+
+
+def _read_intrinsics_txt(file: Path) -> PinholeIntrinsics:
+    try:
+        K = np.loadtxt(file, ndmin=2)
+    except (OSError, ValueError) as exc:
+        raise SourceError(f"{file}: cannot read the camera matrix ({exc})") from exc
+    if K.shape != (3, 3) or K[2].tolist() != [0.0, 0.0, 1.0]:
+        raise SourceError(f"{file}: expected a 3x3 camera matrix with last row [0 0 1], got {K.tolist()}")
+    return PinholeIntrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
+
+
+class SevenScenes(FrameSource):
+    """A 7-Scenes sequence folder (see the module docstring for the layout).
+
+    Options:
+        min_depth_m, max_depth_m: valid depth range; defaults 0.2 and 4.0 m (the Kinect v1 in these sequences
+            reports nothing at or beyond 4 m: the largest reading in redkitchen is 3.975 m).
+        intrinsics: override ``camera-intrinsics.txt`` (PinholeIntrinsics, mapping, sequence or JSON path).
+        depth_scale: units per metre (1000: millimetres).
+        sensor_range_m: measurable range for the depth-scale check (Kinect-class 0.3..10 m; None: off).
+        poses_from_ground_truth: frames carry the ``pose.txt`` ground truth (``PoseSource.GROUND_TRUTH``).
+        color: not supported -- the colour camera is not registered to depth; ``True`` raises.
+    """
+
+    format_name = "7scenes"
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        min_depth_m: float = 0.2,
+        max_depth_m: float = 4.0,
+        intrinsics: Any = None,
+        depth_scale: float = 1000.0,
+        sensor_range_m: tuple[float, float] | None = KINECT_RANGE_M,
+        poses_from_ground_truth: bool = False,
+        color: bool = False,
+        frames: str | slice | None = None,
+        lenient: bool = False,
+    ):
+        super().__init__(str(path), frames=frames, lenient=lenient)
+        self.path = Path(path)
+        if color:
+            raise SourceError(
+                f"{self.path}: 7-Scenes colour images are not registered to the depth images (different camera, "
+                f"no extrinsics), so they cannot colour the points; open without color=True"
+            )
+        self.min_depth_m = min_depth_m
+        self.max_depth_m = max_depth_m
+        self.depth_scale = float(depth_scale)
+        self.sensor_range_m = sensor_range_m
+        self.poses_from_ground_truth = poses_from_ground_truth
+        intrinsics_file = self.path / INTRINSICS_FILE
+        if intrinsics is not None:
+            self.intrinsics = intrinsics_from_option(intrinsics, str(self.path))
+        elif intrinsics_file.is_file():
+            self.intrinsics = _read_intrinsics_txt(intrinsics_file)
+        else:
+            logger.info("%s: no %s; using the 7-Scenes default fx=fy=585, cx=320, cy=240", self.path, INTRINSICS_FILE)
+            self.intrinsics = DEFAULT_INTRINSICS
+        self._frames = numbered_files(self.path, "7-Scenes depth", pattern="frame-*.depth.png")
+        self._monitor = InvalidFractionMonitor()
+
+    def _count(self) -> int:
+        return len(self._frames)
+
+    def _frame_id(self, index: int) -> int:
+        return self._frames[index][0]
+
+    def _stamp_ns(self, index: int) -> int:
+        return self._frames[index][0] * NOMINAL_30HZ_PERIOD_NS
+
+    def pose_file(self, frame_id: int) -> Path:
+        return self.path / f"frame-{frame_id:06d}.pose.txt"
+
+    def read_depth(self, index: int) -> NDArray[np.uint16]:
+        frame_id, file = self._frames[index]
+        return read_depth_png(file, frame_id)
+
+    def _load(self, index: int) -> Frame:
+        frame_id, file = self._frames[index]
+        if self.poses_from_ground_truth:
+            pose = pose_or_none(read_pose_txt(self.pose_file(frame_id), frame_id), PoseSource.GROUND_TRUTH)
+        else:
+            pose = pose_or_none(None, PoseSource.NONE)
+        depth = read_depth_png(file, frame_id)
+        check_sensor_range(depth, self.depth_scale, self.sensor_range_m, what=f"frame {frame_id} ({file})")
+        return depth_frame(
+            depth,
+            self.intrinsics,
+            frame_id=frame_id,
+            stamp_ns=frame_id * NOMINAL_30HZ_PERIOD_NS,
+            pose=pose,
+            sensor_name="kinect_depth",
+            sensor_frame="camera_depth_optical_frame",
+            depth_scale=self.depth_scale,
+            min_depth_m=self.min_depth_m,
+            max_depth_m=self.max_depth_m,
+            provenance=Provenance(str(file.resolve()), frame_id),
+            monitor=self._monitor,
+        )
+
+    def ground_truth(self) -> Trajectory:
+        """``pose.txt`` poses ``T_world_camera`` of the selected frames (``frame_ids`` set).
+
+        A missing or malformed pose file raises :class:`SourceError`; in lenient mode the frame is left out
+        of the trajectory with a logged reason.
+        """
+        ids, poses = [], []
+        for i in self._indices():
+            frame_id = self._frames[i][0]
+            try:
+                poses.append(read_pose_txt(self.pose_file(frame_id), frame_id))
+            except SourceError as exc:
+                if not self.lenient:
+                    raise
+                logger.warning("%s: frame %d left out of the ground truth: %s", self.path, frame_id, exc)
+                continue
+            ids.append(frame_id)
+        frame_ids = np.array(ids, dtype=np.int64)
+        return Trajectory(frame_ids * NOMINAL_30HZ_PERIOD_NS, np.array(poses).reshape(-1, 4, 4), frame_ids)
+
+    def describe(self) -> dict[str, Any]:
+        return {**super().describe(), "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale,
+                "ground_truth": True, "estimate": None}
+
+
+def _detect(path: Path) -> bool:
+    try:
+        return path.is_dir() and next(path.glob("frame-*.depth.png"), None) is not None
+    except OSError:
+        return False
+
+
+register_source("7scenes", _detect, opener_for(SevenScenes),
+                "Microsoft 7-Scenes sequence (frame-NNNNNN.depth.png mm, .pose.txt camera-to-world)")
