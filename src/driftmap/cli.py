@@ -6,6 +6,7 @@ code 1; ``--debug`` shows the traceback and debug logs.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import sys
@@ -114,6 +115,89 @@ def synth(
     with console.status("ray-casting the synthetic room"):
         path = generate_synthetic_log(out, cfg)
     console.print(f"synthetic log: [bold]{path.resolve()}[/bold]")
+
+
+# ------------------------------------------------------------------------------------------ sources / build
+
+
+@app.command()
+def convert(
+    source: Annotated[Path, typer.Argument(help="Data-set folder or log to convert.")],
+    out: Annotated[Path, typer.Argument(metavar="OUT.mcap", help="MCAP file to write (ROS 2 messages).")],
+    format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
+    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
+) -> None:
+    """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
+    from driftmap.sources.mcap_export import convert as convert_source
+
+    with console.status(f"converting {source}"):
+        summary = convert_source(source, out, format=format, frames=frames)
+    console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
+
+
+def _load_build_config(path: Optional[Path]):
+    import tomllib
+
+    from driftmap.pipeline.build import BuildConfig
+
+    if path is None:
+        return BuildConfig()
+    try:
+        text = path.read_text()
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+        return BuildConfig(**data)
+    except (OSError, ValueError) as exc:
+        from driftmap.errors import ConfigError
+
+        raise ConfigError(f"{path}: invalid build config ({exc})") from exc
+
+
+@app.command()
+def build(
+    source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],
+    out: Annotated[Path, typer.Option("--out", help="Store directory to create (or continue with --resume).")],
+    format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Build config (JSON or TOML).")] = None,
+    poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
+    poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
+    no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
+    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
+    resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
+) -> None:
+    """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
+    from driftmap.pipeline.build import build as run_build
+
+    cfg = _load_build_config(config)
+    with _progress() as progress:
+        tasks: dict[str, int] = {}
+
+        def tick(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=total)
+            progress.update(tasks[stage], completed=done, total=total)
+
+        result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
+                           loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick)
+    table = Table(title=f"driftmap build: {source} -> {out}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    rows = [
+        ("frames (new / in store)", f"{result.n_frames_new} / {result.n_frames}"),
+        ("mean invalid-pixel fraction", "-" if result.mean_invalid_fraction is None else f"{result.mean_invalid_fraction:.3f}"),
+        ("poses", result.pose_source),
+        ("odometry fps", "-" if result.odometry_fps is None else f"{result.odometry_fps:.1f}"),
+        ("keyframes", str(result.n_keyframes)),
+        ("loops tried / accepted / rejected by graph", f"{result.loops_tried} / {result.loops_accepted} / {result.loops_rejected_by_graph}"),
+        ("graph error before / after", "-" if result.graph_error_before is None else f"{result.graph_error_before:.4g} / {result.graph_error_after:.4g}"),
+        ("loop-closure revision", "-" if result.loop_revision is None else str(result.loop_revision)),
+        ("max correction", "-" if result.max_correction_m is None else f"{result.max_correction_m:.3f} m / {result.max_correction_deg:.2f} deg"),
+        ("throughput", f"{result.frames_per_second:.1f} frames/s"),
+    ]
+    rows += [(f"time: {k}", f"{v:.2f} s") for k, v in result.seconds_per_stage.items()]
+    for k, v in rows:
+        table.add_row(k, v)
+    console.print(table)
+    console.print(f"store: [bold]{Path(result.store).resolve()}[/bold] (config and summary saved beside it)")
 
 
 # ------------------------------------------------------------------------------------------ store / ledger

@@ -94,6 +94,21 @@ class PinholeIntrinsics:
             height=round(self.height * factor),
         )
 
+    def subsampled(self, stride: int) -> PinholeIntrinsics:
+        """Intrinsics of the image ``image[::stride, ::stride]`` (pixel u' is the original pixel stride * u')."""
+        if stride < 1 or int(stride) != stride:
+            raise IntrinsicsError(f"pixel stride must be a positive integer, got {stride}")
+        if stride == 1:
+            return self
+        return PinholeIntrinsics(
+            fx=self.fx / stride,
+            fy=self.fy / stride,
+            cx=self.cx / stride,
+            cy=self.cy / stride,
+            width=-(-self.width // stride),
+            height=-(-self.height // stride),
+        )
+
     def to_dict(self) -> dict[str, float | int]:
         return dataclasses.asdict(self)
 

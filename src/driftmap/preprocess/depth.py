@@ -300,12 +300,22 @@ def depth_frame(
     provenance: Provenance | None = None,
     monitor: InvalidFractionMonitor | None = None,
     color_rgb: NDArray[np.uint8] | None = None,
+    pixel_stride: int = 1,
 ) -> Frame:
     """Validate and back-project one depth image into a :class:`Frame` (points in the sensor frame).
 
     ``monitor`` (one per sensor stream) flags frames whose invalid fraction jumps above recent history.
     ``color_rgb`` is an optional (height, width, 3) image registered to the depth image.
+    ``pixel_stride`` > 1 keeps every ``pixel_stride``-th pixel in both directions (a cheap, exact
+    pre-downsampling: the frame carries the matching subsampled intrinsics, and its quality counts refer
+    to the sampled pixels).
     """
+    if pixel_stride != 1:
+        intrinsics.check_image_shape(np.shape(depth), f"frame {frame_id}")
+        depth = np.ascontiguousarray(np.asarray(depth)[::pixel_stride, ::pixel_stride])
+        intrinsics = intrinsics.subsampled(pixel_stride)
+        if color_rgb is not None:
+            color_rgb = np.ascontiguousarray(np.asarray(color_rgb)[::pixel_stride, ::pixel_stride])
     what = f"frame {frame_id}" + (f" ({provenance.source_uri})" if provenance else "")
     result = backproject(depth, intrinsics, depth_scale=depth_scale, min_depth_m=min_depth_m,
                          max_depth_m=max_depth_m, what=what)

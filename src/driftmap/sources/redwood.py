@@ -225,10 +225,12 @@ class RedwoodRgbd(FrameSource):
         trajectory: str = "trajectory.log",
         odometry: str = "odometry.log",
         poses_from_ground_truth: bool = False,
+        pixel_stride: int = 1,
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
         super().__init__(str(path), frames=frames, lenient=lenient)
+        self.pixel_stride = int(pixel_stride)
         self.path = Path(path)
         if not self.path.is_dir():
             raise SourceError(f"{self.path}: no such folder")
@@ -345,6 +347,7 @@ class RedwoodRgbd(FrameSource):
             max_depth_m=self.max_depth_m,
             provenance=Provenance(str(depth_file.resolve()), frame_id),
             monitor=self._monitor,
+            pixel_stride=self.pixel_stride,
             color_rgb=color,
         )
 

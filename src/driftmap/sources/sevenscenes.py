@@ -94,10 +94,12 @@ class SevenScenes(FrameSource):
         sensor_range_m: tuple[float, float] | None = KINECT_RANGE_M,
         poses_from_ground_truth: bool = False,
         color: bool = False,
+        pixel_stride: int = 1,
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
         super().__init__(str(path), frames=frames, lenient=lenient)
+        self.pixel_stride = int(pixel_stride)
         self.path = Path(path)
         if color:
             raise SourceError(
@@ -157,6 +159,7 @@ class SevenScenes(FrameSource):
             max_depth_m=self.max_depth_m,
             provenance=Provenance(str(file.resolve()), frame_id),
             monitor=self._monitor,
+            pixel_stride=self.pixel_stride,
         )
 
     def ground_truth(self) -> Trajectory:

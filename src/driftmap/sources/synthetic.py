@@ -292,8 +292,9 @@ class SyntheticLog(FrameSource):
     format_name = "synthetic"
 
     def __init__(self, path: str | Path, *, min_depth_m: float = 0.3, max_depth_m: float = 8.0, sensor: str = "depth",
-                 frames: str | slice | None = None, lenient: bool = False):
+                 pixel_stride: int = 1, frames: str | slice | None = None, lenient: bool = False):
         super().__init__(str(path), frames=frames, lenient=lenient)
+        self.pixel_stride = int(pixel_stride)
         self.path = Path(path)
         self.min_depth_m = min_depth_m
         self.max_depth_m = max_depth_m
@@ -358,6 +359,7 @@ class SyntheticLog(FrameSource):
             max_depth_m=self.max_depth_m,
             provenance=Provenance(str((self.path / entry["depth"]).resolve()), index),
             monitor=monitor,
+            pixel_stride=self.pixel_stride,
         )
 
     def lidar_frame(self, index: int) -> Frame:

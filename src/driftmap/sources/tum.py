@@ -133,10 +133,12 @@ class TumRgbd(FrameSource):
         gt_tolerance_ns: int = DEFAULT_GT_TOLERANCE_NS,
         color: bool = False,
         poses_from_ground_truth: bool = False,
+        pixel_stride: int = 1,
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
         super().__init__(str(path), frames=frames, lenient=lenient)
+        self.pixel_stride = int(pixel_stride)
         self.path = Path(path)
         if not self.path.is_dir():
             raise SourceError(f"{self.path}: no such folder")
@@ -257,6 +259,7 @@ class TumRgbd(FrameSource):
             max_depth_m=self.max_depth_m,
             provenance=Provenance(str(file.resolve()), frame_id),
             monitor=self._monitor,
+            pixel_stride=self.pixel_stride,
             color_rgb=color,
         )
 

@@ -1,0 +1,1 @@
+"""Pipelines that tie sources, store, registration and pose graph together (build)."""

@@ -1,0 +1,332 @@
+"""``driftmap build``: frames from any source -> validated -> odometry (or given poses) -> stored with the
+pose that produced them (revision 0) -> keyframes, verified loop closures -> GTSAM pose graph -> a new
+ledger revision (``loop_closure``) -> the map re-transformed through the store's ``apply``.
+
+Library code: progress goes to a callback, numbers into :class:`BuildResult`; the CLI prints.
+"""
+
+from __future__ import annotations
+
+import inspect
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from driftmap import geometry
+from driftmap.errors import ConfigError, SourceError, StoreError
+from driftmap.frame import Frame, PoseEstimate, PoseSource
+from driftmap.posegraph import Optimizer, PoseGraph, RobustKernel
+from driftmap.registration.loops import (
+    CandidateKind,
+    Keyframe,
+    LoopCandidate,
+    LoopClosureConfig,
+    find_loops,
+    make_keyframe,
+    select_keyframes,
+)
+from driftmap.registration.odometry import KissOdometry, OdometryConfig
+from driftmap.registration.pairwise import register, relative_pose
+from driftmap.sources.base import FrameSource, open_source, registered_formats
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import read_trajectory
+
+logger = logging.getLogger(__name__)
+
+#: (stage, done, total) -- total None when unknown
+ProgressCallback = Callable[[str, int, int | None], None]
+
+
+class BuildConfig(BaseModel):
+    """Everything ``build`` decides; saved next to the store as ``build_config.json``."""
+
+    model_config = ConfigDict(extra="forbid")
+    pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
+    odometry: OdometryConfig | None = Field(None, description="KISS-ICP settings (None: defaults for the sensor kind)")
+    loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
+    loop_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="robust kernel on loop edges")
+    optimizer: Optimizer = Field(Optimizer.LM, description="pose-graph optimiser")
+    odometry_edge_max_disagreement_m: float = Field(0.1, gt=0.0, description="GICP may refine an odometry edge by at most this (m)")
+    fallback_sigma_translation: float = Field(0.02, gt=0.0, description="odometry edge sigma when registration fails: fraction of the motion + 1 cm")
+    fallback_sigma_rotation_deg: float = Field(1.0, gt=0.0, description="odometry edge rotation sigma when registration fails (deg)")
+    resume_seed_frames: int = Field(10, ge=1, description="stored frames used to re-seed odometry on --resume")
+
+
+@dataclass
+class BuildResult:
+    store: str
+    n_frames: int
+    n_frames_new: int
+    mean_invalid_fraction: float | None
+    pose_source: str
+    odometry_fps: float | None
+    n_keyframes: int = 0
+    loops_tried: int = 0
+    loops_accepted: int = 0
+    loops_rejected_by_graph: int = 0
+    graph_error_before: float | None = None
+    graph_error_after: float | None = None
+    loop_revision: int | None = None
+    max_correction_m: float | None = None
+    max_correction_deg: float | None = None
+    seconds_per_stage: dict[str, float] = field(default_factory=dict)
+    loops: list[dict[str, Any]] = field(default_factory=list)
+
+    @property
+    def frames_per_second(self) -> float:
+        total = sum(self.seconds_per_stage.values())
+        return self.n_frames_new / total if total > 0 else float("nan")
+
+    def to_json(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["frames_per_second"] = self.frames_per_second
+        return d
+
+
+def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool) -> FrameSource:
+    path = Path(source)
+    options: dict[str, Any] = {"frames": frames}
+    fmt = format
+    if fmt is None:
+        for spec in registered_formats().values():
+            try:
+                if spec.detect(path):
+                    fmt = spec.name
+                    break
+            except Exception:  # noqa: BLE001 - detectors must not hide each other
+                continue
+    opener = registered_formats()[fmt].open if fmt in registered_formats() else None
+    params = inspect.signature(opener).parameters if opener is not None else {}
+    if poses_from_source and "poses_from_ground_truth" in params:
+        options["poses_from_ground_truth"] = True  # data sets: their ground truth; logs carry their own poses
+    if "pixel_stride" in params:
+        options["pixel_stride"] = config.pixel_stride if config.pixel_stride is not None else 0  # 0: decide below
+    src = open_source(path, fmt, **{k: v for k, v in options.items() if k != "pixel_stride" or v})
+    if "pixel_stride" in params and not config.pixel_stride:
+        first = src.frame(0)
+        stride = 2 if first.intrinsics is not None and first.intrinsics.width >= 640 else 1
+        if stride != 1:
+            src = open_source(path, fmt, **{**options, "pixel_stride": stride})
+    return src
+
+
+def _pose_file_lookup(poses_file: str | Path, source: FrameSource) -> Callable[[Frame], np.ndarray]:
+    traj = read_trajectory(poses_file)
+    is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
+    if is_kitti:  # row i is the pose of frame_id i
+        def by_index(frame: Frame) -> np.ndarray:
+            if frame.frame_id >= len(traj):
+                raise SourceError(f"{poses_file}: {len(traj)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
+            return traj.poses[frame.frame_id]
+        return by_index
+    stamps = traj.stamps_ns
+
+    def by_stamp(frame: Frame) -> np.ndarray:
+        i = int(np.clip(np.searchsorted(stamps, frame.stamp_ns), 1, len(stamps) - 1))
+        j = i - 1 if abs(stamps[i - 1] - frame.stamp_ns) <= abs(stamps[i] - frame.stamp_ns) else i
+        if abs(int(stamps[j]) - frame.stamp_ns) > 20_000_000:
+            raise SourceError(f"{poses_file}: no pose within 20 ms of frame {frame.frame_id} (stamp {frame.stamp_ns} ns)")
+        return traj.poses[j]
+    return by_stamp
+
+
+def build(
+    source: str | Path,
+    out: str | Path,
+    *,
+    format: str | None = None,
+    config: BuildConfig | None = None,
+    poses_file: str | Path | None = None,
+    poses_from_source: bool = False,
+    loop_closure: bool = True,
+    frames: str | None = None,
+    resume: bool = False,
+    progress: ProgressCallback | None = None,
+    inject_wrong_loop: tuple[int, int, np.ndarray] | None = None,
+) -> BuildResult:
+    """Build (or ``resume``) a store from a source. See the module docstring for the stages.
+
+    ``inject_wrong_loop=(frame_a, frame_b, T_a_b)`` adds a deliberately wrong loop measurement (for testing
+    the robust back end); it is reported like any other loop.
+    """
+    config = config or BuildConfig()
+    if poses_file is not None and poses_from_source:
+        raise ConfigError("give either --poses FILE or --poses-from-source, not both")
+    tick = progress or (lambda stage, done, total: None)
+    stages: dict[str, float] = {}
+    out = Path(out)
+    src = _open(source, format, frames, config, poses_from_source)
+    if resume and (out / "store.json").exists():
+        store = FrameStore.open(out, "a")
+        for event in store.recovery_events:
+            logger.warning("resume: %s", event)
+    elif (out / "store.json").exists():
+        raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
+    else:
+        store = FrameStore.create(out)
+    try:
+        return _build(src, store, config, poses_file, poses_from_source, loop_closure, tick, stages, inject_wrong_loop)
+    finally:
+        store.close()
+
+
+def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file: str | Path | None, poses_from_source: bool,
+           loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
+           inject_wrong_loop: tuple[int, int, np.ndarray] | None) -> BuildResult:
+    existing = {int(i) for i in store.frame_ids}
+    pose_of = _pose_file_lookup(poses_file, src) if poses_file is not None else None
+    pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
+    odometry: KissOdometry | None = None
+    n_total = len(src)
+    invalid: list[float] = []
+    n_new = 0
+    t_read = t_odom = t_store = 0.0
+    t0 = time.perf_counter()
+    frame_iter = iter(src)
+    done = 0
+    while True:
+        t_a = time.perf_counter()
+        try:
+            frame = next(frame_iter)
+        except StopIteration:
+            break
+        t_read += time.perf_counter() - t_a
+        done += 1
+        if frame.quality is not None:
+            invalid.append(frame.quality.invalid_fraction)
+        if frame.frame_id in existing:
+            tick("frames", done, n_total)
+            continue
+        t_b = time.perf_counter()
+        if pose_of is not None:
+            T = pose_of(frame)
+        elif poses_from_source:
+            if frame.pose.source is PoseSource.NONE:
+                raise SourceError(f"{src.uri}: frame {frame.frame_id} has no pose in the source (--poses-from-source)")
+            T = frame.T_world_sensor
+            pose_source = frame.pose.source
+        else:
+            if odometry is None:
+                cfg = config.odometry or OdometryConfig.for_sensor(frame.sensor_kind)
+                odometry = KissOdometry(cfg)
+                if existing:
+                    last = sorted(existing)[-config.resume_seed_frames:]
+                    odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
+            T = odometry.register(frame).T_world_sensor
+        t_c = time.perf_counter()
+        store.append(frame.with_pose(PoseEstimate(T, revision=0, source=pose_source, world_frame=frame.pose.world_frame)))
+        t_store += time.perf_counter() - t_c
+        t_odom += t_c - t_b
+        n_new += 1
+        tick("frames", done, n_total)
+    stages["read+validate"] = t_read
+    stages["odometry" if pose_source is PoseSource.ODOMETRY else "poses"] = t_odom
+    stages["store"] = t_store
+    logger.info("stored %d new frames in %.1f s", n_new, time.perf_counter() - t0)
+    if src.skipped:
+        logger.warning("%d frames skipped (lenient): %s", len(src.skipped), src.skipped[:5])
+    result = BuildResult(
+        store=str(store.path), n_frames=len(store), n_frames_new=n_new,
+        mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,
+        pose_source=pose_source.value if n_new else store.ledger.revision(0).source.value,
+        odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages,
+    )
+    if loop_closure and len(store) >= 2:
+        _close_loops(store, config, result, tick, stages, inject_wrong_loop)
+    (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
+    (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
+    return result
+
+
+def _fallback_information(T_a_b: np.ndarray, config: BuildConfig) -> np.ndarray:
+    """Odometry-edge information when registration could not provide one: sigma grows with the motion."""
+    motion = float(np.linalg.norm(T_a_b[:3, 3]))
+    sigma_t = config.fallback_sigma_translation * motion + 0.01
+    sigma_r = np.radians(config.fallback_sigma_rotation_deg)
+    return np.diag([1 / sigma_t**2] * 3 + [1 / sigma_r**2] * 3)
+
+
+def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
+                 stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None) -> None:
+    lc = config.loop_closure
+    t0 = time.perf_counter()
+    ids = [int(i) for i in store.frame_ids]
+    poses = store.poses(0)
+    key_rows = select_keyframes(poses, lc)
+    keyframes: list[Keyframe] = []
+    for n, row in enumerate(key_rows):
+        keyframes.append(make_keyframe(ids[row], row, poses[row], store.frame(ids[row]).points_sensor, lc))
+        tick("keyframes", n + 1, len(key_rows))
+    result.n_keyframes = len(keyframes)
+    graph = PoseGraph()
+    for k in keyframes:
+        graph.add_node(k.frame_id, k.T_world_sensor)
+    graph.add_prior(keyframes[0].frame_id, keyframes[0].T_world_sensor, np.diag([1e8] * 6))
+    for n, (a, b) in enumerate(zip(keyframes, keyframes[1:])):
+        odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
+        reg = register(a.points_m, b.points_m, odom, voxel_size_m=lc.registration_voxel_m,
+                       max_correspondence_m=2.5 * lc.registration_voxel_m)
+        good = reg.converged and reg.fitness >= lc.min_fitness and \
+            geometry.translation_distance_m(odom, reg.T_target_source) <= config.odometry_edge_max_disagreement_m
+        if good:
+            graph.add_odometry(a.frame_id, b.frame_id, reg.T_target_source, reg.information_6x6)
+        else:
+            logger.info("odometry edge %d->%d: registration not usable (%s); odometry with fallback information",
+                        a.frame_id, b.frame_id, reg.describe())
+            graph.add_odometry(a.frame_id, b.frame_id, odom, _fallback_information(odom, config))
+        tick("odometry edges", n + 1, len(keyframes) - 1)
+    stages["keyframes+edges"] = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    candidates: list[LoopCandidate] = find_loops(keyframes, lc, progress=lambda d, t: tick("loop candidates", d, t))
+    if inject_wrong_loop is not None:
+        fa, fb, T_wrong = inject_wrong_loop
+        by_id = {k.frame_id: k for k in keyframes}
+        if fa not in by_id or fb not in by_id:
+            raise ConfigError(f"injected loop {fa}<->{fb}: both frames must be keyframes ({[k.frame_id for k in keyframes][:10]}...)")
+        accepted_info = [c.result.information_6x6 for c in candidates if c.accepted and c.result is not None]
+        info = accepted_info[0] if accepted_info else np.diag([1e4] * 3 + [1e4] * 3)
+        candidates.append(LoopCandidate(fa, fb, CandidateKind.INJECTED, True, "deliberately wrong (injected)", None, T_wrong))
+        injected_info = info
+    stages["loop candidates"] = time.perf_counter() - t1
+    result.loops_tried = len(candidates)
+    accepted = [c for c in candidates if c.accepted]
+    result.loops_accepted = len(accepted)
+    for c in accepted:
+        info = c.result.information_6x6 if c.result is not None else injected_info
+        graph.add_loop(c.a, c.b, c.T_a_b, info, robust=config.loop_kernel)
+    result.loops = [{"a": c.a, "b": c.b, "kind": c.kind.value, "accepted": c.accepted, "reason": c.reason,
+                     "fitness": None if c.result is None else c.result.fitness,
+                     "rmse_m": None if c.result is None else c.result.rmse_m} for c in candidates]
+    if not accepted:
+        logger.info("no loop closure accepted; the odometry stays revision 0")
+        return
+    t2 = time.perf_counter()
+    opt = graph.optimize(config.optimizer)
+    stages["pose graph"] = time.perf_counter() - t2
+    result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
+    for res in opt.loop_residuals:
+        entry = next((x for x in result.loops if x["a"] == res.key_from and x["b"] == res.key_to and x["accepted"]), None)
+        if entry is not None:
+            entry.update(graph_chi2=res.chi2, graph_weight=res.weight, kept_by_graph=res.accepted)
+        if not res.accepted:
+            result.loops_rejected_by_graph += 1
+            logger.warning("loop %d<->%d rejected by the pose graph (chi2 %.1f, weight %.3f)", res.key_from, res.key_to,
+                           res.chi2, res.weight if res.weight is not None else float("nan"))
+    t3 = time.perf_counter()
+    revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True,
+                                  note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
+    view = store.map(0)
+    changes = view.apply(revision.revision_id)
+    stages["correction"] = time.perf_counter() - t3
+    result.loop_revision = revision.revision_id
+    result.max_correction_m = changes.max_translation_m
+    result.max_correction_deg = max((c.rotation_deg for c in changes.changes), default=0.0)
+    logger.info("loop closure: revision %d moved %d frames (max %.3f m)", revision.revision_id, len(changes.changes),
+                result.max_correction_m)

@@ -1,0 +1,1 @@
+"""Registration: KISS-ICP odometry, pairwise GICP verification, loop-closure candidates."""

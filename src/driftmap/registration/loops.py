@@ -1,0 +1,227 @@
+"""Keyframes, loop-closure candidates and their geometric verification.
+
+Candidates come from two independent cues:
+
+* **pose proximity** -- keyframes far apart in time whose odometry poses are close and look the same way;
+* **a place descriptor** that ignores the (drifted) poses -- a rotation- and translation-invariant shape
+  distribution of the keyframe's points (histogram of distances between random point pairs, plus the
+  range histogram); its nearest neighbours in descriptor space are candidates even when the odometry
+  puts them metres apart. Those are first aligned globally (Open3D FPFH + RANSAC).
+
+Every candidate is verified with GICP (small_gicp) and gated on convergence, overlap (fitness), residual
+RMSE and, for proximity candidates, on how far the result is from what the odometry says. Accepted and
+rejected candidates are logged with their numbers and returned.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from driftmap import geometry
+from driftmap.registration.pairwise import RegistrationResult, downsample, register, relative_pose
+
+logger = logging.getLogger(__name__)
+
+
+class LoopClosureConfig(BaseModel):
+    """Keyframe selection, candidate search and verification gates (metres, degrees)."""
+
+    model_config = ConfigDict(extra="forbid")
+    keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m)")
+    keyframe_angle_deg: float = Field(10.0, gt=0.0, description="... or this much rotation (deg)")
+    keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many frames")
+    min_gap_frames: int = Field(60, ge=1, description="candidates must be at least this many frames apart")
+    proximity_radius_m: float = Field(1.0, gt=0.0, description="odometry positions closer than this are candidates (m)")
+    proximity_max_angle_deg: float = Field(45.0, gt=0.0, description="... if their viewing directions differ by less (deg)")
+    max_candidates_per_keyframe: int = Field(3, ge=1, description="nearest proximity candidates kept per keyframe")
+    descriptor_candidates: int = Field(1, ge=0, description="descriptor nearest neighbours tried per keyframe")
+    descriptor_max_distance: float = Field(0.15, gt=0.0, description="descriptor distance (L1 of histograms) gate")
+    registration_voxel_m: float = Field(0.04, gt=0.0, description="GICP voxel size (m)")
+    min_fitness: float = Field(0.45, ge=0.0, le=1.0, description="minimum overlap after alignment")
+    max_rmse_m: float = Field(0.035, gt=0.0, description="maximum inlier RMSE after alignment (m)")
+    max_correction_m: float = Field(0.5, gt=0.0, description="proximity loops: max disagreement with odometry (m)")
+    max_correction_deg: float = Field(15.0, gt=0.0, description="... and in rotation (deg)")
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    frame_id: int
+    index: int
+    """Position in the frame sequence."""
+    T_world_sensor: NDArray[np.float64]
+    points_m: NDArray[np.float64]
+    """Sensor-frame points downsampled to the registration voxel."""
+    descriptor: NDArray[np.float64]
+
+
+class CandidateKind(enum.Enum):
+    PROXIMITY = "proximity"
+    DESCRIPTOR = "descriptor"
+    INJECTED = "injected"
+
+
+@dataclass(frozen=True)
+class LoopCandidate:
+    a: int
+    """frame id of the older keyframe."""
+    b: int
+    kind: CandidateKind
+    accepted: bool
+    reason: str
+    result: RegistrationResult | None
+    T_a_b: NDArray[np.float64] | None
+    """Measured relative pose (when verified)."""
+
+    def describe(self) -> str:
+        numbers = self.result.describe() if self.result is not None else "not registered"
+        return f"{self.kind.value} {self.a}<->{self.b}: {'ACCEPTED' if self.accepted else 'rejected'} ({self.reason}; {numbers})"
+
+
+def shape_descriptor(points_m: NDArray[np.floating], *, n_pairs: int = 4000, bins: int = 24, max_range_m: float = 5.0,
+                     seed: int = 0) -> NDArray[np.float64]:
+    """Rotation- and translation-invariant place descriptor: normalised histograms of distances between
+    random point pairs (D2 shape distribution) and of distances to the centroid."""
+    pts = np.asarray(points_m, dtype=np.float64)
+    if len(pts) < 10:
+        return np.zeros(2 * bins)
+    rng = np.random.default_rng(seed)
+    i, j = rng.integers(0, len(pts), n_pairs), rng.integers(0, len(pts), n_pairs)
+    d2 = np.linalg.norm(pts[i] - pts[j], axis=1)
+    dc = np.linalg.norm(pts - pts.mean(0), axis=1)
+    h1, _ = np.histogram(d2, bins=bins, range=(0.0, max_range_m))
+    h2, _ = np.histogram(dc, bins=bins, range=(0.0, max_range_m))
+    return np.concatenate([h1 / max(h1.sum(), 1), h2 / max(h2.sum(), 1)])
+
+
+def select_keyframes(poses: NDArray[np.float64], config: LoopClosureConfig) -> list[int]:
+    """Indices of keyframes along a trajectory (the first frame always is one)."""
+    keys = [0]
+    for i in range(1, len(poses)):
+        last = poses[keys[-1]]
+        if (geometry.translation_distance_m(last, poses[i]) >= config.keyframe_distance_m
+                or geometry.rotation_angle_deg(last, poses[i]) >= config.keyframe_angle_deg
+                or i - keys[-1] >= config.keyframe_max_gap_frames):
+            keys.append(i)
+    return keys
+
+
+def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
+    za, zb = T_a[:3, 2], T_b[:3, 2]
+    return float(np.degrees(np.arccos(np.clip(za @ zb, -1.0, 1.0))))
+
+
+def proximity_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> list[tuple[int, int]]:
+    """Pairs (older, newer) of keyframe list positions that odometry places close together."""
+    pos = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
+    idx = np.array([k.index for k in keyframes])
+    pairs = []
+    for j in range(len(keyframes)):
+        older = np.flatnonzero(idx <= idx[j] - config.min_gap_frames)
+        if older.size == 0:
+            continue
+        d = np.linalg.norm(pos[older] - pos[j], axis=1)
+        ok = older[d < config.proximity_radius_m]
+        ok = [i for i in ok if _viewing_angle_deg(keyframes[i].T_world_sensor, keyframes[j].T_world_sensor) < config.proximity_max_angle_deg]
+        ok.sort(key=lambda i: np.linalg.norm(pos[i] - pos[j]))
+        pairs += [(i, j) for i in ok[: config.max_candidates_per_keyframe]]
+    return pairs
+
+
+def descriptor_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig,
+                          exclude: set[tuple[int, int]]) -> list[tuple[int, int]]:
+    """Pairs whose shape descriptors are nearest neighbours, whatever the odometry says."""
+    if config.descriptor_candidates == 0 or len(keyframes) < 2:
+        return []
+    desc = np.array([k.descriptor for k in keyframes])
+    idx = np.array([k.index for k in keyframes])
+    pairs = []
+    for j in range(len(keyframes)):
+        older = np.flatnonzero(idx <= idx[j] - config.min_gap_frames)
+        if older.size == 0:
+            continue
+        dist = np.abs(desc[older] - desc[j]).sum(axis=1)
+        order = np.argsort(dist)[: config.descriptor_candidates]
+        for o in order:
+            if dist[o] <= config.descriptor_max_distance and (older[o], j) not in exclude:
+                pairs.append((int(older[o]), j))
+    return pairs
+
+
+def _fpfh(points_m: NDArray[np.float64], voxel_m: float) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_m))
+    pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel_m, max_nn=30))
+    feat = o3d.pipelines.registration.compute_fpfh_feature(pcd, o3d.geometry.KDTreeSearchParamHybrid(radius=5 * voxel_m, max_nn=100))
+    return pcd, feat
+
+
+def global_initial_guess(target_m: NDArray[np.float64], source_m: NDArray[np.float64], voxel_m: float) -> NDArray[np.float64]:
+    """Open3D FPFH + RANSAC alignment (no pose prior), used for descriptor candidates."""
+    coarse = 2.5 * voxel_m
+    t, ft = _fpfh(downsample(target_m, coarse), coarse)
+    s, fs = _fpfh(downsample(source_m, coarse), coarse)
+    reg = o3d.pipelines.registration
+    result = reg.registration_ransac_based_on_feature_matching(
+        s, t, fs, ft, True, 1.5 * coarse, reg.TransformationEstimationPointToPoint(False), 3,
+        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * coarse)],
+        reg.RANSACConvergenceCriteria(100000, 0.999),
+    )
+    return np.asarray(result.transformation)
+
+
+def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureConfig, *,
+           path_length_m: float = 0.0, init_T_a_b: NDArray[np.float64] | None = None) -> LoopCandidate:
+    """Register keyframe b to keyframe a and apply the gates."""
+    odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
+    if init_T_a_b is None:
+        init_T_a_b = odom if kind is CandidateKind.PROXIMITY else global_initial_guess(a.points_m, b.points_m, config.registration_voxel_m)
+    v = config.registration_voxel_m
+    coarse = register(a.points_m, b.points_m, init_T_a_b, voxel_size_m=2 * v, max_correspondence_m=8 * v)
+    result = register(a.points_m, b.points_m, coarse.T_target_source, voxel_size_m=v, max_correspondence_m=2.5 * v)
+    reasons = []
+    if not result.converged:
+        reasons.append("did not converge")
+    if result.fitness < config.min_fitness:
+        reasons.append(f"fitness {result.fitness:.2f} < {config.min_fitness}")
+    if result.rmse_m > config.max_rmse_m:
+        reasons.append(f"rmse {result.rmse_m * 100:.1f} cm > {config.max_rmse_m * 100:.1f} cm")
+    if kind is CandidateKind.PROXIMITY:
+        dt = geometry.translation_distance_m(odom, result.T_target_source)
+        dr = geometry.rotation_angle_deg(odom, result.T_target_source)
+        allowed = config.max_correction_m + 0.05 * path_length_m
+        if dt > allowed or dr > config.max_correction_deg:
+            reasons.append(f"disagrees with odometry by {dt:.2f} m / {dr:.1f} deg")
+    accepted = not reasons
+    cand = LoopCandidate(a.frame_id, b.frame_id, kind, accepted, "; ".join(reasons) or "passed all gates", result,
+                         result.T_target_source)
+    logger.info("loop candidate %s", cand.describe())
+    return cand
+
+
+def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64], points_m: NDArray[np.floating],
+                  config: LoopClosureConfig) -> Keyframe:
+    pts = downsample(points_m, config.registration_voxel_m / 2)
+    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts))
+
+
+def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
+               progress: Callable[[int, int], None] | None = None) -> list[LoopCandidate]:
+    """Propose candidates from both cues and verify each one."""
+    positions = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
+    path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))]) if len(keyframes) else np.zeros(0)
+    prox = proximity_candidates(keyframes, config)
+    desc = descriptor_candidates(keyframes, config, set(prox))
+    todo = [(i, j, CandidateKind.PROXIMITY) for i, j in prox] + [(i, j, CandidateKind.DESCRIPTOR) for i, j in desc]
+    out = []
+    for n, (i, j, kind) in enumerate(todo):
+        out.append(verify(keyframes[i], keyframes[j], kind, config, path_length_m=float(path[j] - path[i])))
+        if progress:
+            progress(n + 1, len(todo))
+    return out
