@@ -7,7 +7,6 @@ Library code: progress goes to a callback, numbers into :class:`BuildResult`; th
 
 from __future__ import annotations
 
-import inspect
 import json
 import logging
 import time
@@ -34,7 +33,7 @@ from driftmap.registration.loops import (
 )
 from driftmap.registration.odometry import KissOdometry, OdometryConfig
 from driftmap.registration.pairwise import register, relative_pose
-from driftmap.sources.base import FrameSource, open_source, registered_formats
+from driftmap.sources.base import FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
 from driftmap.trajectory import read_trajectory
 
@@ -103,7 +102,7 @@ def _open(source: str | Path, format: str | None, frames: str | None, config: Bu
             except Exception:  # noqa: BLE001 - detectors must not hide each other
                 continue
     opener = registered_formats()[fmt].open if fmt in registered_formats() else None
-    params = inspect.signature(opener).parameters if opener is not None else {}
+    params = accepted_options(opener) if opener is not None else frozenset()
     if poses_from_source and "poses_from_ground_truth" in params:
         options["poses_from_ground_truth"] = True  # data sets: their ground truth; logs carry their own poses
     if "pixel_stride" in params:
@@ -262,7 +261,10 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     key_rows = select_keyframes(poses, lc)
     keyframes: list[Keyframe] = []
     for n, row in enumerate(key_rows):
-        keyframes.append(make_keyframe(ids[row], row, poses[row], store.frame(ids[row]).points_sensor, lc))
+        rows = range(max(0, row - lc.submap_radius_frames), min(len(ids), row + lc.submap_radius_frames + 1))
+        inv = geometry.invert(poses[row])
+        cloud = np.concatenate([geometry.transform_points(inv @ poses[r], store.frame(ids[r]).points_sensor) for r in rows])
+        keyframes.append(make_keyframe(ids[row], row, poses[row], cloud, lc))
         tick("keyframes", n + 1, len(key_rows))
     result.n_keyframes = len(keyframes)
     graph = PoseGraph()

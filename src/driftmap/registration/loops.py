@@ -45,6 +45,7 @@ class LoopClosureConfig(BaseModel):
     descriptor_candidates: int = Field(1, ge=0, description="descriptor nearest neighbours tried per keyframe")
     descriptor_max_distance: float = Field(0.15, gt=0.0, description="descriptor distance (L1 of histograms) gate")
     registration_voxel_m: float = Field(0.04, gt=0.0, description="GICP voxel size (m)")
+    submap_radius_frames: int = Field(0, ge=0, description="a keyframe's cloud also holds this many frames on each side, placed by odometry")
     min_fitness: float = Field(0.45, ge=0.0, le=1.0, description="minimum overlap after alignment")
     max_rmse_m: float = Field(0.035, gt=0.0, description="maximum inlier RMSE after alignment (m)")
     max_correction_m: float = Field(0.5, gt=0.0, description="proximity loops: max disagreement with odometry (m)")

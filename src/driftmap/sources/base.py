@@ -138,6 +138,18 @@ class SourceFormat:
 _REGISTRY: dict[str, SourceFormat] = {}
 
 
+def accepted_options(opener: Callable[..., FrameSource]) -> frozenset[str]:
+    """The keyword options an opener takes (its ``accepted_options`` or its signature's keyword-only ones)."""
+    declared = getattr(opener, "accepted_options", None)
+    if declared is not None:
+        return frozenset(declared)
+    import inspect
+
+    target = opener.__init__ if isinstance(opener, type) else opener
+    return frozenset(n for n, p in inspect.signature(target).parameters.items()
+                     if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD))
+
+
 def register_source(name: str, detect: Callable[[Path], bool], opener: Callable[..., FrameSource], description: str) -> None:
     """Register a format: ``detect(path)`` must be cheap and never raise; ``opener(path, **options)``."""
     _REGISTRY[name] = SourceFormat(name, detect, opener, description)

@@ -133,6 +133,7 @@ def opener_for(cls: type[FrameSource]) -> Callable[..., FrameSource]:
         return cls(path, **options)
 
     open_.__doc__ = cls.__doc__
+    open_.accepted_options = frozenset(accepted)  # type: ignore[attr-defined]
     return open_
 
 

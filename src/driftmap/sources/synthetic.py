@@ -129,6 +129,17 @@ def scene_boxes() -> list[SceneBox]:
         ],
         # a 2 cm board standing half a metre in front of the -y wall
         SceneBox("thin_board", (-1.8, -2.0 - BOARD_THICKNESS_M, 0.0), (-0.8, -2.0, 1.2)),
+        # furniture along the walls: every view sees structure in all directions, so registration is
+        # well-posed (a bare wall plus floor leaves the slide along the wall unobservable)
+        SceneBox("shelf_-x", (x0, 1.0, 0.0), (x0 + 0.4, 2.0, 1.8)),
+        SceneBox("crate_-x", (x0, -2.3, 0.0), (x0 + 0.3, -1.6, 0.9)),
+        SceneBox("cabinet_+x", (x1 - 0.45, 1.2, 0.0), (x1, 2.2, 0.9)),
+        SceneBox("locker_+x", (x1 - 0.4, -2.4, 0.0), (x1, -1.6, 2.0)),
+        SceneBox("wall_shelf_-y", (1.8, y0, 1.2), (2.6, y0 + 0.3, 1.6)),
+        SceneBox("pillar_-y", (-2.2, y0, 0.0), (-1.95, y0 + 0.25, z1)),
+        SceneBox("sideboard_+y", (1.0, y1 - 0.4, 0.0), (2.2, y1, 0.85)),
+        SceneBox("pillar_+y", (x0 + 0.05, y1 - 0.3, 0.0), (x0 + 0.3, y1, z1)),
+        SceneBox("lamp", (-0.3, -0.3, z1 - 0.3), (0.3, 0.3, z1)),
     ]
     return boxes
 

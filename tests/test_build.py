@@ -1,0 +1,175 @@
+"""``build``: given poses reproduced exactly, loop closure on the synthetic log and on 7-Scenes, a wrong loop
+rejected by the robust back end, ``--resume`` after a killed build, the CLI contract."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.demo import LOOP_WALL, embedded_log_path
+from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+from driftmap.diagnostics.walls import wall_spread
+from driftmap.errors import StoreError
+from driftmap.pipeline.build import BuildConfig, build
+from driftmap.registration.loops import LoopClosureConfig
+from driftmap.sources.sevenscenes import SevenScenes
+from driftmap.sources.synthetic import SyntheticLog
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import read_kitti, read_tum
+
+SYNTHETIC_LC = BuildConfig(loop_closure=LoopClosureConfig(min_gap_frames=20, keyframe_distance_m=0.2, keyframe_angle_deg=15))
+
+
+def _cli(*args: object) -> subprocess.CompletedProcess:
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, env=env)
+
+
+def test_poses_from_source_reproduces_the_ground_truth(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    result = build(sevenscenes_dir, tmp_path / "s", poses_from_source=True, loop_closure=False, frames="0:1000:50")
+    assert result.n_frames == 20 and result.pose_source == "ground_truth"
+    source = SevenScenes(sevenscenes_dir, frames="0:1000:50", poses_from_ground_truth=True)
+    with FrameStore.open(tmp_path / "s") as store:
+        assert [int(i) for i in store.frame_ids] == list(range(0, 1000, 50))
+        assert store.head == 0
+        for frame, T in zip(source, store.poses(0)):
+            assert frame.T_world_sensor.tobytes() == T.tobytes()  # exactly the source's poses
+        np.testing.assert_allclose(store.poses(0), source.ground_truth().poses, atol=5e-4)  # the files, to their precision
+
+
+def test_loop_closure_closes_the_synthetic_loop(tmp_path: Path) -> None:
+    log = SyntheticLog(embedded_log_path())
+    result = build(log.path, tmp_path / "s", poses_from_source=True, config=SYNTHETIC_LC)
+    gt = log.ground_truth().poses
+    assert result.loop_revision == 1 and result.loops_accepted >= 3
+    assert any(loop["accepted"] and loop["a"] <= 6 and loop["b"] >= 50 for loop in result.loops), "the start/end loop"
+    with FrameStore.open(tmp_path / "s") as store:
+        before = trajectory_errors(store.poses(0), gt).ate_rmse_m
+        after = trajectory_errors(store.poses(), gt).ate_rmse_m
+        assert after < 0.6 * before
+        # the doubled loop wall is single again: as thin as in the ground-truth map
+        spread_before = wall_spread(store.map(0).points_world, **LOOP_WALL).median_m
+        spread_after = wall_spread(store.map().points_world, **LOOP_WALL).median_m
+        gt_view = store.map(0)
+        gt_view.apply(-1, poses=gt)
+        spread_gt = wall_spread(gt_view.points_world, **LOOP_WALL).median_m
+    assert spread_before > 2.5 * spread_gt
+    assert spread_after < 1.5 * spread_gt
+    assert (tmp_path / "s" / "build_config.json").exists() and (tmp_path / "s" / "build_summary.json").exists()
+
+
+def test_a_wrong_loop_is_rejected_and_reported(tmp_path: Path) -> None:
+    log = SyntheticLog(embedded_log_path())
+    gt = log.ground_truth().poses
+    clean = build(log.path, tmp_path / "clean", poses_from_source=True, config=SYNTHETIC_LC)
+    with FrameStore.open(tmp_path / "clean") as store:
+        ate_clean = trajectory_errors(store.poses(), gt).ate_rmse_m
+    wrong = np.eye(4)
+    wrong[:3, 3] = (1.0, -0.5, 0.2)  # keyframes 10 and 40 are on opposite sides of the room: this is nonsense
+    keyframes = {loop["a"] for loop in clean.loops} | {loop["b"] for loop in clean.loops}
+    result = build(log.path, tmp_path / "wrong", poses_from_source=True, config=SYNTHETIC_LC,
+                   inject_wrong_loop=(_keyframe_near(tmp_path / "clean", 10), _keyframe_near(tmp_path / "clean", 40), wrong))
+    injected = [loop for loop in result.loops if loop["kind"] == "injected"]
+    assert len(injected) == 1
+    assert injected[0]["kept_by_graph"] is False and injected[0]["graph_weight"] < 0.1
+    with FrameStore.open(tmp_path / "wrong") as store:
+        ate_wrong = trajectory_errors(store.poses(), gt).ate_rmse_m
+    assert ate_wrong <= 1.10 * ate_clean, f"wrong loop made ATE {ate_wrong:.4f} from {ate_clean:.4f}"
+    assert keyframes  # the clean run proposed loops at all
+
+
+def _keyframe_near(store_path: Path, frame_id: int) -> int:
+    from driftmap.registration.loops import select_keyframes
+
+    with FrameStore.open(store_path) as store:
+        rows = select_keyframes(store.poses(0), SYNTHETIC_LC.loop_closure)
+        ids = [int(store.frame_ids[r]) for r in rows]
+    return min(ids, key=lambda i: abs(i - frame_id))
+
+
+@pytest.mark.slow
+def test_loop_closure_on_sevenscenes_finds_the_loop_and_lowers_ate(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    frames = "0:1000:4"
+    result = build(sevenscenes_dir, tmp_path / "s", frames=frames)
+    gt = SevenScenes(sevenscenes_dir, frames=frames).ground_truth().poses
+    loop = [x for x in result.loops if x["accepted"] and 200 <= x["a"] <= 280 and 900 <= x["b"] <= 990]
+    assert loop, "the 216-260 <-> 928-966 revisit must be found and accepted"
+    with FrameStore.open(tmp_path / "s") as store:
+        before = trajectory_errors(store.poses(0), gt).ate_rmse_m
+        after = trajectory_errors(store.poses(), gt).ate_rmse_m
+    assert after < before
+
+
+def test_resume_after_a_killed_build(tmp_path: Path) -> None:
+    out = tmp_path / "s"
+    log = embedded_log_path()
+    proc = subprocess.Popen([sys.executable, "-m", "driftmap.cli", "build", str(log), "--out", str(out),
+                             "--poses-from-source", "--no-loop-closure"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if (out / "store.json").exists():
+            try:
+                with FrameStore.open(out) as store:
+                    if len(store) >= 10:
+                        break
+            except StoreError:
+                pass
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    with FrameStore.open(out) as store:
+        n_killed = len(store)
+    assert 10 <= n_killed < 60, f"the build should have been killed half way ({n_killed} frames)"
+    done = _cli("build", log, "--out", out, "--poses-from-source", "--no-loop-closure", "--resume")
+    assert done.returncode == 0, done.stderr
+    reference = SyntheticLog(log)
+    with FrameStore.open(out) as store:
+        assert [int(i) for i in store.frame_ids] == list(range(60))
+        np.testing.assert_array_equal(store.poses(0), reference.odometry().poses)
+    again = _cli("build", log, "--out", out, "--poses-from-source")
+    assert again.returncode == 1 and "--resume" in again.stderr
+
+
+def test_resume_continues_odometry_smoothly(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    build(sevenscenes_dir, tmp_path / "s", frames="0:60:2", loop_closure=False)
+    result = build(sevenscenes_dir, tmp_path / "s", frames="0:120:2", loop_closure=False, resume=True)
+    assert result.n_frames == 60 and result.n_frames_new == 30
+    gt = SevenScenes(sevenscenes_dir, frames="0:120:2").ground_truth().poses
+    with FrameStore.open(tmp_path / "s") as store:
+        poses = store.poses(0)
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    gt_steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)
+    assert abs(steps[29] - gt_steps[29]) < 0.02, "no jump where the build was resumed"
+    assert trajectory_errors(poses, gt).ate_rmse_m < 0.05
+
+
+def test_cli_build_and_export_contract(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "s"
+    result = _cli("build", sevenscenes_dir, "--out", out, "--poses-from-source", "--no-loop-closure", "--frames", "0:100:10")
+    assert result.returncode == 0, result.stderr
+    assert "frames (new / in store)" in result.stdout
+    traj = tmp_path / "final.txt"
+    assert _cli("export", out, "--trajectory", traj, "--format", "tum").returncode == 0
+    exported = read_tum(traj)
+    np.testing.assert_allclose(exported.poses, SevenScenes(sevenscenes_dir, frames="0:100:10").ground_truth().poses, atol=5e-4)
+    failed = _cli("build", tmp_path / "nope", "--out", tmp_path / "x")
+    assert failed.returncode == 1 and "Traceback" not in failed.stderr
+
+
+def test_kitti_poses_file_by_index_with_a_slice(kitti_dir: Path, tmp_path: Path) -> None:
+    """--poses with a KITTI file: row i is the pose of frame_id i, so the full file works for a slice."""
+    result = build(kitti_dir, tmp_path / "s", poses_file=kitti_dir / "poses.txt", frames="4:16:3", loop_closure=False)
+    rows = read_kitti(kitti_dir / "poses.txt").poses
+    with FrameStore.open(tmp_path / "s") as store:
+        ids = [int(i) for i in store.frame_ids]
+        assert ids == [4, 7, 10, 13]
+        np.testing.assert_allclose(store.poses(0), rows[ids], atol=1e-6)  # rotations re-orthonormalised
+    assert result.pose_source == "external_file"
