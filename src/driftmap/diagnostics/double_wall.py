@@ -1,0 +1,786 @@
+"""Double walls: where the map holds the same surface twice, how far apart the two layers are, and which
+frames put them there. Also the smearing score (one number in metres) and, for comparison with the
+literature, Mean Map Entropy and Mean Plane Variance.
+
+Method (see ``docs/diagnostics.md`` for the reasoning and the measured numbers):
+
+1. **Samples** (:class:`DiagnosticCloud`): a bounded random subset of every frame's sensor-frame points,
+   each with a normal estimated *within its own frame* (smearing between frames cannot corrupt it), its
+   planarity, and a sensor-noise level along the normal (Kinect-style ``sigma_z = a + b (z - z0)^2`` or a
+   constant LiDAR range sigma). Placing the samples with a revision's poses is cheap, so one cloud serves
+   many revisions (and the perturbation experiments).
+2. **Per voxel, per scale** (:func:`detect_double_walls`): the dominant normal of the voxel's own-frame
+   normals (a second one for the points that disagree with it), points within ``normal_max_angle_deg``
+   of it, split by which side the sensor was on. Offsets along the normal are referred to a *lateral cell
+   reference* (the mean offset of all frames in a small cell of the surface), which removes real relief
+   (a door recess, a curb) seen by every frame; what is left between frames is pose disagreement.
+3. Per frame, the mean residual offset; a two-layer split of the frames (1-D 2-means, per-frame mean
+   offsets as samples) is accepted as a double wall when the two-component model wins by BIC, the
+   layers are far apart relative to their widths (Ashman's D), the separation exceeds both the minimum
+   and its own uncertainty, the smaller layer is not tiny, the layers overlap laterally, and the
+   **time/frame purity** holds: points of each frame lie on that frame's layer about as often as the
+   sensor noise allows (two-layer geometry seen within single frames fails this).
+4. The separation is measured where both layers were seen: per shared lateral cell, the difference of
+   the two layers' mean offsets; its uncertainty combines the spread over cells and the frame-to-frame
+   jitter of each layer.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+from scipy.special import ndtr
+
+from driftmap.errors import ConfigError, GeometryError
+from driftmap.frame import Frame, SensorKind
+from driftmap.preprocess.cloud import estimate_normals
+
+if TYPE_CHECKING:
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+_DENSE_SPAN_PER_KEY = 24
+_DENSE_SPAN_MIN = 1 << 22
+
+
+# ---------------------------------------------------------------------------------------------- noise model
+
+
+class NoiseModelKind(enum.Enum):
+    """How the sensor noise grows with distance."""
+
+    QUADRATIC_DEPTH = "quadratic_depth"
+    """Structured-light depth camera: ``sigma_z = a + b (z - z0)^2`` along the ray, z = depth (Nguyen et al. 2012)."""
+    CONSTANT_RANGE = "constant_range"
+    """LiDAR / ToF: a constant range sigma along the ray."""
+
+
+class NoiseModel(BaseModel):
+    """Per-point measurement noise along the viewing ray, projected onto the surface normal."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    kind: NoiseModelKind = NoiseModelKind.QUADRATIC_DEPTH
+    a_m: float = Field(0.0012, ge=0.0, description="quadratic model: constant term (m)")
+    b_per_m: float = Field(0.0019, ge=0.0, description="quadratic model: coefficient of (z - z0)^2 (1/m)")
+    z0_m: float = Field(0.4, description="quadratic model: depth of least noise (m)")
+    range_sigma_m: float = Field(0.02, gt=0.0, description="constant model: range sigma (m)")
+    min_incidence_cos: float = Field(0.3, gt=0.0, le=1.0,
+                                     description="floor of |cos(ray, normal)| in the projection (grazing views are not noise-free)")
+
+    @classmethod
+    def for_sensor(cls, kind: SensorKind) -> NoiseModel:
+        """Kinect-v1 quadratic model for depth cameras, 2 cm range sigma for LiDAR."""
+        if kind is SensorKind.LIDAR:
+            return cls(kind=NoiseModelKind.CONSTANT_RANGE)
+        return cls()
+
+    def sigma_ray_m(self, points_sensor: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Noise sigma along the viewing ray of sensor-frame points (optical/z axis forward for depth cameras)."""
+        p = np.asarray(points_sensor, dtype=np.float64)
+        if self.kind is NoiseModelKind.CONSTANT_RANGE:
+            return np.full(len(p), self.range_sigma_m)
+        return self.a_m + self.b_per_m * (p[:, 2] - self.z0_m) ** 2
+
+    def sigma_normal_m(self, points_sensor: NDArray[np.floating], normals_sensor: NDArray[np.floating]) -> NDArray[np.float64]:
+        """Noise sigma along each point's normal: ``sigma_ray * max(|ray . normal|, min_incidence_cos)``."""
+        p = np.asarray(points_sensor, dtype=np.float64)
+        ray = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9)
+        cos = np.abs(np.einsum("ij,ij->i", ray, np.asarray(normals_sensor, dtype=np.float64)))
+        return self.sigma_ray_m(p) * np.maximum(np.nan_to_num(cos, nan=1.0), self.min_incidence_cos)
+
+
+# ---------------------------------------------------------------------------------------------- samples
+
+
+class SamplingConfig(BaseModel):
+    """How many points of each frame the diagnostics look at, and how their own-frame normals are made."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    max_points_per_frame: int = Field(3000, ge=50, description="random subset of each frame kept for the diagnostics")
+    normals_points_per_frame: int = Field(6000, ge=50, description="points of the frame the normals are estimated on (>= max_points_per_frame)")
+    normals_k: int = Field(16, ge=5, le=100, description="nearest neighbours (same frame) per normal")
+    min_normal_confidence: float = Field(0.5, ge=0.0, le=1.0, description="drop points whose normal is ill-defined (1 - l0/l1 below this)")
+    max_curvature: float = Field(0.05, gt=0.0, le=1.0 / 3.0, description="drop non-planar points (surface variation l0/(l0+l1+l2) above this)")
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class DiagnosticCloud:
+    """Per-frame samples in their sensor frames: points, own-frame normals and noise along the normal.
+
+    Points of frame row ``k`` are ``points_sensor[offsets[k]:offsets[k + 1]]``; rows are in time order.
+    Use :meth:`place` to put them in the world with a revision's poses.
+    """
+
+    frame_ids: NDArray[np.int64]
+    stamps_ns: NDArray[np.int64]
+    offsets: NDArray[np.int64]
+    points_sensor: NDArray[np.float32]
+    normals_sensor: NDArray[np.float32]
+    sigma_normal_m: NDArray[np.float32]
+    sensor_kinds: tuple[SensorKind, ...]
+    n_points_source: NDArray[np.int64]
+    """How many points each frame had before sampling."""
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_ids)
+
+    @property
+    def n_points(self) -> int:
+        return int(self.offsets[-1])
+
+    def frame_index(self) -> NDArray[np.int64]:
+        """Row (into ``frame_ids``) of every sample."""
+        return np.repeat(np.arange(self.n_frames), np.diff(self.offsets))
+
+    @classmethod
+    def from_frames(cls, frames: Iterable[Frame], config: SamplingConfig | None = None,
+                    noise: NoiseModel | None = None) -> DiagnosticCloud:
+        """Sample frames (any order; rows are sorted by stamp). ``noise`` defaults per sensor kind."""
+        cfg = config or SamplingConfig()
+        rows = []
+        for frame in frames:
+            rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
+                                      frame.attributes.normal_sensor, cfg, noise))
+        return cls._assemble(rows)
+
+    @classmethod
+    def from_store(cls, store: FrameStore, config: SamplingConfig | None = None, noise: NoiseModel | None = None,
+                   frame_ids: Sequence[int] | None = None) -> DiagnosticCloud:
+        """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here."""
+        cfg = config or SamplingConfig()
+        ids = store.frame_ids if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
+        rows = []
+        for fid in ids:
+            frame = store.frame(int(fid))
+            rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
+                                      frame.attributes.normal_sensor, cfg, noise))
+        return cls._assemble(rows)
+
+    @classmethod
+    def _assemble(cls, rows: list[tuple]) -> DiagnosticCloud:
+        if not rows:
+            raise GeometryError("diagnostics: no frames to sample")
+        rows.sort(key=lambda r: (r[1], r[0]))
+        counts = np.array([len(r[3]) for r in rows], dtype=np.int64)
+        return cls(
+            frame_ids=np.array([r[0] for r in rows], dtype=np.int64),
+            stamps_ns=np.array([r[1] for r in rows], dtype=np.int64),
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            points_sensor=np.concatenate([r[3] for r in rows]).astype(np.float32),
+            normals_sensor=np.concatenate([r[4] for r in rows]).astype(np.float32),
+            sigma_normal_m=np.concatenate([r[5] for r in rows]).astype(np.float32),
+            sensor_kinds=tuple(r[2] for r in rows),
+            n_points_source=np.array([r[6] for r in rows], dtype=np.int64),
+        )
+
+    def subset(self, rows: Sequence[int] | NDArray[np.integer]) -> DiagnosticCloud:
+        """The samples of some frame rows only (kept in time order)."""
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        if rows.size == 0 or rows[0] < 0 or rows[-1] >= self.n_frames:
+            raise GeometryError(f"subset: rows must be a non-empty subset of 0..{self.n_frames - 1}")
+        counts = np.diff(self.offsets)[rows]
+        idx = np.concatenate([np.arange(self.offsets[r], self.offsets[r + 1]) for r in rows])
+        return DiagnosticCloud(
+            frame_ids=self.frame_ids[rows], stamps_ns=self.stamps_ns[rows],
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            points_sensor=self.points_sensor[idx], normals_sensor=self.normals_sensor[idx],
+            sigma_normal_m=self.sigma_normal_m[idx], sensor_kinds=tuple(self.sensor_kinds[r] for r in rows),
+            n_points_source=self.n_points_source[rows],
+        )
+
+    def place(self, poses: NDArray[np.float64]) -> PlacedCloud:
+        """World positions and normals with ``poses[k] = T_world_sensor`` of frame row ``k``."""
+        T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(T) != self.n_frames:
+            raise GeometryError(f"place: {len(T)} poses for {self.n_frames} frames")
+        pts = np.empty((self.n_points, 3), np.float64)
+        nrm = np.empty((self.n_points, 3), np.float64)
+        for k in range(self.n_frames):
+            a, b = self.offsets[k], self.offsets[k + 1]
+            R, t = T[k, :3, :3], T[k, :3, 3]
+            pts[a:b] = self.points_sensor[a:b].astype(np.float64) @ R.T + t
+            nrm[a:b] = self.normals_sensor[a:b].astype(np.float64) @ R.T
+        origins = T[:, :3, 3].copy()
+        steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
+        path = np.concatenate([[0.0], np.cumsum(steps)])
+        return PlacedCloud(self, T, pts, nrm, self.frame_index(), origins, path)
+
+
+def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],
+                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, noise: NoiseModel | None) -> tuple:
+    rng = np.random.default_rng([cfg.seed, frame_id & 0x7FFFFFFF])
+    pts = np.asarray(points, dtype=np.float32)
+    finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
+    n_src = len(pts)
+    n_norm = min(len(finite), max(cfg.normals_points_per_frame, cfg.max_points_per_frame))
+    pick = finite if n_norm == len(finite) else rng.choice(finite, n_norm, replace=False)
+    sub = pts[pick]
+    if normals is not None:
+        nrm = np.asarray(normals, dtype=np.float32)[pick]
+        ok = np.all(np.isfinite(nrm), axis=1)
+    elif len(sub) >= cfg.normals_k:
+        res = estimate_normals(sub, k=cfg.normals_k)
+        nrm = res.normals
+        ok = (res.confidence >= cfg.min_normal_confidence) & (res.curvature <= cfg.max_curvature) & np.all(np.isfinite(nrm), axis=1)
+    else:
+        nrm, ok = np.zeros_like(sub), np.zeros(len(sub), bool)
+    keep = np.flatnonzero(ok)
+    if len(keep) > cfg.max_points_per_frame:
+        keep = np.sort(rng.choice(keep, cfg.max_points_per_frame, replace=False))
+    model = noise or NoiseModel.for_sensor(kind)
+    sigma = model.sigma_normal_m(sub[keep], nrm[keep]) if len(keep) else np.zeros(0)
+    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src)
+
+
+@dataclass(frozen=True)
+class PlacedCloud:
+    """A :class:`DiagnosticCloud` placed in the world with one set of poses (float64)."""
+
+    samples: DiagnosticCloud
+    poses: NDArray[np.float64]
+    points_world: NDArray[np.float64]
+    normals_world: NDArray[np.float64]
+    frame_index: NDArray[np.int64]
+    origins_world: NDArray[np.float64]
+    """(M, 3) sensor origin of every frame."""
+    path_length_m: NDArray[np.float64]
+    """(M,) distance travelled by the sensor up to each frame (frames in time order)."""
+
+    @property
+    def frame_ids(self) -> NDArray[np.int64]:
+        return self.samples.frame_ids
+
+    @property
+    def stamps_ns(self) -> NDArray[np.int64]:
+        return self.samples.stamps_ns
+
+    @property
+    def sigma_normal_m(self) -> NDArray[np.float32]:
+        return self.samples.sigma_normal_m
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def _dense_ids(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Compact non-negative int64 keys to 0..U-1 (ids in key order) without sorting when the key span is small."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    span = int(keys.max()) + 1
+    if span <= max(_DENSE_SPAN_PER_KEY * len(keys), _DENSE_SPAN_MIN):
+        mark = np.zeros(span, bool)
+        mark[keys] = True
+        uniq = np.flatnonzero(mark)
+        remap = np.empty(span, np.int64)
+        remap[uniq] = np.arange(len(uniq))
+        return remap[keys], uniq
+    uniq, inverse = np.unique(keys, return_inverse=True)
+    return inverse.astype(np.int64), uniq
+
+
+def _grid_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
+    k = np.floor(points / size_m).astype(np.int64)
+    k -= k.min(axis=0)
+    span = k.max(axis=0) + 1
+    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
+        raise ConfigError(f"voxel grid too large to index at {size_m} m")
+    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+
+
+def _sums(ids: NDArray[np.int64], n: int, weights: NDArray | None = None) -> NDArray[np.float64]:
+    return np.bincount(ids, weights=weights, minlength=n).astype(np.float64)
+
+
+def _dominant_axis(ids: NDArray[np.int64], n: int, normals: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Per group, the axis the normals cluster around (sign-free: top eigenvector of sum n n^T)."""
+    S = np.empty((n, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            S[:, a, b] = S[:, b, a] = _sums(ids, n, normals[:, a] * normals[:, b])
+    _, vec = np.linalg.eigh(S)
+    return vec[:, :, 2]
+
+
+def _tangent_basis(n: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    helper = np.where(np.abs(n[:, [0]]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return u, np.cross(n, u)
+
+
+# ---------------------------------------------------------------------------------------------- detector
+
+
+class DoubleWallConfig(BaseModel):
+    """Parameters of the double-wall detector and the smearing score (indoor RGB-D defaults)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    voxel_sizes_m: tuple[float, ...] = Field((0.1, 0.2, 0.4), description="voxel sizes evaluated (m); use ~0.25..2 m outdoors")
+    cell_fraction: float = Field(0.25, gt=0.0, le=1.0, description="lateral cell size as a fraction of the voxel size")
+    normal_max_angle_deg: float = Field(20.0, gt=0.0, lt=90.0, description="own-frame normals within this angle of the voxel's dominant normal")
+    second_surface: bool = Field(True, description="also evaluate the dominant normal of the points that disagree with the first")
+    min_points: int = Field(40, ge=4, description="points per surface group to evaluate it")
+    min_points_per_frame: int = Field(3, ge=1, description="points a frame needs in a group to count")
+    min_frames: int = Field(3, ge=2, description="frames per surface group to evaluate it")
+    min_frames_per_layer: int = Field(2, ge=1, description="frames each layer needs")
+    min_layer_fraction: float = Field(0.1, ge=0.0, lt=0.5, description="the smaller layer holds at least this share of the points")
+    min_separation_m: float = Field(0.01, ge=0.0, description="smallest separation reported as a double wall (m)")
+    min_separation_sigmas: float = Field(3.0, ge=0.0, description="separation / its uncertainty at least this")
+    min_ashman_d: float = Field(3.0, ge=0.0, description="separation relative to the layers' frame-to-frame widths")
+    min_delta_bic: float = Field(6.0, description="BIC(one layer) - BIC(two layers) at least this")
+    min_purity: float = Field(0.5, ge=0.0, le=1.0, description="noise-normalised time purity (1: every frame on one layer; 0: as mixed as chance)")
+    min_overlap: float = Field(0.25, ge=0.0, le=1.0, description="share of the smaller layer's points in lateral cells both layers saw")
+    min_shared_cells: int = Field(2, ge=1, description="lateral cells seen by both layers")
+    kmeans_iterations: int = Field(8, ge=1, description="Lloyd iterations of the 1-D two-layer split")
+    merge_angle_deg: float = Field(25.0, gt=0.0, description="flagged voxels merge into one region when their normals agree within this")
+
+
+@dataclass(frozen=True)
+class ScaleResult:
+    """Every evaluated surface group (voxel x dominant normal x sensor side) at one voxel size."""
+
+    voxel_size_m: float
+    centers_m: NDArray[np.float64]
+    normals: NDArray[np.float64]
+    n_points: NDArray[np.int64]
+    n_frames: NDArray[np.int64]
+    evaluated: NDArray[np.bool_]
+    flagged: NDArray[np.bool_]
+    separation_m: NDArray[np.float64]
+    """B minus A along the normal, in the shared cells (signed; A is the layer of lower mean offset)."""
+    separation_sigma_m: NDArray[np.float64]
+    ashman_d: NDArray[np.float64]
+    delta_bic: NDArray[np.float64]
+    purity: NDArray[np.float64]
+    overlap: NDArray[np.float64]
+    layer_fraction: NDArray[np.float64]
+    smear_m: NDArray[np.float64]
+    """Per group: sqrt of the between-frame dispersion of mean offsets minus what noise explains."""
+    gf_group: NDArray[np.int64]
+    """Per (group, frame) pair: the group, the frame row, its point count, its mean residual offset, its layer
+    (0: A, 1: B, -1: none)."""
+    gf_frame: NDArray[np.int64]
+    gf_points: NDArray[np.int64]
+    gf_mean_m: NDArray[np.float64]
+    gf_layer: NDArray[np.int8]
+
+    @property
+    def voxels_evaluated(self) -> int:
+        return int(self.evaluated.sum())
+
+    @property
+    def voxels_flagged(self) -> int:
+        return int(self.flagged.sum())
+
+    @property
+    def score_m(self) -> float:
+        """Smearing score: RMS over evaluated groups of their excess between-frame dispersion (m)."""
+        s = self.smear_m[self.evaluated]
+        return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
+
+
+@dataclass(frozen=True)
+class DoubleWallRegion:
+    """Flagged surface groups merged into one region (adjacent, same normal, same separation)."""
+
+    center_m: NDArray[np.float64]
+    normal: NDArray[np.float64]
+    separation_m: float
+    separation_sigma_m: float
+    offset_b_minus_a_m: float
+    """Signed: where layer B (the later frames) lies relative to layer A, along ``normal``."""
+    frames_a: NDArray[np.int64]
+    frames_b: NDArray[np.int64]
+    stamp_ns_a: tuple[int, int]
+    stamp_ns_b: tuple[int, int]
+    n_voxels: int
+    voxel_sizes_m: tuple[float, ...]
+    n_points: int
+
+    def to_json(self) -> dict:
+        return {
+            "center_m": [float(v) for v in self.center_m],
+            "normal": [float(v) for v in self.normal],
+            "separation_m": float(self.separation_m),
+            "separation_sigma_m": float(self.separation_sigma_m),
+            "frames_a": [int(v) for v in self.frames_a],
+            "frames_b": [int(v) for v in self.frames_b],
+            "stamp_ns_a": [int(self.stamp_ns_a[0]), int(self.stamp_ns_a[1])],
+            "stamp_ns_b": [int(self.stamp_ns_b[0]), int(self.stamp_ns_b[1])],
+            "offset_b_minus_a_m": float(self.offset_b_minus_a_m),
+            "n_voxels": int(self.n_voxels),
+            "voxel_sizes_m": [float(v) for v in self.voxel_sizes_m],
+            "n_points": int(self.n_points),
+        }
+
+
+@dataclass(frozen=True)
+class DoubleWallResult:
+    scales: list[ScaleResult]
+    regions: list[DoubleWallRegion]
+    frame_ids: NDArray[np.int64]
+    stamps_ns: NDArray[np.int64]
+    config: DoubleWallConfig = field(default_factory=DoubleWallConfig)
+
+    @property
+    def voxels_evaluated(self) -> int:
+        return sum(s.voxels_evaluated for s in self.scales)
+
+    @property
+    def voxels_flagged(self) -> int:
+        return sum(s.voxels_flagged for s in self.scales)
+
+    @property
+    def fraction_flagged(self) -> float:
+        n = self.voxels_evaluated
+        return self.voxels_flagged / n if n else 0.0
+
+    @property
+    def median_separation_m(self) -> float | None:
+        seps = np.concatenate([np.abs(s.separation_m[s.flagged]) for s in self.scales]) if self.scales else np.zeros(0)
+        return float(np.median(seps)) if seps.size else None
+
+    @property
+    def score_per_scale_m(self) -> dict[float, float]:
+        return {s.voxel_size_m: s.score_m for s in self.scales}
+
+    @property
+    def smearing_score_m(self) -> float:
+        """RMS of the per-scale smearing scores (every scale weighs the same)."""
+        vals = np.array([s.score_m for s in self.scales if np.isfinite(s.score_m)])
+        return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
+
+    def to_json(self) -> dict:
+        return {
+            "voxels_evaluated": self.voxels_evaluated,
+            "voxels_flagged": self.voxels_flagged,
+            "fraction_flagged": self.fraction_flagged,
+            "median_separation_m": self.median_separation_m,
+            "regions": [r.to_json() for r in self.regions],
+            "per_scale": [
+                {"voxel_size_m": s.voxel_size_m, "voxels_evaluated": s.voxels_evaluated, "voxels_flagged": s.voxels_flagged,
+                 "smearing_score_m": _finite_or_none(s.score_m)}
+                for s in self.scales
+            ],
+        }
+
+
+def _finite_or_none(v: float) -> float | None:
+    return float(v) if np.isfinite(v) else None
+
+
+def detect_double_walls(cloud: PlacedCloud, config: DoubleWallConfig | None = None) -> DoubleWallResult:
+    """Evaluate every voxel at every configured size; flag double walls and merge them into regions."""
+    cfg = config or DoubleWallConfig()
+    if not cfg.voxel_sizes_m or min(cfg.voxel_sizes_m) <= 0:
+        raise ConfigError(f"voxel_sizes_m must be positive, got {cfg.voxel_sizes_m}")
+    scales = [_evaluate_scale(cloud, float(s), cfg) for s in cfg.voxel_sizes_m]
+    regions = _merge_regions(scales, cloud, cfg)
+    for s in scales:
+        logger.info("double walls at %.2f m: %d of %d surface groups flagged; smearing %.4f m", s.voxel_size_m,
+                    s.voxels_flagged, s.voxels_evaluated, s.score_m)
+    return DoubleWallResult(scales, regions, cloud.frame_ids.copy(), cloud.stamps_ns.copy(), cfg)
+
+
+def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) -> ScaleResult:
+    P, Nw, fidx = cloud.points_world, cloud.normals_world, cloud.frame_index
+    sig2 = cloud.sigma_normal_m.astype(np.float64) ** 2
+    M = cloud.samples.n_frames
+    cos_max = math.cos(math.radians(cfg.normal_max_angle_deg))
+
+    vox, _ = _dense_ids(_grid_keys(P, size_m))
+    n_vox = int(vox.max()) + 1 if len(vox) else 0
+    axis1 = _dominant_axis(vox, n_vox, Nw)
+    c1 = np.einsum("ij,ij->i", Nw, axis1[vox])
+    surface = np.where(np.abs(c1) >= cos_max, 0, -1)
+    side = c1 > 0
+    if cfg.second_surface:
+        rest = surface < 0
+        axis2 = _dominant_axis(vox[rest], n_vox, Nw[rest])
+        c2 = np.einsum("ij,ij->i", Nw[rest], axis2[vox[rest]])
+        ok2 = np.abs(c2) >= cos_max
+        idx = np.flatnonzero(rest)
+        surface[idx[ok2]] = 1
+        side[idx] = np.where(ok2, c2 > 0, side[idx])
+    use = np.flatnonzero(surface >= 0)
+    gkey = vox[use] * 4 + surface[use] * 2 + side[use]
+    g, _ = _dense_ids(gkey)
+    G = int(g.max()) + 1 if len(g) else 0
+    cnt = _sums(g, G)
+    big = cnt >= cfg.min_points
+    # drop small groups right away
+    keep = big[g]
+    use, g = use[keep], g[keep]
+    g, _ = _dense_ids(g)
+    G = int(g.max()) + 1 if len(g) else 0
+    p, nw, f, s2 = P[use], Nw[use], fidx[use], sig2[use]
+    cnt = _sums(g, G)
+    normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    center = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1) / np.maximum(cnt, 1)[:, None]
+    rel = p - center[g]
+    o = np.einsum("ij,ij->i", rel, normal[g])
+
+    # lateral cells on the surface: the reference that removes relief every frame sees
+    cell_m = size_m * cfg.cell_fraction
+    K = int(math.ceil(2.0 * math.sqrt(3.0) * size_m / cell_m)) + 2
+    u, v = _tangent_basis(normal)
+    cu = np.clip(np.floor(np.einsum("ij,ij->i", rel, u[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
+    cv = np.clip(np.floor(np.einsum("ij,ij->i", rel, v[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
+    c, _ = _dense_ids((g * K + cu) * K + cv)
+    C = int(c.max()) + 1 if len(c) else 0
+    c_n = _sums(c, C)
+    c_sum = _sums(c, C, o)
+    ff = f.astype(np.float64)
+    c_f1, c_f2 = _sums(c, C, ff), _sums(c, C, ff * ff)
+    multi = (c_f2 / np.maximum(c_n, 1) - (c_f1 / np.maximum(c_n, 1)) ** 2) > 1e-9  # >1 distinct frame
+    r = o - c_sum[c] / c_n[c]
+    valid = multi[c]
+
+    # per (group, frame)
+    gf, gf_keys = _dense_ids(g * M + f)
+    E = len(gf_keys)
+    e_group, e_frame = gf_keys // M, gf_keys % M
+    wv = valid.astype(np.float64)
+    e_n = _sums(gf, E, wv)
+    e_sum = _sums(gf, E, r * wv)
+    e_s2 = _sums(gf, E, s2 * wv)
+    e_ok = e_n >= cfg.min_points_per_frame
+    e_mean = np.where(e_ok, e_sum / np.maximum(e_n, 1), 0.0)
+    e_noise = np.where(e_ok, e_s2 / np.maximum(e_n, 1) ** 2, 0.0)  # variance of the frame's mean offset
+    w = np.where(e_ok, e_n, 0.0)
+    n_frames = np.bincount(e_group, weights=e_ok.astype(np.float64), minlength=G).astype(np.int64)
+    n_valid = _sums(e_group, G, w)
+    evaluated = (n_frames >= cfg.min_frames) & (n_valid >= cfg.min_points)
+
+    # smearing: between-frame dispersion of mean residual offsets minus the noise part
+    W = np.maximum(n_valid, 1e-12)
+    mbar = _sums(e_group, G, w * e_mean) / W
+    disp = _sums(e_group, G, w * (e_mean - mbar[e_group]) ** 2) / W
+    noise = _sums(e_group, G, w * e_noise) / W
+    smear = np.sqrt(np.maximum(disp - noise, 0.0))
+
+    # two-layer split of the frames (1-D 2-means on per-frame means, weighted by points)
+    thr = mbar.copy()
+    for _ in range(cfg.kmeans_iterations):
+        isB = e_mean > thr[e_group]
+        wA, wB = _sums(e_group, G, w * ~isB), _sums(e_group, G, w * isB)
+        muA = _sums(e_group, G, w * ~isB * e_mean) / np.maximum(wA, 1e-12)
+        muB = _sums(e_group, G, w * isB * e_mean) / np.maximum(wB, 1e-12)
+        thr = np.where((wA > 0) & (wB > 0), 0.5 * (muA + muB), thr)
+    isB = e_mean > thr[e_group]
+    okf = e_ok.astype(np.float64)
+    nA = _sums(e_group, G, okf * ~isB)
+    nB = _sums(e_group, G, okf * isB)
+    wA, wB = _sums(e_group, G, w * ~isB), _sums(e_group, G, w * isB)
+    muA = _sums(e_group, G, w * ~isB * e_mean) / np.maximum(wA, 1e-12)
+    muB = _sums(e_group, G, w * isB * e_mean) / np.maximum(wB, 1e-12)
+    # layer widths (frame to frame, weighted) with the noise of the means as a floor
+    tauA2 = _sums(e_group, G, w * ~isB * (e_mean - muA[e_group]) ** 2) / np.maximum(wA, 1e-12)
+    tauB2 = _sums(e_group, G, w * isB * (e_mean - muB[e_group]) ** 2) / np.maximum(wB, 1e-12)
+    noise_A = _sums(e_group, G, w * ~isB * e_noise) / np.maximum(wA, 1e-12)
+    noise_B = _sums(e_group, G, w * isB * e_noise) / np.maximum(wB, 1e-12)
+    tauA2, tauB2 = np.maximum(tauA2, noise_A) + 1e-10, np.maximum(tauB2, noise_B) + 1e-10
+    tau12 = np.maximum(disp, noise) + 1e-10
+    ashman = (muB - muA) / np.sqrt(0.5 * (tauA2 + tauB2))
+    # BIC on the per-frame means (frames as samples): one Gaussian vs two (classification likelihood)
+    nF = np.maximum(nA + nB, 1)
+    ll1 = -0.5 * nF * (np.log(2 * np.pi * tau12) + 1.0)
+    piA, piB = np.maximum(nA, 1e-12) / nF, np.maximum(nB, 1e-12) / nF
+    ll2 = (nA * np.log(piA) - 0.5 * nA * (np.log(2 * np.pi * tauA2) + 1.0)
+           + nB * np.log(piB) - 0.5 * nB * (np.log(2 * np.pi * tauB2) + 1.0))
+    delta_bic = 2.0 * (ll2 - ll1) - 3.0 * np.log(nF)
+
+    # separation where both layers were seen: per lateral cell, mean(B) - mean(A) of the raw offsets
+    e_layer = np.where(e_ok, isB.astype(np.int8), np.int8(-1))
+    layer = e_layer[gf]
+    inA, inB = (layer == 0).astype(np.float64), (layer == 1).astype(np.float64)
+    cA, cB = _sums(c, C, inA), _sums(c, C, inB)
+    sA, sB = _sums(c, C, inA * o), _sums(c, C, inB * o)
+    shared = (cA > 0) & (cB > 0)
+    d_c = np.where(shared, sB / np.maximum(cB, 1) - sA / np.maximum(cA, 1), 0.0)
+    w_c = np.where(shared, cA * cB / np.maximum(cA + cB, 1), 0.0)
+    cell_group = np.zeros(C, np.int64)
+    cell_group[c] = g
+    Wc = _sums(cell_group, G, w_c)
+    sep = _sums(cell_group, G, w_c * d_c) / np.maximum(Wc, 1e-12)
+    var_c = _sums(cell_group, G, w_c * (d_c - sep[cell_group]) ** 2) / np.maximum(Wc, 1e-12)
+    neff = Wc**2 / np.maximum(_sums(cell_group, G, w_c**2), 1e-12)
+    n_shared = _sums(cell_group, G, shared.astype(np.float64))
+    sep_sigma = np.sqrt(var_c / np.maximum(neff, 1.0) + tauA2 / np.maximum(nA, 1) + tauB2 / np.maximum(nB, 1))
+    # lateral overlap: share of the smaller layer's points in shared cells
+    ptsA, ptsB = _sums(cell_group, G, cA), _sums(cell_group, G, cB)
+    shA, shB = _sums(cell_group, G, cA * shared), _sums(cell_group, G, cB * shared)
+    small_is_A = ptsA <= ptsB
+    overlap = np.where(small_is_A, shA / np.maximum(ptsA, 1), shB / np.maximum(ptsB, 1))
+    layer_fraction = np.minimum(wA, wB) / np.maximum(wA + wB, 1e-12)
+
+    # time purity in the shared cells: a point lies on its frame's layer (beyond the midpoint)
+    mid = np.where(shared, 0.5 * (sA / np.maximum(cA, 1) + sB / np.maximum(cB, 1)), 0.0)
+    on_shared = shared[c] & (layer >= 0)
+    sgn = np.where(layer == 1, 1.0, -1.0)
+    correct = ((o - mid[c]) * sgn * np.sign(sep[g]) > 0) & on_shared
+    expect = ndtr(np.abs(sep[g]) / (2.0 * np.sqrt(s2))) * on_shared
+    n_sh = _sums(g, G, on_shared.astype(np.float64))
+    purity = (_sums(g, G, correct.astype(np.float64)) - 0.5 * n_sh) / np.maximum(_sums(g, G, expect) - 0.5 * n_sh, 1e-12)
+    purity = np.clip(purity, 0.0, 1.5)
+
+    abs_sep = np.abs(sep)
+    flagged = (
+        evaluated
+        & (nA >= cfg.min_frames_per_layer) & (nB >= cfg.min_frames_per_layer)
+        & (layer_fraction >= cfg.min_layer_fraction)
+        & (n_shared >= cfg.min_shared_cells)
+        & (overlap >= cfg.min_overlap)
+        & (abs_sep >= cfg.min_separation_m)
+        & (abs_sep >= cfg.min_separation_sigmas * sep_sigma)
+        & (ashman >= cfg.min_ashman_d)
+        & (delta_bic >= cfg.min_delta_bic)
+        & (purity >= cfg.min_purity)
+    )
+    return ScaleResult(
+        voxel_size_m=size_m, centers_m=center, normals=normal, n_points=cnt.astype(np.int64), n_frames=n_frames,
+        evaluated=evaluated, flagged=flagged, separation_m=sep, separation_sigma_m=sep_sigma, ashman_d=ashman,
+        delta_bic=delta_bic, purity=purity, overlap=overlap, layer_fraction=layer_fraction, smear_m=smear,
+        gf_group=e_group, gf_frame=e_frame, gf_points=e_n.astype(np.int64), gf_mean_m=e_mean, gf_layer=e_layer,
+    )
+
+
+def _merge_regions(scales: list[ScaleResult], cloud: PlacedCloud, cfg: DoubleWallConfig) -> list[DoubleWallRegion]:
+    """Connected flagged groups (overlapping voxels, normals within ``merge_angle_deg``, compatible separations)."""
+    items = []
+    for si, s in enumerate(scales):
+        for gi in np.flatnonzero(s.flagged):
+            items.append((si, int(gi)))
+    if not items:
+        return []
+    centers = np.array([scales[si].centers_m[gi] for si, gi in items])
+    normals = np.array([scales[si].normals[gi] for si, gi in items])
+    sizes = np.array([scales[si].voxel_size_m for si, _ in items])
+    seps = np.array([scales[si].separation_m[gi] for si, gi in items])
+    sigmas = np.array([scales[si].separation_sigma_m[gi] for si, gi in items])
+    npts = np.array([scales[si].n_points[gi] for si, gi in items], dtype=np.float64)
+    # orient the layers by time: A = the layer seen earlier
+    stamps = cloud.stamps_ns.astype(np.float64)
+    frames_of: list[tuple[NDArray[np.int64], NDArray[np.int64]]] = []
+    by_scale = {}
+    for si, s in enumerate(scales):
+        order = np.argsort(s.gf_group, kind="stable")
+        starts = np.searchsorted(s.gf_group[order], np.arange(len(s.evaluated) + 1))
+        by_scale[si] = (order, starts)
+    flip = np.zeros(len(items), bool)
+    for k, (si, gi) in enumerate(items):
+        order, starts = by_scale[si]
+        rows = order[starts[gi]:starts[gi + 1]]
+        lay, fr = scales[si].gf_layer[rows], scales[si].gf_frame[rows]
+        fa, fb = fr[lay == 0], fr[lay == 1]
+        if np.median(stamps[fb]) < np.median(stamps[fa]):
+            fa, fb = fb, fa
+            flip[k] = True
+        frames_of.append((fa, fb))
+    signed = np.where(flip, -seps, seps)
+    tree = cKDTree(centers)
+    pairs = tree.query_pairs(r=float(sizes.max()) * 1.8, output_type="ndarray")
+    if len(pairs):
+        i, j = pairs[:, 0], pairs[:, 1]
+        near = np.linalg.norm(centers[i] - centers[j], axis=1) <= 0.9 * (sizes[i] + sizes[j])
+        same_n = np.einsum("ij,ij->i", normals[i], normals[j]) >= math.cos(math.radians(cfg.merge_angle_deg))
+        tol = 3.0 * np.hypot(sigmas[i], sigmas[j]) + 0.25 * np.maximum(np.abs(signed[i]), np.abs(signed[j]))
+        same_s = np.abs(signed[i] - signed[j]) <= tol
+        keep = near & same_n & same_s
+        i, j = i[keep], j[keep]
+    else:
+        i = j = np.zeros(0, np.int64)
+    graph = coo_matrix((np.ones(len(i)), (i, j)), shape=(len(items), len(items)))
+    n_comp, label = connected_components(graph, directed=False)
+    regions = []
+    ids = cloud.frame_ids
+    for comp in range(n_comp):
+        members = np.flatnonzero(label == comp)
+        wts = npts[members]
+        center = np.average(centers[members], axis=0, weights=wts)
+        nsum = np.sum(normals[members] * wts[:, None], axis=0)
+        normal = nsum / max(np.linalg.norm(nsum), 1e-12)
+        iv = 1.0 / np.maximum(sigmas[members], 1e-6) ** 2
+        off = float(np.sum(iv * signed[members]) / np.sum(iv))
+        sig = float(max(np.sqrt(1.0 / np.sum(iv)) * math.sqrt(len({items[m][0] for m in members})),
+                        np.std(signed[members]) / math.sqrt(len(members)) if len(members) > 1 else 0.0))
+        fa = np.unique(np.concatenate([frames_of[m][0] for m in members]))
+        fb = np.unique(np.concatenate([frames_of[m][1] for m in members]))
+        st = cloud.stamps_ns
+        regions.append(DoubleWallRegion(
+            center_m=center, normal=normal, separation_m=abs(off), separation_sigma_m=sig, offset_b_minus_a_m=off,
+            frames_a=ids[fa], frames_b=ids[fb],
+            stamp_ns_a=(int(st[fa].min()), int(st[fa].max())), stamp_ns_b=(int(st[fb].min()), int(st[fb].max())),
+            n_voxels=len(members), voxel_sizes_m=tuple(sorted({float(sizes[m]) for m in members})), n_points=int(wts.sum()),
+        ))
+    regions.sort(key=lambda r: -r.n_points)
+    return regions
+
+
+# ---------------------------------------------------------------------------------------------- MME / MPV
+
+
+@dataclass(frozen=True)
+class MapEntropy:
+    """Mean Map Entropy and Mean Plane Variance with the neighbourhood rules that produced them."""
+
+    mme: float
+    """Mean over points of h = 0.5 ln det(2 pi e Sigma) of the neighbours within ``radius_m`` (nats; lower is crisper)."""
+    mpv_m2: float
+    """Mean over points of the smallest eigenvalue of the same covariance (m^2; Skoltech map-metrics' definition)."""
+    radius_m: float
+    min_neighbors: int
+    max_neighbors: int
+    n_points_used: int
+    n_points_queried: int
+
+
+def map_entropy(points_world: NDArray[np.floating], *, radius_m: float = 0.1, min_neighbors: int = 10,
+                max_neighbors: int = 64, max_query_points: int | None = 100_000, seed: int = 0,
+                tree: cKDTree | None = None) -> MapEntropy:
+    """MME and MPV (Razlaw et al. 2015; Kornilova & Ferrer 2021) on a point set.
+
+    Rules: per query point, the neighbours within ``radius_m`` (itself included), at most the
+    ``max_neighbors`` nearest; points with fewer than ``min_neighbors`` are skipped (not counted). Up to
+    ``max_query_points`` query points are drawn at random (all neighbours still come from the full set).
+    """
+    pts = np.asarray(points_world, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise GeometryError(f"map_entropy: expected (N, 3) points, got {pts.shape}")
+    if len(pts) == 0:
+        return MapEntropy(float("nan"), float("nan"), radius_m, min_neighbors, max_neighbors, 0, 0)
+    rng = np.random.default_rng(seed)
+    q = np.arange(len(pts)) if max_query_points is None or len(pts) <= max_query_points else rng.choice(len(pts), max_query_points, replace=False)
+    tree = tree or cKDTree(pts)
+    dist, idx = tree.query(pts[q], k=max_neighbors, distance_upper_bound=radius_m, workers=-1)
+    ok = np.isfinite(dist)
+    n = ok.sum(axis=1)
+    use = n >= min_neighbors
+    ok, idx, n = ok[use], idx[use], n[use]
+    if not len(n):
+        return MapEntropy(float("nan"), float("nan"), radius_m, min_neighbors, max_neighbors, 0, len(q))
+    nb = pts[np.where(ok, idx, 0)] * ok[:, :, None]
+    mean = nb.sum(axis=1) / n[:, None]
+    d = (nb - mean[:, None, :]) * ok[:, :, None]
+    cov = np.einsum("nki,nkj->nij", d, d) / n[:, None, None]
+    det = np.linalg.det(2 * np.pi * np.e * cov)
+    good = det > 0
+    h = 0.5 * np.log(det[good])
+    lam0 = np.linalg.eigvalsh(cov)[:, 0]
+    return MapEntropy(float(np.mean(h)), float(np.mean(lam0)), radius_m, min_neighbors, max_neighbors,
+                      int(good.sum()), len(q))

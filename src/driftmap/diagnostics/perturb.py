@@ -1,0 +1,206 @@
+"""Pose and sensor perturbations: change exactly one geometric assumption, then record what changes.
+
+Pose perturbations act on ``(N, 4, 4)`` arrays of ``T_world_sensor`` in time order:
+
+* :func:`translation_step` -- from frame index ``k`` on, every pose is shifted by a world-frame vector
+  (what an odometry jump does to everything after it).
+* :func:`rotation_step` -- from frame index ``k`` on, every pose is rotated about the sensor origin of
+  frame ``k`` by a world-frame rotation vector (degrees).
+* :func:`linear_drift` -- an error that grows with the distance travelled ``s_k`` (metres along the
+  sensor path): a translation of ``percent_per_m / 100 * s_k`` along a fixed world direction and a
+  rotation of ``deg_per_m * s_k`` degrees about a fixed world axis through the first sensor origin. (A pure
+  scale error along the direction of motion is *not* used: it closes loops exactly and is invisible to
+  any consistency measure; a fixed direction is what accumulated odometry error looks like at a revisit.)
+
+Sensor perturbations act on a frame's sensor-frame points (apply them before storing a frame, i.e. at
+build time):
+
+* :func:`scale_depth` -- a depth-scale error: every point scaled radially from the sensor origin by
+  ``factor`` (a depth camera with a wrong ``depth_scale``, a LiDAR with a range scale error).
+* :func:`scale_focal` -- a focal-length error of a pinhole depth camera: the points were back-projected
+  with ``f_assumed`` instead of the true ``f_true``, so ``x`` and ``y`` are scaled by ``f_true / f_assumed``
+  and ``z`` is unchanged.
+"""
+
+from __future__ import annotations
+
+import enum
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.spatial.transform import Rotation
+
+from driftmap.errors import ConfigError, GeometryError
+from driftmap.frame import Frame, PointAttributes
+from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+
+
+class PoseFileFormat(enum.Enum):
+    TUM = "tum"
+    KITTI = "kitti"
+
+
+def _poses(poses: ArrayLike) -> NDArray[np.float64]:
+    T = np.asarray(poses, dtype=np.float64)
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise GeometryError(f"perturb: expected (N, 4, 4) poses, got {T.shape}")
+    return T.copy()
+
+
+def _vector(v: ArrayLike, name: str) -> NDArray[np.float64]:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ConfigError(f"{name}: expected 3 finite numbers, got {v!r}")
+    return a
+
+
+def path_length_m(poses: ArrayLike) -> NDArray[np.float64]:
+    """Cumulative distance travelled by the sensor origin, ``s[0] = 0``."""
+    T = np.asarray(poses, dtype=np.float64)
+    if len(T) == 0:
+        return np.zeros(0)
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(T[:, :3, 3], axis=0), axis=1))])
+
+
+def translation_step(poses: ArrayLike, at_index: int, step_m: ArrayLike) -> NDArray[np.float64]:
+    """Shift every pose from index ``at_index`` on by the world-frame vector ``step_m``."""
+    T = _poses(poses)
+    if not 0 <= at_index < len(T):
+        raise ConfigError(f"translation_step: index {at_index} outside 0..{len(T) - 1}")
+    T[at_index:, :3, 3] += _vector(step_m, "step_m")
+    return T
+
+
+def rotation_step(poses: ArrayLike, at_index: int, rotvec_deg: ArrayLike) -> NDArray[np.float64]:
+    """Rotate every pose from index ``at_index`` on about the sensor origin of that frame by the world-frame
+    rotation vector ``rotvec_deg`` (direction = axis, length = angle in degrees)."""
+    T = _poses(poses)
+    if not 0 <= at_index < len(T):
+        raise ConfigError(f"rotation_step: index {at_index} outside 0..{len(T) - 1}")
+    R = Rotation.from_rotvec(np.radians(_vector(rotvec_deg, "rotvec_deg"))).as_matrix()
+    pivot = T[at_index, :3, 3].copy()
+    E = np.eye(4)
+    E[:3, :3] = R
+    E[:3, 3] = pivot - R @ pivot
+    T[at_index:] = E @ T[at_index:]
+    return T
+
+
+def linear_drift(poses: ArrayLike, *, percent_per_m: float = 0.0, direction: ArrayLike = (1.0, 0.0, 0.0),
+                 deg_per_m: float = 0.0, axis: ArrayLike = (0.0, 0.0, 1.0)) -> NDArray[np.float64]:
+    """An error growing linearly with the distance travelled (see the module docstring).
+
+    Frame k is moved by ``E_k = [R(axis, deg_per_m * s_k) about the first origin] + percent_per_m/100 * s_k * direction``.
+    """
+    T = _poses(poses)
+    d = _vector(direction, "direction")
+    a = _vector(axis, "axis")
+    if np.linalg.norm(d) == 0 or np.linalg.norm(a) == 0:
+        raise ConfigError("linear_drift: direction and axis must be non-zero")
+    d, a = d / np.linalg.norm(d), a / np.linalg.norm(a)
+    s = path_length_m(T)
+    pivot = T[0, :3, 3].copy() if len(T) else np.zeros(3)
+    R = Rotation.from_rotvec(np.radians(deg_per_m * s)[:, None] * a).as_matrix()
+    E = np.tile(np.eye(4), (len(T), 1, 1))
+    E[:, :3, :3] = R
+    E[:, :3, 3] = pivot - R @ pivot + (percent_per_m / 100.0) * s[:, None] * d
+    return E @ T
+
+
+@dataclass(frozen=True)
+class PosePerturbation:
+    """A composition of the pose perturbations above (applied in the order: step, rotation step, drift)."""
+
+    step_index: int | None = None
+    step_m: tuple[float, float, float] | None = None
+    step_deg: tuple[float, float, float] | None = None
+    drift_percent_per_m: float = 0.0
+    drift_direction: tuple[float, float, float] = (1.0, 0.0, 0.0)
+    drift_deg_per_m: float = 0.0
+    drift_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
+
+    def apply(self, poses: ArrayLike) -> NDArray[np.float64]:
+        T = _poses(poses)
+        if (self.step_m is not None or self.step_deg is not None) and self.step_index is None:
+            raise ConfigError("a step needs the frame index it happens at")
+        if self.step_m is not None:
+            T = translation_step(T, self.step_index, self.step_m)
+        if self.step_deg is not None:
+            T = rotation_step(T, self.step_index, self.step_deg)
+        if self.drift_percent_per_m or self.drift_deg_per_m:
+            T = linear_drift(T, percent_per_m=self.drift_percent_per_m, direction=self.drift_direction,
+                             deg_per_m=self.drift_deg_per_m, axis=self.drift_axis)
+        return T
+
+
+def perturb_pose_file(path_in: str | Path, path_out: str | Path, perturbation: PosePerturbation, *,
+                      format: PoseFileFormat | str = PoseFileFormat.TUM, step_frame: int | None = None) -> Trajectory:
+    """Read a TUM or KITTI file, perturb it, write it in the same format.
+
+    ``step_frame`` (if given) is the frame at which the step happens: for KITTI the row index (row i is
+    frame_id i), for TUM the row index too (rows in file order; the rows are sorted by stamp first).
+    """
+    fmt = PoseFileFormat(format)
+    traj = read_tum(path_in) if fmt is PoseFileFormat.TUM else read_kitti(path_in)
+    order = np.argsort(traj.stamps_ns, kind="stable")
+    if step_frame is not None:
+        perturbation = PosePerturbation(**{**perturbation.__dict__, "step_index": int(step_frame)})
+    poses = perturbation.apply(traj.poses[order])
+    out = np.empty_like(poses)
+    out[order] = poses
+    result = Trajectory(traj.stamps_ns.copy(), out, None if traj.frame_ids is None else traj.frame_ids.copy())
+    Path(path_out).parent.mkdir(parents=True, exist_ok=True)
+    (write_tum if fmt is PoseFileFormat.TUM else write_kitti)(path_out, result)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------- sensor errors
+
+
+def scale_depth(points_sensor: ArrayLike, factor: float) -> NDArray[np.float32]:
+    """Depth-scale error: points scaled radially from the sensor origin (``p * factor``)."""
+    if not (np.isfinite(factor) and factor > 0):
+        raise ConfigError(f"scale_depth: factor must be positive, got {factor}")
+    return (np.asarray(points_sensor, dtype=np.float64) * factor).astype(np.float32)
+
+
+def scale_focal(points_sensor: ArrayLike, f_true: float, f_assumed: float) -> NDArray[np.float32]:
+    """Focal-length error: back-projection with ``f_assumed`` instead of ``f_true`` scales x and y by
+    ``f_true / f_assumed`` (z, the depth, is unchanged). Sensor frame: optical axis z forward."""
+    if not (f_true > 0 and f_assumed > 0):
+        raise ConfigError(f"scale_focal: focal lengths must be positive, got {f_true} and {f_assumed}")
+    p = np.asarray(points_sensor, dtype=np.float64).copy()
+    p[:, :2] *= f_true / f_assumed
+    return p.astype(np.float32)
+
+
+def _without_normals(frame: Frame) -> PointAttributes:
+    a = frame.attributes
+    return PointAttributes(intensity=a.intensity, color_rgb=a.color_rgb, time_offset_ns=a.time_offset_ns)
+
+
+def with_depth_scale_error(frame: Frame, factor: float) -> Frame:
+    """The frame with its points scaled radially by ``factor`` (stored normals are dropped: they no longer hold)."""
+    return frame.with_points(scale_depth(frame.points_sensor, factor), _without_normals(frame))
+
+
+def with_focal_error(frame: Frame, f_assumed_over_true: float) -> Frame:
+    """The frame as if back-projected with a focal length ``f_assumed_over_true`` times the true one."""
+    return frame.with_points(scale_focal(frame.points_sensor, 1.0, f_assumed_over_true), _without_normals(frame))
+
+
+def parse_vector(text: str | Sequence[float], name: str) -> tuple[float, float, float]:
+    """``"x,y,z"`` -> a 3-tuple (for the command line)."""
+    if isinstance(text, str):
+        try:
+            values = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+        except ValueError as exc:
+            raise ConfigError(f"{name}: expected 'x,y,z', got {text!r}") from exc
+    else:
+        values = [float(v) for v in text]
+    if len(values) != 3:
+        raise ConfigError(f"{name}: expected 3 comma-separated numbers 'x,y,z', got {text!r}")
+    return (values[0], values[1], values[2])
