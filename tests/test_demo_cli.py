@@ -30,6 +30,12 @@ def test_demo_library_outputs(tmp_path: Path) -> None:
     assert summary["n_frames"] == result.n_frames == 60
     # the doubled loop wall of the drifting map is measured, and the ground-truth map is single-walled
     assert summary["wall_spread_odometry_m"] > 2.5 * summary["wall_spread_ground_truth_m"]
+    # loop closure makes it single again and brings the trajectory closer to the truth
+    assert summary["loops_accepted"] >= 3
+    assert summary["wall_spread_corrected_m"] < 1.5 * summary["wall_spread_ground_truth_m"]
+    assert summary["ate_corrected_m"] < 0.7 * summary["ate_odometry_m"]
+    assert Path(result.files["map_corrected_ply"]).stat().st_size > 100_000
+    assert len(Path(result.files["trajectory_corrected_tum"]).read_text().splitlines()) == 61
     png = np.asarray(Image.open(result.files["top_view_png"]).convert("L"))
     assert png.shape[0] > 300 and png.shape[1] > 600
     assert png.std() > 10, "the top view should not be a blank image"

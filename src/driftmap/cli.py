@@ -89,8 +89,15 @@ def demo(
     table.add_row("frames flagged (invalid-pixel jump)", str(len(result.flagged_frames)))
     table.add_row("loop wall spread, odometry (median / max)",
                   f"{result.wall_spread_odometry_m * 100:.1f} / {result.wall_spread_odometry_max_m * 100:.1f} cm")
+    if result.wall_spread_corrected_m is not None:
+        table.add_row("loop wall spread, after loop closure (median / max)",
+                      f"{result.wall_spread_corrected_m * 100:.1f} / {result.wall_spread_corrected_max_m * 100:.1f} cm")
     table.add_row("loop wall spread, ground truth (median / max)",
                   f"{result.wall_spread_ground_truth_m * 100:.1f} / {result.wall_spread_ground_truth_max_m * 100:.1f} cm")
+    table.add_row("loops accepted", str(result.loops_accepted))
+    if result.ate_odometry_m is not None:
+        after = "-" if result.ate_corrected_m is None else f"{result.ate_corrected_m * 100:.1f}"
+        table.add_row("ATE odometry -> after loop closure", f"{result.ate_odometry_m * 100:.1f} -> {after} cm")
     table.add_row("time", f"{result.seconds:.1f} s")
     console.print(table)
     for name, path in result.files.items():
