@@ -64,3 +64,38 @@ def frame_bounds(src, starts, strides, counts, boxes):  # pragma: no cover - com
             hi0 = max(hi0, x); hi1 = max(hi1, y); hi2 = max(hi2, z)  # noqa: E702
         boxes[j, 0] = lo0; boxes[j, 1] = lo1; boxes[j, 2] = lo2  # noqa: E702
         boxes[j, 3] = hi0; boxes[j, 4] = hi1; boxes[j, 5] = hi2  # noqa: E702
+
+
+@numba.njit(cache=True, nogil=True)
+def backproject_uint16(flat, lut, rays, min_code, max_code, valid_out, points_out):  # pragma: no cover - compiled
+    """One pass over a uint16 depth image (flattened, row-major): mark valid pixels, write their points
+    ``rays[i] * z`` into ``points_out`` in pixel order, count the rejection reasons.
+
+    ``lut`` maps a code to metres (0 = invalid), ``rays`` is (n, 3) float32 ``((u-cx)/fx, (v-cy)/fy, 1)``.
+    Returns (n_valid, n_zero, n_no_reading, n_below, n_beyond).
+    """
+    n_valid = 0
+    n_zero = 0
+    n_sentinel = 0
+    n_below = 0
+    n_beyond = 0
+    for i in range(flat.size):
+        code = flat[i]
+        z = lut[code]
+        if z != 0:
+            points_out[n_valid, 0] = rays[i, 0] * z
+            points_out[n_valid, 1] = rays[i, 1] * z
+            points_out[n_valid, 2] = z
+            valid_out[i] = True
+            n_valid += 1
+        else:
+            valid_out[i] = False
+            if code == 0:
+                n_zero += 1
+            elif code == 65535:
+                n_sentinel += 1
+            elif code < min_code:
+                n_below += 1
+            elif code >= max_code:
+                n_beyond += 1
+    return n_valid, n_zero, n_sentinel, n_below, n_beyond

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.errors import DepthError, DepthScaleError
+from driftmap.map._kernels import backproject_uint16
 from driftmap.frame import (
     Frame,
     FrameQuality,
@@ -231,20 +232,22 @@ def backproject(
         if check_scale:
             check_depth_scale(depth, depth_scale, what=what)
         lut, min_code, max_code = _uint16_lut(float(depth_scale), float(min_depth_m), float(max_depth_m))
-        z = np.take(lut, flat)
-        valid = z != 0
-        n_zero = int(np.count_nonzero(flat == 0))
-        n_sentinel = int(np.count_nonzero(flat == UINT16_NO_READING))
-        n_below = int(np.count_nonzero(flat < min_code)) - n_zero if min_code > 0 else 0
-        n_beyond = int(np.count_nonzero(flat >= max_code)) - n_sentinel if max_code <= UINT16_NO_READING else 0
+        # one compiled pass: validity, points in pixel order, counts per reason (same float32 products as
+        # the numpy path below, so the points are bit-identical)
+        valid = np.empty(n_pixels, dtype=bool)
+        scratch = np.empty((n_pixels, 3), dtype=np.float32)
+        n_valid, n_zero, n_sentinel, n_below, n_beyond = backproject_uint16(
+            flat, lut, rays.view(np.float32).reshape(-1, 3), min_code, max_code, valid, scratch)
         counts = {
-            InvalidReason.ZERO.value: n_zero,
-            InvalidReason.NO_READING_65535.value: n_sentinel,
-            InvalidReason.BELOW_MIN.value: max(n_below, 0),
-            InvalidReason.BEYOND_MAX.value: max(n_beyond, 0),
+            InvalidReason.ZERO.value: int(n_zero),
+            InvalidReason.NO_READING_65535.value: int(n_sentinel),
+            InvalidReason.BELOW_MIN.value: int(n_below),
+            InvalidReason.BEYOND_MAX.value: int(n_beyond),
         }
-        zv = z[valid]
-        used_scale: float | None = float(depth_scale)
+        points = scratch[:n_valid]
+        result = BackprojectionResult(points, valid, counts, n_pixels, float(depth_scale))
+        logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
+        return result
     elif depth.dtype in (np.float32, np.float64):
         if check_scale:
             check_depth_scale(depth, 1.0, what=what)
