@@ -247,3 +247,12 @@ def test_kitti_import_by_index_with_a_sliced_store(tmp_path: Path, kitchen_frame
     out = read_kitti(tmp_path / "out.txt")
     assert len(out) == 4  # one row per stored frame, in frame order
     np.testing.assert_allclose(out.poses, full[[0, 50, 100, 150]], atol=1e-9)
+
+
+def test_cli_info(kitchen_store: FrameStore) -> None:
+    path = kitchen_store.path
+    kitchen_store.close()
+    out = _cli("info", path)
+    assert out.returncode == 0, out.stderr
+    assert "frames" in out.stdout and "20" in out.stdout and "kinect" in out.stdout
+    assert "invalid-pixel fraction" in out.stdout and "MiB" in out.stdout

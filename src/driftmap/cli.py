@@ -299,6 +299,36 @@ def export(
 
 
 @app.command()
+def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """Frames, sensors, time span, revisions, size on disk and invalid-pixel statistics of a store."""
+    from collections import Counter
+
+    with _open_store(store_path) as store:
+        infos = [store.frame_info(int(f)) for f in store.frame_ids]
+        table = Table(title=f"driftmap store {store_path}")
+        table.add_column("quantity")
+        table.add_column("value", justify="right")
+        stamps = [i["stamp_ns"] for i in infos]
+        sensors = Counter(f"{i['sensor_name']} ({i['sensor_kind']})" for i in infos)
+        invalid = [1 - i["quality"]["n_valid"] / i["quality"]["n_measurements"] for i in infos
+                   if i.get("quality") and i["quality"]["n_measurements"]]
+        flagged = sum(1 for i in infos if i.get("quality") and i["quality"]["flags"])
+        n_points = sum(int(i["points"]["n_points"]) for i in infos)
+        table.add_row("frames", str(len(infos)))
+        table.add_row("frame ids", f"{int(store.frame_ids[0])} .. {int(store.frame_ids[-1])}" if infos else "-")
+        table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
+        if stamps:
+            table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")
+        table.add_row("points (sensor frames)", f"{n_points:,}")
+        table.add_row("revisions", f"{len(store.revisions)} (head {store.head}: {store.revisions[store.head].source.value})")
+        table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")
+        if invalid:
+            table.add_row("invalid-pixel fraction (mean / max)", f"{np.mean(invalid):.3f} / {np.max(invalid):.3f}")
+            table.add_row("frames flagged", str(flagged))
+        console.print(table)
+
+
+@app.command()
 def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
     """Salvage every intact frame and revision of a damaged store (damaged files are kept beside)."""
     from driftmap.store.frame_store import FrameStore
@@ -308,6 +338,117 @@ def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Fr
         console.print(f"{store_path}: every segment is intact; nothing to do")
     for event in events:
         console.print(f"recovered {event}")
+
+
+@app.command()
+def diagnose(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    json_path: Annotated[Path, typer.Option("--json", help="Write the diagnosis here (JSON).")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth poses (T_world_sensor) for ATE/RPE.")] = None,
+    gt_format: Annotated[str, typer.Option("--gt-format", help="tum (matched by stamp) | kitti (row i = frame_id i)")] = "tum",
+    report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
+    compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
+    points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default 3000 RGB-D, 5000 LiDAR).")] = None,
+) -> None:
+    """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
+    disagreement and change points; with --gt also ATE/RPE."""
+    from driftmap.diagnostics.double_wall import DiagnosticCloud
+    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth, write_report
+    from driftmap.frame import SensorKind
+
+    with _open_store(store_path) as store:
+        if len(store) == 0:
+            raise DriftmapError(f"{store_path}: the store has no frames")
+        kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
+        cfg = DiagnoseConfig.for_sensor(kind)
+        if points_per_frame is not None:
+            cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(
+                update={"max_points_per_frame": points_per_frame,
+                        "normals_points_per_frame": max(points_per_frame, cfg.sampling.normals_points_per_frame)})})
+        ground_truth = read_ground_truth(store, gt, gt_format) if gt is not None else None
+        with console.status(f"sampling {len(store)} frames"):
+            cloud = DiagnosticCloud.from_store(store, cfg.sampling)
+        with console.status("diagnosing"):
+            result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
+            other = (diagnose_store(store, compare_revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
+                     if compare_revision is not None else None)
+    data = result.to_json()
+    if other is not None:
+        data["comparison"] = {"revision": other.revision, "smearing_score_m": other.to_json()["smearing_score_m"],
+                              "fraction_flagged": other.double_walls.fraction_flagged}
+    json_path.parent.mkdir(parents=True, exist_ok=True)
+    json_path.write_text(json.dumps(data, indent=1) + "\n")
+    dw = result.double_walls
+    table = Table(title=f"driftmap diagnose: {store_path} revision {result.revision}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    rows = [
+        ("smearing score", f"{1000 * dw.smearing_score_m:.2f} mm ("
+                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + ")"),
+        ("surface voxels doubled", f"{dw.voxels_flagged} / {dw.voxels_evaluated} ({100 * dw.fraction_flagged:.2f} %)"),
+        ("median separation", "-" if dw.median_separation_m is None else f"{100 * dw.median_separation_m:.1f} cm"),
+        ("double-wall regions", str(len(dw.regions))),
+        ("change points (frame: jump)", ", ".join(f"{c.frame_id}: {100 * c.jump_m:.1f} cm" for c in result.attribution.change_points) or "-"),
+        ("revisited", f"{100 * result.attribution.revisit_fraction:.0f} %"),
+        ("drift rate", "-" if result.attribution.drift.percent_per_m is None else
+         f"{result.attribution.drift.percent_per_m:.2f} %/m, {result.attribution.drift.deg_per_m:.3f} deg/m"),
+        ("MME / MPV", f"{result.entropy.mme:.3f} / {result.entropy.mpv_m2:.2e} m^2 (r = {result.entropy.radius_m:g} m)"),
+    ]
+    if result.trajectory is not None:
+        tr = result.trajectory
+        rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
+    if other is not None:
+        rows.append((f"smearing score, revision {other.revision}", f"{1000 * other.smearing_score_m:.2f} mm"))
+    for k, v in rows:
+        table.add_row(k, v)
+    console.print(table)
+    for k, region in enumerate(dw.regions[:5]):
+        console.print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm at "
+                      f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "
+                      f"{region.frames_b.min()}-{region.frames_b.max()}", highlight=False)
+    if result.attribution.revisit_note:
+        console.print(f"[yellow]{result.attribution.revisit_note}[/yellow]")
+    if report is not None:
+        compare = {f"revision {other.revision}": other, f"revision {result.revision}": result} if other is not None else None
+        files = write_report(report, result, compare=compare)
+        for name, file in files.items():
+            console.print(f"  {name:20s} {file}")
+    console.print(f"diagnosis: [bold]{json_path}[/bold]")
+
+
+@app.command()
+def perturb(
+    poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
+    poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format).")],
+    format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
+    step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
+    step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
+    step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin).")] = None,
+    drift_percent_per_m: Annotated[float, typer.Option("--drift-percent-per-m", help="Translation drift (% of the path travelled).")] = 0.0,
+    drift_direction: Annotated[str, typer.Option("--drift-direction", help="World direction of the translation drift 'x,y,z'.")] = "1,0,0",
+    drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", help="Rotation drift (deg per m travelled).")] = 0.0,
+    drift_axis: Annotated[str, typer.Option("--drift-axis", help="World axis of the rotation drift 'x,y,z' (through the first position).")] = "0,0,1",
+) -> None:
+    """Write a perturbed copy of a trajectory: a translation/rotation step at a frame and/or a linear drift."""
+    from driftmap.diagnostics.perturb import PosePerturbation, parse_vector, perturb_pose_file
+    from driftmap.errors import ConfigError
+
+    if (step_m is not None or step_deg is not None) and step_frame is None:
+        raise ConfigError("--step-m / --step-deg need --step-frame")
+    if step_frame is not None and step_m is None and step_deg is None:
+        raise ConfigError("--step-frame needs --step-m and/or --step-deg")
+    if step_m is None and step_deg is None and not drift_percent_per_m and not drift_deg_per_m:
+        raise ConfigError("nothing to perturb: give a step (--step-frame with --step-m/--step-deg) or a drift")
+    perturbation = PosePerturbation(
+        step_index=step_frame,
+        step_m=None if step_m is None else parse_vector(step_m, "--step-m"),
+        step_deg=None if step_deg is None else parse_vector(step_deg, "--step-deg"),
+        drift_percent_per_m=drift_percent_per_m, drift_direction=parse_vector(drift_direction, "--drift-direction"),
+        drift_deg_per_m=drift_deg_per_m, drift_axis=parse_vector(drift_axis, "--drift-axis"),
+    )
+    result = perturb_pose_file(poses_in, poses_out, perturbation, format=format.lower())
+    console.print(f"wrote {len(result)} perturbed poses to {poses_out}")
 
 
 def main() -> None:
