@@ -32,7 +32,7 @@ from driftmap.registration.loops import (
     select_keyframes,
 )
 from driftmap.registration.odometry import KissOdometry, OdometryConfig
-from driftmap.registration.pairwise import register, relative_pose
+from driftmap.registration.pairwise import register_prepared, relative_pose
 from driftmap.sources.base import FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
 from driftmap.trajectory import read_trajectory
@@ -273,8 +273,8 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     graph.add_prior(keyframes[0].frame_id, keyframes[0].T_world_sensor, np.diag([1e8] * 6))
     for n, (a, b) in enumerate(zip(keyframes, keyframes[1:])):
         odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
-        reg = register(a.points_m, b.points_m, odom, voxel_size_m=lc.registration_voxel_m,
-                       max_correspondence_m=2.5 * lc.registration_voxel_m)
+        reg = register_prepared(a.cloud, b.cloud, odom, voxel_size_m=lc.registration_voxel_m,
+                                max_correspondence_m=2.5 * lc.registration_voxel_m)
         good = reg.converged and reg.fitness >= lc.min_fitness and \
             geometry.translation_distance_m(odom, reg.T_target_source) <= config.odometry_edge_max_disagreement_m
         if good:

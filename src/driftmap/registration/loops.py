@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.registration.pairwise import RegistrationResult, downsample, register, relative_pose
+from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, downsample, register_prepared, relative_pose
 
 logger = logging.getLogger(__name__)
 
@@ -61,6 +61,8 @@ class Keyframe:
     points_m: NDArray[np.float64]
     """Sensor-frame points downsampled to the registration voxel."""
     descriptor: NDArray[np.float64]
+    cloud: PreparedCloud
+    """The same points with their GICP preprocessing, cached per voxel size."""
 
 
 class CandidateKind(enum.Enum):
@@ -184,8 +186,8 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
     if init_T_a_b is None:
         init_T_a_b = odom if kind is CandidateKind.PROXIMITY else global_initial_guess(a.points_m, b.points_m, config.registration_voxel_m)
     v = config.registration_voxel_m
-    coarse = register(a.points_m, b.points_m, init_T_a_b, voxel_size_m=2 * v, max_correspondence_m=8 * v)
-    result = register(a.points_m, b.points_m, coarse.T_target_source, voxel_size_m=v, max_correspondence_m=2.5 * v)
+    coarse = register_prepared(a.cloud, b.cloud, init_T_a_b, voxel_size_m=2 * v, max_correspondence_m=8 * v)
+    result = register_prepared(a.cloud, b.cloud, coarse.T_target_source, voxel_size_m=v, max_correspondence_m=2.5 * v)
     reasons = []
     if not result.converged:
         reasons.append("did not converge")
@@ -209,7 +211,7 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
 def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64], points_m: NDArray[np.floating],
                   config: LoopClosureConfig) -> Keyframe:
     pts = downsample(points_m, config.registration_voxel_m / 2)
-    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts))
+    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts))
 
 
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,

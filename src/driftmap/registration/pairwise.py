@@ -13,7 +13,6 @@ from dataclasses import dataclass
 import numpy as np
 import small_gicp
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from driftmap import geometry
 from driftmap.posegraph import TangentOrder, reorder_6x6
@@ -48,9 +47,25 @@ def downsample(points: NDArray[np.floating], voxel_size_m: float) -> NDArray[np.
     return np.asarray(pcd.points())[:, :3]
 
 
-def register(
-    target_m: NDArray[np.floating],
-    source_m: NDArray[np.floating],
+class PreparedCloud:
+    """A cloud with its small_gicp preprocessing (downsampling, covariances, KD-tree) cached per voxel
+    size, so a keyframe registered against many others is prepared once."""
+
+    def __init__(self, points_m: NDArray[np.floating], num_threads: int = 2):
+        self.points_m = np.asarray(points_m, dtype=np.float64)
+        self._num_threads = num_threads
+        self._levels: dict[float, tuple[small_gicp.PointCloud, small_gicp.KdTree]] = {}
+
+    def level(self, voxel_size_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
+        if voxel_size_m not in self._levels:
+            self._levels[voxel_size_m] = small_gicp.preprocess_points(
+                self.points_m, downsampling_resolution=voxel_size_m, num_neighbors=10, num_threads=self._num_threads)
+        return self._levels[voxel_size_m]
+
+
+def register_prepared(
+    target: PreparedCloud,
+    source: PreparedCloud,
     init_T_target_source: NDArray[np.float64],
     *,
     voxel_size_m: float = 0.04,
@@ -60,26 +75,22 @@ def register(
     correlation_factor: float = 10.0,
     num_threads: int = 2,
 ) -> RegistrationResult:
-    """Align ``source`` to ``target`` with GICP, starting from ``init_T_target_source``.
-
-    Information: the GICP Hessian ``H`` at the solution divided by the variance factor ``cost / dof`` (so
-    it reflects the residuals actually observed) and by ``correlation_factor`` because neighbouring points'
-    residuals are not independent (a plain Hessian makes edges absurdly confident).
-    """
-    target = np.asarray(target_m, dtype=np.float64)
-    source = np.asarray(source_m, dtype=np.float64)
-    result = small_gicp.align(
-        target, source, np.asarray(init_T_target_source, dtype=np.float64), registration_type="GICP",
-        downsampling_resolution=voxel_size_m, max_correspondence_distance=max_correspondence_m,
-        num_threads=num_threads, max_iterations=max_iterations,
-    )
+    """GICP of prepared clouds; see :func:`register`."""
+    tgt, tree = target.level(voxel_size_m)
+    src, _ = source.level(voxel_size_m)
+    result = small_gicp.align(tgt, src, tree, np.asarray(init_T_target_source, dtype=np.float64), registration_type="GICP",
+                              max_correspondence_distance=max_correspondence_m, num_threads=num_threads,
+                              max_iterations=max_iterations)
     T = np.array(result.T_target_source)
     inlier_d = inlier_distance_m if inlier_distance_m is not None else 1.5 * voxel_size_m
-    tgt = downsample(target, voxel_size_m)
-    src = downsample(source, voxel_size_m)
-    d, _ = cKDTree(tgt).query(src @ T[:3, :3].T + T[:3, 3], distance_upper_bound=inlier_d)
-    inliers = np.isfinite(d)
-    fitness = float(inliers.mean()) if len(src) else 0.0
+    src_pts = np.asarray(src.points())[:, :3]
+    if len(src_pts):
+        _, d2 = tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
+        d = np.sqrt(np.asarray(d2))
+        inliers = d <= inlier_d
+    else:
+        d, inliers = np.zeros(0), np.zeros(0, bool)
+    fitness = float(inliers.mean()) if len(src_pts) else 0.0
     rmse = float(np.sqrt(np.mean(d[inliers] ** 2))) if inliers.any() else float("inf")
     H = reorder_6x6(np.array(result.H), TangentOrder.ROTATION_TRANSLATION, TangentOrder.TRANSLATION_ROTATION)
     H = 0.5 * (H + H.T)
@@ -89,7 +100,24 @@ def register(
     variance_factor = max(float(result.error), 1e-12) / dof
     information = H / variance_factor / correlation_factor
     information = 0.5 * (information + information.T)
-    return RegistrationResult(T, bool(result.converged), fitness, rmse, information, int(result.iterations), len(src))
+    return RegistrationResult(T, bool(result.converged), fitness, rmse, information, int(result.iterations), len(src_pts))
+
+
+def register(
+    target_m: NDArray[np.floating],
+    source_m: NDArray[np.floating],
+    init_T_target_source: NDArray[np.float64],
+    **options: float | int | None,
+) -> RegistrationResult:
+    """Align ``source`` to ``target`` with GICP, starting from ``init_T_target_source``.
+
+    Information: the GICP Hessian ``H`` at the solution divided by the variance factor ``cost / dof`` (so
+    it reflects the residuals actually observed) and by ``correlation_factor`` because neighbouring points'
+    residuals are not independent (a plain Hessian makes edges absurdly confident). Options as
+    :func:`register_prepared` (``voxel_size_m``, ``max_correspondence_m``, ``inlier_distance_m``,
+    ``max_iterations``, ``correlation_factor``, ``num_threads``).
+    """
+    return register_prepared(PreparedCloud(target_m), PreparedCloud(source_m), init_T_target_source, **options)
 
 
 def relative_pose(T_world_a: NDArray[np.float64], T_world_b: NDArray[np.float64]) -> NDArray[np.float64]:
