@@ -27,7 +27,7 @@ from driftmap.sources.sevenscenes import SevenScenes
 def run(quick: bool = False) -> list[dict]:
     folder = shared_datasets_dir() / "7scenes-redkitchen"
     n_ours = 150 if quick else 400
-    n_anchor = 20 if quick else 40
+    n_anchor = 20 if quick else 150  # KISS-ICP slows down as its map grows; the issue measured 1.2 frames/s over 1000
     with tempfile.TemporaryDirectory(prefix="driftmap-bench-") as tmp:
         t0 = time.perf_counter()
         result = build(folder, Path(tmp) / "s", frames=f"0:{n_ours}")
