@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -15,7 +16,8 @@ from driftmap.demo import run_demo
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "driftmap.cli", *args], capture_output=True, text=True, timeout=300)
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *args], capture_output=True, text=True, timeout=300, env=env)
 
 
 def test_version() -> None:
@@ -59,3 +61,10 @@ def test_cli_error_is_one_line_without_traceback(tmp_path: Path) -> None:
     assert lines[-1].startswith("error:") and "synthetic.json" in out.stderr
     debug = _cli("--debug", "demo", "--log", str(tmp_path / "missing"), "--out", str(tmp_path / "d"))
     assert debug.returncode != 0 and "Traceback" in debug.stderr
+
+
+def test_config_show_lists_settings_with_units() -> None:
+    out = _cli("config", "--show")
+    assert out.returncode == 0, out.stderr
+    for name in ("depth.max_depth_m", "map.export_voxel_size_m", "build.loop_closure.proximity_radius_m"):
+        assert name in out.stdout

@@ -105,6 +105,35 @@ def demo(
     console.print(f"results: [bold]{result.out_dir}[/bold]")
 
 
+@app.command("config")
+def config_cmd(
+    show: Annotated[bool, typer.Option("--show", help="Print every setting with its default and meaning.")] = True,
+    file: Annotated[Optional[Path], typer.Option("--file", help="Show the values a config file (JSON/TOML) yields.")] = None,
+) -> None:
+    """Print the configuration (defaults < file < DRIFTMAP_* environment) with units in every name."""
+    from pydantic import BaseModel
+
+    from driftmap.config import DriftmapConfig
+    from driftmap.pipeline.build import BuildConfig
+
+    table = Table(title="driftmap configuration" + (f" ({file})" if file else " (defaults + environment)"))
+    for col in ("setting", "value", "meaning"):
+        table.add_column(col, overflow="fold")
+
+    def walk(model: BaseModel, prefix: str) -> None:
+        for name, field in type(model).model_fields.items():
+            value = getattr(model, name)
+            if isinstance(value, BaseModel):
+                walk(value, f"{prefix}{name}.")
+            else:
+                shown = value.value if hasattr(value, "value") else value
+                table.add_row(prefix + name, str(shown), field.description or "")
+
+    walk(DriftmapConfig.load(file), "")
+    walk(BuildConfig(), "build.")
+    console.print(table)
+
+
 @app.command("synth")
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to.")],
