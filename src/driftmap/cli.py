@@ -378,7 +378,7 @@ def diagnose(
     gt_format: Annotated[str, typer.Option("--gt-format", help="tum (matched by stamp) | kitti (row i = frame_id i)")] = "tum",
     report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
     compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
-    points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default 3000 RGB-D, 5000 LiDAR).")] = None,
+    points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
@@ -392,9 +392,7 @@ def diagnose(
         kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
         cfg = DiagnoseConfig.for_sensor(kind)
         if points_per_frame is not None:
-            cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(
-                update={"max_points_per_frame": points_per_frame,
-                        "normals_points_per_frame": max(points_per_frame, cfg.sampling.normals_points_per_frame)})})
+            cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
         ground_truth = read_ground_truth(store, gt, gt_format) if gt is not None else None
         with console.status(f"sampling {len(store)} frames"):
             cloud = DiagnosticCloud.from_store(store, cfg.sampling)

@@ -105,15 +105,30 @@ class NoiseModel(BaseModel):
 
 
 class SamplingConfig(BaseModel):
-    """How many points of each frame the diagnostics look at, and how their own-frame normals are made."""
+    """How many points of each frame the diagnostics look at, and how their own-frame normals are made.
+
+    The work is bounded per store: ``points_budget`` samples in total, shared by the frames (at least
+    ``min_points_per_frame``, at most ``max_points_per_frame`` each), unless ``points_per_frame`` fixes it.
+    Few frames get more points each, which is where the statistics need them most.
+    """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
-    max_points_per_frame: int = Field(3000, ge=50, description="random subset of each frame kept for the diagnostics")
-    normals_points_per_frame: int = Field(6000, ge=50, description="points of the frame the normals are estimated on (>= max_points_per_frame)")
+    points_budget: int = Field(600_000, ge=1000, description="samples in total over all frames")
+    points_per_frame: int | None = Field(None, ge=50, description="fixed samples per frame (overrides the budget)")
+    min_points_per_frame: int = Field(1000, ge=50, description="lower bound of the per-frame share of the budget")
+    max_points_per_frame: int = Field(20_000, ge=50, description="upper bound of the per-frame share of the budget")
+    normals_oversample: float = Field(2.0, ge=1.0, description="normals are estimated on this many times the kept points (same frame)")
     normals_k: int = Field(16, ge=5, le=100, description="nearest neighbours (same frame) per normal")
     min_normal_confidence: float = Field(0.5, ge=0.0, le=1.0, description="drop points whose normal is ill-defined (1 - l0/l1 below this)")
     max_curvature: float = Field(0.05, gt=0.0, le=1.0 / 3.0, description="drop non-planar points (surface variation l0/(l0+l1+l2) above this)")
     seed: int = 0
+
+    def per_frame(self, n_frames: int) -> int:
+        """Samples kept per frame for a store of ``n_frames`` frames."""
+        if self.points_per_frame is not None:
+            return self.points_per_frame
+        share = self.points_budget // max(n_frames, 1)
+        return int(min(max(share, self.min_points_per_frame), self.max_points_per_frame))
 
 
 @dataclass(frozen=True)
@@ -151,10 +166,12 @@ class DiagnosticCloud:
                     noise: NoiseModel | None = None) -> DiagnosticCloud:
         """Sample frames (any order; rows are sorted by stamp). ``noise`` defaults per sensor kind."""
         cfg = config or SamplingConfig()
+        frames = list(frames)
+        keep = cfg.per_frame(len(frames))
         rows = []
         for frame in frames:
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
-                                      frame.attributes.normal_sensor, cfg, noise))
+                                      frame.attributes.normal_sensor, cfg, keep, noise))
         return cls._assemble(rows)
 
     @classmethod
@@ -163,11 +180,12 @@ class DiagnosticCloud:
         """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here."""
         cfg = config or SamplingConfig()
         ids = store.frame_ids if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
+        keep = cfg.per_frame(len(ids))
         rows = []
         for fid in ids:
             frame = store.frame(int(fid))
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
-                                      frame.attributes.normal_sensor, cfg, noise))
+                                      frame.attributes.normal_sensor, cfg, keep, noise))
         return cls._assemble(rows)
 
     @classmethod
@@ -221,12 +239,12 @@ class DiagnosticCloud:
 
 
 def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],
-                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, noise: NoiseModel | None) -> tuple:
+                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, keep_n: int, noise: NoiseModel | None) -> tuple:
     rng = np.random.default_rng([cfg.seed, frame_id & 0x7FFFFFFF])
     pts = np.asarray(points, dtype=np.float32)
     finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
     n_src = len(pts)
-    n_norm = min(len(finite), max(cfg.normals_points_per_frame, cfg.max_points_per_frame))
+    n_norm = min(len(finite), int(keep_n * cfg.normals_oversample))
     pick = finite if n_norm == len(finite) else rng.choice(finite, n_norm, replace=False)
     sub = pts[pick]
     if normals is not None:
@@ -239,8 +257,8 @@ def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArra
     else:
         nrm, ok = np.zeros_like(sub), np.zeros(len(sub), bool)
     keep = np.flatnonzero(ok)
-    if len(keep) > cfg.max_points_per_frame:
-        keep = np.sort(rng.choice(keep, cfg.max_points_per_frame, replace=False))
+    if len(keep) > keep_n:
+        keep = np.sort(rng.choice(keep, keep_n, replace=False))
     model = noise or NoiseModel.for_sensor(kind)
     sigma = model.sigma_normal_m(sub[keep], nrm[keep]) if len(keep) else np.zeros(0)
     return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src)
@@ -331,18 +349,21 @@ class DoubleWallConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     voxel_sizes_m: tuple[float, ...] = Field((0.1, 0.2, 0.4), description="voxel sizes evaluated (m); use ~0.25..2 m outdoors")
     cell_fraction: float = Field(0.25, gt=0.0, le=1.0, description="lateral cell size as a fraction of the voxel size")
+    max_cell_m: float | None = Field(None, gt=0.0, description="upper bound of the lateral cell size (m); relief finer than a cell is not removed")
     normal_max_angle_deg: float = Field(20.0, gt=0.0, lt=90.0, description="own-frame normals within this angle of the voxel's dominant normal")
     second_surface: bool = Field(True, description="also evaluate the dominant normal of the points that disagree with the first")
     min_points: int = Field(40, ge=4, description="points per surface group to evaluate it")
-    min_points_per_frame: int = Field(3, ge=1, description="points a frame needs in a group to count")
+    min_points_per_frame: int = Field(2, ge=1, description="points a frame needs in a group to count")
+    frame_jitter_floor_m: float = Field(0.002, gt=0.0, description="floor of a frame's mean-offset uncertainty (m): no frame counts as exact")
     min_frames: int = Field(3, ge=2, description="frames per surface group to evaluate it")
     min_frames_per_layer: int = Field(2, ge=1, description="frames each layer needs")
     min_layer_fraction: float = Field(0.1, ge=0.0, lt=0.5, description="the smaller layer holds at least this share of the points")
     min_separation_m: float = Field(0.01, ge=0.0, description="smallest separation reported as a double wall (m)")
     min_separation_sigmas: float = Field(3.0, ge=0.0, description="separation / its uncertainty at least this")
-    min_ashman_d: float = Field(3.0, ge=0.0, description="separation relative to the layers' frame-to-frame widths")
-    min_delta_bic: float = Field(6.0, description="BIC(one layer) - BIC(two layers) at least this")
-    min_purity: float = Field(0.5, ge=0.0, le=1.0, description="noise-normalised time purity (1: every frame on one layer; 0: as mixed as chance)")
+    min_ashman_d: float = Field(4.0, ge=0.0, description="separation relative to the layers' frame-to-frame widths")
+    min_delta_bic: float = Field(10.0, description="BIC(one layer) - BIC(two layers) at least this")
+    bic_mixing_weight: float = Field(1.0, ge=0.0, le=1.0, description="weight of the layer-share term of the two-layer likelihood")
+    min_purity: float = Field(0.85, ge=0.0, le=1.5, description="noise-normalised time purity (1: every frame on one layer; 0: as mixed as chance)")
     min_overlap: float = Field(0.25, ge=0.0, le=1.0, description="share of the smaller layer's points in lateral cells both layers saw")
     min_shared_cells: int = Field(2, ge=1, description="lateral cells seen by both layers")
     kmeans_iterations: int = Field(8, ge=1, description="Lloyd iterations of the 1-D two-layer split")
@@ -496,19 +517,38 @@ def detect_double_walls(cloud: PlacedCloud, config: DoubleWallConfig | None = No
     return DoubleWallResult(scales, regions, cloud.frame_ids.copy(), cloud.stamps_ns.copy(), cfg)
 
 
-def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) -> ScaleResult:
-    P, Nw, fidx = cloud.points_world, cloud.normals_world, cloud.frame_index
-    sig2 = cloud.sigma_normal_m.astype(np.float64) ** 2
-    M = cloud.samples.n_frames
-    cos_max = math.cos(math.radians(cfg.normal_max_angle_deg))
+@dataclass(frozen=True)
+class SurfaceGroups:
+    """Points sorted into surface groups (voxel x dominant normal x sensor side) and lateral cells."""
 
-    vox, _ = _dense_ids(_grid_keys(P, size_m))
+    voxel_size_m: float
+    point_index: NDArray[np.int64]
+    """Index into the placed cloud of every grouped point."""
+    group: NDArray[np.int64]
+    cell: NDArray[np.int64]
+    offset_m: NDArray[np.float64]
+    """Offset along the group normal from the group centroid."""
+    n_groups: int
+    n_cells: int
+    normals: NDArray[np.float64]
+    centers_m: NDArray[np.float64]
+    n_points: NDArray[np.float64]
+    cell_group: NDArray[np.int64]
+
+
+def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: float = 20.0, second_surface: bool = True,
+                   min_points: int = 40, cell_fraction: float = 0.25, max_cell_m: float | None = None) -> SurfaceGroups:
+    """Group the samples by voxel, by the voxel's dominant own-frame normal (and a second one) and by the side
+    the sensor was on; cut every group into lateral cells of ``cell_fraction * size_m``."""
+    P, Nw = cloud.points_world, cloud.normals_world
+    cos_max = math.cos(math.radians(normal_max_angle_deg))
+    vox, _ = _dense_ids(_grid_keys(P, size_m)) if len(P) else (np.zeros(0, np.int64), None)
     n_vox = int(vox.max()) + 1 if len(vox) else 0
     axis1 = _dominant_axis(vox, n_vox, Nw)
     c1 = np.einsum("ij,ij->i", Nw, axis1[vox])
     surface = np.where(np.abs(c1) >= cos_max, 0, -1)
     side = c1 > 0
-    if cfg.second_surface:
+    if second_surface:
         rest = surface < 0
         axis2 = _dominant_axis(vox[rest], n_vox, Nw[rest])
         c2 = np.einsum("ij,ij->i", Nw[rest], axis2[vox[rest]])
@@ -517,93 +557,122 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
         surface[idx[ok2]] = 1
         side[idx] = np.where(ok2, c2 > 0, side[idx])
     use = np.flatnonzero(surface >= 0)
-    gkey = vox[use] * 4 + surface[use] * 2 + side[use]
-    g, _ = _dense_ids(gkey)
+    g, _ = _dense_ids(vox[use] * 4 + surface[use] * 2 + side[use])
     G = int(g.max()) + 1 if len(g) else 0
-    cnt = _sums(g, G)
-    big = cnt >= cfg.min_points
-    # drop small groups right away
-    keep = big[g]
-    use, g = use[keep], g[keep]
-    g, _ = _dense_ids(g)
+    keep = (_sums(g, G) >= min_points)[g]
+    use = use[keep]
+    g, _ = _dense_ids(g[keep])
     G = int(g.max()) + 1 if len(g) else 0
-    p, nw, f, s2 = P[use], Nw[use], fidx[use], sig2[use]
+    p, nw = P[use], Nw[use]
     cnt = _sums(g, G)
     normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     center = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1) / np.maximum(cnt, 1)[:, None]
     rel = p - center[g]
     o = np.einsum("ij,ij->i", rel, normal[g])
-
-    # lateral cells on the surface: the reference that removes relief every frame sees
-    cell_m = size_m * cfg.cell_fraction
+    cell_m = size_m * cell_fraction if max_cell_m is None else min(size_m * cell_fraction, max_cell_m)
     K = int(math.ceil(2.0 * math.sqrt(3.0) * size_m / cell_m)) + 2
-    u, v = _tangent_basis(normal)
+    u, v = _tangent_basis(normal) if G else (np.zeros((0, 3)), np.zeros((0, 3)))
     cu = np.clip(np.floor(np.einsum("ij,ij->i", rel, u[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
     cv = np.clip(np.floor(np.einsum("ij,ij->i", rel, v[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
     c, _ = _dense_ids((g * K + cu) * K + cv)
     C = int(c.max()) + 1 if len(c) else 0
+    cell_group = np.zeros(C, np.int64)
+    cell_group[c] = g
+    return SurfaceGroups(size_m, use, g, c, o, G, C, normal, center, cnt, cell_group)
+
+
+def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) -> ScaleResult:
+    M = cloud.samples.n_frames
+    sg = surface_groups(cloud, size_m, normal_max_angle_deg=cfg.normal_max_angle_deg, second_surface=cfg.second_surface,
+                        min_points=cfg.min_points, cell_fraction=cfg.cell_fraction, max_cell_m=cfg.max_cell_m)
+    g, c, o, G, C = sg.group, sg.cell, sg.offset_m, sg.n_groups, sg.n_cells
+    f = cloud.frame_index[sg.point_index]
+    s2 = cloud.sigma_normal_m[sg.point_index].astype(np.float64) ** 2
+    normal, center, cnt, cell_group = sg.normals, sg.centers_m, sg.n_points, sg.cell_group
+
+    # lateral cells on the surface: the reference that removes relief every frame sees
     c_n = _sums(c, C)
     c_sum = _sums(c, C, o)
     ff = f.astype(np.float64)
     c_f1, c_f2 = _sums(c, C, ff), _sums(c, C, ff * ff)
     multi = (c_f2 / np.maximum(c_n, 1) - (c_f1 / np.maximum(c_n, 1)) ** 2) > 1e-9  # >1 distinct frame
-    r = o - c_sum[c] / c_n[c]
+    r = o - c_sum[c] / np.maximum(c_n[c], 1)
     valid = multi[c]
 
-    # per (group, frame)
+    # per (group, frame): mean residual offset and the noise of that mean
     gf, gf_keys = _dense_ids(g * M + f)
     E = len(gf_keys)
     e_group, e_frame = gf_keys // M, gf_keys % M
     wv = valid.astype(np.float64)
     e_n = _sums(gf, E, wv)
     e_sum = _sums(gf, E, r * wv)
+    e_sq = _sums(gf, E, r * r * wv)
     e_s2 = _sums(gf, E, s2 * wv)
     e_ok = e_n >= cfg.min_points_per_frame
+    okf = e_ok.astype(np.float64)
     e_mean = np.where(e_ok, e_sum / np.maximum(e_n, 1), 0.0)
-    e_noise = np.where(e_ok, e_s2 / np.maximum(e_n, 1) ** 2, 0.0)  # variance of the frame's mean offset
+    # per-point scatter along the normal: pooled within-frame variance, at least the sensor model's
+    within = np.maximum(e_sq - e_n * e_mean**2, 0.0) * okf
+    dof = _sums(e_group, G, np.maximum(e_n - 1, 0) * okf)
+    point_var = np.maximum(_sums(e_group, G, within) / np.maximum(dof, 1),
+                           _sums(e_group, G, e_s2 * okf) / np.maximum(_sums(e_group, G, e_n * okf), 1))
+    point_var = np.maximum(point_var, 1e-8)
+    e_v = np.where(e_ok, point_var[e_group] / np.maximum(e_n, 1), np.inf)
     w = np.where(e_ok, e_n, 0.0)
-    n_frames = np.bincount(e_group, weights=e_ok.astype(np.float64), minlength=G).astype(np.int64)
+    n_frames = _sums(e_group, G, okf).astype(np.int64)
     n_valid = _sums(e_group, G, w)
     evaluated = (n_frames >= cfg.min_frames) & (n_valid >= cfg.min_points)
 
-    # smearing: between-frame dispersion of mean residual offsets minus the noise part
+    # smearing: between-frame dispersion of mean residual offsets (point-weighted) minus the noise part
     W = np.maximum(n_valid, 1e-12)
     mbar = _sums(e_group, G, w * e_mean) / W
     disp = _sums(e_group, G, w * (e_mean - mbar[e_group]) ** 2) / W
-    noise = _sums(e_group, G, w * e_noise) / W
+    noise = point_var * n_frames / W
     smear = np.sqrt(np.maximum(disp - noise, 0.0))
 
-    # two-layer split of the frames (1-D 2-means on per-frame means, weighted by points)
-    thr = mbar.copy()
+    # two layers of frames: precision-weighted 1-D 2-means on the per-frame means
+    floor2 = cfg.frame_jitter_floor_m**2
+    pw = np.where(e_ok, 1.0 / (np.where(e_ok, e_v, 1.0) + floor2), 0.0)
+
+    def wmean(weights: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
+        return _sums(e_group, G, weights * values) / np.maximum(_sums(e_group, G, weights), 1e-300)
+
+    thr = wmean(pw, e_mean)
     for _ in range(cfg.kmeans_iterations):
         isB = e_mean > thr[e_group]
-        wA, wB = _sums(e_group, G, w * ~isB), _sums(e_group, G, w * isB)
-        muA = _sums(e_group, G, w * ~isB * e_mean) / np.maximum(wA, 1e-12)
-        muB = _sums(e_group, G, w * isB * e_mean) / np.maximum(wB, 1e-12)
-        thr = np.where((wA > 0) & (wB > 0), 0.5 * (muA + muB), thr)
+        muA, muB = wmean(pw * ~isB, e_mean), wmean(pw * isB, e_mean)
+        both = (_sums(e_group, G, okf * ~isB) > 0) & (_sums(e_group, G, okf * isB) > 0)
+        thr = np.where(both, 0.5 * (muA + muB), thr)
     isB = e_mean > thr[e_group]
-    okf = e_ok.astype(np.float64)
-    nA = _sums(e_group, G, okf * ~isB)
-    nB = _sums(e_group, G, okf * isB)
+    nA, nB = _sums(e_group, G, okf * ~isB), _sums(e_group, G, okf * isB)
     wA, wB = _sums(e_group, G, w * ~isB), _sums(e_group, G, w * isB)
-    muA = _sums(e_group, G, w * ~isB * e_mean) / np.maximum(wA, 1e-12)
-    muB = _sums(e_group, G, w * isB * e_mean) / np.maximum(wB, 1e-12)
-    # layer widths (frame to frame, weighted) with the noise of the means as a floor
-    tauA2 = _sums(e_group, G, w * ~isB * (e_mean - muA[e_group]) ** 2) / np.maximum(wA, 1e-12)
-    tauB2 = _sums(e_group, G, w * isB * (e_mean - muB[e_group]) ** 2) / np.maximum(wB, 1e-12)
-    noise_A = _sums(e_group, G, w * ~isB * e_noise) / np.maximum(wA, 1e-12)
-    noise_B = _sums(e_group, G, w * isB * e_noise) / np.maximum(wB, 1e-12)
-    tauA2, tauB2 = np.maximum(tauA2, noise_A) + 1e-10, np.maximum(tauB2, noise_B) + 1e-10
-    tau12 = np.maximum(disp, noise) + 1e-10
-    ashman = (muB - muA) / np.sqrt(0.5 * (tauA2 + tauB2))
-    # BIC on the per-frame means (frames as samples): one Gaussian vs two (classification likelihood)
+    ev = np.where(e_ok, e_v, 0.0)
+
+    def layer_fit(member: NDArray[np.bool_]) -> tuple[NDArray, NDArray, NDArray, NDArray]:
+        """Mean, between-frame jitter (moments, noise removed), observed width and log-likelihood of a layer."""
+        m = member & e_ok
+        wt = np.where(m, pw, 0.0)
+        mu = wmean(wt, e_mean)
+        obs = wmean(wt, (e_mean - mu[e_group]) ** 2)
+        tau2 = np.maximum(obs - wmean(wt, ev), 0.0)
+        for _ in range(2):
+            wt = np.where(m, 1.0 / (tau2[e_group] + ev + floor2), 0.0)
+            mu = wmean(wt, e_mean)
+            tau2 = np.maximum(wmean(wt, (e_mean - mu[e_group]) ** 2) - wmean(wt, ev), 0.0)
+        var = tau2[e_group] + ev + floor2
+        ll = -0.5 * _sums(e_group, G, np.where(m, np.log(2 * np.pi * var) + (e_mean - mu[e_group]) ** 2 / var, 0.0))
+        return mu, tau2, obs, ll
+
+    muA, tauA2, obsA, llA = layer_fit(~isB)
+    muB, tauB2, obsB, llB = layer_fit(isB)
+    _, _, _, ll1 = layer_fit(np.ones(E, bool))
     nF = np.maximum(nA + nB, 1)
-    ll1 = -0.5 * nF * (np.log(2 * np.pi * tau12) + 1.0)
-    piA, piB = np.maximum(nA, 1e-12) / nF, np.maximum(nB, 1e-12) / nF
-    ll2 = (nA * np.log(piA) - 0.5 * nA * (np.log(2 * np.pi * tauA2) + 1.0)
-           + nB * np.log(piB) - 0.5 * nB * (np.log(2 * np.pi * tauB2) + 1.0))
+    ll2 = llA + llB + cfg.bic_mixing_weight * (nA * np.log(np.maximum(nA, 1e-12) / nF) + nB * np.log(np.maximum(nB, 1e-12) / nF))
     delta_bic = 2.0 * (ll2 - ll1) - 3.0 * np.log(nF)
+    ashman = (muB - muA) / np.sqrt(0.5 * (obsA + obsB) + floor2)
+    precA = _sums(e_group, G, np.where(e_ok & ~isB, 1.0 / (tauA2[e_group] + ev + floor2), 0.0))
+    precB = _sums(e_group, G, np.where(e_ok & isB, 1.0 / (tauB2[e_group] + ev + floor2), 0.0))
 
     # separation where both layers were seen: per lateral cell, mean(B) - mean(A) of the raw offsets
     e_layer = np.where(e_ok, isB.astype(np.int8), np.int8(-1))
@@ -614,14 +683,12 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     shared = (cA > 0) & (cB > 0)
     d_c = np.where(shared, sB / np.maximum(cB, 1) - sA / np.maximum(cA, 1), 0.0)
     w_c = np.where(shared, cA * cB / np.maximum(cA + cB, 1), 0.0)
-    cell_group = np.zeros(C, np.int64)
-    cell_group[c] = g
     Wc = _sums(cell_group, G, w_c)
     sep = _sums(cell_group, G, w_c * d_c) / np.maximum(Wc, 1e-12)
     var_c = _sums(cell_group, G, w_c * (d_c - sep[cell_group]) ** 2) / np.maximum(Wc, 1e-12)
     neff = Wc**2 / np.maximum(_sums(cell_group, G, w_c**2), 1e-12)
     n_shared = _sums(cell_group, G, shared.astype(np.float64))
-    sep_sigma = np.sqrt(var_c / np.maximum(neff, 1.0) + tauA2 / np.maximum(nA, 1) + tauB2 / np.maximum(nB, 1))
+    sep_sigma = np.sqrt(var_c / np.maximum(neff, 1.0) + 1.0 / np.maximum(precA, 1e-12) + 1.0 / np.maximum(precB, 1e-12))
     # lateral overlap: share of the smaller layer's points in shared cells
     ptsA, ptsB = _sums(cell_group, G, cA), _sums(cell_group, G, cB)
     shA, shB = _sums(cell_group, G, cA * shared), _sums(cell_group, G, cB * shared)
@@ -634,7 +701,7 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     on_shared = shared[c] & (layer >= 0)
     sgn = np.where(layer == 1, 1.0, -1.0)
     correct = ((o - mid[c]) * sgn * np.sign(sep[g]) > 0) & on_shared
-    expect = ndtr(np.abs(sep[g]) / (2.0 * np.sqrt(s2))) * on_shared
+    expect = ndtr(np.abs(sep[g]) / (2.0 * np.sqrt(point_var[g]))) * on_shared
     n_sh = _sums(g, G, on_shared.astype(np.float64))
     purity = (_sums(g, G, correct.astype(np.float64)) - 0.5 * n_sh) / np.maximum(_sums(g, G, expect) - 0.5 * n_sh, 1e-12)
     purity = np.clip(purity, 0.0, 1.5)
@@ -778,9 +845,9 @@ def map_entropy(points_world: NDArray[np.floating], *, radius_m: float = 0.1, mi
     mean = nb.sum(axis=1) / n[:, None]
     d = (nb - mean[:, None, :]) * ok[:, :, None]
     cov = np.einsum("nki,nkj->nij", d, d) / n[:, None, None]
-    det = np.linalg.det(2 * np.pi * np.e * cov)
+    lam = np.linalg.eigvalsh(cov)
+    det = np.prod(np.maximum(lam, 0.0), axis=1) * (2 * np.pi * np.e) ** 3
     good = det > 0
     h = 0.5 * np.log(det[good])
-    lam0 = np.linalg.eigvalsh(cov)[:, 0]
-    return MapEntropy(float(np.mean(h)), float(np.mean(lam0)), radius_m, min_neighbors, max_neighbors,
-                      int(good.sum()), len(q))
+    return MapEntropy(float(np.mean(h)) if good.any() else float("nan"), float(np.mean(np.maximum(lam[:, 0], 0.0))),
+                      radius_m, min_neighbors, max_neighbors, int(good.sum()), len(q))

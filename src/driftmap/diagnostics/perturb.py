@@ -204,3 +204,128 @@ def parse_vector(text: str | Sequence[float], name: str) -> tuple[float, float, 
     if len(values) != 3:
         raise ConfigError(f"{name}: expected 3 comma-separated numbers 'x,y,z', got {text!r}")
     return (values[0], values[1], values[2])
+
+
+# ---------------------------------------------------------------------------------------------- evaluation
+
+
+@dataclass(frozen=True)
+class StepDetection:
+    """How well the double-wall detector found an injected translation step, at one voxel size.
+
+    *Affected* surface groups: normal within ``max_angle_deg`` of the step, seen by at least
+    ``min_frames_per_side`` frames on each side of the step (each side at least ``min_side_fraction`` of the
+    points, both sides in at least ``min_shared_cells`` common lateral cells), and consistent across the
+    step in the unperturbed map (``|offset after - before| <= max_baseline_m`` there, and the frames' mean
+    offsets scatter by at most ``max_baseline_smear_m`` beyond noise), so the step is the only inconsistency.
+    The expected separation is ``|step . normal|``.
+    """
+
+    voxel_size_m: float
+    n_evaluated: int
+    n_affected: int
+    n_detected: int
+    n_flagged_unaffected: int
+    expected_m: NDArray[np.float64]
+    """Per detected affected group: the expected separation."""
+    measured_m: NDArray[np.float64]
+    """Per detected affected group: the separation the detector reported."""
+    affected: NDArray[np.bool_]
+    """Per surface group of the scale: affected by the step (as defined above)."""
+
+    @property
+    def detection_rate(self) -> float:
+        return self.n_detected / self.n_affected if self.n_affected else float("nan")
+
+    @property
+    def separation_error_m(self) -> NDArray[np.float64]:
+        return self.measured_m - self.expected_m
+
+    def within_tolerance(self, abs_m: float = 0.005, rel: float = 0.15) -> NDArray[np.bool_]:
+        """Per detected group: ``|error| <= max(abs_m, rel * expected)``."""
+        return np.abs(self.separation_error_m) <= np.maximum(abs_m, rel * self.expected_m)
+
+
+def evaluate_step(samples, base_poses: ArrayLike, step_index: int, step_m: ArrayLike, result, *,
+                  max_angle_deg: float = 25.0, min_frames_per_side: int = 2, min_side_fraction: float = 0.1,
+                  max_baseline_m: float = 0.003, max_baseline_smear_m: float | None = 0.004) -> list[StepDetection]:
+    """Score a :class:`~driftmap.diagnostics.double_wall.DoubleWallResult` computed on ``samples`` placed with
+    ``translation_step(base_poses, step_index, step_m)`` against what that step must produce."""
+    from driftmap.diagnostics.double_wall import surface_groups
+
+    base = np.asarray(base_poses, dtype=np.float64)
+    step = _vector(step_m, "step_m")
+    mag = float(np.linalg.norm(step))
+    if mag == 0:
+        raise ConfigError("evaluate_step: the step is zero")
+    perturbed = samples.place(translation_step(base, step_index, step))
+    unperturbed = samples.place(base)
+    cfg = result.config
+    out = []
+    for scale in result.scales:
+        sg = surface_groups(perturbed, scale.voxel_size_m, normal_max_angle_deg=cfg.normal_max_angle_deg,
+                            second_surface=cfg.second_surface, min_points=cfg.min_points, cell_fraction=cfg.cell_fraction,
+                            max_cell_m=cfg.max_cell_m)
+        G, C = sg.n_groups, sg.n_cells
+        if G != len(scale.evaluated):
+            raise ConfigError("evaluate_step: the result was not computed on these samples and poses")
+        rows = perturbed.frame_index[sg.point_index]
+        after = rows >= step_index
+        o_base = np.einsum("ij,ij->i", unperturbed.points_world[sg.point_index] - sg.centers_m[sg.group], sg.normals[sg.group])
+        nA = np.bincount(sg.cell, weights=~after, minlength=C)
+        nB = np.bincount(sg.cell, weights=after, minlength=C)
+        shared = (nA > 0) & (nB > 0)
+        sA = np.bincount(sg.cell, weights=~after * o_base, minlength=C)
+        sB = np.bincount(sg.cell, weights=after * o_base, minlength=C)
+        d = np.where(shared, sB / np.maximum(nB, 1) - sA / np.maximum(nA, 1), 0.0)
+        w = np.where(shared, nA * nB / np.maximum(nA + nB, 1), 0.0)
+        W = np.bincount(sg.cell_group, weights=w, minlength=G)
+        baseline = np.bincount(sg.cell_group, weights=w * d, minlength=G) / np.maximum(W, 1e-12)
+        n_shared = np.bincount(sg.cell_group, weights=shared.astype(np.float64), minlength=G)
+        clean = np.ones(G, bool)
+        if max_baseline_smear_m is not None:
+            clean = _baseline_smear(sg, rows, o_base, samples.n_frames, G, C) <= max_baseline_smear_m
+        # frames per side (with enough points in the group, as the detector counts them)
+        ok = scale.gf_points >= cfg.min_points_per_frame
+        side = scale.gf_frame >= step_index
+        fa = np.bincount(scale.gf_group, weights=ok & ~side, minlength=G)
+        fb = np.bincount(scale.gf_group, weights=ok & side, minlength=G)
+        pa = np.bincount(scale.gf_group, weights=(ok & ~side) * scale.gf_points, minlength=G)
+        pb = np.bincount(scale.gf_group, weights=(ok & side) * scale.gf_points, minlength=G)
+        frac = np.minimum(pa, pb) / np.maximum(pa + pb, 1)
+        cos = np.abs(sg.normals @ step) / mag
+        affected = (scale.evaluated & (cos >= np.cos(np.radians(max_angle_deg))) & (fa >= min_frames_per_side)
+                    & (fb >= min_frames_per_side) & (frac >= min_side_fraction) & (n_shared >= cfg.min_shared_cells)
+                    & (np.abs(baseline) <= max_baseline_m) & clean)
+        detected = affected & scale.flagged
+        out.append(StepDetection(
+            voxel_size_m=scale.voxel_size_m, n_evaluated=int(scale.evaluated.sum()), n_affected=int(affected.sum()),
+            n_detected=int(detected.sum()), n_flagged_unaffected=int((scale.flagged & ~affected).sum()),
+            expected_m=np.abs(sg.normals[detected] @ step),
+            measured_m=np.abs(scale.separation_m[detected]),
+            affected=affected,
+        ))
+    return out
+
+
+def _baseline_smear(sg, rows: NDArray[np.int64], offset: NDArray[np.float64], n_frames: int, G: int, C: int) -> NDArray[np.float64]:
+    """Per surface group of ``sg``: point-weighted scatter of the frames' mean offsets (relative to the lateral-cell
+    means, as the detector computes them) beyond what the pooled within-frame scatter explains."""
+    from driftmap.diagnostics.double_wall import _dense_ids
+
+    c_n = np.bincount(sg.cell, minlength=C).astype(np.float64)
+    r = offset - np.bincount(sg.cell, weights=offset, minlength=C)[sg.cell] / c_n[sg.cell]
+    gf, keys = _dense_ids(sg.group * n_frames + rows)
+    E = len(keys)
+    e_g = keys // n_frames
+    n = np.bincount(gf, minlength=E).astype(np.float64)
+    m = np.bincount(gf, weights=r, minlength=E) / n
+    sq = np.bincount(gf, weights=r * r, minlength=E)
+    within = np.bincount(e_g, weights=np.maximum(sq - n * m * m, 0.0), minlength=G)
+    dof = np.bincount(e_g, weights=n - 1, minlength=G)
+    W = np.bincount(e_g, weights=n, minlength=G)
+    mbar = np.bincount(e_g, weights=n * m, minlength=G) / np.maximum(W, 1)
+    disp = np.bincount(e_g, weights=n * (m - mbar[e_g]) ** 2, minlength=G) / np.maximum(W, 1)
+    nf = np.bincount(e_g, minlength=G)
+    noise = within / np.maximum(dof, 1) * nf / np.maximum(W, 1)
+    return np.sqrt(np.maximum(disp - noise, 0.0))

@@ -1,0 +1,423 @@
+"""Which frames are to blame, without ground truth: per-frame 6-DoF disagreement with the rest of the map,
+pose jumps over time (change points), a drift-rate estimate and how much of the map was revisited.
+
+All three use one linearised point-to-plane step (Gauss-Newton) of a frame against a *consensus*. The
+samples are sorted into surface groups (voxel x dominant own-frame normal x sensor side, see
+:func:`driftmap.diagnostics.double_wall.surface_groups`) and small lateral cells; the consensus plane at a
+point is the group normal through the mean offset of the points that an allowed set of *other* frames put
+in the same cell (so a frame that is 5 cm off still finds its consensus, which a nearest-neighbour search
+would miss: the frame's own neighbours are closer). Per-cell prefix sums over frames in time order give
+every allowed set in one pass. The frame's
+correction ``x = [t, w]`` (translation at the centroid of its points in metres, world-frame rotation
+vector about that centroid) solves ``H x = -b`` with ``J = [n, (p - c) x n]``; directions whose information is tiny
+relative to the best one are *unobservable* (a frame that sees one plane cannot be placed along it) and
+are left out of the step and reported.
+
+* **disagreement**: the consensus is every other frame.
+* **jumps / change points**: the consensus is the ``window`` frames just before (frame-to-local-map, as
+  odometry would see it). A pose jump at frame k makes frame k disagree with its predecessors while the
+  frames around it agree with theirs; change points are robust outliers of that series that are local
+  maxima.
+* **drift rate**: the consensus is the frames seen at least ``revisit_min_path_m`` of travel earlier; the
+  disagreement grows with the path travelled in between, a line through the origin gives %/m and deg/m.
+* **revisit fraction**: the share of sampled points that have such a neighbour at all. Drift without a
+  revisit is invisible to every consistency measure (only ground truth can show it).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from driftmap import geometry
+from driftmap.diagnostics.double_wall import PlacedCloud, SurfaceGroups, _dense_ids, surface_groups
+from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+from driftmap.errors import ConfigError
+
+logger = logging.getLogger(__name__)
+
+
+class AttributionConfig(BaseModel):
+    """Parameters of the per-frame disagreement, change points and drift rate (indoor RGB-D defaults)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    voxel_size_m: float = Field(0.2, gt=0.0, description="voxel size of the surface groups the consensus is built on (m)")
+    cell_fraction: float = Field(0.25, gt=0.0, le=1.0, description="lateral cell size as a fraction of the voxel size")
+    normal_max_angle_deg: float = Field(20.0, gt=0.0, lt=90.0, description="own-frame normals within this angle of the group normal")
+    min_group_points: int = Field(20, ge=3, description="points a surface group needs")
+    min_neighbors: int = Field(3, ge=1, description="consensus points a point's cell needs")
+    huber_m: float = Field(0.02, gt=0.0, description="Huber threshold on point-to-plane residuals (m)")
+    max_residual_m: float = Field(0.1, gt=0.0, description="residuals beyond this are not used (m)")
+    min_correspondences: int = Field(50, ge=6, description="correspondences a frame needs for a disagreement estimate")
+    lever_m: float = Field(1.0, gt=0.0, description="length that makes rotation comparable to translation in the observability test (m)")
+    min_relative_information: float = Field(0.01, gt=0.0, lt=1.0, description="a direction is unobservable below this share of the best direction's information")
+    window: int = Field(5, ge=1, description="frames before a frame that form its local map for the jump series")
+    change_point_z: float = Field(5.0, gt=0.0, description="robust z-score a jump needs to be a change point")
+    min_jump_m: float = Field(0.01, ge=0.0, description="smallest jump reported as a change point (m)")
+    min_jump_deg: float = Field(0.5, ge=0.0, description="smallest rotation jump reported as a change point (deg)")
+    onset_fraction: float = Field(0.7, gt=0.0, le=1.0, description="a change point is the first frame of its cluster reaching this share of the peak score")
+    revisit_min_path_m: float = Field(1.0, gt=0.0, description="a place is revisited when seen again after this much travel (m)")
+
+
+@dataclass(frozen=True)
+class FrameAlignment:
+    """One consensus step per frame (rows in the cloud's frame order)."""
+
+    translation_m: NDArray[np.float64]
+    """(M, 3) correction at the centroid of each frame's points (world frame): where the consensus wants its
+    surfaces moved."""
+    rotation_deg: NDArray[np.float64]
+    """(M, 3) world-frame rotation vector (degrees) about that centroid."""
+    n_correspondences: NDArray[np.int64]
+    n_unobservable: NDArray[np.int64]
+    """Directions (of 6) left out because the frame's geometry does not constrain them."""
+    sigma_m: NDArray[np.float64]
+    """Noise-only standard deviation of the translation step (optimistic: treats points as independent)."""
+    center_m: NDArray[np.float64]
+    """(M, 3) the centroid each frame's step is expressed at."""
+
+    @property
+    def translation_norm_m(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.translation_m, axis=1)
+
+    @property
+    def rotation_norm_deg(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.rotation_deg, axis=1)
+
+    def estimated(self, min_correspondences: int) -> NDArray[np.bool_]:
+        return self.n_correspondences >= min_correspondences
+
+    def observable(self, min_correspondences: int) -> NDArray[np.bool_]:
+        return self.estimated(min_correspondences) & (self.n_unobservable == 0)
+
+
+@dataclass(frozen=True)
+class ChangePoint:
+    frame_id: int
+    stamp_ns: int
+    jump_m: float
+    jump_deg: float
+    z_score: float
+
+    def to_json(self) -> dict:
+        return {"frame_id": int(self.frame_id), "jump_m": float(self.jump_m), "jump_deg": float(self.jump_deg),
+                "stamp_ns": int(self.stamp_ns), "z_score": float(self.z_score)}
+
+
+@dataclass(frozen=True)
+class DriftRate:
+    percent_per_m: float | None
+    deg_per_m: float | None
+    n_frames: int
+    path_span_m: float
+    """Largest path length between a frame and the earlier frames it was compared with."""
+
+
+@dataclass(frozen=True)
+class Attribution:
+    frame_ids: NDArray[np.int64]
+    stamps_ns: NDArray[np.int64]
+    path_length_m: NDArray[np.float64]
+    disagreement: FrameAlignment
+    jumps: FrameAlignment
+    revisit: FrameAlignment
+    revisit_path_m: NDArray[np.float64]
+    """Per frame: mean path length travelled between it and the earlier frames it was compared with."""
+    change_points: list[ChangePoint]
+    drift: DriftRate
+    revisit_fraction: float
+    config: AttributionConfig
+
+    @property
+    def revisit_note(self) -> str | None:
+        if self.revisit_fraction > 0:
+            return None
+        return (f"no part of the map was seen again after {self.config.revisit_min_path_m:g} m of travel: drift is "
+                f"invisible to consistency diagnostics (only ground truth can show it)")
+
+    def frames_json(self) -> list[dict]:
+        d, j = self.disagreement, self.jumps
+        est = d.estimated(self.config.min_correspondences)
+        obs = d.observable(self.config.min_correspondences)
+        out = []
+        for k, fid in enumerate(self.frame_ids):
+            out.append({
+                "frame_id": int(fid),
+                "stamp_ns": int(self.stamps_ns[k]),
+                "disagreement_m": float(d.translation_norm_m[k]) if est[k] else 0.0,
+                "disagreement_deg": float(d.rotation_norm_deg[k]) if est[k] else 0.0,
+                "observable": bool(obs[k]),
+                "n_correspondences": int(d.n_correspondences[k]),
+                "n_unobservable_directions": int(d.n_unobservable[k]),
+                "translation_m": [float(v) for v in d.translation_m[k]],
+                "rotation_deg": [float(v) for v in d.rotation_deg[k]],
+                "jump_m": float(j.translation_norm_m[k]),
+                "jump_deg": float(j.rotation_norm_deg[k]),
+                "path_length_m": float(self.path_length_m[k]),
+            })
+        return out
+
+
+# ---------------------------------------------------------------------------------------------- consensus step
+
+
+@dataclass(frozen=True)
+class _Consensus:
+    """Per grouped point: residual to the consensus of an allowed frame set (and whether there was one)."""
+
+    residual_m: NDArray[np.float64]
+    valid: NDArray[np.bool_]
+    mean_path_m: NDArray[np.float64]
+
+
+class _CellTable:
+    """Per (lateral cell, frame row) sums in (cell, row) order with prefix sums, for any frame subset that is
+    a row range."""
+
+    def __init__(self, sg: SurfaceGroups, rows: NDArray[np.int64], n_frames: int, path_m: NDArray[np.float64]):
+        M = n_frames
+        self.M = M
+        key = sg.cell * M + rows
+        self.entry, self.keys = _dense_ids(key)
+        E = len(self.keys)
+        e_row = self.keys % M if E else np.zeros(0, np.int64)
+        n_e = np.bincount(self.entry, minlength=E).astype(np.float64)
+        s_e = np.bincount(self.entry, weights=sg.offset_m, minlength=E)
+        self.cum_n = np.concatenate([[0.0], np.cumsum(n_e)])
+        self.cum_s = np.concatenate([[0.0], np.cumsum(s_e)])
+        self.cum_p = np.concatenate([[0.0], np.cumsum(n_e * path_m[e_row])]) if E else np.zeros(1)
+        self.first = np.searchsorted(self.keys, np.arange(sg.n_cells) * M)
+        self.own_n, self.own_s = n_e[self.entry], s_e[self.entry]
+
+    def prefix(self, cells: NDArray[np.int64], last_row: NDArray[np.int64]) -> tuple[NDArray, NDArray, NDArray]:
+        """(count, offset sum, path sum) over the frames of each cell with row <= ``last_row`` (-1: none)."""
+        first = self.first[cells]
+        pos = np.maximum(np.searchsorted(self.keys, cells * self.M + np.minimum(last_row, self.M - 1), side="right"), first)
+        return (self.cum_n[pos] - self.cum_n[first], self.cum_s[pos] - self.cum_s[first], self.cum_p[pos] - self.cum_p[first])
+
+
+def _residuals(offset: NDArray[np.float64], n: NDArray, s: NDArray, p: NDArray, cfg: AttributionConfig) -> _Consensus:
+    ok = n >= cfg.min_neighbors
+    mean = np.where(ok, s / np.maximum(n, 1), 0.0)
+    r = offset - mean
+    return _Consensus(r, ok & (np.abs(r) <= cfg.max_residual_m), np.where(ok, p / np.maximum(n, 1), 0.0))
+
+
+def _frame_steps(cloud: PlacedCloud, sg: SurfaceGroups, cons: _Consensus, cfg: AttributionConfig) -> FrameAlignment:
+    """One robust Gauss-Newton step per frame from point-to-plane residuals (vectorised over frames)."""
+    M = cloud.samples.n_frames
+    idx = sg.point_index
+    f = cloud.frame_index[idx]
+    p = cloud.points_world[idx]
+    n = sg.normals[sg.group]
+    # linearise about the centroid of the frame's grouped points: t is how far its surfaces are off
+    cnt = np.maximum(np.bincount(f, minlength=M), 1)[:, None]
+    centroid = np.stack([np.bincount(f, weights=p[:, k], minlength=M) for k in range(3)], axis=1) / cnt
+    L = cfg.lever_m
+    J = np.concatenate([n, np.cross(p - centroid[f], n) / L], axis=1)  # rotation scaled to metres at lever L
+    r = cons.residual_m
+    sig2 = cloud.sigma_normal_m[idx].astype(np.float64) ** 2 + 1e-6
+    huber = np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+    w = np.where(cons.valid, huber / sig2, 0.0)
+    H = np.zeros((M, 6, 6))
+    b = np.zeros((M, 6))
+    for i in range(6):
+        b[:, i] = np.bincount(f, weights=w * J[:, i] * r, minlength=M)
+        for j in range(i, 6):
+            H[:, i, j] = H[:, j, i] = np.bincount(f, weights=w * J[:, i] * J[:, j], minlength=M)
+    n_corr = np.bincount(f, weights=cons.valid.astype(np.float64), minlength=M).astype(np.int64)
+    lam, V = np.linalg.eigh(H)
+    lam_max = np.maximum(lam[:, -1:], 1e-30)
+    good = lam > cfg.min_relative_information * lam_max
+    inv = np.where(good, 1.0 / np.where(good, lam, 1.0), 0.0)
+    x = -np.einsum("mij,mj,mkj,mk->mi", V, inv, V, b)
+    cov = np.einsum("mij,mj,mkj->mik", V, inv, V)
+    has = n_corr >= 6
+    x[~has] = 0.0
+    n_unobs = np.where(has, 6 - good.sum(axis=1), 6)
+    sigma_t = np.sqrt(np.maximum(np.linalg.eigvalsh(cov[:, :3, :3])[:, -1], 0.0))
+    return FrameAlignment(
+        translation_m=x[:, :3],
+        rotation_deg=np.degrees(x[:, 3:] / L),
+        n_correspondences=n_corr,
+        n_unobservable=n_unobs.astype(np.int64),
+        sigma_m=sigma_t,
+        center_m=centroid,
+    )
+
+
+@dataclass(frozen=True)
+class _Steps:
+    disagreement: FrameAlignment
+    jumps: FrameAlignment
+    revisit: FrameAlignment
+    revisit_path_m: NDArray[np.float64]
+    revisit_fraction: float
+
+
+def _all_steps(cloud: PlacedCloud, cfg: AttributionConfig) -> _Steps:
+    sg = surface_groups(cloud, cfg.voxel_size_m, normal_max_angle_deg=cfg.normal_max_angle_deg,
+                        min_points=cfg.min_group_points, cell_fraction=cfg.cell_fraction)
+    M = cloud.samples.n_frames
+    rows = cloud.frame_index[sg.point_index]
+    path = cloud.path_length_m
+    table = _CellTable(sg, rows, M, path)
+    cells, o = sg.cell, sg.offset_m
+    tot_n, tot_s, tot_p = table.prefix(cells, np.full(len(cells), M - 1))
+    # every other frame
+    others = _residuals(o, tot_n - table.own_n, tot_s - table.own_s, tot_p - table.own_n * path[rows], cfg)
+    # the window before
+    a = table.prefix(cells, rows - 1)
+    b = table.prefix(cells, rows - 1 - cfg.window)
+    window = _residuals(o, a[0] - b[0], a[1] - b[1], a[2] - b[2], cfg)
+    # frames seen at least revisit_min_path_m of travel earlier
+    last_early = np.searchsorted(path, path - cfg.revisit_min_path_m, side="right") - 1
+    early = table.prefix(cells, last_early[rows])
+    revisit = _residuals(o, *early, cfg)
+    first_late = np.searchsorted(path, path + cfg.revisit_min_path_m, side="left")
+    late_n = tot_n - table.prefix(cells, first_late[rows] - 1)[0]
+    revisited = (early[0] + late_n) > 0
+    disagreement = _frame_steps(cloud, sg, others, cfg)
+    jumps = _frame_steps(cloud, sg, window, cfg)
+    rev = _frame_steps(cloud, sg, revisit, cfg)
+    cnt = np.bincount(rows, weights=revisit.valid.astype(np.float64), minlength=M)
+    mean_s = np.bincount(rows, weights=np.where(revisit.valid, revisit.mean_path_m, 0.0), minlength=M) / np.maximum(cnt, 1)
+    revisit_path = np.where(cnt > 0, path - mean_s, 0.0)
+    fraction = float(np.mean(revisited)) if len(revisited) else 0.0
+    return _Steps(disagreement, jumps, rev, revisit_path, fraction)
+
+
+def change_points(cloud: PlacedCloud, jumps: FrameAlignment, config: AttributionConfig | None = None) -> list[ChangePoint]:
+    """Pose jumps: robust outliers of the jump series, one per cluster.
+
+    A jump at frame k shows in frame k's step against the ``window`` frames before it and, fading, in the
+    next ``window - 1`` frames (their windows still hold frames from before the jump). Significant frames
+    closer than ``window`` form one cluster; its change point is the first frame whose jump reaches
+    ``onset_fraction`` of the cluster's largest (the onset, not the tail of the ramp)."""
+    cfg = config or AttributionConfig()
+    ok = jumps.estimated(cfg.min_correspondences)
+    t, a = jumps.translation_norm_m, jumps.rotation_norm_deg
+    if ok.sum() < 5:
+        return []
+
+    def robust_z(x: NDArray[np.float64]) -> NDArray[np.float64]:
+        med = np.median(x[ok])
+        mad = 1.4826 * np.median(np.abs(x[ok] - med)) + 1e-9
+        return np.where(ok, (x - med) / mad, 0.0)
+
+    zt, za = robust_z(t), robust_z(a)
+    score = np.maximum(zt, za)
+    big = np.flatnonzero(ok & (((zt >= cfg.change_point_z) & (t >= cfg.min_jump_m))
+                               | ((za >= cfg.change_point_z) & (a >= cfg.min_jump_deg))))
+    out = []
+    if big.size == 0:
+        return out
+    clusters = np.split(big, np.flatnonzero(np.diff(big) > cfg.window) + 1)
+    for members in clusters:
+        peak = members[np.argmax(score[members])]
+        lo = max(0, int(members[0]) - cfg.window + 1)
+        span = np.arange(lo, int(peak) + 1)
+        onset = span[np.flatnonzero(ok[span] & (score[span] >= cfg.onset_fraction * score[peak]))[0]]
+        out.append(ChangePoint(int(cloud.frame_ids[onset]), int(cloud.stamps_ns[onset]), float(t[onset]), float(a[onset]),
+                               float(score[onset])))
+    return out
+
+
+def drift_rate(revisit: FrameAlignment, revisit_path_m: NDArray[np.float64], config: AttributionConfig | None = None) -> DriftRate:
+    """Least-squares line through the origin of revisit disagreement against the path travelled in between."""
+    cfg = config or AttributionConfig()
+    ok = revisit.estimated(cfg.min_correspondences) & (revisit_path_m >= cfg.revisit_min_path_m)
+    if not ok.any():
+        return DriftRate(None, None, 0, 0.0)
+    s = revisit_path_m[ok]
+    rate_t = float(np.sum(s * revisit.translation_norm_m[ok]) / np.sum(s * s))
+    rate_r = float(np.sum(s * revisit.rotation_norm_deg[ok]) / np.sum(s * s))
+    return DriftRate(100.0 * rate_t, rate_r, int(ok.sum()), float(s.max()))
+
+
+def attribute(cloud: PlacedCloud, config: AttributionConfig | None = None) -> Attribution:
+    """Disagreement, jumps, change points, drift rate and revisit fraction of a placed cloud."""
+    cfg = config or AttributionConfig()
+    steps = _all_steps(cloud, cfg)
+    cps = change_points(cloud, steps.jumps, cfg)
+    drift = drift_rate(steps.revisit, steps.revisit_path_m, cfg)
+    result = Attribution(cloud.frame_ids.copy(), cloud.stamps_ns.copy(), cloud.path_length_m.copy(), steps.disagreement,
+                         steps.jumps, steps.revisit, steps.revisit_path_m, cps, drift, steps.revisit_fraction, cfg)
+    if result.revisit_note:
+        logger.warning(result.revisit_note)
+    logger.info("attribution: %d change points, drift %s %%/m %s deg/m, revisit fraction %.3f", len(cps),
+                drift.percent_per_m, drift.deg_per_m, steps.revisit_fraction)
+    return result
+
+
+# ---------------------------------------------------------------------------------------------- ground truth
+
+
+@dataclass(frozen=True)
+class SegmentErrors:
+    """KITTI-style errors: per segment length, mean translational error (%) and rotational error (deg/m)."""
+
+    lengths_m: NDArray[np.float64]
+    translation_percent: NDArray[np.float64]
+    rotation_deg_per_m: NDArray[np.float64]
+    n_segments: NDArray[np.int64]
+
+    @property
+    def mean_translation_percent(self) -> float | None:
+        ok = self.n_segments > 0
+        return float(np.mean(self.translation_percent[ok])) if ok.any() else None
+
+    @property
+    def mean_rotation_deg_per_m(self) -> float | None:
+        ok = self.n_segments > 0
+        return float(np.mean(self.rotation_deg_per_m[ok])) if ok.any() else None
+
+
+def segment_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
+                   lengths_m: tuple[float, ...] = (100, 200, 300, 400, 500, 600, 700, 800), step_frames: int = 10) -> SegmentErrors:
+    """KITTI odometry metric (Geiger et al. 2012): for segments of each length along the ground-truth path,
+    starting every ``step_frames`` frames, the relative-pose error at the segment's end divided by its length."""
+    est = np.asarray(estimate, dtype=np.float64)
+    gt = np.asarray(ground_truth, dtype=np.float64)
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ConfigError(f"segment_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    L = np.asarray(lengths_m, dtype=np.float64)
+    t_err, r_err, count = np.zeros(len(L)), np.zeros(len(L)), np.zeros(len(L), np.int64)
+    for first in range(0, len(gt), step_frames):
+        for li, length in enumerate(L):
+            last = int(np.searchsorted(s, s[first] + length))
+            if last >= len(gt):
+                continue
+            E = geometry.invert(geometry.invert(gt[first]) @ gt[last]) @ (geometry.invert(est[first]) @ est[last])
+            t_err[li] += np.linalg.norm(E[:3, 3]) / length
+            r_err[li] += geometry.rotation_angle_deg(np.eye(4), E) / length
+            count[li] += 1
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return SegmentErrors(L, 100.0 * t_err / np.maximum(count, 1), r_err / np.maximum(count, 1), count)
+
+
+def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
+                        segment_lengths_m: tuple[float, ...] | None = None) -> dict:
+    """ATE (rigid Umeyama), RPE over consecutive frames and KITTI segment errors as a JSON-ready dict.
+
+    Segment lengths default to 1/8 .. 8/8 of the ground-truth path (KITTI's 100..800 m on a long drive)."""
+    errs = trajectory_errors(estimate, ground_truth)
+    gt = np.asarray(ground_truth, dtype=np.float64)
+    total = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    lengths = segment_lengths_m or tuple(total * k / 8.0 for k in range(1, 8)) if total > 0 else ()
+    seg = segment_errors(estimate, ground_truth, lengths_m=lengths, step_frames=1) if lengths else None
+    return {
+        "ate_rmse_m": errs.ate_rmse_m,
+        "ate_max_m": errs.ate_max_m,
+        "rpe_trans_rmse_m": errs.rpe_trans_rmse_m,
+        "rpe_rot_rmse_deg": errs.rpe_rot_rmse_deg,
+        "n_poses": errs.n_poses,
+        "segment_translation_percent": None if seg is None else seg.mean_translation_percent,
+        "segment_rotation_deg_per_m": None if seg is None else seg.mean_rotation_deg_per_m,
+        "segment_lengths_m": [float(v) for v in lengths],
+    }
