@@ -269,6 +269,11 @@ def test_kitchen_drift_rate_estimate_follows_the_injected_drift(kitchen: FrameSt
         rates.append(a.drift.percent_per_m)
     assert floor.drift.percent_per_m < rates[0] < rates[1]
     assert rates[1] == pytest.approx(2.0, rel=0.5)
+    # the first 20 frames travel less than a metre: nothing is revisited, and the result says drift is invisible
+    first = kitchen_cloud.subset(np.arange(20))
+    alone = attribute(first.place(base[:20]))
+    assert alone.revisit_fraction == 0.0 and alone.drift.percent_per_m is None
+    assert "invisible" in alone.revisit_note
 
 
 # ---------------------------------------------------------------------------------------------- ground truth metrics

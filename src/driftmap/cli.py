@@ -382,6 +382,8 @@ def diagnose(
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
+    import time
+
     from driftmap.diagnostics.double_wall import DiagnosticCloud
     from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth, write_report
     from driftmap.frame import SensorKind
@@ -395,9 +397,12 @@ def diagnose(
             cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
         ground_truth = read_ground_truth(store, gt, gt_format) if gt is not None else None
         with console.status(f"sampling {len(store)} frames"):
+            t0 = time.perf_counter()
             cloud = DiagnosticCloud.from_store(store, cfg.sampling)
+            sampling_s = time.perf_counter() - t0
         with console.status("diagnosing"):
             result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
+            result.seconds["sampling"] = sampling_s
             other = (diagnose_store(store, compare_revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
                      if compare_revision is not None else None)
     data = result.to_json()

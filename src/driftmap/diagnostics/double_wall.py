@@ -51,7 +51,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-_DENSE_SPAN_PER_KEY = 24
+_DENSE_SPAN_PER_KEY = 16
 _DENSE_SPAN_MIN = 1 << 22
 
 
@@ -303,17 +303,18 @@ def _dense_ids(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.i
         mark = np.zeros(span, bool)
         mark[keys] = True
         uniq = np.flatnonzero(mark)
-        remap = np.empty(span, np.int64)
-        remap[uniq] = np.arange(len(uniq))
-        return remap[keys], uniq
+        remap = np.empty(span, np.int32)
+        remap[uniq] = np.arange(len(uniq), dtype=np.int32)
+        return remap[keys].astype(np.int64), uniq
     uniq, inverse = np.unique(keys, return_inverse=True)
     return inverse.astype(np.int64), uniq
 
 
 def _grid_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
     k = np.floor(points / size_m).astype(np.int64)
-    k -= k.min(axis=0)
-    span = k.max(axis=0) + 1
+    lo = np.array([k[:, i].min() for i in range(3)])  # column by column: ~15x faster than min(axis=0)
+    k -= lo
+    span = np.array([k[:, i].max() for i in range(3)]) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise ConfigError(f"voxel grid too large to index at {size_m} m")
     return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
@@ -391,6 +392,8 @@ class ScaleResult:
     layer_fraction: NDArray[np.float64]
     smear_m: NDArray[np.float64]
     """Per group: sqrt of the between-frame dispersion of mean offsets minus what noise explains."""
+    path_span_m: NDArray[np.float64]
+    """Per group: distance travelled between the first and the last frame that saw it."""
     gf_group: NDArray[np.int64]
     """Per (group, frame) pair: the group, the frame row, its point count, its mean residual offset, its layer
     (0: A, 1: B, -1: none)."""
@@ -411,6 +414,11 @@ class ScaleResult:
     def score_m(self) -> float:
         """Smearing score: RMS over evaluated groups of their excess between-frame dispersion (m)."""
         s = self.smear_m[self.evaluated]
+        return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
+
+    def revisit_score_m(self, min_path_m: float = 1.0) -> float:
+        """The smearing score over the groups seen again after ``min_path_m`` of travel (where drift shows)."""
+        s = self.smear_m[self.evaluated & (self.path_span_m >= min_path_m)]
         return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
 
 
@@ -483,6 +491,11 @@ class DoubleWallResult:
     def smearing_score_m(self) -> float:
         """RMS of the per-scale smearing scores (every scale weighs the same)."""
         vals = np.array([s.score_m for s in self.scales if np.isfinite(s.score_m)])
+        return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
+
+    def revisit_score_m(self, min_path_m: float = 1.0) -> float:
+        """The smearing score over revisited groups only (RMS of the per-scale values); NaN without a revisit."""
+        vals = np.array([v for s in self.scales if np.isfinite(v := s.revisit_score_m(min_path_m))])
         return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
 
     def to_json(self) -> dict:
@@ -559,10 +572,11 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     use = np.flatnonzero(surface >= 0)
     g, _ = _dense_ids(vox[use] * 4 + surface[use] * 2 + side[use])
     G = int(g.max()) + 1 if len(g) else 0
-    keep = (_sums(g, G) >= min_points)[g]
+    big = _sums(g, G) >= min_points
+    keep = big[g]
     use = use[keep]
-    g, _ = _dense_ids(g[keep])
-    G = int(g.max()) + 1 if len(g) else 0
+    g = (np.cumsum(big) - 1)[g[keep]]
+    G = int(big.sum())
     p, nw = P[use], Nw[use]
     cnt = _sums(g, G)
     normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
@@ -630,6 +644,12 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     disp = _sums(e_group, G, w * (e_mean - mbar[e_group]) ** 2) / W
     noise = point_var * n_frames / W
     smear = np.sqrt(np.maximum(disp - noise, 0.0))
+    # path travelled between the first and the last frame that saw the group (a revisit when large)
+    e_path = cloud.path_length_m[e_frame]
+    s_lo, s_hi = np.full(G, np.inf), np.full(G, -np.inf)
+    np.minimum.at(s_lo, e_group[e_ok], e_path[e_ok])
+    np.maximum.at(s_hi, e_group[e_ok], e_path[e_ok])
+    path_span = np.where(n_frames > 0, s_hi - s_lo, 0.0)
 
     # two layers of frames: precision-weighted 1-D 2-means on the per-frame means
     floor2 = cfg.frame_jitter_floor_m**2
@@ -701,7 +721,7 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     on_shared = shared[c] & (layer >= 0)
     sgn = np.where(layer == 1, 1.0, -1.0)
     correct = ((o - mid[c]) * sgn * np.sign(sep[g]) > 0) & on_shared
-    expect = ndtr(np.abs(sep[g]) / (2.0 * np.sqrt(point_var[g]))) * on_shared
+    expect = ndtr(np.abs(sep) / (2.0 * np.sqrt(point_var)))[g] * on_shared
     n_sh = _sums(g, G, on_shared.astype(np.float64))
     purity = (_sums(g, G, correct.astype(np.float64)) - 0.5 * n_sh) / np.maximum(_sums(g, G, expect) - 0.5 * n_sh, 1e-12)
     purity = np.clip(purity, 0.0, 1.5)
@@ -722,7 +742,7 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     return ScaleResult(
         voxel_size_m=size_m, centers_m=center, normals=normal, n_points=cnt.astype(np.int64), n_frames=n_frames,
         evaluated=evaluated, flagged=flagged, separation_m=sep, separation_sigma_m=sep_sigma, ashman_d=ashman,
-        delta_bic=delta_bic, purity=purity, overlap=overlap, layer_fraction=layer_fraction, smear_m=smear,
+        delta_bic=delta_bic, purity=purity, overlap=overlap, layer_fraction=layer_fraction, smear_m=smear, path_span_m=path_span,
         gf_group=e_group, gf_frame=e_frame, gf_points=e_n.astype(np.int64), gf_mean_m=e_mean, gf_layer=e_layer,
     )
 

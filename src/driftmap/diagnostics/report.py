@@ -101,6 +101,7 @@ class Diagnosis:
             "revision": int(self.revision),
             "smearing_score_m": _num(dw.smearing_score_m),
             "smearing_score_per_scale_m": {f"{k:g}": _num(v) for k, v in dw.score_per_scale_m.items()},
+            "smearing_score_revisit_m": _num(dw.revisit_score_m(at.config.revisit_min_path_m)),
             "double_wall": dw.to_json(),
             "frames": at.frames_json(),
             "change_points": [c.to_json() for c in at.change_points],
