@@ -28,6 +28,7 @@ import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,6 +37,9 @@ from scipy.spatial.transform import Rotation
 from driftmap.errors import ConfigError, GeometryError
 from driftmap.frame import Frame, PointAttributes
 from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+
+if TYPE_CHECKING:
+    from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallResult, SurfaceGroups
 
 
 class PoseFileFormat(enum.Enum):
@@ -246,8 +250,8 @@ class StepDetection:
         return np.abs(self.separation_error_m) <= np.maximum(abs_m, rel * self.expected_m)
 
 
-def evaluate_step(samples, base_poses: ArrayLike, step_index: int, step_m: ArrayLike, result, *,
-                  max_angle_deg: float = 25.0, min_frames_per_side: int = 2, min_side_fraction: float = 0.1,
+def evaluate_step(samples: DiagnosticCloud, base_poses: ArrayLike, step_index: int, step_m: ArrayLike,
+                  result: DoubleWallResult, *, max_angle_deg: float = 25.0, min_frames_per_side: int = 2, min_side_fraction: float = 0.1,
                   max_baseline_m: float = 0.003, max_baseline_smear_m: float | None = 0.004) -> list[StepDetection]:
     """Score a :class:`~driftmap.diagnostics.double_wall.DoubleWallResult` computed on ``samples`` placed with
     ``translation_step(base_poses, step_index, step_m)`` against what that step must produce."""
@@ -308,7 +312,7 @@ def evaluate_step(samples, base_poses: ArrayLike, step_index: int, step_m: Array
     return out
 
 
-def _baseline_smear(sg, rows: NDArray[np.int64], offset: NDArray[np.float64], n_frames: int, G: int, C: int) -> NDArray[np.float64]:
+def _baseline_smear(sg: SurfaceGroups, rows: NDArray[np.int64], offset: NDArray[np.float64], n_frames: int, G: int, C: int) -> NDArray[np.float64]:
     """Per surface group of ``sg``: point-weighted scatter of the frames' mean offsets (relative to the lateral-cell
     means, as the detector computes them) beyond what the pooled within-frame scatter explains."""
     from driftmap.diagnostics.double_wall import _dense_ids
