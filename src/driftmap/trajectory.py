@@ -57,6 +57,18 @@ def _format_stamp_ns(stamp_ns: int) -> str:
     return f"{sign}{s}.{ns:09d}"
 
 
+def _poses_from_rows(path: Path, translation_m: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(N, 4, 4) poses from translations and unit quaternions; a non-unit quaternion names its data row."""
+    norms = np.linalg.norm(quat_xyzw, axis=1)
+    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
+    if bad.size:
+        raise SourceError(f"{path}: quaternion on data row {bad[0] + 1} has norm {norms[bad[0]]:.4f}, expected 1")
+    poses = np.tile(np.eye(4), (len(translation_m), 1, 1))
+    poses[:, :3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
+    poses[:, :3, 3] = translation_m
+    return poses
+
+
 def read_tum(path: str | Path) -> Trajectory:
     """Read a TUM trajectory file; comment lines start with ``#``."""
     path = Path(path)
@@ -81,15 +93,7 @@ def read_tum(path: str | Path) -> Trajectory:
     if not rows:
         raise SourceError(f"{path}: no poses in TUM file")
     data = np.asarray(rows)
-    quat = data[:, 3:7]
-    norms = np.linalg.norm(quat, axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
-    if bad.size:
-        raise SourceError(f"{path}: quaternion on data row {bad[0] + 1} has norm {norms[bad[0]]:.4f}, expected 1")
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(quat).as_matrix()
-    poses[:, :3, 3] = data[:, :3]
-    return Trajectory(np.asarray(stamps, dtype=np.int64), poses)
+    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], data[:, 3:7]))
 
 
 def write_tum(path: str | Path, trajectory: Trajectory) -> None:
@@ -169,14 +173,7 @@ def read_euroc(path: str | Path) -> Trajectory:
         raise SourceError(f"{path}: no poses in EuRoC file")
     data = np.asarray(rows)
     quat_wxyz = data[:, 3:7]
-    norms = np.linalg.norm(quat_wxyz, axis=1)
-    bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
-    if bad.size:
-        raise SourceError(f"{path}: quaternion on data row {bad[0] + 1} has norm {norms[bad[0]]:.4f}, expected 1")
-    poses = np.tile(np.eye(4), (len(data), 1, 1))
-    poses[:, :3, :3] = Rotation.from_quat(quat_wxyz[:, [1, 2, 3, 0]]).as_matrix()
-    poses[:, :3, 3] = data[:, :3]
-    return Trajectory(np.asarray(stamps, dtype=np.int64), poses)
+    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], quat_wxyz[:, [1, 2, 3, 0]]))
 
 
 def read_redwood_log(path: str | Path) -> Trajectory:
