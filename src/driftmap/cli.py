@@ -70,38 +70,36 @@ def demo(
     frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Use only the first N frames.")] = None,
     log: Annotated[Optional[Path], typer.Option("--log", help="Another synthetic log folder instead of the embedded one.")] = None,
 ) -> None:
-    """Run the whole story on the embedded synthetic drifting-robot log."""
-    from driftmap.demo import run_demo
+    """Run the whole story on the embedded synthetic drifting-robot log: build -> diagnose -> loop closure
+    -> diagnose again -> exports -> report."""
+    from driftmap.demo import run_demo, summary_rows
 
     with _progress() as progress:
-        task = progress.add_task("back-project + validate", total=None)
+        tasks: dict[str, int] = {}
 
-        def tick(done: int, total: int) -> None:
-            progress.update(task, completed=done, total=total)
+        def tick(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=total)
+            progress.update(tasks[stage], completed=done, total=total)
 
         result = run_demo(out, log_path=log, max_frames=frames, progress=tick)
-    table = Table(title="driftmap demo: synthetic loop, drifting odometry vs ground truth")
+    before = result.diagnosis_before
+    if before is not None:
+        console.print(f"revision 0 (drifting odometry): {before.n_regions} double-wall regions, "
+                      f"{100 * before.fraction_flagged:.2f} % of surface voxels doubled", highlight=False)
+        for region in before.regions:
+            console.print(f"  {100 * region['separation_m']:.1f} +- {100 * region['separation_sigma_m']:.1f} cm apart at "
+                          f"{region['center_m']} m: frames {region['frames_a'][0]}-{region['frames_a'][1]} vs "
+                          f"{region['frames_b'][0]}-{region['frames_b'][1]}", highlight=False)
+    table = Table(title="driftmap demo: synthetic loop, drifting odometry -> loop closure")
     table.add_column("quantity")
     table.add_column("value", justify="right")
-    table.add_row("frames", str(result.n_frames))
-    table.add_row("points (sensor frames)", f"{result.n_points:,}")
-    table.add_row("mean invalid-pixel fraction", f"{result.mean_invalid_fraction:.3f}")
-    table.add_row("frames flagged (invalid-pixel jump)", str(len(result.flagged_frames)))
-    table.add_row("loop wall spread, odometry (median / max)",
-                  f"{result.wall_spread_odometry_m * 100:.1f} / {result.wall_spread_odometry_max_m * 100:.1f} cm")
-    if result.wall_spread_corrected_m is not None:
-        table.add_row("loop wall spread, after loop closure (median / max)",
-                      f"{result.wall_spread_corrected_m * 100:.1f} / {result.wall_spread_corrected_max_m * 100:.1f} cm")
-    table.add_row("loop wall spread, ground truth (median / max)",
-                  f"{result.wall_spread_ground_truth_m * 100:.1f} / {result.wall_spread_ground_truth_max_m * 100:.1f} cm")
-    table.add_row("loops accepted", str(result.loops_accepted))
-    if result.ate_odometry_m is not None:
-        after = "-" if result.ate_corrected_m is None else f"{result.ate_corrected_m * 100:.1f}"
-        table.add_row("ATE odometry -> after loop closure", f"{result.ate_odometry_m * 100:.1f} -> {after} cm")
-    table.add_row("time", f"{result.seconds:.1f} s")
+    for k, v in summary_rows(result):
+        table.add_row(k, v)
     console.print(table)
     for name, path in result.files.items():
-        console.print(f"  {name:22s} {path}")
+        console.print(f"  {name:28s} {path}", highlight=False)
+    console.print(f"report: [bold]{result.files.get('report_html', '-')}[/bold]")
     console.print(f"results: [bold]{result.out_dir}[/bold]")
 
 
@@ -311,10 +309,12 @@ def export(
     voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", help="Voxel-deduplicate the map (default: every point).")] = None,
     trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
+    mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --mcap file.")] = False,
 ) -> None:
-    """Export the map (world frame of a revision) and/or the trajectory."""
-    if map_path is None and trajectory is None:
-        raise typer.BadParameter("nothing to export: give --map and/or --trajectory")
+    """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
+    if map_path is None and trajectory is None and mcap_path is None:
+        raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
     with _open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
@@ -325,6 +325,19 @@ def export(
             view = store.map(rev)
             view.export(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
             console.print(f"map (revision {rev}, {view.n_points:,} points{f', voxel {voxel_size_m} m' if voxel_size_m else ''}): {map_path}")
+        if mcap_path is not None:
+            from driftmap.map.foxglove_export import export_foxglove_mcap
+
+            with _progress() as progress:
+                task = progress.add_task("foxglove mcap", total=None)
+                summary = export_foxglove_mcap(
+                    store, mcap_path, revision=rev,
+                    map_voxel_size_m=voxel_size_m if voxel_size_m is not None else 0.02,
+                    overwrite=overwrite,
+                    progress=lambda stage, done, total: progress.update(task, description=f"foxglove mcap: {stage}", completed=done, total=total),
+                )
+            console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
+                          f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
 
 
 @app.command()

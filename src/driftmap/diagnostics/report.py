@@ -336,12 +336,13 @@ def plot_score_comparison(path: str | Path, diagnoses: dict[str, Diagnosis], *, 
         d = diagnoses[label].double_walls
         vals = [d.score_per_scale_m.get(s, float("nan")) * 1000 for s in scales] + [d.smearing_score_m * 1000]
         ax.bar(np.arange(len(groups)) + k * width, vals, width, label=label)
-        ax2.bar(k, 100 * d.fraction_flagged, 0.6, label=label)
+        bar = ax2.bar(k, 100 * d.fraction_flagged, 0.6, label=label, color=f"C{k}")
+        ax2.bar_label(bar, fmt="%.2f %%", fontsize=8)
     ax.set_xticks(np.arange(len(groups)) + width * (len(labels) - 1) / 2, groups)
     ax.set_ylabel("smearing score (mm)")
     ax.legend(fontsize=8)
     ax.grid(axis="y", alpha=0.3)
-    ax2.set_xticks(range(len(labels)), labels, fontsize=8)
+    ax2.set_xticks(range(len(labels)), [label.replace(" (", "\n(") for label in labels], fontsize=7)
     ax2.set_ylabel("surface voxels doubled (%)")
     ax2.grid(axis="y", alpha=0.3)
     fig.suptitle(title or "smearing before / after", fontsize=10)
