@@ -320,3 +320,19 @@ def test_frame_rejects_bad_scalars() -> None:
         make_frame(np.zeros((1, 3), np.float32), depth_scale=0.0)
     with pytest.raises(GeometryError, match="depth_scale"):
         make_frame(np.zeros((1, 3), np.float32), depth_scale=float("nan"))
+
+
+def test_top_level_entry_points_are_lazy() -> None:
+    """`import driftmap` stays light; the store, map view, sources and build are reachable from it."""
+    import subprocess
+    import sys
+
+    code = ("import sys, driftmap; heavy = [m for m in ('open3d', 'gtsam', 'kiss_icp') if m in sys.modules]; "
+            "assert not heavy, heavy; from driftmap import FrameStore, MapView, ChangeSet, open_source, build; "
+            "assert FrameStore.__module__ == 'driftmap.store.frame_store' and MapView.__name__ == 'MapView'")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    import driftmap
+
+    with pytest.raises(AttributeError):
+        driftmap.NoSuchThing  # noqa: B018

@@ -29,8 +29,33 @@ from driftmap.preprocess.depth import BackprojectionResult, InvalidFractionMonit
 
 __version__ = "0.1.0"
 
+#: Heavier entry points, imported on first use (``driftmap.FrameStore`` etc.) so ``import driftmap`` stays light.
+_LAZY = {
+    "FrameStore": "driftmap.store.frame_store",
+    "MapView": "driftmap.map.view",
+    "ChangeSet": "driftmap.map.view",
+    "open_source": "driftmap.sources.base",
+    "build": "driftmap.pipeline.build",
+    "BuildConfig": "driftmap.pipeline.build",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'driftmap' has no attribute {name!r}")
+
+
 __all__ = [
     "BackprojectionResult",
+    "BuildConfig",
+    "ChangeSet",
+    "FrameStore",
+    "MapView",
+    "build",
+    "open_source",
     "ConfigError",
     "DepthError",
     "DepthScaleError",
