@@ -463,6 +463,37 @@ def diagnose(
 
 
 @app.command()
+def view(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation)")] = "frame",
+    out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
+    backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
+    headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
+    reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
+) -> None:
+    """Show the map of a revision coloured by frame, by correction displacement or by double-wall separation:
+    an Open3D window with a display, PNG views (top + two oblique) without one."""
+    from driftmap.viewer import view_store
+
+    with _open_store(store_path) as store:
+        with console.status(f"preparing the {color} view of {store_path}"):
+            result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
+                                headless=headless, backend=backend, reference_revision=reference)
+    if result.fallback_reason:
+        err_console.print(f"[yellow]{result.fallback_reason}; used the software renderer[/yellow]", highlight=False)
+    lo, hi = result.value_range
+    console.print(f"revision {result.revision}, colour {result.color} ({result.value_label}: {lo:.4g} .. {hi:.4g}), "
+                  f"{result.n_points_shown:,} of {result.n_points_map:,} points (voxel {result.voxel_size_m:g} m), "
+                  f"backend {result.backend}")
+    if result.n_double_wall_voxels is not None:
+        console.print(f"  double-wall voxels flagged: {result.n_double_wall_voxels}")
+    for name, path in result.files.items():
+        console.print(f"  {name:10s} {path}", highlight=False)
+
+
+@app.command()
 def perturb(
     poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
     poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format).")],

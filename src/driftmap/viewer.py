@@ -1,0 +1,717 @@
+"""The map viewer behind ``driftmap view``: a store's map in one revision, coloured by frame, by how far a
+correction moved each point, or by double-wall separation.
+
+Backends (``backend=``):
+
+- ``window``: an interactive Open3D window (``draw_geometries``); needs a display.
+- ``open3d``: Open3D's ``OffscreenRenderer`` (Filament) writes PNG views. It runs in a child process,
+  because Filament aborts the whole process when it finds no EGL/Vulkan driver; any failure (or a blank
+  image) falls back to ``software``.
+- ``software``: a numpy z-buffer splatter (nearest point wins per pixel, light eye-dome shading) writes
+  the same PNG views with the same cameras and colours; needs nothing but numpy, Pillow and matplotlib.
+- ``rerun``: logs the coloured cloud and the sensor path to rerun (optional extra ``driftmap[viewer]``):
+  a spawned viewer when a display exists, else ``OUT/map_rev<N>_<color>.rrd``.
+- ``auto`` (default): ``window`` with a display, else ``open3d`` falling back to ``software``.
+
+Every PNG view is exactly ``width_px x height_px`` with a pinhole camera (:class:`ViewCamera`, OpenCV
+convention: x right, y down, z forward), so a pixel can be traced back to world points; ``overview``
+puts the views side by side with a colour bar. See ``docs/viewer.md``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from driftmap.errors import ConfigError, StoreError  # noqa: E402
+from driftmap.frame import SensorKind  # noqa: E402
+from driftmap.map.view import POSE_EPSILON  # noqa: E402
+
+if TYPE_CHECKING:
+    from driftmap.diagnostics.double_wall import DoubleWallResult
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+COLOR_MODES = ("frame", "revision", "double-wall")
+BACKENDS = ("auto", "window", "open3d", "software", "rerun")
+#: Display voxel size per sensor kind (m).
+DEFAULT_VOXEL_SIZE_M = {SensorKind.DEPTH_CAMERA: 0.02, SensorKind.LIDAR: 0.2}
+#: Top views of depth-camera maps drop points this far above the mean sensor height (ceilings hide the room).
+DEFAULT_TOP_VIEW_CLIP_M = {SensorKind.DEPTH_CAMERA: 0.6, SensorKind.LIDAR: None}
+BACKGROUND_RGB = (20, 20, 24)
+GREY_RGB = (120, 120, 120)
+"""Points without a value: unchanged by the correction, or not on a flagged double wall."""
+# (colormap, lower, upper end used): both ends stay visible on the dark background
+_PALETTES = {"frame": ("turbo", 0.08, 0.95), "revision": ("inferno", 0.3, 1.0), "double-wall": ("inferno", 0.3, 1.0)}
+_KEY_BITS = 21
+_OPEN3D_TIMEOUT_S = 300.0
+
+
+# ---------------------------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class ViewCamera:
+    """A pinhole view: ``K`` (3x3, pixels) and ``T_cam_world`` (4x4; camera x right, y down, z forward).
+
+    ``clip_up``/``clip_max_m``: the view leaves out points whose height ``p . clip_up`` exceeds ``clip_max_m``
+    (the top view of an indoor map cuts the ceiling away).
+    """
+
+    name: str
+    K: NDArray[np.float64]
+    T_cam_world: NDArray[np.float64]
+    width_px: int
+    height_px: int
+    clip_up: NDArray[np.float64] | None = None
+    clip_max_m: float | None = None
+
+    def project(self, points_world: NDArray[np.floating]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Pixel coordinates (N, 2; pixel (i, j) spans u in [j, j+1)) and depth along the optical axis (N,)."""
+        p = np.asarray(points_world, dtype=np.float64) @ self.T_cam_world[:3, :3].T + self.T_cam_world[:3, 3]
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = (p[:, :2] / z[:, None]) * np.diag(self.K)[:2] + self.K[:2, 2]
+        return uv, z
+
+    def visible(self, points_world: NDArray[np.floating]) -> NDArray[np.bool_]:
+        """Points this view draws at all (the clip; not occlusion or the image bounds)."""
+        if self.clip_up is None or self.clip_max_m is None:
+            return np.ones(len(points_world), bool)
+        return np.asarray(points_world, dtype=np.float64) @ self.clip_up <= self.clip_max_m
+
+    def to_json(self) -> dict:
+        return {"name": self.name, "K": self.K.tolist(), "T_cam_world": self.T_cam_world.tolist(),
+                "width_px": self.width_px, "height_px": self.height_px,
+                "clip_up": None if self.clip_up is None else self.clip_up.tolist(), "clip_max_m": self.clip_max_m}
+
+
+@dataclass(frozen=True)
+class ColoredMap:
+    """The voxel-downsampled map of one revision with one colour per point.
+
+    ``values`` is what the colour encodes (frame id, displacement in m, double-wall separation in m); NaN
+    where a point is grey. ``frame_ids`` is the frame each kept point came from (one real point per voxel).
+    """
+
+    revision: int
+    color: str
+    points_world: NDArray[np.float32]
+    frame_ids: NDArray[np.int64]
+    colors: NDArray[np.uint8]
+    values: NDArray[np.float64]
+    value_label: str
+    value_range: tuple[float, float]
+    colormap: ListedColormap
+    n_points_map: int
+    voxel_size_m: float
+    sensor_kind: SensorKind
+    up: NDArray[np.float64]
+    sensor_origins_world: NDArray[np.float64]
+    reference_revision: int | None = None
+    double_walls: DoubleWallResult | None = None
+
+    @property
+    def n_points(self) -> int:
+        return len(self.points_world)
+
+
+@dataclass(frozen=True)
+class ViewResult:
+    """What :func:`view_store` did: the backend that drew, the files written, the cameras used."""
+
+    backend: str
+    revision: int
+    color: str
+    files: dict[str, Path]
+    cameras: list[ViewCamera]
+    n_points_map: int
+    n_points_shown: int
+    voxel_size_m: float
+    value_label: str
+    value_range: tuple[float, float]
+    reference_revision: int | None = None
+    n_double_wall_voxels: int | None = None
+    fallback_reason: str | None = None
+    """Why the ``open3d`` backend fell back to ``software`` (None: it did not)."""
+    seconds: dict[str, float] = field(default_factory=dict)
+    colored: ColoredMap | None = field(default=None, repr=False)
+    """The points, frame ids, values and colours that were drawn."""
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def display_available() -> bool:
+    """True when a window can be opened: macOS/Windows, or ``DISPLAY``/``WAYLAND_DISPLAY`` set."""
+    if sys.platform in ("darwin", "win32"):
+        return True
+    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
+
+
+def store_sensor_kind(store: FrameStore) -> SensorKind:
+    """The sensor kind of most of the store's frames."""
+    if len(store) == 0:
+        raise StoreError(f"{store.path}: the store has no frames")
+    kinds = [SensorKind(store.frame_info(int(f))["sensor_kind"]) for f in store.frame_ids]
+    return max(set(kinds), key=kinds.count)
+
+
+def default_voxel_size_m(store: FrameStore) -> float:
+    """2 cm for depth-camera maps, 20 cm for LiDAR maps."""
+    return DEFAULT_VOXEL_SIZE_M[store_sensor_kind(store)]
+
+
+def _check_color(color: str) -> str:
+    if color not in COLOR_MODES:
+        raise ConfigError(f"--color must be one of {', '.join(COLOR_MODES)}, got {color!r}")
+    return color
+
+
+def _check_revision(store: FrameStore, revision: int | None, what: str = "--revision") -> int:
+    rev = store.head if revision is None else revision
+    if not isinstance(rev, (int, np.integer)) or not 0 <= int(rev) <= store.head:
+        raise StoreError(f"{store.path}: {what} {rev} does not exist (the store has revisions 0..{store.head})")
+    return int(rev)
+
+
+def _pack_keys(keys: NDArray[np.int64], what: str) -> NDArray[np.int64]:
+    """One int64 per integer voxel key triple (21 bits per axis, absolute grid)."""
+    half = 1 << (_KEY_BITS - 1)
+    if len(keys) and (keys.min() < -half or keys.max() >= half):
+        raise ConfigError(f"{what}: the map spans more than {1 << _KEY_BITS} voxels along an axis; use a larger voxel size")
+    k = keys + half
+    return (k[:, 0] << (2 * _KEY_BITS)) | (k[:, 1] << _KEY_BITS) | k[:, 2]
+
+
+def _first_per_key(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Index of the first entry of every distinct key (in array order)."""
+    if len(keys) == 0:
+        return np.zeros(0, np.int64)
+    order = np.argsort(keys, kind="stable")
+    first = np.ones(len(order), bool)
+    first[1:] = keys[order][1:] != keys[order][:-1]
+    return order[first]
+
+
+def _random_per_key(keys: NDArray[np.int64], rng: np.random.Generator) -> NDArray[np.int64]:
+    """Index of one entry of every distinct key, chosen at random (a fair representative per voxel)."""
+    perm = rng.permutation(len(keys))
+    return perm[_first_per_key(keys[perm])]
+
+
+def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_points: int,
+                seed: int) -> tuple[NDArray[np.float32], NDArray[np.int64], int]:
+    """One real point per occupied voxel (chosen at random, so no frame is favoured), with its frame id."""
+    view = store.map(revision)
+    rng = np.random.default_rng(seed)
+    kept_p, kept_f, kept_k = [], [], []
+    chunk: list[int] = []
+    size = 0
+
+    def flush() -> None:
+        nonlocal chunk, size
+        if not chunk:
+            return
+        parts = [view.frame_points_world(f) for f in chunk]
+        pts = np.concatenate(parts)
+        fid = np.repeat(np.asarray(chunk, np.int64), [len(p) for p in parts])
+        ok = np.all(np.isfinite(pts), axis=1)
+        pts, fid = pts[ok], fid[ok]
+        keys = _pack_keys(np.floor(pts / voxel_size_m).astype(np.int64), "view")
+        sel = _random_per_key(keys, rng)
+        kept_p.append(pts[sel])
+        kept_f.append(fid[sel])
+        kept_k.append(keys[sel])
+        chunk, size = [], 0
+
+    for fid in view.frame_ids:
+        chunk.append(int(fid))
+        size += len(view.frame_points_world(int(fid)))
+        if size >= 4_000_000:
+            flush()
+    flush()
+    n_map = view.n_points
+    if not kept_p:
+        raise StoreError(f"{store.path}: revision {revision} has no points to show")
+    sel = _random_per_key(np.concatenate(kept_k), rng)
+    points, frame_ids = np.concatenate(kept_p)[sel], np.concatenate(kept_f)[sel]
+    if len(points) > max_points:
+        logger.info("view: %d voxels; showing a random %d of them", len(points), max_points)
+        pick = np.sort(rng.choice(len(points), max_points, replace=False))
+        points, frame_ids = points[pick], frame_ids[pick]
+    if len(points) == 0:
+        raise StoreError(f"{store.path}: revision {revision} has no finite points to show")
+    return np.ascontiguousarray(points, np.float32), frame_ids, n_map
+
+
+def _up_axis(poses: NDArray[np.float64], kind: SensorKind) -> NDArray[np.float64]:
+    """World 'up': the mean sensor z axis for LiDAR, minus the mean camera y axis (image down) otherwise."""
+    R = poses[:, :3, :3]
+    up = R[:, :, 2].mean(axis=0) if kind is SensorKind.LIDAR else -R[:, :, 1].mean(axis=0)
+    norm = np.linalg.norm(up)
+    return up / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
+
+
+def _palette(color: str) -> ListedColormap:
+    name, lo, hi = _PALETTES[color]
+    return ListedColormap(plt.get_cmap(name)(np.linspace(lo, hi, 256)), name=f"{name}[{lo}:{hi}]")
+
+
+def _apply_palette(values: NDArray[np.float64], value_range: tuple[float, float], cmap: ListedColormap) -> NDArray[np.uint8]:
+    lo, hi = value_range
+    t = np.clip((values - lo) / (hi - lo if hi > lo else 1.0), 0.0, 1.0)
+    rgb = (cmap(np.nan_to_num(t, nan=0.0))[:, :3] * 255 + 0.5).astype(np.uint8)
+    rgb[~np.isfinite(values)] = GREY_RGB
+    return rgb
+
+
+def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now: NDArray[np.float64],
+                    T_ref: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """How far each point moved from the reference revision to now (exact per point), and whether its frame moved."""
+    moved_frame = np.any(np.abs(T_now - T_ref) > POSE_EPSILON, axis=(1, 2))
+    p = points.astype(np.float64)
+    # p_ref = T_ref T_now^-1 p, frame by frame (rows index the frames)
+    delta = T_ref @ np.linalg.inv(T_now)
+    p_ref = np.einsum("nij,nj->ni", delta[rows, :3, :3], p) + delta[rows, :3, 3]
+    return np.linalg.norm(p_ref - p, axis=1), moved_frame[rows]
+
+
+def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32], kind: SensorKind,
+                        points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult]:
+    """|separation| of the finest flagged double-wall voxel containing each point (NaN: none)."""
+    from driftmap.diagnostics.double_wall import DiagnosticCloud, detect_double_walls
+    from driftmap.diagnostics.report import DiagnoseConfig
+
+    cfg = DiagnoseConfig.for_sensor(kind)
+    sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
+    cloud = DiagnosticCloud.from_store(store, sampling)
+    poses = store.poses(revision)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
+    result = detect_double_walls(cloud.place(poses), cfg.double_wall)
+    values = np.full(len(points), np.nan)
+    done = np.zeros(len(points), bool)
+    for scale in sorted(result.scales, key=lambda s: s.voxel_size_m):  # finest first: it localises best
+        if not scale.flagged.any():
+            continue
+        size = scale.voxel_size_m
+        flagged_keys = _pack_keys(np.floor(scale.centers_m[scale.flagged] / size).astype(np.int64), "double-wall")
+        seps = np.abs(scale.separation_m[scale.flagged])
+        order = np.argsort(flagged_keys)
+        flagged_keys, seps = flagged_keys[order], seps[order]
+        # several groups (two surfaces, two sensor sides) can share a voxel: keep the largest separation
+        uniq, start = np.unique(flagged_keys, return_index=True)
+        sep_max = np.maximum.reduceat(seps, start)
+        pk = _pack_keys(np.floor(points / size).astype(np.int64), "double-wall")
+        pos = np.clip(np.searchsorted(uniq, pk), 0, len(uniq) - 1)
+        hit = (uniq[pos] == pk) & ~done
+        values[hit] = sep_max[pos[hit]]
+        done |= hit
+    return values, result
+
+
+def colored_map(store: FrameStore, *, revision: int | None = None, color: str = "frame", voxel_size_m: float | None = None,
+                reference_revision: int | None = None, max_points: int = 3_000_000, double_wall_points_budget: int | None = None,
+                seed: int = 0) -> ColoredMap:
+    """The map of ``revision`` (default head), one random real point per ``voxel_size_m`` voxel, coloured by:
+
+    - ``frame``: the frame id of the point (time order; turbo colour map);
+    - ``revision``: how far the point moved from ``reference_revision`` (default: the revision's parent)
+      to ``revision``, per point and exactly (rotations move far points more); points of frames the
+      correction did not move are grey. Revision 0 has no parent: give ``reference_revision``.
+    - ``double-wall``: the separation of the flagged double-wall voxel (finest scale) the point lies in,
+      from the same detector and configuration as ``driftmap diagnose``; every other point grey.
+    """
+    color = _check_color(color)
+    rev = _check_revision(store, revision)
+    kind = store_sensor_kind(store)
+    vs = DEFAULT_VOXEL_SIZE_M[kind] if voxel_size_m is None else float(voxel_size_m)
+    if not vs > 0 or not math.isfinite(vs):
+        raise ConfigError(f"--voxel-size-m must be positive, got {voxel_size_m}")
+    if max_points < 1:
+        raise ConfigError(f"max_points must be positive, got {max_points}")
+    ref = None
+    if color == "revision":
+        ref = store.revisions[rev].parent_id if reference_revision is None else _check_revision(store, reference_revision, "--reference")
+    points, frame_ids, n_map = _downsample(store, rev, vs, max_points, seed)
+    poses = store.poses(rev)
+    rows = np.searchsorted(store.frame_ids, frame_ids)
+    cmap = _palette(color)
+    walls = None
+    if color == "frame":
+        values = frame_ids.astype(np.float64)
+        value_range = (float(store.frame_ids.min()), float(store.frame_ids.max()))
+        label = "frame id"
+    elif color == "revision":
+        label = f"displacement from revision {ref} (m)" if ref is not None else "displacement (m)"
+        if ref is None:
+            logger.warning("view: revision %d has no parent revision; nothing moved (every point grey)", rev)
+            values = np.full(len(points), np.nan)
+        else:
+            disp, moved = _displacement_m(points, rows, poses, store.poses(ref))
+            values = np.where(moved, disp, np.nan)
+            logger.info("view: %d of %d shown points moved from revision %d to %d (max %.4f m)", int(moved.sum()),
+                        len(points), ref, rev, float(disp.max(initial=0.0)))
+        finite = values[np.isfinite(values)]
+        value_range = (0.0, max(float(np.percentile(finite, 99)), 1e-6) if finite.size else 1e-3)
+    else:
+        values, walls = _double_wall_values(store, rev, points, kind, double_wall_points_budget)
+        label = "double-wall separation (m)"
+        finite = values[np.isfinite(values)]
+        value_range = (0.0, max(float(np.percentile(finite, 95)), 0.01) if finite.size else 0.05)
+        logger.info("view: %d flagged double-wall voxels, %d of %d shown points on them", walls.voxels_flagged,
+                    finite.size, len(points))
+    colors = _apply_palette(values, value_range, cmap)
+    return ColoredMap(rev, color, points, frame_ids, colors, values, label, value_range, cmap, n_map, vs, kind,
+                      _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls)
+
+
+# ---------------------------------------------------------------------------------------------- cameras
+
+
+def _look(forward: NDArray[np.float64], up_hint: NDArray[np.float64]) -> NDArray[np.float64]:
+    """R_world_cam (columns: camera x right, y down, z forward) looking along ``forward``."""
+    z = forward / np.linalg.norm(forward)
+    x = np.cross(z, up_hint)
+    if np.linalg.norm(x) < 1e-9:
+        x = np.cross(z, np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
+    x /= np.linalg.norm(x)
+    return np.stack([x, np.cross(z, x), z], axis=1)
+
+
+def _fit_camera(name: str, R_world_cam: NDArray[np.float64], points: NDArray[np.float64], center: NDArray[np.float64],
+                fov_deg: float, width_px: int, height_px: int, quantile: float = 99.5, margin: float = 1.06) -> ViewCamera:
+    """A camera with rotation ``R_world_cam`` backed off from ``center`` until ``quantile`` % of the points fit."""
+    f = 0.5 * width_px / math.tan(math.radians(fov_deg) / 2)
+    q = (points - center) @ R_world_cam  # camera-axis coordinates relative to the centre
+    need = np.maximum(np.abs(q[:, 0]) * f / (0.5 * width_px), np.abs(q[:, 1]) * f / (0.5 * height_px)) - q[:, 2]
+    dist = max(float(np.percentile(need, quantile)) * margin, 1e-3)
+    eye = center - dist * R_world_cam[:, 2]
+    T = np.eye(4)
+    T[:3, :3] = R_world_cam.T
+    T[:3, 3] = -R_world_cam.T @ eye
+    K = np.array([[f, 0.0, width_px / 2], [0.0, f, height_px / 2], [0.0, 0.0, 1.0]])
+    return ViewCamera(name, K, T, width_px, height_px)
+
+
+def view_cameras(cmap: ColoredMap, *, width_px: int = 1024, height_px: int = 768,
+                 top_view_clip_m: float | None | str = "auto") -> list[ViewCamera]:
+    """Three views fitted to the map: ``top`` (straight down along the up axis, narrow field of view) and
+    two oblique views (35 deg elevation, from opposite corners).
+
+    ``top_view_clip_m``: the top view leaves out points higher than this above the mean sensor height
+    (``auto``: 0.6 m for depth cameras, so ceilings do not hide the room; none for LiDAR).
+    """
+    if width_px < 16 or height_px < 16:
+        raise ConfigError(f"image size must be at least 16x16 pixels, got {width_px}x{height_px}")
+    up = cmap.up
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = helper - up * (helper @ up)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(up, e1)
+    pts = cmap.points_world.astype(np.float64)
+    if len(pts) > 200_000:
+        pts = pts[np.random.default_rng(1).choice(len(pts), 200_000, replace=False)]
+    clip = DEFAULT_TOP_VIEW_CLIP_M[cmap.sensor_kind] if top_view_clip_m == "auto" else top_view_clip_m
+    clip_max = None if clip is None else float(np.mean(cmap.sensor_origins_world @ up)) + float(clip)
+    top_pts = pts if clip_max is None else pts[pts @ up <= clip_max]
+    if len(top_pts) < 10:
+        top_pts, clip_max = pts, None
+    lo, hi = np.percentile(top_pts, 0.5, axis=0), np.percentile(top_pts, 99.5, axis=0)
+    center = (lo + hi) / 2
+    top = _fit_camera("top", _look(-up, e2), top_pts, center, 30.0, width_px, height_px)
+    if clip_max is not None:
+        top = ViewCamera(top.name, top.K, top.T_cam_world, width_px, height_px, up.copy(), clip_max)
+    cams = [top]
+    center = (np.percentile(pts, 0.5, axis=0) + np.percentile(pts, 99.5, axis=0)) / 2
+    elevation = math.radians(35.0)
+    for name, azimuth_deg in (("oblique-a", 225.0), ("oblique-b", 45.0)):
+        az = math.radians(azimuth_deg)
+        toward_eye = math.cos(elevation) * (math.cos(az) * e1 + math.sin(az) * e2) + math.sin(elevation) * up
+        cams.append(_fit_camera(name, _look(-toward_eye, up), pts, center, 50.0, width_px, height_px))
+    return cams
+
+
+# ---------------------------------------------------------------------------------------------- software renderer
+
+
+def render_software(points_world: NDArray[np.floating], colors: NDArray[np.uint8], camera: ViewCamera, *,
+                    point_size_px: int = 2, background: tuple[int, int, int] = BACKGROUND_RGB,
+                    shading: bool = True) -> NDArray[np.uint8]:
+    """(H, W, 3) image: every point a ``point_size_px`` square, the nearest point wins each pixel; ``shading``
+    darkens pixels lying behind their neighbours (eye-dome lighting) so depth edges read as outlines."""
+    W, H = camera.width_px, camera.height_px
+    keep = camera.visible(points_world)
+    uv, z = camera.project(np.asarray(points_world)[keep])
+    rgb = np.asarray(colors)[keep]
+    ok = np.isfinite(z) & (z > 1e-3) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] > -point_size_px) & (uv[:, 0] < W + point_size_px) & (uv[:, 1] > -point_size_px) & (uv[:, 1] < H + point_size_px)
+    u0, v0 = np.floor(uv[ok, 0]).astype(np.int64), np.floor(uv[ok, 1]).astype(np.int64)
+    z, rgb = z[ok], rgb[ok]
+    s = max(int(point_size_px), 1)
+    offsets = np.arange(s) - (s - 1) // 2
+    pix, depth, src = [], [], []
+    idx = np.arange(len(z))
+    for dy in offsets:
+        for dx in offsets:
+            u, v = u0 + dx, v0 + dy
+            inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            pix.append(v[inside] * W + u[inside])
+            depth.append(z[inside])
+            src.append(idx[inside])
+    pix_a, depth_a, src_a = np.concatenate(pix), np.concatenate(depth), np.concatenate(src)
+    image = np.empty((H * W, 3), np.uint8)
+    image[:] = background
+    zbuf = np.full(H * W, np.inf)
+    if len(pix_a):
+        # nearest point per pixel: one sort of (pixel, depth) packed in an int64 (positive float32 bits keep their order)
+        packed = (pix_a << 32) | depth_a.astype(np.float32).view(np.uint32).astype(np.int64)
+        order = np.argsort(packed)
+        first = np.ones(len(order), bool)
+        first[1:] = pix_a[order][1:] != pix_a[order][:-1]
+        win = order[first]
+        image[pix_a[win]] = rgb[src_a[win]]
+        zbuf[pix_a[win]] = depth_a[win]
+    image = image.reshape(H, W, 3)
+    if shading and np.isfinite(zbuf).any():
+        image = _eye_dome(image, zbuf.reshape(H, W))
+    return image
+
+
+def _eye_dome(image: NDArray[np.uint8], zbuf: NDArray[np.float64], strength: float = 1.2) -> NDArray[np.uint8]:
+    """Darken each drawn pixel by how far it lies behind 8 neighbours 1-2 px away (log depth; background
+    neighbours count as far, so silhouettes stay bright and depth steps get a dark outline)."""
+    drawn = np.isfinite(zbuf)
+    ref = np.full(zbuf.shape, np.nan)
+    ref[drawn] = np.log(zbuf[drawn])
+    pad = np.pad(ref, 2, constant_values=np.nan)
+    H, W = zbuf.shape
+    response = np.zeros((H, W))
+    for dy, dx in ((-2, 0), (2, 0), (0, -2), (0, 2), (-1, -1), (1, 1), (-1, 1), (1, -1)):
+        nb = pad[2 + dy : 2 + dy + H, 2 + dx : 2 + dx + W]
+        response += np.nan_to_num(np.maximum(ref - nb, 0.0), nan=0.0)
+    shade = np.exp(-strength * 40.0 * response / 8.0)
+    out = image.astype(np.float64)
+    out[drawn] *= np.clip(shade[drawn], 0.35, 1.0)[:, None]
+    return (out + 0.5).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------------------------- open3d offscreen
+
+
+def _open3d_worker(job_path: str) -> int:
+    """Child-process entry: render the job's views with Open3D's OffscreenRenderer (exit code 0: all written)."""
+    import open3d as o3d
+
+    job = np.load(job_path)
+    spec = json.loads(str(job["spec"]))
+    points, colors = job["points"].astype(np.float64), job["colors"].astype(np.float64) / 255.0
+    W, H = spec["width_px"], spec["height_px"]
+    renderer = o3d.visualization.rendering.OffscreenRenderer(W, H)
+    bg = np.asarray(spec["background"]) / 255.0  # Filament turns the background from sRGB to linear: pre-compensate
+    renderer.scene.set_background(np.r_[np.where(bg <= 0.0031308, 12.92 * bg, 1.055 * bg ** (1 / 2.4) - 0.055), 1.0])
+    renderer.scene.view.set_post_processing(False)  # exact colours: no tone mapping, no anti-aliasing blur
+    material = o3d.visualization.rendering.MaterialRecord()
+    material.shader = "defaultUnlit"
+    material.point_size = float(spec["point_size_px"])
+    for k, view in enumerate(spec["views"]):
+        mask = job[f"mask{k}"]
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[mask]))
+        cloud.colors = o3d.utility.Vector3dVector(colors[mask])
+        renderer.scene.clear_geometry()
+        renderer.scene.add_geometry("map", cloud, material)
+        renderer.setup_camera(np.asarray(view["K"]), np.asarray(view["T_cam_world"]), W, H)
+        image = np.asarray(renderer.render_to_image())
+        Image.fromarray(image[:, :, :3]).save(view["path"])
+    return 0
+
+
+def _render_open3d(cmap: ColoredMap, cameras: list[ViewCamera], paths: list[Path], point_size_px: int) -> str | None:
+    """Render with Open3D in a child process; returns None on success, else why it failed."""
+    try:
+        import open3d  # noqa: F401
+    except ImportError as exc:
+        return f"open3d is not importable ({exc})"
+    with tempfile.TemporaryDirectory(prefix="driftmap-view-") as tmp:
+        job = Path(tmp) / "job.npz"
+        spec = {"width_px": cameras[0].width_px, "height_px": cameras[0].height_px, "background": list(BACKGROUND_RGB),
+                "point_size_px": point_size_px,
+                "views": [{"K": c.K.tolist(), "T_cam_world": c.T_cam_world.tolist(), "path": str(p)} for c, p in zip(cameras, paths)]}
+        np.savez(job, points=cmap.points_world, colors=cmap.colors, spec=json.dumps(spec),
+                 **{f"mask{k}": c.visible(cmap.points_world) for k, c in enumerate(cameras)})
+        code = "import sys; from driftmap.viewer import _open3d_worker; sys.exit(_open3d_worker(sys.argv[1]))"
+        try:
+            proc = subprocess.run([sys.executable, "-c", code, str(job)], capture_output=True, text=True, timeout=_OPEN3D_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            return f"Open3D offscreen rendering took more than {_OPEN3D_TIMEOUT_S:.0f} s"
+    if proc.returncode != 0:
+        tail = " | ".join(line for line in (proc.stderr or "").strip().splitlines()[-3:])
+        return f"Open3D offscreen rendering failed (exit code {proc.returncode}: {tail or 'no message'})"
+    for path in paths:
+        if not path.exists():
+            return f"Open3D offscreen rendering wrote no {path.name}"
+        image = np.asarray(Image.open(path).convert("RGB"))
+        drawn = np.any(np.abs(image.astype(np.int16) - np.array(BACKGROUND_RGB)) > 8, axis=2)
+        if drawn.mean() < 1e-3:
+            return f"Open3D offscreen rendering produced a blank {path.name} (broken EGL/Vulkan driver?)"
+    return None
+
+
+# ---------------------------------------------------------------------------------------------- outputs
+
+
+def write_overview(path: Path, images: list[NDArray[np.uint8]], cameras: list[ViewCamera], cmap: ColoredMap,
+                   title: str) -> Path:
+    """The views side by side with the colour bar (matplotlib)."""
+    n = len(images)
+    aspect = cameras[0].height_px / cameras[0].width_px
+    fig, axes = plt.subplots(1, n, figsize=(5.0 * n + 0.8, 5.0 * aspect + 0.6), squeeze=False, layout="constrained")
+    for ax, image, cam in zip(axes[0], images, cameras):
+        ax.imshow(image)
+        ax.set_title(cam.name + ("" if cam.clip_max_m is None else " (ceiling cut)"), fontsize=9)
+        ax.set_axis_off()
+    sm = plt.cm.ScalarMappable(norm=Normalize(*cmap.value_range), cmap=cmap.colormap)
+    bar = fig.colorbar(sm, ax=list(axes[0]), shrink=0.9, fraction=0.02, pad=0.01)
+    bar.set_label(cmap.value_label + ("" if cmap.color == "frame" else "; grey: none"), fontsize=8)
+    fig.suptitle(title, fontsize=10)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path
+
+
+def _show_window(cmap: ColoredMap, title: str, width_px: int, height_px: int) -> None:
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cmap.points_world.astype(np.float64)))
+    cloud.colors = o3d.utility.Vector3dVector(cmap.colors.astype(np.float64) / 255.0)
+    path = o3d.geometry.LineSet(o3d.utility.Vector3dVector(cmap.sensor_origins_world),
+                                o3d.utility.Vector2iVector(np.c_[np.arange(len(cmap.sensor_origins_world) - 1),
+                                                                 np.arange(1, len(cmap.sensor_origins_world))]))
+    o3d.visualization.draw_geometries([cloud, path], window_name=title, width=width_px, height=height_px)
+
+
+def _require_rerun():
+    try:
+        import rerun as rr
+    except ImportError as exc:
+        raise ConfigError("the rerun backend needs rerun-sdk: pip install 'driftmap[viewer]'") from exc
+    return rr
+
+
+def _log_rerun(cmap: ColoredMap, out_dir: Path | None, headless: bool, title: str) -> dict[str, Path]:
+    rr = _require_rerun()
+    files: dict[str, Path] = {}
+    rr.init("driftmap", spawn=not headless)
+    if headless:
+        if out_dir is None:
+            raise ConfigError("the rerun backend without a display writes a .rrd file: give an output folder")
+        out_dir.mkdir(parents=True, exist_ok=True)
+        files["rrd"] = out_dir / f"map_rev{cmap.revision}_{cmap.color}.rrd"
+        rr.save(str(files["rrd"]))
+    radius = 0.5 * cmap.voxel_size_m
+    rr.log(f"map/revision_{cmap.revision}/{cmap.color}", rr.Points3D(cmap.points_world, colors=cmap.colors, radii=radius))
+    rr.log(f"map/revision_{cmap.revision}/sensor_path", rr.LineStrips3D([cmap.sensor_origins_world]))
+    if headless and hasattr(rr, "disconnect"):
+        rr.disconnect()  # flushes and closes the .rrd file
+    logger.info("view: logged %s to rerun", title)
+    return files
+
+
+# ---------------------------------------------------------------------------------------------- entry point
+
+
+def view_store(store: FrameStore, *, revision: int | None = None, color: str = "frame", out_dir: Path | None = None,
+               voxel_size_m: float | None = None, headless: bool | None = None, backend: str = "auto",
+               reference_revision: int | None = None, width_px: int = 1024, height_px: int = 768, point_size_px: int = 2,
+               top_view_clip_m: float | None | str = "auto", max_points: int = 3_000_000,
+               double_wall_points_budget: int | None = None) -> ViewResult:
+    """Show (window) or render (PNG views in ``out_dir``) the map of ``revision`` coloured by ``color``.
+
+    ``headless=None`` detects it (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux). ``voxel_size_m=None``: 2 cm
+    for depth cameras, 20 cm for LiDAR. See the module docstring for the backends and :func:`colored_map`
+    for the colour modes. PNG files: ``<view>_rev<N>_<color>.png`` per view and ``overview_rev<N>_<color>.png``.
+    """
+    if backend not in BACKENDS:
+        raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
+    _check_color(color)
+    _check_revision(store, revision)
+    has_display = display_available()
+    if headless is None:
+        headless = not has_display
+    elif not headless and not has_display:
+        raise ConfigError("no display (DISPLAY / WAYLAND_DISPLAY are unset): render headless PNG views instead")
+    if backend == "auto":
+        backend = "open3d" if headless else "window"
+    if backend == "window" and headless:
+        raise ConfigError("the window backend needs a display; use --backend open3d or software for PNG views")
+    if backend in ("open3d", "software") and out_dir is None:
+        raise ConfigError("headless rendering writes PNG files: give an output folder")
+    if backend == "rerun":
+        _require_rerun()
+        if headless and out_dir is None:
+            raise ConfigError("the rerun backend without a display writes a .rrd file: give an output folder")
+    if point_size_px < 1:
+        raise ConfigError(f"point size must be at least 1 pixel, got {point_size_px}")
+    seconds: dict[str, float] = {}
+    t = time.perf_counter()
+    cmap = colored_map(store, revision=revision, color=color, voxel_size_m=voxel_size_m, reference_revision=reference_revision,
+                       max_points=max_points, double_wall_points_budget=double_wall_points_budget)
+    seconds["colour"] = time.perf_counter() - t
+    title = (f"{store.path.name}: revision {cmap.revision}, colour {color}"
+             + (f" (from revision {cmap.reference_revision})" if cmap.reference_revision is not None else "")
+             + f", {cmap.n_points:,} of {cmap.n_points_map:,} points (voxel {cmap.voxel_size_m:g} m)")
+    n_walls = cmap.double_walls.voxels_flagged if cmap.double_walls is not None else None
+    common = dict(revision=cmap.revision, color=color, n_points_map=cmap.n_points_map, n_points_shown=cmap.n_points,
+                  voxel_size_m=cmap.voxel_size_m, value_label=cmap.value_label, value_range=cmap.value_range,
+                  reference_revision=cmap.reference_revision, n_double_wall_voxels=n_walls, colored=cmap)
+    if backend == "window":
+        logger.info("view: backend window (Open3D), %d points", cmap.n_points)
+        t = time.perf_counter()
+        _show_window(cmap, title, width_px, height_px)
+        seconds["window"] = time.perf_counter() - t
+        return ViewResult(backend="window", files={}, cameras=[], seconds=seconds, **common)
+    if backend == "rerun":
+        files = _log_rerun(cmap, out_dir, headless, title)
+        logger.info("view: backend rerun, %d points", cmap.n_points)
+        return ViewResult(backend="rerun", files=files, cameras=[], seconds=seconds, **common)
+    assert out_dir is not None
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    cameras = view_cameras(cmap, width_px=width_px, height_px=height_px, top_view_clip_m=top_view_clip_m)
+    paths = [out_dir / f"{cam.name}_rev{cmap.revision}_{color}.png" for cam in cameras]
+    fallback = None
+    used = backend
+    t = time.perf_counter()
+    if backend == "open3d":
+        fallback = _render_open3d(cmap, cameras, paths, point_size_px)
+        if fallback is not None:
+            logger.warning("view: %s; using the software renderer", fallback)
+            used = "software"
+    if used == "software":
+        for cam, path in zip(cameras, paths):
+            Image.fromarray(render_software(cmap.points_world, cmap.colors, cam, point_size_px=point_size_px)).save(path)
+    seconds["render"] = time.perf_counter() - t
+    images = [np.asarray(Image.open(p).convert("RGB")) for p in paths]
+    files = {cam.name: path for cam, path in zip(cameras, paths)}
+    files["overview"] = write_overview(out_dir / f"overview_rev{cmap.revision}_{color}.png", images, cameras, cmap,
+                                       f"{title}; {used} renderer")
+    logger.info("view: backend %s wrote %d PNG views of %d points to %s", used, len(cameras), cmap.n_points, out_dir)
+    return ViewResult(backend=used, files=files, cameras=cameras, fallback_reason=fallback, seconds=seconds, **common)
