@@ -15,6 +15,8 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from driftmap import Frame, PointAttributes, geometry
+from driftmap.errors import StoreError
+from driftmap.map import view as view_module
 from driftmap.map.view import MapView
 from driftmap.preprocess.cloud import BoxROI
 from driftmap.store.frame_store import FrameStore
@@ -182,6 +184,80 @@ def test_strided_sources_with_attributes_transform_exactly(tmp_path: Path, kitch
         view = store.map()
         assert store.frame_ref(g.frame_id).point_stride > 12
         np.testing.assert_allclose(view.points_world, geometry.transform_points(g.T_world_sensor, g.points_sensor), atol=1e-6)
+
+
+def _frame_boxes(view: MapView) -> np.ndarray:
+    """Per frame the min and max of its world points that have no NaN coordinate, from the points themselves."""
+    out = []
+    for fid in view.frame_ids:
+        p = view.frame_points_world(int(fid))
+        p = p[~np.isnan(p).any(axis=1)]
+        out.append(np.stack([p.min(axis=0), p.max(axis=0)]))
+    return np.array(out)
+
+
+def test_read_mapped_and_in_memory_sources_give_the_same_map(kitchen_store: FrameStore,
+                                                              kitchen_frames: list[Frame]) -> None:
+    # default: sensor points read from the segment file in pieces (frames span several pieces);
+    # release_pages=False: memory-mapped; from_frames: the frames' own arrays
+    store = kitchen_store
+    assert store.frame_ref(int(store.frame_ids[0])).n_points * 12 > view_module.READ_PIECE_BYTES
+    rev = store.add_revision({int(i): T @ P for i, T, P in zip(store.frame_ids, store.poses(0),
+                                                                 perturbation(4, len(store.frame_ids), 0.05))},
+                             source="external_file")
+    read = store.map(0)
+    mapped = MapView.from_store(store, 0, release_pages=False)
+    memory = MapView.from_frames(kitchen_frames)
+    for revision in (0, rev.revision_id, 0):
+        poses = store.poses(revision)
+        for view in (read, mapped, memory):
+            view.apply(revision, poses=poses)
+        assert read.points_world.tobytes() == mapped.points_world.tobytes() == memory.points_world.tobytes()
+        expected_boxes = _frame_boxes(read)
+        for view in (read, mapped, memory):
+            assert np.array_equal([view.frame_box_m(int(f)) for f in view.frame_ids], expected_boxes)
+        assert np.max(np.abs(read.points_world - reference_map(kitchen_frames, poses))) <= 1e-6
+
+
+def test_boxes_leave_out_points_with_nan_coordinates(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    f = kitchen_frames[2]
+    pts = f.points_sensor.copy()
+    bad = np.random.default_rng(8).choice(len(pts), 25, replace=False)
+    pts[bad, np.arange(25) % 3] = np.nan
+    pts[0] = [1e3, -1e3, 1e3]  # an outlier that must be in the box
+    g = f.with_points(pts)
+    with FrameStore.create(tmp_path / "nan") as store:
+        store.append(g)
+        for view in (store.map(), MapView.from_store(store, 0, release_pages=False), MapView.from_frames([g])):
+            world = view.points_world
+            assert np.isnan(world[bad]).any(axis=1).all()
+            good = np.delete(np.arange(len(pts)), bad)
+            np.testing.assert_allclose(world[good], geometry.transform_points(g.T_world_sensor, pts[good]), atol=1e-6)
+            assert np.array_equal(view.frame_box_m(g.frame_id), _frame_boxes(view)[0])
+            assert np.all(np.isfinite(view.frame_box_m(g.frame_id)))
+
+
+def test_a_segment_truncated_under_an_open_map_raises_and_the_map_recovers(tmp_path: Path,
+                                                                          kitchen_frames: list[Frame]) -> None:
+    frames = kitchen_frames[:4]
+    with FrameStore.create(tmp_path / "t") as store:
+        for f in frames:
+            store.append(f)
+        rev = store.add_revision({f.frame_id: f.T_world_sensor @ P for f, P in zip(frames, perturbation(6, 4, 0.05))},
+                                 source="external_file")
+    store = FrameStore.open(tmp_path / "t")
+    view = store.map(0)
+    last = store.frame_ref(frames[-1].frame_id)
+    segment = last.segment
+    original = segment.read_bytes()
+    with open(segment, "r+b") as fh:
+        fh.truncate(last.payload_offset + 1000)
+    with pytest.raises(StoreError, match=rf"{segment.name}.*frame {frames[-1].frame_id}"):
+        view.apply(rev.revision_id)
+    segment.write_bytes(original)
+    view.apply(rev.revision_id)  # the frames left stale by the failed read are transformed again
+    assert np.max(np.abs(view.points_world - reference_map(frames, store.poses(rev.revision_id)))) <= 1e-6
+    store.close()
 
 
 def test_map_from_frames_without_a_store(kitchen_frames: list[Frame]) -> None:

@@ -1,7 +1,10 @@
 """The map view: world-frame points of stored frames in one pose revision, re-transformed incrementally.
 
-Sensor-frame points stay where they are (memory-mapped from the store's segments, or the frames' own
-arrays); the view holds one float32 (N, 3) array of world points plus a small per-frame table. Moving to
+Sensor-frame points stay where they are (in the store's segment files, or the frames' own arrays); the view
+holds one float32 (N, 3) array of world points plus a small per-frame table. By default sensor points are
+read from the segment files piece by piece (``pread`` into a small per-thread buffer) whenever frames are
+(re-)transformed, so nothing but the world points stays resident; ``release_pages=False`` memory-maps the
+segments and keeps the touched pages mapped instead (the sensor points then stay resident too). Moving to
 another revision (:meth:`MapView.apply`) re-transforms only the frames whose pose changed, always from
 their sensor-frame points (never world-to-world), so after any chain of corrections and rollbacks the
 map equals, point for point, the map built from scratch with the final poses.
@@ -11,20 +14,23 @@ from __future__ import annotations
 
 import logging
 import mmap
+import os
+import sys
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap import geometry
 from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame
-from driftmap.map._kernels import frame_bounds, transform_frames
+from driftmap.map._kernels import frame_bounds, read_frame_bounds, read_transform_pieces, transform_pieces
 from driftmap.map.fusion import write_cloud
 from driftmap.preprocess.cloud import RegionOfInterest
+from driftmap.store.ledger import _rotation_angle_rad
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -33,9 +39,11 @@ logger = logging.getLogger(__name__)
 
 #: Poses whose 4x4 matrices differ by no more than this (max abs entry) count as unchanged.
 POSE_EPSILON = 1e-12
-#: Mapped sensor pages are released after every this many bytes of re-transformed payload.
-RELEASE_WINDOW_BYTES = 8 << 20
-_PAGE = mmap.PAGESIZE
+#: Sensor payloads are (read and) transformed in pieces of at most this many bytes, shared out among the
+#: threads; a piece read from a segment file fits in the reading core's cache (one buffer per thread).
+READ_PIECE_BYTES = 256 << 10
+#: Whether sensor points can be read with ``pread`` (POSIX, 64-bit file offsets); else they are memory-mapped.
+CAN_PREAD = os.name == "posix" and sys.maxsize > 2**32
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,6 +127,13 @@ class FusedMap:
         return np.diff(self.provenance_offsets)
 
 
+def _displacements(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
+    """Per pose pair of two (K, 4, 4) stacks: distance of the origins (m) and relative rotation angle (deg),
+    computed as :meth:`PoseLedger.diff` does (one numpy pass, not a Python call per frame)."""
+    translation_m = np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1)
+    return translation_m, np.degrees(_rotation_angle_rad(T_a[:, :3, :3], T_b[:, :3, :3]))
+
+
 def _packed_voxel_keys(points_or_keys: NDArray, voxel_size_m: float | None) -> NDArray[np.int64]:
     """One int64 per point identifying its voxel (``floor(p / voxel_size_m)``, or given integer keys)."""
     keys = points_or_keys if voxel_size_m is None else np.floor(points_or_keys / voxel_size_m).astype(np.int64)
@@ -133,22 +148,59 @@ def _packed_voxel_keys(points_or_keys: NDArray, voxel_size_m: float | None) -> N
 
 @dataclass
 class _Buffer:
-    flat: NDArray[np.float32]
+    """Where sensor points come from: a flat float32 array (``_start``/``_stride`` in floats), or a segment
+    file read with ``pread`` (``path`` set, ``flat`` None: ``_start`` is a byte offset, ``_stride`` in floats)."""
+
+    flat: NDArray[np.float32] | None
     mm: mmap.mmap | None = None
+    path: Path | None = None
+
+
+class _OpenFiles:
+    """``n`` read-only descriptors of one file, one per reading thread (each its own read-ahead state, so a
+    thread's sequential reads stay sequential for the kernel even while another thread reads elsewhere),
+    closed on exit."""
+
+    def __init__(self, path: Path, n: int):
+        opened: list[int] = []
+        try:
+            for _ in range(n):
+                opened.append(os.open(path, os.O_RDONLY))
+                if hasattr(os, "posix_fadvise"):
+                    os.posix_fadvise(opened[-1], 0, 0, os.POSIX_FADV_SEQUENTIAL)
+        except OSError as exc:
+            for fd in opened:
+                os.close(fd)
+            raise StoreError(f"{path}: cannot open the segment to read sensor points: {exc}") from exc
+        self.fds = np.array(opened, np.int32)
+
+    def __enter__(self) -> NDArray[np.int32]:
+        return self.fds
+
+    def __exit__(self, *exc: object) -> None:
+        for fd in self.fds:
+            os.close(int(fd))
 
 
 class MapView:
     """World points of a set of frames in one pose revision.
 
-    Build it with :meth:`FrameStore.map` (sensor points memory-mapped from the store) or
-    :meth:`from_frames` (points held by the frames). ``revision`` is the revision currently materialised.
+    Build it with :meth:`FrameStore.map` (sensor points from the store's segments) or :meth:`from_frames`
+    (points held by the frames). ``revision`` is the revision currently materialised.
+
+    ``release_pages=True`` (default): sensor points are read from the segment files (``pread``) into a small
+    buffer per thread whenever frames are transformed; no sensor page stays in the process, so a loaded map
+    costs little more than its world points. ``False``: the segments are memory-mapped and the sensor pages
+    stay mapped after use: somewhat faster (no copy out of the page cache), about twice the memory (see
+    docs/store.md). Where ``pread`` is not available (:data:`CAN_PREAD`) both modes map the segments.
     """
 
     def __init__(self, *, store: FrameStore | None = None, release_pages: bool = True):
         self._store = store
         self._release_pages = release_pages
         self._buffers: list[_Buffer] = []
-        self._buffer_index: dict[int, int] = {}
+        self._buffer_index: dict[object, int] = {}
+        self._scratch = np.zeros((0, 0), np.float32)
         self.frame_ids = np.zeros(0, np.int64)
         self.stamps_ns = np.zeros(0, np.int64)
         self._buf = np.zeros(0, np.int64)
@@ -194,6 +246,13 @@ class MapView:
             self._buffers.append(_Buffer(flat, mm))
         return self._buffer_index[key]
 
+    def _register_file(self, path: Path) -> int:
+        key = ("file", str(path))
+        if key not in self._buffer_index:
+            self._buffer_index[key] = len(self._buffers)
+            self._buffers.append(_Buffer(None, None, path))
+        return self._buffer_index[key]
+
     def refresh(self) -> list[int]:
         """Add the store's frames that are not in the view yet (placed in the view's revision)."""
         if self._store is None:
@@ -204,7 +263,9 @@ class MapView:
         ids, stamps, bufs, starts, strides, counts = [], [], [], [], [], []
         for fid in new:
             ref = self._store.frame_ref(fid)
-            if ref.payload_copy is None and ref.payload_offset % 4 == 0:
+            if ref.payload_copy is None and ref.point_stride % 4 == 0 and self._release_pages and CAN_PREAD:
+                b, start, stride = self._register_file(ref.segment), ref.payload_offset, ref.point_stride // 4
+            elif ref.payload_copy is None and ref.payload_offset % 4 == 0 and ref.point_stride % 4 == 0:
                 mm = self._store.payload_map(ref)
                 flat = np.frombuffer(mm, dtype="<f4", count=len(mm) // 4)
                 b, start = self._register(flat, mm), ref.payload_offset // 4
@@ -250,41 +311,75 @@ class MapView:
 
     # ------------------------------------------------------------------------------------------ core
 
+    def _pieces(self, rows: NDArray[np.int64], start_unit: int) -> tuple[NDArray[np.int64], ...]:
+        """Cut the payloads of ``rows`` (all from one source) into pieces of at most :data:`READ_PIECE_BYTES` (an
+        empty frame gets one empty piece). Returns per piece its source start (in the source's units: floats,
+        or bytes for a file, ``start_unit`` bytes per float), point count, row and map offset (points), plus
+        the index of every row's first piece."""
+        stride = self._stride[rows]
+        count = self._count[rows]
+        per_piece = np.maximum(1, READ_PIECE_BYTES // (4 * stride))
+        n_pieces = np.maximum(1, -(-count // per_piece))
+        first = np.concatenate([[0], np.cumsum(n_pieces)[:-1]])
+        owner = np.repeat(np.arange(rows.size), n_pieces)
+        skip = (np.arange(int(n_pieces.sum())) - first[owner]) * per_piece[owner]
+        piece_rows = rows[owner]
+        starts = self._start[piece_rows] + skip * stride[owner] * start_unit
+        counts = np.minimum(per_piece[owner], count[owner] - skip)
+        return starts, counts, piece_rows, self._offsets[piece_rows] + skip, first
+
+    def _thread_scratch(self, strides: NDArray[np.int64]) -> NDArray[np.float32]:
+        """One read buffer per thread, large enough for any piece of points with these strides."""
+        n_threads = numba.get_num_threads()
+        n_floats = max(READ_PIECE_BYTES // 4, int(strides.max(initial=0)))
+        if self._scratch.shape[0] != n_threads or self._scratch.shape[1] < n_floats:
+            self._scratch = np.empty((n_threads, n_floats), np.float32)
+        return self._scratch
+
+    def _check_read(self, path: Path, fds: NDArray[np.int32], got: NDArray[np.int64], offsets: NDArray[np.int64],
+                    counts: NDArray[np.int64], piece_rows: NDArray[np.int64]) -> None:
+        """Raise :class:`StoreError` naming the segment, frame and offset of the first piece not read whole."""
+        expected = 4 * counts * self._stride[piece_rows]
+        bad = np.flatnonzero(got != expected)
+        if bad.size == 0:
+            return
+        p = int(bad[0])
+        frame_id = int(self.frame_ids[piece_rows[p]])
+        try:
+            n = len(os.pread(int(fds[0]), int(expected[p]), int(offsets[p])))
+            why = f"the file ends after {n} of them"
+        except OSError as exc:
+            why = str(exc)
+        raise StoreError(f"{path}: frame {frame_id}: cannot read {int(expected[p])} bytes of sensor points at offset "
+                         f"{int(offsets[p])}: {why}")
+
     def _transform(self, rows: NDArray[np.int64]) -> None:
         """Re-transform the given frames (map rows) from their sensor points with ``self._T``."""
         if rows.size == 0:
             return
+        world = self._world.reshape(-1)
         for b in np.unique(self._buf[rows]):
-            sel = rows[self._buf[rows] == b]
             buffer = self._buffers[int(b)]
-            sel = sel[np.argsort(self._start[sel], kind="stable")]
-            nbytes = self._count[sel] * self._stride[sel] * 4
-            if buffer.mm is None or not self._release_pages:
-                batches = [sel]
+            sel = rows[self._buf[rows] == b]
+            sel = sel[np.argsort(self._start[sel], kind="stable")]  # sequential reads of each segment
+            starts, counts, piece_rows, dst, first = self._pieces(sel, 1 if buffer.path is None else 4)
+            strides = self._stride[piece_rows]
+            boxes = np.empty((starts.size, 6), np.float32)
+            if buffer.path is None:
+                transform_pieces(buffer.flat, starts, strides, counts, piece_rows, self._T, world, dst, boxes,
+                                 numba.get_num_threads())
             else:
-                cut = np.searchsorted(np.cumsum(nbytes), np.arange(1, 1 + int(nbytes.sum()) // RELEASE_WINDOW_BYTES) * RELEASE_WINDOW_BYTES)
-                batches = [s for s in np.split(sel, np.unique(cut)) if s.size]
-            for batch in batches:
-                ranges = self._page_ranges(batch) if buffer.mm is not None and self._release_pages else []
-                boxes = np.empty((batch.size, 6), np.float32)
-                transform_frames(buffer.flat, self._start[batch], self._stride[batch], self._count[batch],
-                                 np.ascontiguousarray(self._T[batch]), self._world, self._offsets[batch], boxes)
-                self._boxes[batch] = boxes
-                for lo, span in ranges:
-                    buffer.mm.madvise(mmap.MADV_DONTNEED, lo, span)
-
-    def _page_ranges(self, rows: NDArray[np.int64]) -> list[tuple[int, int]]:
-        """Page-aligned byte ranges covering the payloads of ``rows`` (sorted by start), merged when adjacent."""
-        first = self._start[rows] * 4
-        last = (self._start[rows] + self._count[rows] * self._stride[rows]) * 4
-        ranges: list[tuple[int, int]] = []
-        for a, b in zip(first - first % _PAGE, last):
-            if ranges and a <= ranges[-1][0] + ranges[-1][1]:
-                lo = ranges[-1][0]
-                ranges[-1] = (lo, max(ranges[-1][1], int(b) - lo))
-            else:
-                ranges.append((int(a), int(b) - int(a)))
-        return ranges
+                scratch = self._thread_scratch(strides)
+                with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
+                    got = read_transform_pieces(fds, starts, strides, counts, piece_rows, self._T, world, dst, scratch,
+                                                boxes)
+                    try:
+                        self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
+                    except StoreError:
+                        self._T[sel] = np.nan  # their world points are stale: any later apply re-transforms them
+                        raise
+            self._boxes[sel, :3] = np.minimum.reduceat(boxes[:, :3], first)
+            self._boxes[sel, 3:] = np.maximum.reduceat(boxes[:, 3:], first)
 
     def apply(self, revision: int, *, voxel_size_m: float | None = None, poses: NDArray[np.float64] | None = None) -> ChangeSet:
         """Move the map to ``revision``: re-transform only the frames whose pose changed.
@@ -302,19 +397,20 @@ class MapView:
             target = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
             if len(target) != len(self.frame_ids):
                 raise StoreError(f"apply: {len(target)} poses for {len(self.frame_ids)} frames")
-        moved = np.flatnonzero(np.any(np.abs(target - self._T) > POSE_EPSILON, axis=(1, 2)))
+        moved = np.flatnonzero(~np.all(np.abs(target - self._T) <= POSE_EPSILON, axis=(1, 2)))  # NaN: stale, redo
         before_boxes = self._boxes[moved].copy()
         before_voxels = [self._voxels(r, voxel_size_m) for r in moved] if voxel_size_m else None
         old_T = self._T[moved].copy()
         self._T[moved] = target[moved]
         self._transform(moved)
+        translation_m, rotation_deg = _displacements(old_T, target[moved])
         changes = []
         for k, r in enumerate(moved):
             changes.append(FrameChange(
                 frame_id=int(self.frame_ids[r]),
                 stamp_ns=int(self.stamps_ns[r]),
-                translation_m=geometry.translation_distance_m(old_T[k], target[r]),
-                rotation_deg=geometry.rotation_angle_deg(old_T[k], target[r]),
+                translation_m=float(translation_m[k]),
+                rotation_deg=float(rotation_deg[k]),
                 box_before_m=before_boxes[k].reshape(2, 3),
                 box_after_m=self._boxes[r].reshape(2, 3).copy(),
                 voxels_before=None if before_voxels is None else before_voxels[k],
@@ -333,8 +429,9 @@ class MapView:
             raise StoreError("this map has no store")
         ledger = self._store.ledger
         old = ledger.poses(revision)[np.searchsorted(ledger.frame_ids, self.frame_ids)]
-        moved = np.flatnonzero(np.any(np.abs(old - self._T) > POSE_EPSILON, axis=(1, 2)))
+        moved = np.flatnonzero(~np.all(np.abs(old - self._T) <= POSE_EPSILON, axis=(1, 2)))
         sensor_boxes = self._sensor_boxes(moved)
+        translation_m, rotation_deg = _displacements(old[moved], self._T[moved])
         changes = []
         for k, r in enumerate(moved):
             lo, hi = sensor_boxes[k, :3].astype(np.float64), sensor_boxes[k, 3:].astype(np.float64)
@@ -342,8 +439,8 @@ class MapView:
             world = corners @ old[r, :3, :3].T + old[r, :3, 3]
             changes.append(FrameChange(
                 frame_id=int(self.frame_ids[r]), stamp_ns=int(self.stamps_ns[r]),
-                translation_m=geometry.translation_distance_m(old[r], self._T[r]),
-                rotation_deg=geometry.rotation_angle_deg(old[r], self._T[r]),
+                translation_m=float(translation_m[k]),
+                rotation_deg=float(rotation_deg[k]),
                 box_before_m=np.stack([world.min(0), world.max(0)]).astype(np.float32),
                 box_after_m=self._boxes[r].reshape(2, 3).copy(),
             ))
@@ -353,10 +450,22 @@ class MapView:
         out = np.empty((rows.size, 6), np.float32)
         for b in np.unique(self._buf[rows]) if rows.size else []:
             sel = np.flatnonzero(self._buf[rows] == b)
-            boxes = np.empty((sel.size, 6), np.float32)
+            buffer = self._buffers[int(b)]
             r = rows[sel]
-            frame_bounds(self._buffers[int(b)].flat, self._start[r], self._stride[r], self._count[r], boxes)
-            out[sel] = boxes
+            if buffer.path is None:
+                boxes = np.empty((sel.size, 6), np.float32)
+                frame_bounds(buffer.flat, self._start[r], self._stride[r], self._count[r], boxes)
+                out[sel] = boxes
+                continue
+            starts, counts, piece_rows, _, first = self._pieces(r, 4)
+            strides = self._stride[piece_rows]
+            boxes = np.empty((starts.size, 6), np.float32)
+            scratch = self._thread_scratch(strides)
+            with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
+                got = read_frame_bounds(fds, starts, strides, counts, scratch, boxes)
+                self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
+            out[sel, :3] = np.minimum.reduceat(boxes[:, :3], first)
+            out[sel, 3:] = np.maximum.reduceat(boxes[:, 3:], first)
         return out
 
     def _voxels(self, row: int, voxel_size_m: float) -> NDArray[np.int64]:
@@ -474,7 +583,8 @@ class MapView:
         _, inverse, counts = np.unique(_packed_voxel_keys(p, voxel_size_m), return_inverse=True, return_counts=True)
         centroids = np.stack([np.bincount(inverse, weights=p[:, k].astype(np.float64)) for k in range(3)], axis=1) / counts[:, None]
         frame_rank = np.searchsorted(self._sorted_ids(), f)
-        pairs = np.unique(inverse.astype(np.int64) * len(self.frame_ids) + frame_rank)
+        pairs = np.sort(inverse.astype(np.int64) * len(self.frame_ids) + frame_rank)
+        pairs = pairs[np.r_[True, pairs[1:] != pairs[:-1]]]  # numpy 2.4's hash-based np.unique is ~100x slower here
         voxel_of_pair = pairs // len(self.frame_ids)
         prov_ids = self._sorted_ids()[pairs % len(self.frame_ids)]
         prov_offsets = np.concatenate([[0], np.cumsum(np.bincount(voxel_of_pair, minlength=len(counts)))])
