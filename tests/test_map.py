@@ -14,8 +14,8 @@ import pytest
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
-from driftmap import Frame, PointAttributes, geometry
-from driftmap.errors import StoreError
+from driftmap import Frame, PointAttributes, PoseEstimate, SensorKind, geometry
+from driftmap.errors import ConfigError, StoreError
 from driftmap.map import view as view_module
 from driftmap.map.view import MapView
 from driftmap.preprocess.cloud import BoxROI
@@ -332,3 +332,246 @@ def test_cli_info(kitchen_store: FrameStore) -> None:
     assert out.returncode == 0, out.stderr
     assert "frames" in out.stdout and "20" in out.stdout and "kinect" in out.stdout
     assert "invalid-pixel fraction" in out.stdout and "MiB" in out.stdout
+
+
+# ------------------------------------------------------------------------------------------ compiled queries
+
+
+def reference_box(view: MapView, lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """Brute force over every map point, in map order: the numpy expression the box query was written with."""
+    pts, owner = view.points_world, view.point_frame_ids()
+    mask = np.all((pts >= np.asarray(lo, np.float64)) & (pts <= np.asarray(hi, np.float64)), axis=1)
+    return pts[mask], owner[mask]
+
+
+def reference_ball(view: MapView, c, r: float, z_range=(-np.inf, np.inf)) -> tuple[np.ndarray, np.ndarray]:
+    pts, owner = view.points_world, view.point_frame_ids()
+    in_band = (pts[:, 2] >= z_range[0]) & (pts[:, 2] <= z_range[1])
+    mask = (np.sum((pts - np.asarray(c, np.float64)) ** 2, axis=1) <= r**2) & in_band
+    return pts[mask], owner[mask]
+
+
+def assert_same_result(got, expected: tuple[np.ndarray, np.ndarray]) -> None:
+    """Same points bit for bit, in the same order, with the same frame ids (and the documented dtypes)."""
+    assert got.points_world.dtype == np.float32 and got.points_world.shape == expected[0].shape
+    assert got.frame_ids.dtype == np.int64
+    assert got.points_world.tobytes() == expected[0].tobytes()
+    assert np.array_equal(got.frame_ids, expected[1])
+
+
+def assert_nearest_is_brute_force(view: MapView, q, z_range=None) -> None:
+    """Distance equal to the brute-force minimum; the point is one at that distance, in the returned frame, and
+    the first such point of that frame."""
+    pts, owner = view.points_world, view.point_frame_ids()
+    d2 = np.sum((pts - np.asarray(q, np.float64)) ** 2, axis=1)
+    if z_range is not None:
+        d2[(pts[:, 2] < z_range[0]) | (pts[:, 2] > z_range[1])] = np.inf
+    d2[np.isnan(d2)] = np.inf
+    near = view.nearest(q, z_range_m=z_range)
+    assert near.distance_m == float(np.sqrt(d2.min()))
+    ties = np.flatnonzero((np.sqrt(d2) == near.distance_m) & (owner == near.frame_id))
+    assert ties.size > 0
+    assert pts[ties[0]].tobytes() == near.point_world.tobytes()
+    if z_range is not None:
+        assert z_range[0] <= near.point_world[2] <= z_range[1]
+
+
+@pytest.fixture(params=["serial", "parallel"])
+def query_mode(request, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Small pieces (frames span many), run on the calling thread or forced onto the parallel kernels."""
+    monkeypatch.setattr(view_module, "QUERY_PIECE_POINTS", 997)
+    monkeypatch.setattr(view_module, "QUERY_PARALLEL_POINTS", 0 if request.param == "parallel" else 1 << 62)
+    return request.param
+
+
+def test_compiled_queries_equal_numpy_on_real_frames(kitchen_store: FrameStore, query_mode: str) -> None:
+    view = kitchen_store.map()
+    pts = view.points_world
+    rng = np.random.default_rng(11)
+    boxes = []
+    for i in rng.choice(len(pts), 6, replace=False):
+        half = rng.uniform(0.05, 1.0, 3)
+        boxes.append((pts[i] - half, pts[i] + half))
+    a, b = pts[rng.choice(len(pts), 2, replace=False)]
+    boxes.append((np.minimum(a, b), np.maximum(a, b)))  # faces through map points: inclusive
+    boxes.append((pts.min(0), pts.max(0)))  # everything
+    boxes.append((pts.max(0) + 1.0, pts.max(0) + 2.0))  # nothing
+    boxes.append((pts[5] + 0.1, pts[5] - 0.1))  # min above max: nothing
+    n_found = []
+    for lo, hi in boxes:
+        got = view.query_box(lo, hi)
+        assert_same_result(got, reference_box(view, lo, hi))
+        n_found.append(len(got.points_world))
+    assert n_found[-2:] == [0, 0] and n_found[-3] == view.n_points and min(n_found[:7]) > 0
+    for i, r in zip(rng.choice(len(pts), 4, replace=False), (0.02, 0.3, 1.5, 0.0)):
+        assert_same_result(view.query_radius(pts[i], r), reference_ball(view, pts[i], r))
+    assert len(view.query_radius(pts[3], 0.0).points_world) >= 1  # the point itself, at distance 0
+    assert_same_result(view.query_radius(pts.max(0) + 5.0, 1.0), reference_ball(view, pts.max(0) + 5.0, 1.0))
+    for q in [pts[7], pts[100] + [0.05, -0.02, 0.1], pts.mean(0), pts.max(0) + 3.0, [50.0, -20.0, 3.0]]:
+        assert_nearest_is_brute_force(view, q)
+
+
+def _grid_frame(frame_id: int, points: np.ndarray, t: tuple[float, float, float]) -> Frame:
+    T = np.eye(4)
+    T[:3, 3] = t  # translations on the 1/4 grid: world = sensor + t exactly in float32
+    return Frame(frame_id=frame_id, stamp_ns=frame_id * 1000, sensor_name="lidar", sensor_kind=SensorKind.LIDAR,
+                 points_sensor=np.ascontiguousarray(points, dtype=np.float32), pose=PoseEstimate(T))
+
+
+def random_grid_map(seed: int) -> MapView:
+    """Frames of random points on a 1/4 m grid (so query faces pass exactly through points, and equal distances
+    tie exactly), with an empty frame, NaN points (also negative NaN) and one frame of NaN points only."""
+    rng = np.random.default_rng(seed)
+    frames = []
+    for k in range(12):
+        n = [3000, 0, 1, 2500, 40, 5000][k % 6]
+        pts = rng.integers(-8, 9, size=(n, 3)) / 4.0
+        if k == 3:
+            pts[::7, k % 3] = np.nan
+            pts[1::11, 1] = np.copysign(np.nan, -1.0)
+        frames.append(_grid_frame(10 * k + 1, pts, tuple(rng.integers(-8, 9, 3) / 4.0)))
+    frames.append(_grid_frame(500, np.full((5, 3), np.nan), (0.0, 0.0, 0.0)))
+    return MapView.from_frames(frames)
+
+
+def test_compiled_queries_equal_numpy_on_random_grids(query_mode: str) -> None:
+    rng = np.random.default_rng(5)
+    for seed in range(3):
+        view = random_grid_map(seed)
+        pts = view.points_world
+        assert np.isnan(pts).any() and view.n_points > 10_000
+        n_on_faces = 0
+        for _ in range(25):
+            lo = rng.integers(-16, 17, 3) / 4.0
+            hi = lo + rng.integers(0, 12, 3) / 4.0
+            got = view.query_box(lo, hi)
+            assert_same_result(got, reference_box(view, lo, hi))
+            on_face = np.any((got.points_world == lo) | (got.points_world == hi), axis=1)
+            n_on_faces += int(on_face.sum())  # grid points on the faces are inside
+            # one float32 step inside the faces: the points on the faces are left out
+            inner = (np.nextafter(lo.astype(np.float32), np.float32(np.inf)),
+                     np.nextafter(hi.astype(np.float32), np.float32(-np.inf)))
+            assert_same_result(view.query_box(*inner), reference_box(view, *inner))
+            assert len(view.query_box(*inner).points_world) == len(got.points_world) - int(on_face.sum())
+            c, r = rng.integers(-12, 13, 3) / 4.0, float(rng.integers(0, 9)) / 4.0
+            ball = view.query_radius(c, r)
+            assert_same_result(ball, reference_ball(view, c, r))
+            # a map point exactly on the sphere is inside; with the radius one step smaller it is not
+            p0 = pts[rng.integers(len(pts))].astype(np.float64)
+            if np.isnan(p0).any():
+                continue
+            c0 = p0 + [0.0, 0.5, 0.0]
+            on_sphere = view.query_radius(c0, 0.5)
+            assert_same_result(on_sphere, reference_ball(view, c0, 0.5))
+            assert np.any(np.all(on_sphere.points_world == p0, axis=1))
+            smaller = view.query_radius(c0, float(np.nextafter(0.5, 0.0)))
+            assert not np.any(np.all(smaller.points_world == p0, axis=1))
+            assert_nearest_is_brute_force(view, c)
+            assert_nearest_is_brute_force(view, c + 0.125)  # many points at exactly the same distance
+        assert n_on_faces > 0
+        nothing = (np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
+        assert_same_result(view.query_box([9, 9, 9], [10, 10, 10]), nothing)
+        assert_same_result(view.query_radius([np.nan, 0, 0], 1.0), nothing)
+
+
+def test_height_band_filters_nearest_and_the_queries(kitchen_store: FrameStore, query_mode: str) -> None:
+    view = kitchen_store.map()
+    pts = view.points_world
+    z_lo, z_hi = np.quantile(pts[:, 2], [0.55, 0.7])
+    band = (float(z_lo), float(z_hi))
+    below = pts[np.argmin(pts[:, 2])]  # the lowest map point: its own nearest point, but not in the band
+    assert_nearest_is_brute_force(view, below, band)
+    near = view.nearest(below, z_range_m=band)
+    assert near.distance_m > 0 and view.nearest(below).distance_m == 0.0
+    for q in (pts[42], pts.mean(0), pts.max(0) + 1.0):
+        assert_nearest_is_brute_force(view, q, band)
+        assert_same_result(view.query_radius(q, 0.8, z_range_m=band), reference_ball(view, q, 0.8, band))
+    lo, hi = pts.min(0), pts.max(0)
+    got = view.query_box(lo, hi, z_range_m=band)
+    assert_same_result(got, reference_box(view, [lo[0], lo[1], band[0]], [hi[0], hi[1], band[1]]))
+    assert 0 < len(got.points_world) < view.n_points
+    assert np.all((got.points_world[:, 2] >= band[0]) & (got.points_world[:, 2] <= band[1]))
+    with pytest.raises(StoreError, match="no points with z in"):
+        view.nearest(pts[0], z_range_m=(float(hi[2]) + 1.0, float(hi[2]) + 2.0))
+    with pytest.raises(ConfigError, match="z_range_m"):
+        view.nearest(pts[0], z_range_m=(1.0, 0.0))
+    with pytest.raises(ConfigError, match="center_m"):
+        view.query_radius([0.0, 1.0], 0.5)
+    with pytest.raises(ConfigError, match="radius_m"):
+        view.query_radius(pts[0], -0.5)
+
+
+def test_queries_on_an_empty_map() -> None:
+    view = MapView.from_frames([])
+    assert_same_result(view.query_box([-1, -1, -1], [1, 1, 1]), (np.zeros((0, 3), np.float32), np.zeros(0, np.int64)))
+    assert_same_result(view.query_radius([0, 0, 0], 1.0), (np.zeros((0, 3), np.float32), np.zeros(0, np.int64)))
+    with pytest.raises(StoreError, match="no points"):
+        view.nearest([0.0, 0.0, 0.0])
+
+
+def test_queries_follow_corrections_rollbacks_and_new_frames(tmp_path: Path, kitchen_frames: list[Frame],
+                                                             query_mode: str) -> None:
+    """The queries keep per-piece boxes of the map's points; after apply (frames moved a metre), refresh (new
+    frames) and a rollback they still equal brute force over the map's current points."""
+
+    def check_queries(view: MapView, around: np.ndarray) -> None:
+        for lo, hi in ((around - 0.1, around + 0.1), (around - [1.0, 0.5, 0.3], around + [0.2, 0.6, 1.0])):
+            assert_same_result(view.query_box(lo, hi), reference_box(view, lo, hi))
+        assert_same_result(view.query_radius(around, 0.25), reference_ball(view, around, 0.25))
+        for q in (around, around + [0.0, 0.3, -0.2]):
+            assert_nearest_is_brute_force(view, q)
+        assert len(view.query_box(around - 0.1, around + 0.1).points_world) > 0
+
+    with FrameStore.create(tmp_path / "q") as store:
+        for f in kitchen_frames[:12]:
+            store.append(f)
+        view = store.map()
+        ids = [int(i) for i in store.frame_ids]
+        check_queries(view, view.frame_points_world(ids[4])[100].astype(np.float64))
+        shift = np.eye(4)
+        shift[:3, 3] = [1.0, -0.5, 0.25]
+        moved = ids[3:7]
+        rev = store.add_revision({i: shift @ store.poses()[ids.index(i)] for i in moved}, source="external_file",
+                                 propagate=False)
+        view.apply(rev.revision_id)
+        check_queries(view, view.frame_points_world(ids[4])[100].astype(np.float64))  # where the frame is now
+        for f in kitchen_frames[12:]:
+            store.append(f)
+        assert view.refresh() == [f.frame_id for f in kitchen_frames[12:]]
+        check_queries(view, view.frame_points_world(kitchen_frames[-1].frame_id)[50].astype(np.float64))
+        back = store.rollback(to=0)
+        view.apply(back.revision_id)
+        check_queries(view, view.frame_points_world(ids[4])[100].astype(np.float64))
+
+
+def test_queries_after_a_failed_read_see_the_points_the_map_holds(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    """A read error during apply leaves some frames stale (pose NaN): the queries re-measure those frames' pieces
+    from the points the map holds, before and after the map recovers."""
+    frames = kitchen_frames[:4]
+    shift = np.eye(4)
+    shift[:3, 3] = [0.8, 0.0, -0.4]
+    with FrameStore.create(tmp_path / "t") as store:
+        for f in frames:
+            store.append(f)
+        rev = store.add_revision({f.frame_id: shift @ f.T_world_sensor for f in frames}, source="external_file")
+    store = FrameStore.open(tmp_path / "t")
+    view = store.map(0)
+    around = view.frame_points_world(frames[1].frame_id)[10].astype(np.float64)
+    assert_same_result(view.query_box(around - 0.2, around + 0.2), reference_box(view, around - 0.2, around + 0.2))
+    last = store.frame_ref(frames[-1].frame_id)
+    original = last.segment.read_bytes()
+    with open(last.segment, "r+b") as fh:
+        fh.truncate(last.payload_offset + 1000)
+    with pytest.raises(StoreError):
+        view.apply(rev.revision_id)
+    moved = view.frame_points_world(frames[1].frame_id)[10].astype(np.float64)
+    for q in (around, moved):
+        assert_same_result(view.query_box(q - 0.2, q + 0.2), reference_box(view, q - 0.2, q + 0.2))
+        assert_same_result(view.query_radius(q, 0.3), reference_ball(view, q, 0.3))
+        assert_nearest_is_brute_force(view, q + 0.05)
+    last.segment.write_bytes(original)
+    view.apply(rev.revision_id)
+    moved = view.frame_points_world(frames[1].frame_id)[10].astype(np.float64)
+    assert_same_result(view.query_box(moved - 0.2, moved + 0.2), reference_box(view, moved - 0.2, moved + 0.2))
+    assert len(view.query_box(moved - 0.2, moved + 0.2).points_world) > 0
+    store.close()
