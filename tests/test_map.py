@@ -260,6 +260,34 @@ def test_a_segment_truncated_under_an_open_map_raises_and_the_map_recovers(tmp_p
     store.close()
 
 
+def test_a_failed_read_in_one_segment_leaves_no_frame_of_a_later_segment_silently_stale(tmp_path: Path,
+                                                                                       kitchen_frames: list[Frame]) -> None:
+    """Frames in two segment files; the first file fails mid-apply: the second file's frames were not
+    re-transformed either, so the next apply must redo them too."""
+    frames = kitchen_frames[:4]
+    with FrameStore.create(tmp_path / "t") as store:
+        for f in frames[:2]:
+            store.append(f)
+    with FrameStore.open(tmp_path / "t", "a") as store:  # appending after a reopen starts a second segment
+        for f in frames[2:]:
+            store.append(f)
+        rev = store.add_revision({f.frame_id: f.T_world_sensor @ P for f, P in zip(frames, perturbation(7, 4, 0.05))},
+                                 source="external_file")
+    store = FrameStore.open(tmp_path / "t")
+    first, last = store.frame_ref(frames[0].frame_id), store.frame_ref(frames[-1].frame_id)
+    assert first.segment != last.segment
+    view = store.map(0)
+    original = first.segment.read_bytes()
+    with open(first.segment, "r+b") as fh:
+        fh.truncate(first.payload_offset + 1000)
+    with pytest.raises(StoreError, match=first.segment.name):
+        view.apply(rev.revision_id)
+    first.segment.write_bytes(original)
+    view.apply(rev.revision_id)
+    assert np.max(np.abs(view.points_world - reference_map(frames, store.poses(rev.revision_id)))) <= 1e-6
+    store.close()
+
+
 def test_map_from_frames_without_a_store(kitchen_frames: list[Frame]) -> None:
     view = MapView.from_frames(kitchen_frames[:3])
     np.testing.assert_allclose(view.points_world, reference_map(kitchen_frames[:3], [f.T_world_sensor for f in kitchen_frames[:3]]), atol=1e-6)

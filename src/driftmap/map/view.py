@@ -465,28 +465,35 @@ class MapView:
         if rows.size == 0:
             return
         world = self._world.reshape(-1)
-        for b in np.unique(self._buf[rows]):
-            buffer = self._buffers[int(b)]
-            sel = rows[self._buf[rows] == b]
-            sel = sel[np.argsort(self._start[sel], kind="stable")]  # sequential reads of each segment
-            starts, counts, piece_rows, dst, first = self._pieces(sel, 1 if buffer.path is None else 4)
-            strides = self._stride[piece_rows]
-            boxes = np.empty((starts.size, 6), np.float32)
-            if buffer.path is None:
-                transform_pieces(buffer.flat, starts, strides, counts, piece_rows, self._T, world, dst, boxes,
-                                 numba.get_num_threads())
-            else:
-                scratch = self._thread_scratch(strides)
-                with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
-                    got = read_transform_pieces(fds, starts, strides, counts, piece_rows, self._T, world, dst, scratch,
-                                                boxes)
-                    try:
-                        self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
-                    except StoreError:
-                        self._T[sel] = np.nan  # their world points are stale: any later apply re-transforms them
-                        raise
-            self._boxes[sel, :3] = np.minimum.reduceat(boxes[:, :3], first)
-            self._boxes[sel, 3:] = np.maximum.reduceat(boxes[:, 3:], first)
+        buffers = np.unique(self._buf[rows])
+        for k, b in enumerate(buffers):
+            try:
+                self._transform_buffer(rows, int(b), world)
+            except StoreError:
+                # this buffer's frames and those of the buffers not reached yet hold stale world points:
+                # a NaN pose makes any later apply re-transform them
+                self._T[rows[np.isin(self._buf[rows], buffers[k:])]] = np.nan
+                raise
+
+    def _transform_buffer(self, rows: NDArray[np.int64], b: int, world: NDArray[np.float32]) -> None:
+        """Re-transform the frames of ``rows`` whose sensor points live in buffer ``b``."""
+        buffer = self._buffers[int(b)]
+        sel = rows[self._buf[rows] == b]
+        sel = sel[np.argsort(self._start[sel], kind="stable")]  # sequential reads of each segment
+        starts, counts, piece_rows, dst, first = self._pieces(sel, 1 if buffer.path is None else 4)
+        strides = self._stride[piece_rows]
+        boxes = np.empty((starts.size, 6), np.float32)
+        if buffer.path is None:
+            transform_pieces(buffer.flat, starts, strides, counts, piece_rows, self._T, world, dst, boxes,
+                             numba.get_num_threads())
+        else:
+            scratch = self._thread_scratch(strides)
+            with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
+                got = read_transform_pieces(fds, starts, strides, counts, piece_rows, self._T, world, dst, scratch,
+                                            boxes)
+                self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
+        self._boxes[sel, :3] = np.minimum.reduceat(boxes[:, :3], first)
+        self._boxes[sel, 3:] = np.maximum.reduceat(boxes[:, 3:], first)
 
     def apply(self, revision: int, *, voxel_size_m: float | None = None, poses: NDArray[np.float64] | None = None) -> ChangeSet:
         """Move the map to ``revision``: re-transform only the frames whose pose changed.
