@@ -303,9 +303,9 @@ def run_queries(view: MapView, costmap: Costmap) -> dict:
     position = T_world_sensor[:3, 3]
     heading = T_world_sensor[:2, 2] / np.linalg.norm(T_world_sensor[:2, 2])  # optical axis, on the x-y plane
 
-    clearance = view.nearest(position)  # the nearest map point of any height (the floor counts)
+    clearance = view.nearest(position, z_range_m=(z0, z1))  # the nearest obstacle (the floor does not count)
     near = view.query_radius(position, 1.0)
-    near_obstacles = int(np.count_nonzero((near.points_world[:, 2] >= z0) & (near.points_world[:, 2] <= z1)))
+    near_obstacles = len(view.query_radius(position, 1.0, z_range_m=(z0, z1)).points_world)
     centre = position[:2] + 0.6 * heading
     box_min, box_max = (centre[0] - 0.3, centre[1] - 0.3, z0), (centre[0] + 0.3, centre[1] + 0.3, z1)
     ahead = view.query_box(box_min, box_max)
@@ -313,7 +313,7 @@ def run_queries(view: MapView, costmap: Costmap) -> dict:
     cost_here = int(costmap.cost[rc[0], rc[1]]) if costmap.on_grid(rc) else None
 
     print(f"robot (camera) at ({position[0]:.2f}, {position[1]:.2f}, {position[2]:.2f}) m: nearest map point "
-          f"{clearance.distance_m:.2f} m away (frame {clearance.frame_id}); {len(near.points_world)} points within "
+          f"{clearance.distance_m:.2f} m away in the obstacle band (frame {clearance.frame_id}); {len(near.points_world)} points within "
           f"1 m ({near_obstacles} in the obstacle band, from {len(np.unique(near.frame_ids))} frames); "
           f"{len(ahead.points_world)} obstacle points in the 60 cm box 0.6 m ahead; cost under the robot: {cost_here}")
     return {

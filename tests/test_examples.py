@@ -91,8 +91,10 @@ def test_nav_costmap_refreshes_only_changed_regions_and_equals_a_rebuild(run_exa
         points = store.map().points_world.astype(np.float64)
     q = result["queries"]
     d2 = np.sum((points - np.asarray(q["position_m"])) ** 2, axis=1)
-    assert q["clearance_m"] == pytest.approx(float(np.sqrt(d2.min())), abs=1e-9)
+    band = (points[:, 2] >= 0.10) & (points[:, 2] <= 1.80)  # the example's obstacle band
+    assert q["clearance_m"] == pytest.approx(float(np.sqrt(d2[band].min())), abs=1e-9)
     assert q["radius_points"] == np.count_nonzero(d2 <= q["radius_m"] ** 2)
+    assert q["radius_obstacle_points"] == np.count_nonzero((d2 <= q["radius_m"] ** 2) & band)
     inside = np.all((points >= q["box_ahead_min_m"]) & (points <= q["box_ahead_max_m"]), axis=1)
     assert q["box_ahead_points"] == np.count_nonzero(inside)
 
