@@ -7,13 +7,14 @@ Library code: progress goes to a callback, numbers into :class:`BuildResult`; th
 
 from __future__ import annotations
 
+import enum
 import json
 import logging
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -21,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from driftmap import geometry
 from driftmap.errors import ConfigError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource
-from driftmap.posegraph import Optimizer, PoseGraph, RobustKernel
+from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
 from driftmap.registration.loops import (
     CandidateKind,
     Keyframe,
@@ -31,7 +32,7 @@ from driftmap.registration.loops import (
     make_keyframe,
     select_keyframes,
 )
-from driftmap.registration.odometry import KissOdometry, OdometryConfig
+from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, OdometryConfig, OdometryMethod, make_odometry
 from driftmap.registration.pairwise import register_prepared, relative_pose
 from driftmap.sources.base import FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
@@ -48,7 +49,7 @@ class BuildConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
-    odometry: OdometryConfig | None = Field(None, description="KISS-ICP settings (None: defaults for the sensor kind)")
+    odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind)")
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     loop_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="robust kernel on loop edges")
     optimizer: Optimizer = Field(Optimizer.LM, description="pose-graph optimiser")
@@ -56,6 +57,11 @@ class BuildConfig(BaseModel):
     fallback_sigma_translation: float = Field(0.02, gt=0.0, description="odometry edge sigma when registration fails: fraction of the motion + 1 cm")
     fallback_sigma_rotation_deg: float = Field(1.0, gt=0.0, description="odometry edge rotation sigma when registration fails (deg)")
     resume_seed_frames: int = Field(10, ge=1, description="stored frames used to re-seed odometry on --resume")
+    odometry_edge_window: int = Field(3, ge=1, description="pose graph: each keyframe is linked to the next this many keyframes")
+    odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
+        "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
+                            "or auto (trajectory for frame-to-map odometry, else registration)")
+    information_calibration_iterations: int = Field(3, ge=0, description="pose graph: variance-component re-weighting rounds")
 
 
 @dataclass
@@ -77,6 +83,8 @@ class BuildResult:
     max_correction_deg: float | None = None
     seconds_per_stage: dict[str, float] = field(default_factory=dict)
     loops: list[dict[str, Any]] = field(default_factory=list)
+    odometry_edges: int = 0
+    information_scale: dict[str, float] = field(default_factory=dict)
 
     @property
     def frames_per_second(self) -> float:
@@ -182,7 +190,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
     existing = {int(i) for i in store.frame_ids}
     pose_of = _pose_file_lookup(poses_file, src) if poses_file is not None else None
     pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
-    odometry: KissOdometry | None = None
+    odometry: KissOdometry | GicpMapOdometry | None = None
     n_total = len(src)
     invalid: list[float] = []
     n_new = 0
@@ -214,7 +222,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
         else:
             if odometry is None:
                 cfg = config.odometry or OdometryConfig.for_sensor(frame.sensor_kind)
-                odometry = KissOdometry(cfg)
+                odometry = make_odometry(cfg)
                 if existing:
                     last = sorted(existing)[-config.resume_seed_frames:]
                     odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
@@ -238,7 +246,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages,
     )
     if loop_closure and len(store) >= 2:
-        _close_loops(store, config, result, tick, stages, inject_wrong_loop)
+        _close_loops(store, config, result, tick, stages, inject_wrong_loop,
+                     own_odometry=poses_file is None and not poses_from_source)
     (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result
@@ -252,65 +261,112 @@ def _fallback_information(T_a_b: np.ndarray, config: BuildConfig) -> np.ndarray:
     return np.diag([1 / sigma_t**2] * 3 + [1 / sigma_r**2] * 3)
 
 
+class _EdgeGroup(enum.Enum):
+    ODOMETRY = "odometry"
+    FALLBACK = "fallback"
+    LOOP = "loop"
+
+
+def _edge_residual_chi2(T_from_to: np.ndarray, information: np.ndarray, T_world_from: np.ndarray, T_world_to: np.ndarray) -> float:
+    """Mahalanobis residual of a between-edge (driftmap [t, r] order, the same as GTSAM's after reordering)."""
+    e = geometry.se3_log(geometry.invert(T_from_to) @ geometry.invert(T_world_from) @ T_world_to)
+    return float(e @ information @ e)
+
+
+def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_odometry: bool) -> bool:
+    """Whether odometry edges take the revision-0 relative pose (frame-to-map odometry, which is more accurate
+    than a keyframe-to-keyframe registration) or the keyframe registration (KISS-ICP, given poses)."""
+    if config.odometry_edges == "trajectory":
+        return True
+    if config.odometry_edges == "registration" or not own_odometry or len(store) == 0:
+        return False
+    kind = store.frame(int(store.frame_ids[0])).sensor_kind
+    cfg = config.odometry or OdometryConfig.for_sensor(kind)
+    return cfg.method is OdometryMethod.GICP_MAP
+
+
 def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
-                 stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None) -> None:
+                 stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, own_odometry: bool) -> None:
     lc = config.loop_closure
     t0 = time.perf_counter()
     ids = [int(i) for i in store.frame_ids]
     poses = store.poses(0)
     key_rows = select_keyframes(poses, lc)
+    if inject_wrong_loop is None and (len(key_rows) < 2 or key_rows[-1] - key_rows[0] < lc.min_gap_frames):
+        logger.info("loop closure skipped: %d frames, fewer than min_gap_frames = %d apart", len(ids), lc.min_gap_frames)
+        return
     keyframes: list[Keyframe] = []
+    cache: dict[int, np.ndarray] = {}
+    max_range_m = lc.max_range_m
+    if max_range_m is None and ids and own_odometry:  # the range the odometry trusted; given poses: every point
+        max_range_m = (config.odometry or OdometryConfig.for_sensor(store.frame(ids[0]).sensor_kind)).max_range_m
+
+    def points(row: int) -> np.ndarray:
+        if row not in cache:
+            pts = store.frame(ids[row]).points_sensor
+            if max_range_m is not None:
+                pts = pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+            cache[row] = pts
+        return cache[row]
+
     for n, row in enumerate(key_rows):
         rows = range(max(0, row - lc.submap_radius_frames), min(len(ids), row + lc.submap_radius_frames + 1))
         inv = geometry.invert(poses[row])
-        cloud = np.concatenate([geometry.transform_points(inv @ poses[r], store.frame(ids[r]).points_sensor) for r in rows])
+        cloud = np.concatenate([geometry.transform_points(inv @ poses[r], points(r)) for r in rows])
         keyframes.append(make_keyframe(ids[row], row, poses[row], cloud, lc))
+        for r in [r for r in cache if r < row - lc.submap_radius_frames]:
+            del cache[r]
         tick("keyframes", n + 1, len(key_rows))
     result.n_keyframes = len(keyframes)
-    graph = PoseGraph()
-    for k in keyframes:
-        graph.add_node(k.frame_id, k.T_world_sensor)
-    graph.add_prior(keyframes[0].frame_id, keyframes[0].T_world_sensor, np.diag([1e8] * 6))
-    for n, (a, b) in enumerate(zip(keyframes, keyframes[1:])):
-        odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
-        reg = register_prepared(a.cloud, b.cloud, odom, voxel_size_m=lc.registration_voxel_m,
-                                max_correspondence_m=2.5 * lc.registration_voxel_m)
-        good = reg.converged and reg.fitness >= lc.min_fitness and \
-            geometry.translation_distance_m(odom, reg.T_target_source) <= config.odometry_edge_max_disagreement_m
-        if good:
-            graph.add_odometry(a.frame_id, b.frame_id, reg.T_target_source, reg.information_6x6)
-        else:
-            logger.info("odometry edge %d->%d: registration not usable (%s); odometry with fallback information",
-                        a.frame_id, b.frame_id, reg.describe())
-            graph.add_odometry(a.frame_id, b.frame_id, odom, _fallback_information(odom, config))
-        tick("odometry edges", n + 1, len(keyframes) - 1)
-    stages["keyframes+edges"] = time.perf_counter() - t0
+    stages["keyframes"] = time.perf_counter() - t0
     t1 = time.perf_counter()
     candidates: list[LoopCandidate] = find_loops(keyframes, lc, progress=lambda d, t: tick("loop candidates", d, t))
+    injected_info = None
     if inject_wrong_loop is not None:
         fa, fb, T_wrong = inject_wrong_loop
         by_id = {k.frame_id: k for k in keyframes}
         if fa not in by_id or fb not in by_id:
             raise ConfigError(f"injected loop {fa}<->{fb}: both frames must be keyframes ({[k.frame_id for k in keyframes][:10]}...)")
         accepted_info = [c.result.information_6x6 for c in candidates if c.accepted and c.result is not None]
-        info = accepted_info[0] if accepted_info else np.diag([1e4] * 3 + [1e4] * 3)
+        injected_info = accepted_info[0] if accepted_info else np.diag([1e4] * 3 + [1e4] * 3)
         candidates.append(LoopCandidate(fa, fb, CandidateKind.INJECTED, True, "deliberately wrong (injected)", None, T_wrong))
-        injected_info = info
     stages["loop candidates"] = time.perf_counter() - t1
     result.loops_tried = len(candidates)
     accepted = [c for c in candidates if c.accepted]
     result.loops_accepted = len(accepted)
+    # (group, key_from, key_to, T_from_to, information) -- the graph is rebuilt for the information calibration
+    edges: list[tuple[_EdgeGroup, int, int, np.ndarray, np.ndarray]] = []
     for c in accepted:
         info = c.result.information_6x6 if c.result is not None else injected_info
-        graph.add_loop(c.a, c.b, c.T_a_b, info, robust=config.loop_kernel)
+        edges.append((_EdgeGroup.LOOP, c.a, c.b, c.T_a_b, info))
     result.loops = [{"a": c.a, "b": c.b, "kind": c.kind.value, "accepted": c.accepted, "reason": c.reason,
                      "fitness": None if c.result is None else c.result.fitness,
                      "rmse_m": None if c.result is None else c.result.rmse_m} for c in candidates]
     if not accepted:
         logger.info("no loop closure accepted; the odometry stays revision 0")
         return
+    t_edges = time.perf_counter()
+    from_trajectory = _odometry_edges_from_trajectory(config, store, own_odometry)
+    v = lc.registration_voxel_m
+    pairs = [(i, i + d) for i in range(len(keyframes)) for d in range(1, config.odometry_edge_window + 1) if i + d < len(keyframes)]
+    for n, (i, j) in enumerate(pairs):
+        a, b = keyframes[i], keyframes[j]
+        odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
+        reg = register_prepared(a.cloud, b.cloud, odom, voxel_size_m=v, max_correspondence_m=2.5 * v)
+        good = reg.converged and reg.fitness >= lc.min_fitness and \
+            geometry.translation_distance_m(odom, reg.T_target_source) <= config.odometry_edge_max_disagreement_m
+        if good:
+            edges.append((_EdgeGroup.ODOMETRY, a.frame_id, b.frame_id, odom if from_trajectory else reg.T_target_source,
+                          reg.information_6x6))
+        elif j == i + 1:
+            logger.info("odometry edge %d->%d: registration not usable (%s); odometry with fallback information",
+                        a.frame_id, b.frame_id, reg.describe())
+            edges.append((_EdgeGroup.FALLBACK, a.frame_id, b.frame_id, odom, _fallback_information(odom, config)))
+        tick("odometry edges", n + 1, len(pairs))
+    result.odometry_edges = sum(group is not _EdgeGroup.LOOP for group, *_ in edges)
+    stages["odometry edges"] = time.perf_counter() - t_edges
     t2 = time.perf_counter()
-    opt = graph.optimize(config.optimizer)
+    opt = _optimize_calibrated(keyframes, edges, config, result, calibrate_odometry=not from_trajectory)
     stages["pose graph"] = time.perf_counter() - t2
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     for res in opt.loop_residuals:
@@ -319,8 +375,11 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
             entry.update(graph_chi2=res.chi2, graph_weight=res.weight, kept_by_graph=res.accepted)
         if not res.accepted:
             result.loops_rejected_by_graph += 1
-            logger.warning("loop %d<->%d rejected by the pose graph (chi2 %.1f, weight %.3f)", res.key_from, res.key_to,
-                           res.chi2, res.weight if res.weight is not None else float("nan"))
+            logger.info("loop %d<->%d rejected by the pose graph (chi2 %.1f, weight %.3f)", res.key_from, res.key_to,
+                        res.chi2, res.weight if res.weight is not None else float("nan"))
+    if result.loops_rejected_by_graph:
+        logger.warning("%d of %d loops rejected by the pose graph (chi2 > %.1f)", result.loops_rejected_by_graph,
+                       len(opt.loop_residuals), opt.chi2_threshold)
     t3 = time.perf_counter()
     revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True,
                                   note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
@@ -332,3 +391,51 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     result.max_correction_deg = max((c.rotation_deg for c in changes.changes), default=0.0)
     logger.info("loop closure: revision %d moved %d frames (max %.3f m)", revision.revision_id, len(changes.changes),
                 result.max_correction_m)
+
+
+#: median of a chi-square variable with 6 degrees of freedom
+_CHI2_6DOF_MEDIAN = 5.348
+
+
+def _optimize_calibrated(keyframes: list[Keyframe], edges: list[tuple[_EdgeGroup, int, int, np.ndarray, np.ndarray]],
+                         config: BuildConfig, result: BuildResult, *, calibrate_odometry: bool) -> PoseGraphResult:
+    """Optimise, then rescale the information of each edge group so that its median chi2 at the optimum is the
+    chi2(6) median, and optimise again (a robust variance-component estimate, ``information_calibration_iterations``
+    times). Registration Hessians know the shape of the uncertainty but not its size: neighbouring points'
+    residuals are correlated and the sensor's systematic errors are not in them."""
+    scale = dict.fromkeys(_EdgeGroup, 1.0)
+    # odometry edges taken from frame-to-map odometry are not independent registrations: only the loops are calibrated
+    calibrate = [_EdgeGroup.ODOMETRY, _EdgeGroup.LOOP] if calibrate_odometry else [_EdgeGroup.LOOP]
+
+    def make_graph(kernel: RobustKernel = config.loop_kernel) -> PoseGraph:
+        graph = PoseGraph()
+        for k in keyframes:
+            graph.add_node(k.frame_id, k.T_world_sensor)
+        graph.add_prior(keyframes[0].frame_id, keyframes[0].T_world_sensor, np.diag([1e8] * 6))
+        for group, a, b, T, info in edges:
+            if group is _EdgeGroup.LOOP:
+                graph.add_loop(a, b, T, info * scale[group], robust=kernel)
+            else:
+                graph.add_odometry(a, b, T, info * scale[group])
+        return graph
+
+    # the first round is plain least squares: with uncalibrated (over-confident) information a robust kernel
+    # would switch every loop off, and the median chi2 is robust to a few wrong loops by itself
+    graph = make_graph(RobustKernel.NONE if config.information_calibration_iterations else config.loop_kernel)
+    opt = graph.optimize(config.optimizer)
+    for _ in range(config.information_calibration_iterations):
+        changed = False
+        for group in calibrate:
+            chi2 = [_edge_residual_chi2(T, info * scale[group], opt.poses[a], opt.poses[b]) for g, a, b, T, info in edges if g is group]
+            if len(chi2) < 6:
+                continue
+            factor = _CHI2_6DOF_MEDIAN / max(float(np.median(chi2)), 1e-9)
+            scale[group] *= factor
+            changed |= abs(factor - 1.0) > 0.05
+        graph = make_graph()
+        opt = graph.optimize(config.optimizer)
+        if not changed:
+            break
+    result.information_scale = {g.value: s for g, s in scale.items() if g is not _EdgeGroup.FALLBACK}
+    logger.info("information calibration: odometry x%.3g, loops x%.3g", scale[_EdgeGroup.ODOMETRY], scale[_EdgeGroup.LOOP])
+    return opt

@@ -1,18 +1,26 @@
-"""Frame-to-map odometry with KISS-ICP (thin wrapper).
+"""Odometry: frame-to-map GICP (small_gicp) for depth cameras, KISS-ICP for LiDAR.
 
-KISS-ICP estimates ``T_world_sensor`` of each frame by registering it to a local voxel map. The wrapper
-picks settings per sensor kind (indoor RGB-D vs. LiDAR), feeds driftmap frames, times each step, and can
-be re-seeded from stored frames and poses so that ``build --resume`` continues where a build stopped.
+* :class:`GicpMapOdometry` (default for depth cameras) registers each frame to a persistent Gaussian voxel
+  map of everything registered so far (small_gicp VGICP), starting from a constant-velocity prediction,
+  with a coarse-map fallback when the fine registration finds too few inliers. Registering to the fused
+  map instead of the previous frame keeps the drift low (the map averages many views) and makes a
+  revisited place snap back to the geometry already mapped.
+* :class:`KissOdometry` (default for LiDAR) wraps KISS-ICP.
+
+Both time each step and can be re-seeded from stored frames and poses so that ``build --resume`` continues
+where a build stopped. :func:`make_odometry` picks the implementation named by the configuration.
 """
 
 from __future__ import annotations
 
+import enum
 import logging
 import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
+import small_gicp
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
@@ -24,26 +32,44 @@ from driftmap.frame import Frame, SensorKind
 logger = logging.getLogger(__name__)
 
 
+class OdometryMethod(enum.Enum):
+    GICP_MAP = "gicp_map"
+    """frame-to-map GICP against a persistent Gaussian voxel map (small_gicp VGICP)"""
+    KISS = "kiss"
+    """KISS-ICP (point-to-point ICP against a local voxel map, adaptive threshold)"""
+
+
 class OdometryConfig(BaseModel):
-    """KISS-ICP settings, in metres."""
+    """Odometry settings, in metres. ``method`` picks the implementation; the ``gicp_*`` fields apply to
+    ``gicp_map``, ``voxel_size_m`` .. ``max_points_per_voxel`` to ``kiss``, the ranges and ``max_points`` to both."""
 
     model_config = ConfigDict(extra="forbid")
-    voxel_size_m: float = Field(0.08, gt=0.0, description="KISS-ICP map voxel size (m)")
+    method: OdometryMethod = Field(OdometryMethod.GICP_MAP, description="gicp_map (frame-to-map GICP) or kiss (KISS-ICP)")
     max_points: int | None = Field(20_000, ge=100, description="register at most about this many points per frame (every k-th point); None: all")
     min_range_m: float = Field(0.2, ge=0.0, description="points closer than this are ignored (m)")
-    max_range_m: float = Field(4.0, gt=0.0, description="points farther than this are ignored (m)")
-    deskew: bool = Field(False, description="motion-compensate scans with per-point time (LiDAR)")
-    initial_threshold_m: float = Field(0.3, gt=0.0, description="initial correspondence threshold (m)")
-    min_motion_m: float = Field(0.01, ge=0.0, description="motion below which the adaptive threshold is not updated (m)")
-    max_points_per_voxel: int = Field(20, ge=1, description="points kept per map voxel")
+    max_range_m: float = Field(2.75, gt=0.0, description="points farther than this are ignored (m)")
+    gicp_downsample_m: float = Field(0.03, gt=0.0, description="gicp_map: frame voxel downsampling (m)")
+    gicp_map_voxel_m: float = Field(0.05, gt=0.0, description="gicp_map: Gaussian voxel map resolution (m)")
+    gicp_max_correspondence_m: float = Field(0.1, gt=0.0, description="gicp_map: correspondence distance (m)")
+    gicp_coarse_downsample_m: float = Field(0.1, gt=0.0, description="gicp_map: coarse fallback downsampling (m)")
+    gicp_coarse_map_voxel_m: float = Field(0.25, gt=0.0, description="gicp_map: coarse fallback map resolution (m)")
+    gicp_coarse_max_correspondence_m: float = Field(0.5, gt=0.0, description="gicp_map: coarse fallback correspondence distance (m)")
+    gicp_min_inlier_fraction: float = Field(0.5, ge=0.0, le=1.0, description="gicp_map: below this inlier fraction the coarse fallback is tried")
+    gicp_map_horizon_frames: int | None = Field(None, ge=1, description="gicp_map: map voxels unseen for this many frames are dropped (None: keep the whole map)")
+    gicp_max_iterations: int = Field(30, ge=1, description="gicp_map: Gauss-Newton iterations per registration")
+    voxel_size_m: float = Field(0.08, gt=0.0, description="kiss: KISS-ICP map voxel size (m)")
+    deskew: bool = Field(False, description="kiss: motion-compensate scans with per-point time (LiDAR)")
+    initial_threshold_m: float = Field(0.3, gt=0.0, description="kiss: initial correspondence threshold (m)")
+    min_motion_m: float = Field(0.01, ge=0.0, description="kiss: motion below which the adaptive threshold is not updated (m)")
+    max_points_per_voxel: int = Field(20, ge=1, description="kiss: points kept per map voxel")
 
     @classmethod
     def for_sensor(cls, kind: SensorKind) -> OdometryConfig:
-        """Defaults that suit indoor RGB-D (8 cm voxels, 0.2..4 m, ~20k points per frame) or outdoor LiDAR
-        (KISS-ICP's own, every point)."""
+        """Defaults for indoor RGB-D (frame-to-map GICP on points within 0.2..2.75 m) or outdoor LiDAR
+        (KISS-ICP with its own settings, every point)."""
         if kind is SensorKind.LIDAR:
-            return cls(voxel_size_m=1.0, min_range_m=0.5, max_range_m=100.0, deskew=False, initial_threshold_m=2.0,
-                       min_motion_m=0.1, max_points=None)
+            return cls(method=OdometryMethod.KISS, voxel_size_m=1.0, min_range_m=0.5, max_range_m=100.0, deskew=False,
+                       initial_threshold_m=2.0, min_motion_m=0.1, max_points=None)
         return cls()
 
     def to_kiss(self) -> KISSConfig:
@@ -66,21 +92,142 @@ class OdometryStep:
     seconds: float
 
 
+def make_odometry(config: OdometryConfig, T_world_first: NDArray[np.float64] | None = None) -> KissOdometry | GicpMapOdometry:
+    """The odometry ``config.method`` names."""
+    if config.method is OdometryMethod.KISS:
+        return KissOdometry(config, T_world_first)
+    return GicpMapOdometry(config, T_world_first)
+
+
+def _strided_points(frame: Frame, max_points: int | None) -> tuple[NDArray[np.float64], int]:
+    step = 1
+    if max_points is not None and frame.n_points > max_points:
+        step = -(-frame.n_points // max_points)
+    return frame.points_sensor[::step].astype(np.float64), step
+
+
+def _nearest_rigid(T: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Project the rotation block onto SO(3): chaining ``T_prev @ delta`` predictions otherwise lets round-off
+    in the rotation grow from frame to frame."""
+    out = np.array(T, dtype=np.float64)
+    U, _, Vt = np.linalg.svd(out[:3, :3])
+    out[:3, :3] = U @ Vt
+    out[3] = (0.0, 0.0, 0.0, 1.0)
+    return out
+
+
+class GicpMapOdometry:
+    """Frame-to-map GICP odometry; poses start at ``T_world_first`` (identity by default).
+
+    Each frame (points within ``min_range_m .. max_range_m``, voxel-downsampled) is registered with small_gicp
+    VGICP to a Gaussian voxel map of all frames so far, starting from the constant-velocity prediction. If
+    fewer than ``gicp_min_inlier_fraction`` of its points find a map correspondence (or during the first
+    frames, before a velocity is known), a coarse registration against a coarse voxel map is tried first and
+    kept when it ends with more inliers. The frame is then inserted into both maps at its new pose.
+    """
+
+    def __init__(self, config: OdometryConfig, T_world_first: NDArray[np.float64] | None = None):
+        self.config = config
+        self._T_world_first = np.eye(4) if T_world_first is None else np.array(geometry.as_rigid(T_world_first))
+        self._fine = small_gicp.GaussianVoxelMap(config.gicp_map_voxel_m)
+        self._coarse = small_gicp.GaussianVoxelMap(config.gicp_coarse_map_voxel_m)
+        horizon = config.gicp_map_horizon_frames if config.gicp_map_horizon_frames is not None else 2**31 - 1
+        for m in (self._fine, self._coarse):
+            m.set_lru(horizon=horizon, clear_cycle=10)
+        self._last: NDArray[np.float64] | None = None
+        self._delta = np.eye(4)
+        self.n_frames = 0
+        self.seconds = 0.0
+        self.n_coarse = 0
+        self._n_tracked = 0  # frames with a known motion model (a resumed build starts warm)
+
+    def _clouds(self, frame: Frame) -> tuple[small_gicp.PointCloud, small_gicp.PointCloud, int]:
+        c = self.config
+        pts, _ = _strided_points(frame, c.max_points)
+        r = np.linalg.norm(pts, axis=1)
+        pts = pts[(r >= c.min_range_m) & (r <= c.max_range_m)]
+        fine, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_downsample_m, num_neighbors=10, num_threads=2)
+        coarse, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_coarse_downsample_m, num_neighbors=10,
+                                                 num_threads=2)
+        return fine, coarse, len(pts)
+
+    def _align(self, target: small_gicp.GaussianVoxelMap, source: small_gicp.PointCloud, init: NDArray[np.float64],
+               max_correspondence_m: float) -> tuple[NDArray[np.float64], float, bool]:
+        res = small_gicp.align(target, source, init, max_correspondence_distance=max_correspondence_m, num_threads=2,
+                               max_iterations=self.config.gicp_max_iterations)
+        T = np.array(res.T_target_source)
+        if not np.all(np.isfinite(T)):
+            return init, 0.0, False
+        return _nearest_rigid(T), res.num_inliers / max(source.size(), 1), bool(res.converged)
+
+    def register(self, frame: Frame) -> OdometryStep:
+        t0 = time.perf_counter()
+        fine, coarse, n_points = self._clouds(frame)
+        c = self.config
+        if self._last is None:
+            T = self._T_world_first.copy()
+        elif fine.size() < 10:
+            logger.warning("frame %d: %d points within %.2f..%.2f m; pose predicted", frame.frame_id, fine.size(),
+                           c.min_range_m, c.max_range_m)
+            T = _nearest_rigid(self._last @ self._delta)
+        else:
+            pred = _nearest_rigid(self._last @ self._delta)
+            T, inliers, _ = self._align(self._fine, fine, pred, c.gicp_max_correspondence_m)
+            if inliers < c.gicp_min_inlier_fraction or self._n_tracked < 3:
+                T_coarse, _, _ = self._align(self._coarse, coarse, pred, c.gicp_coarse_max_correspondence_m)
+                T2, inliers2, _ = self._align(self._fine, fine, T_coarse, c.gicp_max_correspondence_m)
+                if inliers2 > inliers:
+                    T, inliers = T2, inliers2
+                    self.n_coarse += 1
+            if inliers < c.gicp_min_inlier_fraction:
+                logger.warning("frame %d: only %.0f %% of the points match the map", frame.frame_id, 100 * inliers)
+            self._delta = geometry.invert(self._last) @ T
+        self._insert(fine, coarse, T)
+        self._n_tracked += 1
+        dt = time.perf_counter() - t0
+        self.n_frames += 1
+        self.seconds += dt
+        return OdometryStep(frame.frame_id, T, n_points, dt)
+
+    def _insert(self, fine: small_gicp.PointCloud, coarse: small_gicp.PointCloud, T: NDArray[np.float64]) -> None:
+        self._fine.insert(fine, T)
+        self._coarse.insert(coarse, T)
+        self._last = T
+
+    def seed(self, frames_with_poses: Iterable[tuple[Frame, NDArray[np.float64]]]) -> None:
+        """Rebuild the map and motion model from frames already registered (for ``--resume``):
+        ``frames_with_poses`` are the last frames in order with their stored ``T_world_sensor``."""
+        n = 0
+        prev = None
+        for frame, T in frames_with_poses:
+            fine, coarse, _ = self._clouds(frame)
+            T = _nearest_rigid(T)
+            if prev is not None:
+                self._delta = geometry.invert(prev) @ T
+            self._insert(fine, coarse, T)
+            prev = T
+            n += 1
+        if n:
+            self._n_tracked = max(self._n_tracked, n)  # the motion model is known: no start-up coarse search
+            logger.info("odometry re-seeded from %d stored frames", n)
+
+    @property
+    def fps(self) -> float:
+        return self.n_frames / self.seconds if self.seconds > 0 else float("nan")
+
+
 class KissOdometry:
-    """Register frames one after the other; poses start at ``T_world_first`` (identity by default)."""
+    """Register frames one after the other with KISS-ICP; poses start at ``T_world_first`` (identity by default)."""
 
     def __init__(self, config: OdometryConfig, T_world_first: NDArray[np.float64] | None = None):
         self.config = config
         self._kiss = KissICP(config.to_kiss())
-        self._T_world_odom = np.eye(4) if T_world_first is None else geometry.as_rigid(T_world_first).copy()
+        self._T_world_odom = np.eye(4) if T_world_first is None else np.array(geometry.as_rigid(T_world_first))
         self.n_frames = 0
         self.seconds = 0.0
 
     def _points(self, frame: Frame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        step = 1
-        if self.config.max_points is not None and frame.n_points > self.config.max_points:
-            step = -(-frame.n_points // self.config.max_points)
-        pts = frame.points_sensor[::step].astype(np.float64)
+        pts, step = _strided_points(frame, self.config.max_points)
         t = frame.attributes.time_offset_ns
         if t is not None:
             t = t[::step]
