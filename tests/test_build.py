@@ -279,3 +279,36 @@ def test_cli_convert_round_trip(tmp_path: Path) -> None:
         np.testing.assert_allclose(a.T_world_sensor, b.T_world_sensor, atol=1e-12)
     bad = _cli("convert", tmp_path / "missing", tmp_path / "x.mcap")
     assert bad.returncode == 1 and bad.stderr.strip().splitlines()[-1].startswith("error:")
+
+
+def test_build_time_depth_scale_and_focal_errors(tmp_path: Path, kitti_dir: Path) -> None:
+    """The perturbation harness's build-time part: `build --config` with a depth-scale or focal-length error
+    stores every frame's points as the perturbation functions make them, and says so in build_config.json."""
+    import json
+
+    from driftmap.diagnostics import perturb
+    from driftmap.errors import ConfigError
+
+    log = embedded_log_path()
+    build(log, tmp_path / "plain", poses_from_source=True, frames="0:3", loop_closure=False)
+    config = tmp_path / "scale.json"
+    config.write_text(json.dumps({"depth_scale_error": 1.03, "focal_length_error": 0.98}))
+    env = {**os.environ, "COLUMNS": "200"}
+    out = subprocess.run([sys.executable, "-m", "driftmap.cli", "build", str(log), "--out", str(tmp_path / "scaled"),
+                          "--poses-from-source", "--frames", "0:3", "--no-loop-closure", "--config", str(config)],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    saved = json.loads((tmp_path / "scaled" / "build_config.json").read_text())
+    assert saved["depth_scale_error"] == 1.03 and saved["focal_length_error"] == 0.98
+    with FrameStore.open(tmp_path / "plain") as plain, FrameStore.open(tmp_path / "scaled") as scaled:
+        assert plain.frame_ids.tolist() == scaled.frame_ids.tolist() == [0, 1, 2]
+        for fid in plain.frame_ids:
+            p, q = plain.frame(int(fid)).points_sensor, scaled.frame(int(fid)).points_sensor
+            expected = perturb.scale_depth(perturb.scale_focal(p, 1.0, 0.98), 1.03)
+            np.testing.assert_allclose(q, expected, atol=1e-5)
+            ratio = np.linalg.norm(q, axis=1) / np.linalg.norm(perturb.scale_focal(p, 1.0, 0.98), axis=1)
+            assert abs(float(np.median(ratio)) - 1.03) < 1e-5
+        np.testing.assert_allclose(scaled.poses(0), plain.poses(0))  # the poses are not what was perturbed
+    with pytest.raises(ConfigError, match="intrinsics"):  # a LiDAR has no focal length
+        build(kitti_dir, tmp_path / "kitti", poses_from_source=True, frames="0:2", loop_closure=False,
+              config=BuildConfig(focal_length_error=1.01))

@@ -61,6 +61,8 @@ class BuildConfig(BaseModel):
     odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
         "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
                             "or auto (trajectory for frame-to-map odometry, else registration)")
+    depth_scale_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: scale every frame's ranges by this factor before odometry and storing (1 = none)")
+    focal_length_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: depth cameras as if back-projected with this times the true focal length (1 = none)")
     information_calibration_iterations: int = Field(3, ge=0, description="pose graph: variance-component re-weighting rounds")
 
 
@@ -170,6 +172,9 @@ def build(
     stages: dict[str, float] = {}
     out = Path(out)
     src = _open(source, format, frames, config, poses_from_source)
+    if config.depth_scale_error != 1.0 or config.focal_length_error != 1.0:
+        logger.warning("build: frames perturbed on purpose (depth scale x%g, focal length x%g); recorded in build_config.json",
+                       config.depth_scale_error, config.focal_length_error)
     if resume and (out / "store.json").exists():
         store = FrameStore.open(out, "a")
         for event in store.recovery_events:
@@ -208,6 +213,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
         done += 1
         if frame.quality is not None:
             invalid.append(frame.quality.invalid_fraction)
+        frame = _with_sensor_error(frame, config)
         if frame.frame_id in existing:
             tick("frames", done, n_total)
             continue
@@ -251,6 +257,22 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
     (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result
+
+
+def _with_sensor_error(frame: Frame, config: BuildConfig) -> Frame:
+    """Apply the configured depth-scale / focal-length error (the perturbation harness's build-time part)."""
+    if config.depth_scale_error == 1.0 and config.focal_length_error == 1.0:
+        return frame
+    from driftmap.diagnostics import perturb
+
+    if config.focal_length_error != 1.0:
+        if frame.intrinsics is None:
+            raise ConfigError(f"frame {frame.frame_id}: focal_length_error needs a depth camera with intrinsics "
+                              f"({frame.sensor_kind.value} frames have none)")
+        frame = perturb.with_focal_error(frame, config.focal_length_error)
+    if config.depth_scale_error != 1.0:
+        frame = perturb.with_depth_scale_error(frame, config.depth_scale_error)
+    return frame
 
 
 def _fallback_information(T_a_b: np.ndarray, config: BuildConfig) -> np.ndarray:
