@@ -253,14 +253,27 @@ def test_kitti_build_is_no_worse_than_kiss_icp_alone(kitti_dir: Path, tmp_path: 
 
 
 def test_kitti_poses_file_by_index_with_a_slice(kitti_dir: Path, tmp_path: Path) -> None:
-    """--poses with a KITTI file: row i is the pose of frame_id i, so the full file works for a slice."""
+    """--poses with a KITTI file: row i is the pose of frame_id i, so the full file works for a slice. The data
+    set's own poses.txt holds cam0 poses: they are converted to the Velodyne frame (the frames' sensor frame),
+    so the build equals --poses-from-source; another KITTI file is taken as Velodyne poses as it is."""
+    from driftmap.sources.kitti import read_calib_tr, velo_poses_from_cam0
+    from driftmap.trajectory import Trajectory, write_kitti
+
     result = build(kitti_dir, tmp_path / "s", poses_file=kitti_dir / "poses.txt", frames="4:16:3", loop_closure=False)
+    build(kitti_dir, tmp_path / "gt", poses_from_source=True, frames="4:16:3", loop_closure=False)
     rows = read_kitti(kitti_dir / "poses.txt").poses
-    with FrameStore.open(tmp_path / "s") as store:
+    velo = velo_poses_from_cam0(rows, read_calib_tr(kitti_dir / "calib.txt"))
+    with FrameStore.open(tmp_path / "s") as store, FrameStore.open(tmp_path / "gt") as gt:
         ids = [int(i) for i in store.frame_ids]
         assert ids == [4, 7, 10, 13]
-        np.testing.assert_allclose(store.poses(0), rows[ids], atol=1e-6)  # rotations re-orthonormalised
+        np.testing.assert_allclose(store.poses(0), velo[ids], atol=1e-6)  # rotations re-orthonormalised
+        np.testing.assert_allclose(store.poses(0), gt.poses(0), atol=1e-6)
     assert result.pose_source == "external_file"
+    # a Velodyne-frame KITTI file (e.g. LiDAR odometry output) is used as it is
+    write_kitti(tmp_path / "velo.txt", Trajectory(np.arange(len(velo), dtype=np.int64), velo, np.arange(len(velo), dtype=np.int64)))
+    build(kitti_dir, tmp_path / "v", poses_file=tmp_path / "velo.txt", frames="4:16:3", loop_closure=False)
+    with FrameStore.open(tmp_path / "v") as store:
+        np.testing.assert_allclose(store.poses(0), velo[[4, 7, 10, 13]], atol=1e-6)
 
 
 def test_cli_convert_round_trip(tmp_path: Path) -> None:

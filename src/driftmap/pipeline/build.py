@@ -130,10 +130,12 @@ def _pose_file_lookup(poses_file: str | Path, source: FrameSource) -> Callable[[
     traj = read_trajectory(poses_file)
     is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
     if is_kitti:  # row i is the pose of frame_id i
+        rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source)
+
         def by_index(frame: Frame) -> np.ndarray:
-            if frame.frame_id >= len(traj):
-                raise SourceError(f"{poses_file}: {len(traj)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
-            return traj.poses[frame.frame_id]
+            if frame.frame_id >= len(rows):
+                raise SourceError(f"{poses_file}: {len(rows)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
+            return rows[frame.frame_id]
         return by_index
     stamps = traj.stamps_ns
 
@@ -144,6 +146,26 @@ def _pose_file_lookup(poses_file: str | Path, source: FrameSource) -> Callable[[
             raise SourceError(f"{poses_file}: no pose within 20 ms of frame {frame.frame_id} (stamp {frame.stamp_ns} ns)")
         return traj.poses[j]
     return by_stamp
+
+
+def _kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: FrameSource) -> np.ndarray:
+    """KITTI pose rows as ``T_world_sensor``. A KITTI data set's own ground-truth file holds left-camera (cam0)
+    poses: for that file the rows are converted to the Velodyne frame with the data set's calibration, as
+    ``--poses-from-source`` does. Any other file is taken as poses of the sensor frame itself (e.g. a LiDAR
+    odometry's output)."""
+    own = getattr(source, "poses_file", None)
+    T_cam0_velo = getattr(source, "T_cam0_velo", None)
+    if own is None or T_cam0_velo is None:
+        return poses
+    if Path(own).resolve() == poses_file.resolve():
+        from driftmap.sources.kitti import velo_poses_from_cam0
+
+        logger.info("%s is the data set's cam0 ground truth: rows converted to the Velodyne frame with calib.txt Tr",
+                    poses_file)
+        return velo_poses_from_cam0(poses, T_cam0_velo)
+    logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo; a cam0 ground-truth file must be converted "
+                   "(inv(Tr) @ T_cam0 @ Tr) or used through --poses-from-source", poses_file)
+    return poses
 
 
 def build(
