@@ -72,7 +72,7 @@ def demo(
 ) -> None:
     """Run the whole story on the embedded synthetic drifting-robot log: build -> diagnose -> loop closure
     -> diagnose again -> exports -> report."""
-    from driftmap.demo import run_demo, summary_rows
+    from driftmap.demo import region_lines, run_demo, summary_rows
 
     with _progress() as progress:
         tasks: dict[str, int] = {}
@@ -87,10 +87,8 @@ def demo(
     if before is not None:
         console.print(f"revision 0 (drifting odometry): {before.n_regions} double-wall regions, "
                       f"{100 * before.fraction_flagged:.2f} % of surface voxels doubled", highlight=False)
-        for region in before.regions:
-            console.print(f"  {100 * region['separation_m']:.1f} +- {100 * region['separation_sigma_m']:.1f} cm apart at "
-                          f"{region['center_m']} m: frames {region['frames_a'][0]}-{region['frames_a'][1]} vs "
-                          f"{region['frames_b'][0]}-{region['frames_b'][1]}", highlight=False)
+        for line in region_lines(before):
+            console.print(f"  {line}", highlight=False)
     table = Table(title="driftmap demo: synthetic loop, drifting odometry -> loop closure")
     table.add_column("quantity")
     table.add_column("value", justify="right")

@@ -20,7 +20,7 @@ import logging
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -33,6 +33,7 @@ from driftmap.diagnostics.report import Diagnosis, DiagnoseConfig, diagnose_clou
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.diagnostics.walls import WallSpread, wall_spread
 from driftmap.frame import SensorKind
+from driftmap.map.foxglove_export import export_foxglove_mcap
 from driftmap.map.fusion import FusedCloud
 from driftmap.pipeline.build import BuildConfig, BuildResult, build
 from driftmap.registration.loops import LoopClosureConfig
@@ -187,8 +188,7 @@ def run_demo(
     files: dict[str, str] = {"store": str(store_dir)}
     gt_all = log.ground_truth().poses
     with FrameStore.open(store_dir) as store:
-        rows = np.searchsorted(np.arange(len(gt_all)), store.frame_ids)
-        gt_poses = gt_all[rows]
+        gt_poses = gt_all[store.frame_ids]  # the log's frame ids are its row numbers
         gt = (store.frame_ids.copy(), gt_poses)
         kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
         dcfg = DiagnoseConfig.for_sensor(kind)
@@ -305,28 +305,17 @@ def run_demo(
     files["report_md"] = str(write_markdown_report(out / "report.md", result))
     files["report_html"] = str(write_html_report(out / "report.html", result))
     files["summary_json"] = str(out / "summary.json")
-    result = _with_seconds(result, time.perf_counter() - t0)
+    result = replace(result, seconds=time.perf_counter() - t0)
     (out / "summary.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
 
 
 def _export_mcap(store: FrameStore, out: Path, revision: int, diagnosis: Diagnosis | None) -> dict[str, str]:
     """The corrected map, trajectory and double-wall markers as an MCAP that opens in Foxglove."""
-    try:
-        from driftmap.map.foxglove_export import export_foxglove_mcap
-    except ImportError:  # pragma: no cover - the exporter is part of the package
-        logger.warning("Foxglove MCAP export unavailable")
-        return {}
     path = out / "map_corrected.mcap"
     export_foxglove_mcap(store, path, revision=revision, overwrite=True,
                          double_walls=None if diagnosis is None else diagnosis.double_walls)
     return {"foxglove_mcap": str(path)}
-
-
-def _with_seconds(result: DemoResult, seconds: float) -> DemoResult:
-    from dataclasses import replace
-
-    return replace(result, seconds=seconds)
 
 
 # ---------------------------------------------------------------------------------------------- report
@@ -365,8 +354,9 @@ def summary_rows(r: DemoResult) -> list[tuple[str, str]]:
     return rows
 
 
-def _region_lines(s: DiagnosisSummary) -> list[str]:
-    return [f"{100 * g['separation_m']:.1f} +- {100 * g['separation_sigma_m']:.1f} cm at {g['center_m']} m: frames "
+def region_lines(s: DiagnosisSummary) -> list[str]:
+    """One line per double-wall region: separation, where, and which frames disagree."""
+    return [f"{100 * g['separation_m']:.1f} +- {100 * g['separation_sigma_m']:.1f} cm apart at {g['center_m']} m: frames "
             f"{g['frames_a'][0]}-{g['frames_a'][1]} vs {g['frames_b'][0]}-{g['frames_b'][1]}" for g in s.regions]
 
 
@@ -394,7 +384,7 @@ def write_markdown_report(path: Path, r: DemoResult) -> Path:
         if s is None:
             continue
         lines += ["", f"## Double walls, {s.label}", ""]
-        lines += [f"- {line}" for line in _region_lines(s)] or ["- none flagged"]
+        lines += [f"- {line}" for line in region_lines(s)] or ["- none flagged"]
     lines += ["", "## Figures", ""]
     for key, caption in _FIGURES:
         if key in r.files:
@@ -419,7 +409,7 @@ def write_html_report(path: Path, r: DemoResult) -> Path:
         if s is None:
             continue
         parts.append(f"<h2>Double walls, {esc(s.label)}</h2><ul>")
-        parts += [f"<li>{esc(line)}</li>" for line in _region_lines(s)] or ["<li>none flagged</li>"]
+        parts += [f"<li>{esc(line)}</li>" for line in region_lines(s)] or ["<li>none flagged</li>"]
         parts.append("</ul>")
     parts.append("<h2>Figures</h2>")
     for key, caption in _FIGURES:
