@@ -167,6 +167,12 @@ def convert(
     console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
 
 
+_KITTI_FRAME_HELP = ("Frame of a KITTI pose file on a store of KITTI Velodyne scans: auto (the data set's own cam0 "
+                     "poses.txt is converted to the Velodyne frame, any other file is taken as Velodyne poses) | "
+                     "velodyne (rows as they are) | cam0 (converted with calib.txt Tr).")
+_CALIB_HELP = "KITTI calib.txt (line Tr) for --kitti-frame cam0 (default: the data set's calib.txt)."
+
+
 def _load_build_config(path: Optional[Path]):
     import tomllib
 
@@ -195,6 +201,8 @@ def build(
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
     frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
+    kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
+    calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
     from driftmap.pipeline.build import build as run_build
@@ -209,7 +217,8 @@ def build(
             progress.update(tasks[stage], completed=done, total=total)
 
         result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
-                           loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick)
+                           loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick,
+                           kitti_frame=kitti_frame, calib_file=calib)
     table = Table(title=f"driftmap build: {source} -> {out}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -253,11 +262,14 @@ def correct(
     source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
     max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", help="Stamp matching tolerance (ms).")] = 10.0,
     no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
+    kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
+    calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
 ) -> None:
     """Import a pose file as a new revision (a correction); nothing is overwritten."""
     with _open_store(store_path, "a") as store:
         revision, matched = store.import_poses(poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
-                                               source=source, propagate=not no_propagate)
+                                               source=source, propagate=not no_propagate, kitti_frame=kitti_frame,
+                                               calib_file=calib)
         d = store.diff(revision.parent_id, revision.revision_id)
     console.print(f"revision {revision.revision_id} (parent {revision.parent_id}, source {revision.source.value}): "
                   f"{len(revision.set_directly)} frames set from {poses.name}, {len(revision.propagated)} propagated; "
@@ -390,6 +402,8 @@ def diagnose(
     report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
     compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
     points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
+    kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
+    calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
@@ -406,7 +420,12 @@ def diagnose(
         cfg = DiagnoseConfig.for_sensor(kind)
         if points_per_frame is not None:
             cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
-        ground_truth = read_ground_truth(store, gt, gt_format) if gt is not None else None
+        if gt is None and (kitti_frame != "auto" or calib is not None):
+            from driftmap.errors import ConfigError
+
+            raise ConfigError("--kitti-frame / --calib describe the --gt FILE; give one")
+        ground_truth = (read_ground_truth(store, gt, gt_format, kitti_frame=kitti_frame, calib_file=calib)
+                        if gt is not None else None)
         with console.status(f"sampling {len(store)} frames"):
             t0 = time.perf_counter()
             cloud = DiagnosticCloud.from_store(store, cfg.sampling)

@@ -170,17 +170,28 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
 
 
 def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,
-                      max_dt_ns: int = 10_000_000) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+                      max_dt_ns: int = 10_000_000, kitti_frame: str = "auto",
+                      calib_file: str | Path | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
     """Ground-truth poses for the store's frames: TUM rows matched by stamp, KITTI row i = ``frame_id`` i.
 
-    Returns the matched frame ids and their poses; the file must hold ``T_world_sensor`` of the same sensor frame.
+    Returns the matched frame ids and their poses; the file must hold ``T_world_sensor`` of the same sensor
+    frame, except that on a store of KITTI Velodyne scans a KITTI data set's own cam0 ``poses.txt`` is
+    converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
+    in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
     """
+    from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
     from driftmap.store.ledger import PoseMatchMode, match_trajectory
 
     fmt = format.lower()
     if fmt not in ("tum", "kitti"):
         raise ConfigError(f"--gt-format must be tum or kitti, got {format!r}")
+    if fmt == "tum" and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
     traj: Trajectory = read_tum(path) if fmt == "tum" else read_kitti(path)
+    if fmt == "kitti":
+        rows = kitti_rows_as_velodyne(path, traj.poses, kitti_origin_of_store(store), kitti_frame=kitti_frame,
+                                      calib_file=calib_file)
+        traj = Trajectory(traj.stamps_ns, rows, traj.frame_ids)
     mode = PoseMatchMode.STAMP if fmt == "tum" else PoseMatchMode.INDEX
     matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
     if not matched.poses:

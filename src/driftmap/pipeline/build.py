@@ -126,17 +126,20 @@ def _open(source: str | Path, format: str | None, frames: str | None, config: Bu
     return src
 
 
-def _pose_file_lookup(poses_file: str | Path, source: FrameSource) -> Callable[[Frame], np.ndarray]:
+def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: str = "auto",
+                      calib_file: str | Path | None = None) -> Callable[[Frame], np.ndarray]:
     traj = read_trajectory(poses_file)
     is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
     if is_kitti:  # row i is the pose of frame_id i
-        rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source)
+        rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source, kitti_frame, calib_file)
 
         def by_index(frame: Frame) -> np.ndarray:
             if frame.frame_id >= len(rows):
                 raise SourceError(f"{poses_file}: {len(rows)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
             return rows[frame.frame_id]
         return by_index
+    if kitti_frame != "auto" or calib_file is not None:
+        raise ConfigError(f"{poses_file}: not a KITTI pose file; --kitti-frame / --calib apply to KITTI files only")
     stamps = traj.stamps_ns
 
     def by_stamp(frame: Frame) -> np.ndarray:
@@ -148,24 +151,15 @@ def _pose_file_lookup(poses_file: str | Path, source: FrameSource) -> Callable[[
     return by_stamp
 
 
-def _kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: FrameSource) -> np.ndarray:
-    """KITTI pose rows as ``T_world_sensor``. A KITTI data set's own ground-truth file holds left-camera (cam0)
-    poses: for that file the rows are converted to the Velodyne frame with the data set's calibration, as
-    ``--poses-from-source`` does. Any other file is taken as poses of the sensor frame itself (e.g. a LiDAR
-    odometry's output)."""
-    own = getattr(source, "poses_file", None)
-    T_cam0_velo = getattr(source, "T_cam0_velo", None)
-    if own is None or T_cam0_velo is None:
-        return poses
-    if Path(own).resolve() == poses_file.resolve():
-        from driftmap.sources.kitti import velo_poses_from_cam0
+def _kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: FrameSource, kitti_frame: str = "auto",
+                                calib_file: str | Path | None = None) -> np.ndarray:
+    """KITTI pose rows as ``T_world_sensor``: the data set's own cam0 ground truth is converted to the Velodyne
+    frame, as ``--poses-from-source`` does; see :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (shared
+    with ``correct`` and ``diagnose``)."""
+    from driftmap.sources.kitti import kitti_origin_of_source, kitti_rows_as_velodyne
 
-        logger.info("%s is the data set's cam0 ground truth: rows converted to the Velodyne frame with calib.txt Tr",
-                    poses_file)
-        return velo_poses_from_cam0(poses, T_cam0_velo)
-    logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo; a cam0 ground-truth file must be converted "
-                   "(inv(Tr) @ T_cam0 @ Tr) or used through --poses-from-source", poses_file)
-    return poses
+    return kitti_rows_as_velodyne(poses_file, poses, kitti_origin_of_source(source), kitti_frame=kitti_frame,
+                                  calib_file=calib_file)
 
 
 def build(
@@ -181,8 +175,13 @@ def build(
     resume: bool = False,
     progress: ProgressCallback | None = None,
     inject_wrong_loop: tuple[int, int, np.ndarray] | None = None,
+    kitti_frame: str = "auto",
+    calib_file: str | Path | None = None,
 ) -> BuildResult:
     """Build (or ``resume``) a store from a source. See the module docstring for the stages.
+
+    ``kitti_frame`` / ``calib_file``: the frame of a KITTI ``poses_file`` (``auto`` | ``velodyne`` | ``cam0``)
+    and the calibration for ``cam0``; see :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`.
 
     ``inject_wrong_loop=(frame_a, frame_b, T_a_b)`` adds a deliberately wrong loop measurement (for testing
     the robust back end); it is reported like any other loop.
@@ -190,6 +189,8 @@ def build(
     config = config or BuildConfig()
     if poses_file is not None and poses_from_source:
         raise ConfigError("give either --poses FILE or --poses-from-source, not both")
+    if poses_file is None and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError("--kitti-frame / --calib describe a KITTI --poses FILE; give one")
     tick = progress or (lambda stage, done, total: None)
     stages: dict[str, float] = {}
     out = Path(out)
@@ -206,16 +207,18 @@ def build(
     else:
         store = FrameStore.create(out)
     try:
-        return _build(src, store, config, poses_file, poses_from_source, loop_closure, tick, stages, inject_wrong_loop)
+        return _build(src, store, config, poses_file, poses_from_source, loop_closure, tick, stages, inject_wrong_loop,
+                      kitti_frame=kitti_frame, calib_file=calib_file)
     finally:
         store.close()
 
 
 def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file: str | Path | None, poses_from_source: bool,
            loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
-           inject_wrong_loop: tuple[int, int, np.ndarray] | None) -> BuildResult:
+           inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, kitti_frame: str = "auto",
+           calib_file: str | Path | None = None) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
-    pose_of = _pose_file_lookup(poses_file, src) if poses_file is not None else None
+    pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file) if poses_file is not None else None
     pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
     odometry: KissOdometry | GicpMapOdometry | None = None
     n_total = len(src)

@@ -16,7 +16,10 @@ filtering); intensity is a per-point attribute.
 
 from __future__ import annotations
 
+import enum
 import logging
+import re
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -24,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import SourceError, TransformError
+from driftmap.errors import ConfigError, SourceError, TransformError
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source
 from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
@@ -84,6 +87,152 @@ def read_times(file: Path) -> list[int]:
 def velo_poses_from_cam0(T_world_cam0: NDArray[np.float64], T_cam0_velo: NDArray[np.float64]) -> NDArray[np.float64]:
     """KITTI ground truth in the Velodyne frame: ``inv(Tr) @ T_cam0 @ Tr`` for a (N, 4, 4) stack."""
     return geometry.invert(T_cam0_velo) @ np.asarray(T_world_cam0) @ T_cam0_velo
+
+
+def default_poses_file(sequence_dir: str | Path) -> Path | None:
+    """A sequence folder's own ground truth: ``poses.txt`` in it, else the official ``../../poses/NN.txt``."""
+    folder = Path(sequence_dir)
+    resolved = folder.resolve()
+    for candidate in (folder / "poses.txt", resolved.parent.parent / "poses" / f"{resolved.name}.txt"):
+        if candidate.is_file():
+            return candidate
+    return None
+
+
+# ------------------------------------------------------------------------------ the frame of a KITTI pose file
+
+
+class KittiFrame(str, enum.Enum):
+    """The frame the rows of a KITTI pose file are in, for frames that are Velodyne scans.
+
+    ``auto``: the KITTI data set's own ``poses.txt`` (cam0 ground truth) is converted, any other file is taken
+    as Velodyne poses (with a warning); ``velodyne``: rows are ``T_world_velo`` as they are; ``cam0``: rows are
+    ``T_world_cam0`` and are converted with ``calib.txt`` ``Tr``.
+    """
+
+    AUTO = "auto"
+    VELODYNE = "velodyne"
+    CAM0 = "cam0"
+
+
+@dataclass(frozen=True)
+class KittiOrigin:
+    """The KITTI odometry sequence a source's or a store's frames come from.
+
+    ``poses_file`` (the sequence's own cam0 ground truth) and ``calib_file`` are ``None`` when absent (e.g.
+    the data set is no longer at the path the store recorded).
+    """
+
+    sequence_dir: Path
+    poses_file: Path | None
+    calib_file: Path | None
+
+    @classmethod
+    def of_folder(cls, sequence_dir: str | Path, poses_file: str | Path | None = None) -> KittiOrigin:
+        folder = Path(sequence_dir)
+        own = Path(poses_file) if poses_file is not None else default_poses_file(folder)
+        calib = folder / "calib.txt"
+        return cls(folder, own, calib if calib.is_file() else None)
+
+    def is_own_poses_file(self, file: str | Path) -> bool:
+        """``file`` is this sequence's ground-truth file: the same file (paths resolved) or a byte-identical copy."""
+        if self.poses_file is None:
+            return False
+        a, b = Path(file), self.poses_file
+        try:
+            if a.resolve() == b.resolve():
+                return True
+            return a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes()
+        except OSError:
+            return False
+
+
+_SCAN_NAME = re.compile(r"^\d+\.bin$")
+
+
+def kitti_origin_of_source(source: object) -> KittiOrigin | None:
+    """The sequence a :class:`KittiOdometry` source reads (``None`` for any other source)."""
+    if not isinstance(source, KittiOdometry):
+        return None
+    return KittiOrigin(source.path, source.poses_file, source.path / "calib.txt" if (source.path / "calib.txt").is_file() else None)
+
+
+def kitti_origin_of_frame_infos(infos: list[dict[str, Any]]) -> KittiOrigin | None:
+    """The KITTI sequence stored frames come from, from their metadata (:meth:`FrameStore.frame_info`): every
+    frame a ``velodyne`` scan whose provenance is ``<sequence>/velodyne/NNNNNN.bin`` of one sequence folder.
+    ``None`` for frames from anything else (or from several sequences)."""
+    folders = set()
+    for info in infos:
+        prov = info.get("provenance")
+        if info.get("sensor_frame") != "velodyne" or not prov or not prov.get("source_uri"):
+            return None
+        scan = Path(prov["source_uri"])
+        if scan.parent.name != "velodyne" or not _SCAN_NAME.match(scan.name):
+            return None
+        folders.add(scan.parent.parent)
+    if len(folders) != 1:
+        return None
+    return KittiOrigin.of_folder(folders.pop())
+
+
+def kitti_origin_of_store(store: Any) -> KittiOrigin | None:
+    """The KITTI sequence a :class:`~driftmap.store.frame_store.FrameStore`'s frames come from, or ``None``."""
+    return kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
+
+
+def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64], origin: KittiOrigin | None, *,
+                           kitti_frame: KittiFrame | str = KittiFrame.AUTO,
+                           calib_file: str | Path | None = None) -> NDArray[np.float64]:
+    """The rows of a KITTI pose file as ``T_world_velo`` for frames that are Velodyne scans of ``origin``.
+
+    The one place that decides the frame of a KITTI file (``build --poses``, ``correct --format kitti`` and
+    ``diagnose --gt-format kitti`` all call it). ``kitti_frame`` (see :class:`KittiFrame`):
+
+    - ``auto``: when ``origin`` is a KITTI sequence and ``poses_file`` is its own ground truth (cam0), the rows
+      are converted, ``inv(Tr) @ T_cam0 @ Tr``, and an info line is logged; another file with a KITTI
+      ``origin`` is taken as Velodyne poses with a warning; without an ``origin`` rows are returned as they are.
+    - ``velodyne``: rows are returned as they are.
+    - ``cam0``: rows are converted with ``calib_file`` or else the origin's ``calib.txt``; neither ->
+      :class:`ConfigError` naming ``poses_file``.
+    """
+    try:
+        frame = KittiFrame(kitti_frame)
+    except ValueError:
+        raise ConfigError(f"{poses_file}: KITTI frame must be one of {[f.value for f in KittiFrame]}, "
+                          f"got {kitti_frame!r}") from None
+    rows = np.asarray(T_world_x, dtype=np.float64)
+    calib = Path(calib_file) if calib_file is not None else (origin.calib_file if origin is not None else None)
+    if frame is KittiFrame.VELODYNE:
+        if calib_file is not None:
+            logger.warning("%s: calibration %s not used (KITTI frame velodyne: rows are T_world_velo)", poses_file,
+                           calib_file)
+        logger.info("%s: KITTI rows taken as Velodyne poses T_world_velo (KITTI frame velodyne)", poses_file)
+        return rows
+    if frame is KittiFrame.CAM0:
+        if calib is None:
+            where = (f"{origin.sequence_dir / 'calib.txt'} not found" if origin is not None
+                     else "the store's frames do not come from a KITTI data set")
+            raise ConfigError(f"{poses_file}: KITTI frame cam0 needs the calibration (calib.txt, line Tr) to convert "
+                              f"the rows to the Velodyne frame, but {where}; give the calibration file (--calib)")
+        logger.info("%s: KITTI rows are cam0 poses: converted to the Velodyne frame with %s Tr", poses_file, calib)
+        return velo_poses_from_cam0(rows, read_calib_tr(calib))
+    own = origin is not None and origin.is_own_poses_file(poses_file)
+    if not own and calib_file is not None:
+        logger.warning("%s: calibration %s not used: the rows are taken as Velodyne poses (KITTI frame auto); "
+                       "use --kitti-frame cam0 to convert them", poses_file, calib_file)
+    if origin is None:
+        return rows
+    if own:
+        if calib is None:
+            raise ConfigError(f"{poses_file} is the cam0 ground truth of {origin.sequence_dir}, but its calibration "
+                              f"{origin.sequence_dir / 'calib.txt'} is not found; give the calibration file (--calib) "
+                              f"or say the rows are Velodyne poses (--kitti-frame velodyne)")
+        logger.info("%s is the data set's cam0 ground truth: rows converted to the Velodyne frame with %s Tr",
+                    poses_file, calib)
+        return velo_poses_from_cam0(rows, read_calib_tr(calib))
+    logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo; a cam0 ground-truth file must be converted "
+                   "(inv(Tr) @ T_cam0 @ Tr): use --kitti-frame cam0 (or --poses-from-source for build)", poses_file)
+    return rows
 
 
 class KittiOdometry(FrameSource):
@@ -174,11 +323,7 @@ class KittiOdometry(FrameSource):
             if not Path(poses).is_file():
                 raise SourceError(f"{poses}: ground-truth pose file not found")
             return Path(poses)
-        sequence = self.path.resolve()
-        for candidate in (self.path / "poses.txt", sequence.parent.parent / "poses" / f"{sequence.name}.txt"):
-            if candidate.is_file():
-                return candidate
-        return None
+        return default_poses_file(self.path)
 
     def _count(self) -> int:
         return len(self._entries)

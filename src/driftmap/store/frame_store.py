@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import __version__
-from driftmap.errors import StoreError
+from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource
 from driftmap.store.ledger import PoseDiff, PoseLedger, PoseMatch, PoseMatchMode, Revision, match_trajectory
 from driftmap.store.segment import (
@@ -505,17 +505,30 @@ class FrameStore:
 
     def import_poses(self, file: str | Path, *, format: TrajectoryFormat | str = TrajectoryFormat.TUM,
                      match: PoseMatchMode | str | None = None, max_dt_ns: int = 10_000_000,
-                     source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True) -> tuple[Revision, PoseMatch]:
+                     source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True,
+                     kitti_frame: str = "auto", calib_file: str | Path | None = None) -> tuple[Revision, PoseMatch]:
         """Import a TUM or KITTI pose file as a new revision.
 
         TUM files match by stamp (``max_dt_ns`` tolerance) unless ``match='index'``; KITTI files match by
         index: row i is the pose of ``frame_id`` i. Rows for frames not in the store are ignored and
         reported in the returned :class:`PoseMatch`; stored frames without a row are propagated from the
         matched ones (``propagate``) or keep their pose.
+
+        KITTI rows on a store of KITTI Velodyne scans: ``kitti_frame`` (``auto`` | ``velodyne`` | ``cam0``) and
+        ``calib_file`` as in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (``auto`` converts the data
+        set's own cam0 ``poses.txt`` to the Velodyne frame).
         """
         fmt = TrajectoryFormat(format)
         mode = PoseMatchMode(match) if match is not None else (PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX)
+        if fmt is TrajectoryFormat.TUM and (kitti_frame != "auto" or calib_file is not None):
+            raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
         trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
+        if fmt is TrajectoryFormat.KITTI:
+            from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
+
+            rows = kitti_rows_as_velodyne(file, trajectory.poses, kitti_origin_of_store(self), kitti_frame=kitti_frame,
+                                          calib_file=calib_file)
+            trajectory = Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
         matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
         if not matched.poses:
             raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}); nothing imported")
