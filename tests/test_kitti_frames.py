@@ -83,6 +83,7 @@ def test_diagnose_converts_the_datasets_cam0_ground_truth(gt_store: Path, kitti_
     assert right["n_frames_matched"] == wrong["n_frames_matched"] == 6
     assert right["ate_rmse_m"] < 1e-6 and right["ate_max_m"] < 1e-6  # < 1 micrometre, not just < 1 mm
     assert right["rpe_trans_rmse_m"] < 1e-5
+    assert right["rpe_rot_rmse_deg"] < 1e-4  # the file's 6-digit rotations are projected onto SO(3) first
     assert wrong["ate_rmse_m"] > 100 * max(right["ate_rmse_m"], 1e-6)
     assert wrong["rpe_trans_rmse_m"] > 0.5  # frame-to-frame motion of ~1 m/frame, along the wrong axes
 

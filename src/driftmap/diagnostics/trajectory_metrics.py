@@ -33,6 +33,19 @@ def umeyama(source_m: NDArray[np.float64], target_m: NDArray[np.float64], *, wit
     return T, scale
 
 
+def _project_rotations(poses: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The nearest rotation (SVD) in every pose's rotation block; poses already orthonormal are unchanged."""
+    U, _, Vt = np.linalg.svd(poses[:, :3, :3])
+    R = U @ Vt
+    flip = np.linalg.det(R) < 0
+    if np.any(flip):
+        U[flip, :, 2] *= -1.0
+        R = U @ Vt
+    out = poses.copy()
+    out[:, :3, :3] = R
+    return out
+
+
 @dataclass(frozen=True)
 class TrajectoryErrors:
     ate_rmse_m: float
@@ -52,6 +65,9 @@ def trajectory_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.fl
     gt = np.asarray(ground_truth, dtype=np.float64)
     if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
         raise ConfigError(f"trajectory_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
+    # pose files store rotations to a few digits (KITTI: 6 significant): project them onto SO(3) so that the
+    # rigid inverse is exact and a perfect estimate gives zero rotation error
+    est, gt = _project_rotations(est), _project_rotations(gt)
     T, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=with_scale)
     aligned = s * est[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
     err = np.linalg.norm(aligned - gt[:, :3, 3], axis=1)
