@@ -42,24 +42,8 @@ from driftmap.store.frame_store import FrameStore
 KITCHEN = shared_datasets_dir() / "7scenes-redkitchen"
 
 
-def dominant_normals(cloud: DiagnosticCloud, poses: np.ndarray, n: int = 3, angle_deg: float = 15.0) -> list[np.ndarray]:
-    """The ``n`` most common surface-normal directions (sign-free), each at least 45 deg from the others."""
-    normals = cloud.place(poses).normals_world
-    rng = np.random.default_rng(0)
-    candidates = normals[rng.choice(len(normals), 3000, replace=False)]
-    ref = normals[::10]
-    cos = np.cos(np.radians(angle_deg))
-    support = (np.abs(candidates @ ref.T) >= cos).sum(axis=1)
-    out: list[np.ndarray] = []
-    for i in np.argsort(-support):
-        c = candidates[i]
-        if all(abs(c @ o) < np.cos(np.radians(45)) for o in out):
-            near = ref[np.abs(ref @ c) >= cos]
-            m = (near * np.sign(near @ c)[:, None]).mean(axis=0)
-            out.append(m / np.linalg.norm(m))
-        if len(out) == n:
-            break
-    return out
+def dominant_normals(cloud: DiagnosticCloud, poses: np.ndarray, n: int = 3) -> list[np.ndarray]:
+    return perturb.dominant_normals(cloud.place(poses).normals_world, n)
 
 
 def build_store(path: Path, frames: str, transform=None) -> FrameStore:
@@ -112,13 +96,13 @@ def synthetic_control(report: dict) -> None:
                            "odometry_fraction_flagged": ro.fraction_flagged, "odometry_smearing_m": ro.smearing_score_m}
 
 
-def steps(store: FrameStore, cloud: DiagnosticCloud, report: dict, quick: bool) -> None:
+def steps(store: FrameStore, cloud: DiagnosticCloud, report: dict, quick: bool, step_frames: tuple[int, ...] | None = None) -> None:
     print("\n== 2. translation steps (affected = normal within 25 deg, both sides seen, consistent before) ==")
     base = store.poses(0)
     ids = cloud.frame_ids
     base_result = detect_double_walls(cloud.place(base))
     base_cps = {c.frame_id for c in attribute(cloud.place(base)).change_points}
-    step_frames = (500,) if quick else (400, 500, 600, 700)
+    step_frames = step_frames or ((500,) if quick else (400, 500, 600, 700))
     mags = (0.02, 0.04) if quick else (0.01, 0.02, 0.04, 0.08)
     dirs = dominant_normals(cloud, base)
     rows = []
@@ -270,6 +254,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="fewer step frames, magnitudes and seeds")
     parser.add_argument("--build", action="store_true", help="also run driftmap build (KISS-ICP + loop closure), ~1 min")
     parser.add_argument("--json", type=Path, help="write the numbers here")
+    parser.add_argument("--step-frames", help="frame ids of the injected steps, comma-separated (default 400,500,600,700)")
     args = parser.parse_args()
     report: dict = {"frames": args.frames}
     t0 = time.perf_counter()
@@ -280,7 +265,8 @@ def main() -> None:
         print(f"7-Scenes redkitchen {args.frames}: {len(store)} frames, {cloud.n_points} samples")
         reference_map(store, cloud, report)
         synthetic_control(report)
-        steps(store, cloud, report, args.quick)
+        steps(store, cloud, report, args.quick,
+              tuple(int(v) for v in args.step_frames.split(",")) if args.step_frames else None)
         rotation_steps(store, cloud, report)
         drifts(store, cloud, report, args.quick)
         sensor_errors(tmp, args.frames, report)

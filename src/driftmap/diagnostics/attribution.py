@@ -56,10 +56,11 @@ class AttributionConfig(BaseModel):
     lever_m: float = Field(1.0, gt=0.0, description="length that makes rotation comparable to translation in the observability test (m)")
     min_relative_information: float = Field(0.01, gt=0.0, lt=1.0, description="a direction is unobservable below this share of the best direction's information")
     window: int = Field(5, ge=1, description="frames before a frame that form its local map for the jump series")
-    change_point_z: float = Field(5.0, gt=0.0, description="robust z-score a jump needs to be a change point")
-    min_jump_m: float = Field(0.01, ge=0.0, description="smallest jump reported as a change point (m)")
-    min_jump_deg: float = Field(0.5, ge=0.0, description="smallest rotation jump reported as a change point (deg)")
-    onset_fraction: float = Field(0.7, gt=0.0, le=1.0, description="a change point is the first frame of its cluster reaching this share of the peak score")
+    split_window: int = Field(5, ge=1, description="frames on each side of a candidate split in the change-point scan")
+    change_point_f: float = Field(200.0, gt=0.0, description="F statistic (explained / residual variance per degree of freedom) a split needs to be a change point")
+    min_split_cells: int = Field(10, ge=4, description="lateral cells seen on both sides a split needs")
+    split_jitter_m: float = Field(0.005, gt=0.0, description="pose jitter between frames in the change-point scan's cell weights (m)")
+    min_jump_m: float = Field(0.01, ge=0.0, description="smallest step reported as a change point (m)")
     revisit_min_path_m: float = Field(1.0, gt=0.0, description="a place is revisited when seen again after this much travel (m)")
 
 
@@ -102,10 +103,14 @@ class ChangePoint:
     jump_m: float
     jump_deg: float
     z_score: float
+    f_statistic: float = float("nan")
+    step_m: list[float] | None = None
+    """World-frame step of the frames from this one on relative to the frames before."""
 
     def to_json(self) -> dict:
         return {"frame_id": int(self.frame_id), "jump_m": float(self.jump_m), "jump_deg": float(self.jump_deg),
-                "stamp_ns": int(self.stamp_ns), "z_score": float(self.z_score)}
+                "stamp_ns": int(self.stamp_ns), "z_score": float(self.z_score), "f_statistic": float(self.f_statistic),
+                "step_m": self.step_m}
 
 
 @dataclass(frozen=True)
@@ -131,6 +136,8 @@ class Attribution:
     drift: DriftRate
     revisit_fraction: float
     config: AttributionConfig
+    split: SplitScan | None = None
+    """The change-point scan (step between the frames before and from each frame on)."""
 
     @property
     def revisit_note(self) -> str | None:
@@ -157,6 +164,8 @@ class Attribution:
                 "rotation_deg": [float(v) for v in d.rotation_deg[k]],
                 "jump_m": float(j.translation_norm_m[k]),
                 "jump_deg": float(j.rotation_norm_deg[k]),
+                "step_m": float(self.split.step_norm_m[k]) if self.split is not None else 0.0,
+                "step_f": float(self.split.f_statistic[k]) if self.split is not None else 0.0,
                 "path_length_m": float(self.path_length_m[k]),
             })
         return out
@@ -257,6 +266,7 @@ class _Steps:
     revisit: FrameAlignment
     revisit_path_m: NDArray[np.float64]
     revisit_fraction: float
+    split: SplitScan
 
 
 def _all_steps(cloud: PlacedCloud, cfg: AttributionConfig) -> _Steps:
@@ -288,43 +298,119 @@ def _all_steps(cloud: PlacedCloud, cfg: AttributionConfig) -> _Steps:
     mean_s = np.bincount(rows, weights=np.where(revisit.valid, revisit.mean_path_m, 0.0), minlength=M) / np.maximum(cnt, 1)
     revisit_path = np.where(cnt > 0, path - mean_s, 0.0)
     fraction = float(np.mean(revisited)) if len(revisited) else 0.0
-    return _Steps(disagreement, jumps, rev, revisit_path, fraction)
+    return _Steps(disagreement, jumps, rev, revisit_path, fraction, split_scan(cloud, sg, cfg))
 
 
-def change_points(cloud: PlacedCloud, jumps: FrameAlignment, config: AttributionConfig | None = None) -> list[ChangePoint]:
-    """Pose jumps: robust outliers of the jump series, one per cluster.
+@dataclass(frozen=True)
+class SplitScan:
+    """The change-point scan: per frame row ``j``, the translation step between the ``split_window`` frames
+    before ``j`` and the ``split_window`` frames from ``j`` on (row 0 has none)."""
 
-    A jump at frame k shows in frame k's step against the ``window`` frames before it and, fading, in the
-    next ``window - 1`` frames (their windows still hold frames from before the jump). Significant frames
-    closer than ``window`` form one cluster; its change point is the first frame whose jump reaches
-    ``onset_fraction`` of the cluster's largest (the onset, not the tail of the ramp)."""
+    step_m: NDArray[np.float64]
+    """(M, 3) world-frame step of the frames from ``j`` on relative to the frames before (observable part)."""
+    f_statistic: NDArray[np.float64]
+    """(M,) explained over residual variance per degree of freedom; 0 where fewer than ``min_split_cells`` cells."""
+    n_cells: NDArray[np.int64]
+    """Lateral cells seen on both sides of the split."""
+    n_observable: NDArray[np.int64]
+    """Directions (of 3) the cells constrain."""
+
+    @property
+    def step_norm_m(self) -> NDArray[np.float64]:
+        return np.linalg.norm(self.step_m, axis=1)
+
+
+def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig | None = None) -> SplitScan:
+    """Fit a translation step at every split of the frame sequence from the surface cells both sides saw.
+
+    For split ``j`` and every lateral cell seen by frames ``[j - W, j)`` (A) and ``[j, j + W)`` (B), the
+    difference of the two sides' mean offsets along the cell's normal ``d = mean_B - mean_A`` (relief every
+    frame sees cancels) is a point-to-plane observation of the step ``t``: ``d = n . t``, weighted
+    ``nA nB / (nA + nB) / sigma^2``. A few Huber-reweighted least-squares rounds give ``t`` on the directions
+    the cells constrain; ``F = (b . t / rank) / (Q / (N - rank))`` compares what the step explains with what it
+    leaves (Q) over N cells. A pose jump at frame k gives the largest F at ``j = k``: every window around it
+    sees both sides, and one frame later the windows already mix. Both sides use surfaces of several
+    frames, so a direction one frame alone cannot observe is still seen. Vectorised over all splits: every
+    (cell, frame) entry takes part in the ``2 W`` splits whose windows hold it."""
     cfg = config or AttributionConfig()
-    ok = jumps.estimated(cfg.min_correspondences)
-    t, a = jumps.translation_norm_m, jumps.rotation_norm_deg
-    if ok.sum() < 5:
+    M, W = cloud.samples.n_frames, cfg.split_window
+    empty = SplitScan(np.zeros((M, 3)), np.zeros(M), np.zeros(M, np.int64), np.zeros(M, np.int64))
+    if M < 2 or sg.n_cells == 0:
+        return empty
+    rows = cloud.frame_index[sg.point_index]
+    s2 = cloud.sigma_normal_m[sg.point_index].astype(np.float64) ** 2
+    entry, keys = _dense_ids(sg.cell * M + rows)
+    E = len(keys)
+    e_cell, e_row = keys // M, keys % M
+    n_e = np.bincount(entry, minlength=E).astype(np.float64)
+    s_e = np.bincount(entry, weights=sg.offset_m, minlength=E)
+    v_e = np.bincount(entry, weights=s2, minlength=E)
+    # entry at row r is on side A of splits r+1 .. r+W and on side B of splits r-W+1 .. r
+    shift = np.concatenate([np.arange(1, W + 1), np.arange(-W + 1, 1)])
+    pe = np.repeat(np.arange(E), 2 * W)
+    pj = e_row[pe] + np.tile(shift, E)
+    ok = (pj >= 1) & (pj <= M - 1)
+    pe, pj = pe[ok], pj[ok]
+    before = pj > e_row[pe]
+    pid, pkeys = _dense_ids(e_cell[pe] * M + pj)
+    P = len(pkeys)
+    nA = np.bincount(pid, weights=np.where(before, n_e[pe], 0.0), minlength=P)
+    nB = np.bincount(pid, weights=np.where(before, 0.0, n_e[pe]), minlength=P)
+    sA = np.bincount(pid, weights=np.where(before, s_e[pe], 0.0), minlength=P)
+    sB = np.bincount(pid, weights=np.where(before, 0.0, s_e[pe]), minlength=P)
+    vv = np.bincount(pid, weights=v_e[pe], minlength=P)
+    both = (nA > 0) & (nB > 0)
+    nA, nB, sA, sB, vv, pkeys = nA[both], nB[both], sA[both], sB[both], vv[both], pkeys[both]
+    j = pkeys % M
+    n = sg.normals[sg.cell_group[pkeys // M]]
+    d = sB / nB - sA / nA
+    # noise of d: the two sides' sensor noise plus pose jitter between frames (which more points do not average out)
+    w0 = 1.0 / (vv / (nA + nB) * (1.0 / nA + 1.0 / nB) + cfg.split_jitter_m**2)
+    N = np.bincount(j, minlength=M)
+    x = np.zeros((M, 3))
+    for _ in range(3):
+        r = d - np.einsum("pi,pi->p", n, x[j])
+        w = w0 * np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+        H = np.zeros((M, 3, 3))
+        b = np.zeros((M, 3))
+        for a in range(3):
+            b[:, a] = np.bincount(j, weights=w * d * n[:, a], minlength=M)
+            for c in range(a, 3):
+                H[:, a, c] = H[:, c, a] = np.bincount(j, weights=w * n[:, a] * n[:, c], minlength=M)
+        lam, V = np.linalg.eigh(H)
+        good = lam > cfg.min_relative_information * np.maximum(lam[:, -1:], 1e-30)
+        inv = np.where(good, 1.0 / np.where(good, lam, 1.0), 0.0)
+        x = np.einsum("mij,mj,mkj,mk->mi", V, inv, V, b)
+    rank = good.sum(axis=1)
+    G = np.einsum("mi,mi->m", b, x)
+    Q = np.bincount(j, weights=w * (d - np.einsum("pi,pi->p", n, x[j])) ** 2, minlength=M)
+    enough = (N >= cfg.min_split_cells) & (rank > 0)
+    F = np.where(enough, (G / np.maximum(rank, 1)) / np.maximum(Q / np.maximum(N - rank, 1), 1e-300), 0.0)
+    x[~enough] = 0.0
+    return SplitScan(x, F, N.astype(np.int64), np.where(enough, rank, 0).astype(np.int64))
+
+
+def change_points(cloud: PlacedCloud, scan: SplitScan, jumps: FrameAlignment | None = None,
+                  config: AttributionConfig | None = None) -> list[ChangePoint]:
+    """Pose jumps: splits whose F statistic is the largest within ``split_window`` frames, at least
+    ``change_point_f``, with a step of at least ``min_jump_m``. ``jump_deg`` is the rotation of the frame's
+    own step against the frames just before it (``jumps``); ``z_score`` is the split's robust z-score of
+    ``ln F`` over the sequence (how unusual it is for this map)."""
+    from scipy.ndimage import maximum_filter1d
+
+    cfg = config or AttributionConfig()
+    F, t = scan.f_statistic, scan.step_norm_m
+    if not np.any(F > 0):
         return []
-
-    def robust_z(x: NDArray[np.float64]) -> NDArray[np.float64]:
-        med = np.median(x[ok])
-        mad = 1.4826 * np.median(np.abs(x[ok] - med)) + 1e-9
-        return np.where(ok, (x - med) / mad, 0.0)
-
-    zt, za = robust_z(t), robust_z(a)
-    score = np.maximum(zt, za)
-    big = np.flatnonzero(ok & (((zt >= cfg.change_point_z) & (t >= cfg.min_jump_m))
-                               | ((za >= cfg.change_point_z) & (a >= cfg.min_jump_deg))))
-    out = []
-    if big.size == 0:
-        return out
-    clusters = np.split(big, np.flatnonzero(np.diff(big) > cfg.window) + 1)
-    for members in clusters:
-        peak = members[np.argmax(score[members])]
-        lo = max(0, int(members[0]) - cfg.window + 1)
-        span = np.arange(lo, int(peak) + 1)
-        onset = span[np.flatnonzero(ok[span] & (score[span] >= cfg.onset_fraction * score[peak]))[0]]
-        out.append(ChangePoint(int(cloud.frame_ids[onset]), int(cloud.stamps_ns[onset]), float(t[onset]), float(a[onset]),
-                               float(score[onset])))
-    return out
+    peak = F >= maximum_filter1d(F, 2 * cfg.split_window + 1, mode="constant")
+    hits = np.flatnonzero(peak & (F >= cfg.change_point_f) & (t >= cfg.min_jump_m))
+    logF = np.log(np.maximum(F[F > 0], 1e-12))
+    med = np.median(logF)
+    mad = 1.4826 * np.median(np.abs(logF - med)) + 1e-9
+    rot = jumps.rotation_norm_deg if jumps is not None else np.zeros(len(F))
+    return [ChangePoint(int(cloud.frame_ids[k]), int(cloud.stamps_ns[k]), float(t[k]), float(rot[k]),
+                        float((np.log(F[k]) - med) / mad), float(F[k]), [float(v) for v in scan.step_m[k]])
+            for k in hits]
 
 
 def drift_rate(revisit: FrameAlignment, revisit_path_m: NDArray[np.float64], config: AttributionConfig | None = None) -> DriftRate:
@@ -343,10 +429,11 @@ def attribute(cloud: PlacedCloud, config: AttributionConfig | None = None) -> At
     """Disagreement, jumps, change points, drift rate and revisit fraction of a placed cloud."""
     cfg = config or AttributionConfig()
     steps = _all_steps(cloud, cfg)
-    cps = change_points(cloud, steps.jumps, cfg)
+    cps = change_points(cloud, steps.split, steps.jumps, cfg)
     drift = drift_rate(steps.revisit, steps.revisit_path_m, cfg)
     result = Attribution(cloud.frame_ids.copy(), cloud.stamps_ns.copy(), cloud.path_length_m.copy(), steps.disagreement,
-                         steps.jumps, steps.revisit, steps.revisit_path_m, cps, drift, steps.revisit_fraction, cfg)
+                         steps.jumps, steps.revisit, steps.revisit_path_m, cps, drift, steps.revisit_fraction, cfg,
+                         steps.split)
     if result.revisit_note:
         logger.warning(result.revisit_note)
     logger.info("attribution: %d change points, drift %s %%/m %s deg/m, revisit fraction %.3f", len(cps),

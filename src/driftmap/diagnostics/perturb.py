@@ -250,6 +250,32 @@ class StepDetection:
         return np.abs(self.separation_error_m) <= np.maximum(abs_m, rel * self.expected_m)
 
 
+def dominant_normals(normals_world: ArrayLike, n: int = 3, *, angle_deg: float = 15.0, min_separation_deg: float = 45.0,
+                     seed: int = 0) -> list[NDArray[np.float64]]:
+    """The ``n`` most common surface-normal directions (sign-free) of a placed cloud's ``normals_world``, each
+    at least ``min_separation_deg`` from the others: the step directions of the perturbation protocol (a step
+    along a direction no surface faces is invisible to any consistency measure). A direction's support is the
+    number of normals within ``angle_deg``; the direction returned is their sign-aligned mean."""
+    normals = np.asarray(normals_world, dtype=np.float64)
+    if normals.ndim != 2 or normals.shape[1] != 3 or len(normals) < 10:
+        raise ConfigError(f"dominant_normals: need (N >= 10, 3) normals, got shape {normals.shape}")
+    rng = np.random.default_rng(seed)
+    candidates = normals[rng.choice(len(normals), min(3000, len(normals)), replace=False)]
+    ref = normals[::10]
+    cos = np.cos(np.radians(angle_deg))
+    support = (np.abs(candidates @ ref.T) >= cos).sum(axis=1)
+    out: list[NDArray[np.float64]] = []
+    for i in np.argsort(-support):
+        c = candidates[i]
+        if all(abs(c @ o) < np.cos(np.radians(min_separation_deg)) for o in out):
+            near = ref[np.abs(ref @ c) >= cos]
+            m = (near * np.sign(near @ c)[:, None]).mean(axis=0)
+            out.append(m / np.linalg.norm(m))
+        if len(out) == n:
+            break
+    return out
+
+
 def evaluate_step(samples: DiagnosticCloud, base_poses: ArrayLike, step_index: int, step_m: ArrayLike,
                   result: DoubleWallResult, *, max_angle_deg: float = 25.0, min_frames_per_side: int = 2, min_side_fraction: float = 0.1,
                   max_baseline_m: float = 0.003, max_baseline_smear_m: float | None = 0.004) -> list[StepDetection]:

@@ -309,11 +309,15 @@ def plot_frame_disagreement(path: str | Path, diagnosis: Diagnosis, *, title: st
     est = at.disagreement.estimated(cfg.min_correspondences)
     obs = at.disagreement.observable(cfg.min_correspondences)
     fig, axes = plt.subplots(2, 1, figsize=(10.0, 6.0), sharex=True)
-    for ax, d, j, unit, scale in ((axes[0], at.disagreement.translation_norm_m, at.jumps.translation_norm_m, "mm", 1000.0),
-                                  (axes[1], at.disagreement.rotation_norm_deg, at.jumps.rotation_norm_deg, "deg", 1.0)):
+    step = at.split.step_norm_m if at.split is not None else at.jumps.translation_norm_m
+    step_label = (f"step: {cfg.split_window} frames from here vs the {cfg.split_window} before" if at.split is not None
+                  else f"jump vs the {cfg.window} frames before")
+    for ax, d, j, unit, scale, label in (
+            (axes[0], at.disagreement.translation_norm_m, step, "mm", 1000.0, step_label),
+            (axes[1], at.disagreement.rotation_norm_deg, at.jumps.rotation_norm_deg, "deg", 1.0, f"jump vs the {cfg.window} frames before")):
         ax.plot(x[est], d[est] * scale, ".-", ms=3, lw=0.8, color="tab:blue", label="disagreement with the map")
         ax.plot(x[est & ~obs], d[est & ~obs] * scale, "x", ms=4, color="0.5", label="(a direction unobservable)")
-        ax.plot(x, j * scale, "-", lw=0.8, color="tab:orange", label=f"jump vs the {cfg.window} frames before")
+        ax.plot(x, j * scale, "-", lw=0.8, color="tab:orange", label=label)
         for cp in at.change_points:
             ax.axvline(cp.frame_id, color="crimson", lw=1.0, alpha=0.8)
         ax.set_ylabel(unit)
@@ -321,6 +325,7 @@ def plot_frame_disagreement(path: str | Path, diagnosis: Diagnosis, *, title: st
     if at.change_points:
         axes[0].plot([], [], color="crimson", label="change point")
     axes[0].legend(loc="upper right", fontsize=8)
+    axes[1].legend(loc="upper right", fontsize=8)
     axes[1].set_xlabel("frame id")
     drift = at.drift
     rate = ("no revisit: drift invisible" if drift.percent_per_m is None
