@@ -1,0 +1,121 @@
+"""``diagnose`` on a real loop (issue 6): 7-Scenes redkitchen, every 4th of 1000 frames, built with a drifting
+but realistic odometry -- frame-to-local-map GICP whose map forgets voxels unseen for 30 frames (a sliding
+window, like KISS-ICP's local map) -- then loop-closed, against the ground-truth-posed store of the same frames.
+
+The default frame-to-map odometry keeps the whole map and closes this loop by itself (no double wall to find);
+KISS-ICP drifts smoothly and leaves none at the revisit either. With the windowed map, revision 0 holds the
+surface near the first pass (frames ~260-520) a second time when the camera returns (frames ~800-1000, which
+include the 928-966 revisit of 216-260): ``diagnose`` must find that double wall, and the loop-closed revision
+must bring the map back to the ground-truth map's level.
+
+Not yet met (xfail below): the loop wall does not *disappear* after loop closure -- it is about halved
+(measured 5.5 -> 3.0-3.2 cm) while the ground-truth map holds the same surfaces within ~1-2 cm.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.diagnostics.double_wall import DiagnosticCloud
+from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+from driftmap.pipeline.build import BuildConfig, build
+from driftmap.registration.odometry import OdometryConfig, OdometryMethod
+from driftmap.store.frame_store import FrameStore
+
+FRAMES = "0:1000:4"
+WINDOWED_GICP = BuildConfig(odometry=OdometryConfig(method=OdometryMethod.GICP_MAP, gicp_map_horizon_frames=30))
+FIRST_PASS_MAX_FRAME = 600  # layer A of the loop wall: seen on the first pass through the kitchen
+RETURN_MIN_FRAME = 780  # layer B: seen on the way back
+REVISIT = (928, 966)  # the frames that revisit 216-260 (the loop the build closes)
+SAME_PLACE_M = 0.3
+SAME_NORMAL_DEG = 25.0
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def diagnosed(sevenscenes_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict:
+    tmp = tmp_path_factory.mktemp("loop7")
+    result = build(sevenscenes_dir, tmp / "odo", frames=FRAMES, config=WINDOWED_GICP)
+    assert result.loop_revision is not None, "the loop closure must write a revision"
+    build(sevenscenes_dir, tmp / "gt", frames=FRAMES, poses_from_source=True, loop_closure=False)
+    out: dict = {}
+    with FrameStore.open(tmp / "gt") as gt_store:
+        gt_poses = gt_store.poses(0)
+        out["gt"] = diagnose_store(gt_store, 0).to_json()
+    with FrameStore.open(tmp / "odo") as store:
+        assert np.array_equal(store.frame_ids, np.sort(store.frame_ids))
+        cloud = DiagnosticCloud.from_store(store, DiagnoseConfig().sampling)  # the same samples for both revisions
+        out["rev0"] = diagnose_store(store, 0, cloud=cloud).to_json()
+        out["head"] = diagnose_store(store, store.head, cloud=cloud).to_json()
+        out["ate_rev0_m"] = trajectory_errors(store.poses(0), gt_poses).ate_rmse_m
+        out["ate_head_m"] = trajectory_errors(store.poses(store.head), gt_poses).ate_rmse_m
+    return out
+
+
+def _loop_wall(diagnosis: dict) -> dict | None:
+    """The largest region whose earlier layer was seen on the first pass and whose later layer on the return,
+    with the 928-966 revisit on the later layer."""
+    best = None
+    for region in diagnosis["double_wall"]["regions"]:
+        a, b = np.asarray(region["frames_a"]), np.asarray(region["frames_b"])
+        revisit_a = np.sum((a >= REVISIT[0]) & (a <= REVISIT[1]))
+        revisit_b = np.sum((b >= REVISIT[0]) & (b <= REVISIT[1]))
+        if (region["n_voxels"] >= 5 and np.median(a) < FIRST_PASS_MAX_FRAME and np.median(b) > RETURN_MIN_FRAME
+                and revisit_b >= 3 and revisit_b >= 3 * revisit_a):
+            if best is None or region["n_voxels"] > best["n_voxels"]:
+                best = region
+    return best
+
+
+def _separation_at(diagnosis: dict, wall: dict) -> float:
+    """The largest separation of any region of ``diagnosis`` at the place and orientation of ``wall`` (0 if none)."""
+    c, n = np.asarray(wall["center_m"]), np.asarray(wall["normal"])
+    seps = [r["separation_m"] for r in diagnosis["double_wall"]["regions"]
+            if np.linalg.norm(np.asarray(r["center_m"]) - c) <= SAME_PLACE_M
+            and abs(float(np.dot(r["normal"], n))) >= np.cos(np.radians(SAME_NORMAL_DEG))]
+    return max(seps, default=0.0)
+
+
+def _frac(diagnosis: dict) -> float:
+    return diagnosis["double_wall"]["fraction_flagged"]
+
+
+def test_odometry_only_map_shows_the_loop_double_wall(diagnosed: dict) -> None:
+    wall = _loop_wall(diagnosed["rev0"])
+    assert wall is not None, [(r["separation_m"], r["n_voxels"], r["stamp_ns_a"], r["stamp_ns_b"])
+                              for r in diagnosed["rev0"]["double_wall"]["regions"]]
+    assert wall["separation_m"] >= 0.03, wall["separation_m"]
+    # the odometry-only map is doubled far more often than the ground-truth map
+    assert _frac(diagnosed["rev0"]) >= 3.0 * _frac(diagnosed["gt"]), (_frac(diagnosed["rev0"]), _frac(diagnosed["gt"]))
+    # the ground-truth map has no such loop wall
+    assert _loop_wall(diagnosed["gt"]) is None
+
+
+def test_loop_closure_brings_the_map_to_the_ground_truth_level(diagnosed: dict) -> None:
+    rev0, head, gt = diagnosed["rev0"], diagnosed["head"], diagnosed["gt"]
+    # issue 6: the corrected map's smearing score within 1.5x of the ground-truth-posed map's
+    assert head["smearing_score_m"] <= 1.5 * gt["smearing_score_m"], (head["smearing_score_m"], gt["smearing_score_m"])
+    assert head["smearing_score_m"] <= rev0["smearing_score_m"] / 1.1, (head["smearing_score_m"],
+                                                                        rev0["smearing_score_m"])
+    assert head["smearing_score_revisit_m"] < rev0["smearing_score_revisit_m"]
+    assert _frac(head) <= 1.5 * _frac(gt), (_frac(head), _frac(gt))
+    assert _frac(head) <= 0.5 * _frac(rev0), (_frac(head), _frac(rev0))
+    assert diagnosed["ate_head_m"] < 0.9 * diagnosed["ate_rev0_m"], (diagnosed["ate_head_m"], diagnosed["ate_rev0_m"])
+    wall = _loop_wall(rev0)
+    assert wall is not None
+    after = _separation_at(head, wall)
+    assert after <= 0.75 * wall["separation_m"], (after, wall["separation_m"])
+
+
+@pytest.mark.xfail(strict=True, reason="issue 6: loop closure about halves the loop double wall (5.5 -> 3 cm) but "
+                                       "does not remove it; the ground-truth map holds those surfaces within ~1-2 cm")
+def test_loop_double_wall_disappears_after_loop_closure(diagnosed: dict) -> None:
+    wall = _loop_wall(diagnosed["rev0"])
+    assert wall is not None
+    assert _loop_wall(diagnosed["head"]) is None
+    assert _separation_at(diagnosed["head"], wall) < 0.02
