@@ -11,7 +11,7 @@ import logging
 import os
 import sys
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import numpy as np
 import typer
@@ -22,6 +22,9 @@ from rich.table import Table
 
 from driftmap import __version__
 from driftmap.errors import DriftmapError
+
+if TYPE_CHECKING:
+    from driftmap.diagnostics.verify import RegionCheck
 
 app = typer.Typer(
     name="driftmap",
@@ -392,6 +395,12 @@ def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Fr
         console.print(f"recovered {event}")
 
 
+def _verification_note(check: RegionCheck) -> str:
+    if check.offset_b_minus_a_m is None:
+        return f"; unverifiable ({check.note})"
+    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' if check.confirmed else 'NOT confirmed'}"
+
+
 @app.command()
 def diagnose(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
@@ -404,9 +413,11 @@ def diagnose(
     points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
+    verify: Annotated[bool, typer.Option("--verify", help="Re-measure every double-wall region from the stored full-resolution frames with Open3D (adds \"verification\" per region and double_wall.verified).")] = False,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
+    import dataclasses
     import time
 
     from driftmap.diagnostics.double_wall import DiagnosticCloud
@@ -435,6 +446,14 @@ def diagnose(
             result.seconds["sampling"] = sampling_s
             other = (diagnose_store(store, compare_revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
                      if compare_revision is not None else None)
+        if verify:
+            from driftmap.diagnostics.verify import verify_regions
+
+            with console.status(f"verifying {len(result.double_walls.regions)} double-wall regions"):
+                t0 = time.perf_counter()
+                checks = verify_regions(store, result.revision, result.double_walls.regions)
+                result.seconds["verify"] = time.perf_counter() - t0
+            result = dataclasses.replace(result, verification=checks)
     data = result.to_json()
     if other is not None:
         data["comparison"] = {"revision": other.revision, "smearing_score_m": other.to_json()["smearing_score_m"],
@@ -462,13 +481,18 @@ def diagnose(
         rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
     if other is not None:
         rows.append((f"smearing score, revision {other.revision}", f"{1000 * other.smearing_score_m:.2f} mm"))
+    if result.verification is not None:
+        ver = data["double_wall"]["verified"]
+        rows.append(("regions confirmed (Open3D)", f"{ver['regions_confirmed']} / {ver['regions_checked']}; "
+                                                   f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed"))
     for k, v in rows:
         table.add_row(k, v)
     console.print(table)
     for k, region in enumerate(dw.regions[:5]):
         console.print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm at "
                       f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "
-                      f"{region.frames_b.min()}-{region.frames_b.max()}", highlight=False)
+                      f"{region.frames_b.min()}-{region.frames_b.max()}"
+                      + ("" if result.verification is None else _verification_note(result.verification[k])), highlight=False)
     if result.attribution.revisit_note:
         console.print(f"[yellow]{result.attribution.revisit_note}[/yellow]")
     if report is not None:

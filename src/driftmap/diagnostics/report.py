@@ -36,6 +36,7 @@ from driftmap.diagnostics.double_wall import (  # noqa: E402
     detect_double_walls,
     map_entropy,
 )
+from driftmap.diagnostics.verify import RegionCheck, verification_summary  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
 from driftmap.trajectory import Trajectory, read_kitti, read_tum  # noqa: E402
@@ -90,6 +91,8 @@ class Diagnosis:
     config: DiagnoseConfig
     placed: PlacedCloud
     seconds: dict[str, float] = field(default_factory=dict)
+    verification: list[RegionCheck] | None = None
+    """Per region (same order), the independent check of :func:`driftmap.diagnostics.verify.verify_regions`."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -123,6 +126,10 @@ class Diagnosis:
         }
         if self.trajectory is not None:
             out["trajectory"] = self.trajectory
+        if self.verification is not None:
+            for region_json, check in zip(out["double_wall"]["regions"], self.verification):
+                region_json["verification"] = check.to_json()
+            out["double_wall"]["verified"] = verification_summary(self.verification, dw.regions, dw.voxels_evaluated)
         return out
 
 
