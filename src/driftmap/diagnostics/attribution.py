@@ -14,10 +14,11 @@ relative to the best one are *unobservable* (a frame that sees one plane cannot 
 are left out of the step and reported.
 
 * **disagreement**: the consensus is every other frame.
-* **jumps / change points**: the consensus is the ``window`` frames just before (frame-to-local-map, as
-  odometry would see it). A pose jump at frame k makes frame k disagree with its predecessors while the
-  frames around it agree with theirs; change points are robust outliers of that series that are local
-  maxima.
+* **jumps**: the consensus is the ``window`` frames just before (frame-to-local-map, as odometry would see it).
+* **change points** (:func:`split_scan`): a translation step fitted at every split of the sequence between
+  the ``split_window`` frames before and the ``split_window`` frames from it on; a split whose F statistic
+  is a local maximum above ``change_point_f`` is a change point. Groups of frames on both sides observe
+  directions a single frame sees too weakly.
 * **drift rate**: the consensus is the frames seen at least ``revisit_min_path_m`` of travel earlier; the
   disagreement grows with the path travelled in between, a line through the origin gives %/m and deg/m.
 * **revisit fraction**: the share of sampled points that have such a neighbour at all. Drift without a
