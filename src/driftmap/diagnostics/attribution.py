@@ -137,7 +137,7 @@ class Attribution:
     drift: DriftRate
     revisit_fraction: float
     config: AttributionConfig
-    split: SplitScan | None = None
+    split: SplitScan
     """The change-point scan (step between the frames before and from each frame on)."""
 
     @property
@@ -165,8 +165,8 @@ class Attribution:
                 "rotation_deg": [float(v) for v in d.rotation_deg[k]],
                 "jump_m": float(j.translation_norm_m[k]),
                 "jump_deg": float(j.rotation_norm_deg[k]),
-                "step_m": float(self.split.step_norm_m[k]) if self.split is not None else 0.0,
-                "step_f": float(self.split.f_statistic[k]) if self.split is not None else 0.0,
+                "step_m": float(self.split.step_norm_m[k]),
+                "step_f": float(self.split.f_statistic[k]),
                 "path_length_m": float(self.path_length_m[k]),
             })
         return out

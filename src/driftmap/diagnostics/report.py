@@ -316,9 +316,8 @@ def plot_frame_disagreement(path: str | Path, diagnosis: Diagnosis, *, title: st
     est = at.disagreement.estimated(cfg.min_correspondences)
     obs = at.disagreement.observable(cfg.min_correspondences)
     fig, axes = plt.subplots(2, 1, figsize=(10.0, 6.0), sharex=True)
-    step = at.split.step_norm_m if at.split is not None else at.jumps.translation_norm_m
-    step_label = (f"step: {cfg.split_window} frames from here vs the {cfg.split_window} before" if at.split is not None
-                  else f"jump vs the {cfg.window} frames before")
+    step = at.split.step_norm_m
+    step_label = f"step: {cfg.split_window} frames from here vs the {cfg.split_window} before"
     for ax, d, j, unit, scale, label in (
             (axes[0], at.disagreement.translation_norm_m, step, "mm", 1000.0, step_label),
             (axes[1], at.disagreement.rotation_norm_deg, at.jumps.rotation_norm_deg, "deg", 1.0, f"jump vs the {cfg.window} frames before")):
