@@ -8,6 +8,9 @@ from pathlib import Path
 import pytest
 
 from driftmap.datasets import ENV_VAR, shared_datasets_dir
+from driftmap.diagnostics.double_wall import DiagnosticCloud
+from driftmap.sources.sevenscenes import SevenScenes
+from driftmap.store.frame_store import FrameStore
 
 IN_CI = os.environ.get("CI", "").lower() in ("1", "true", "yes")
 
@@ -34,3 +37,21 @@ def sevenscenes_dir(datasets_dir: Path) -> Path:
 @pytest.fixture(scope="session")
 def kitti_dir(datasets_dir: Path) -> Path:
     return _require(datasets_dir / "kitti-00-frames0-15")
+
+
+@pytest.fixture(scope="session")
+def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> FrameStore:
+    """7-Scenes redkitchen, 200 frames (every 5th of 1000, 160x120 pixels) with the data set's poses as
+    revision 0; built once for the diagnostics and verification tests (read only)."""
+    path = tmp_path_factory.mktemp("kitchen") / "kitchen"
+    source = SevenScenes(sevenscenes_dir, pixel_stride=4, poses_from_ground_truth=True, frames="0:1000:5")
+    with FrameStore.create(path) as store:
+        for frame in source:
+            store.append(frame)
+    return FrameStore.open(path)
+
+
+@pytest.fixture(scope="session")
+def kitchen_cloud(kitchen: FrameStore) -> DiagnosticCloud:
+    """The default diagnostic samples of ``kitchen``."""
+    return DiagnosticCloud.from_store(kitchen)

@@ -21,7 +21,6 @@ from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.errors import ConfigError
 from driftmap.frame import Frame, PoseEstimate, SensorKind
-from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.sources.synthetic import SyntheticLog
 from driftmap.store.frame_store import FrameStore
 from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
@@ -31,22 +30,6 @@ GT_JUMP_FRAME_ID = 125  # the KinectFusion poses jump between frames 121 and 122
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
-
-
-@pytest.fixture(scope="module")
-def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> FrameStore:
-    """200 frames (every 5th of 1000, 160x120 pixels) with the data set's poses as revision 0."""
-    path = tmp_path_factory.mktemp("diag") / "kitchen"
-    source = SevenScenes(sevenscenes_dir, pixel_stride=4, poses_from_ground_truth=True, frames="0:1000:5")
-    with FrameStore.create(path) as store:
-        for frame in source:
-            store.append(frame)
-    return FrameStore.open(path)
-
-
-@pytest.fixture(scope="module")
-def kitchen_cloud(kitchen: FrameStore) -> DiagnosticCloud:
-    return DiagnosticCloud.from_store(kitchen)
 
 
 @pytest.fixture(scope="module")

@@ -19,7 +19,6 @@ from driftmap.diagnostics import perturb
 from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallRegion, detect_double_walls
 from driftmap.diagnostics.verify import RegionCheck, is_confirmed, verification_summary, verify_regions
 from driftmap.errors import ConfigError, StoreError
-from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.sources.synthetic import SyntheticLog
 from driftmap.store.frame_store import FrameStore
 
@@ -67,21 +66,8 @@ def synthetic_regions(synthetic_store) -> tuple[FrameStore, int, int, list[Doubl
 
 
 @pytest.fixture(scope="module")
-def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> FrameStore:
-    """200 frames (every 5th of 1000, 160x120 pixels) with the data set's poses as revision 0 (as in
-    tests/test_diagnostics.py)."""
-    path = tmp_path_factory.mktemp("verify") / "kitchen"
-    source = SevenScenes(sevenscenes_dir, pixel_stride=4, poses_from_ground_truth=True, frames="0:1000:5")
-    with FrameStore.create(path) as store:
-        for frame in source:
-            store.append(frame)
-    return FrameStore.open(path)
-
-
-@pytest.fixture(scope="module")
-def kitchen_regions(kitchen: FrameStore) -> tuple[DiagnosticCloud, list[DoubleWallRegion]]:
-    cloud = DiagnosticCloud.from_store(kitchen)
-    return cloud, detect_double_walls(cloud.place(kitchen.poses(0))).regions
+def kitchen_regions(kitchen: FrameStore, kitchen_cloud: DiagnosticCloud) -> tuple[DiagnosticCloud, list[DoubleWallRegion]]:
+    return kitchen_cloud, detect_double_walls(kitchen_cloud.place(kitchen.poses(0))).regions
 
 
 # ---------------------------------------------------------------------------------------------- synthetic
