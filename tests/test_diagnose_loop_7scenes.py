@@ -8,8 +8,9 @@ surface near the first pass (frames ~260-520) a second time when the camera retu
 include the 928-966 revisit of 216-260): ``diagnose`` must find that double wall, and the loop-closed revision
 must bring the map back to the ground-truth map's level.
 
-Not yet met (xfail below): the loop wall does not *disappear* after loop closure -- it is about halved
-(measured 5.5 -> 3.0-3.2 cm) while the ground-truth map holds the same surfaces within ~1-2 cm.
+The loop-closed revision no longer holds that wall (measured 5.5 cm -> none) once the odometry edges of the
+pose graph are keyframe registrations calibrated like the loops (``odometry_edges = auto`` for a windowed
+odometry); with the windowed odometry's own relative poses as stiff, uncalibrated edges it was only halved.
 """
 
 from __future__ import annotations
@@ -112,8 +113,6 @@ def test_loop_closure_brings_the_map_to_the_ground_truth_level(diagnosed: dict) 
     assert after <= 0.75 * wall["separation_m"], (after, wall["separation_m"])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 6: loop closure about halves the loop double wall (5.5 -> 3 cm) but "
-                                       "does not remove it; the ground-truth map holds those surfaces within ~1-2 cm")
 def test_loop_double_wall_disappears_after_loop_closure(diagnosed: dict) -> None:
     wall = _loop_wall(diagnosed["rev0"])
     assert wall is not None

@@ -60,10 +60,10 @@ class BuildConfig(BaseModel):
     odometry_edge_window: int = Field(3, ge=1, description="pose graph: each keyframe is linked to the next this many keyframes")
     odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
         "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
-                            "or auto (trajectory for frame-to-map odometry, else registration)")
+                            "or auto (trajectory for frame-to-map odometry that keeps its whole map, else registration)")
     depth_scale_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: scale every frame's ranges by this factor before odometry and storing (1 = none)")
     focal_length_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: depth cameras as if back-projected with this times the true focal length (1 = none)")
-    information_calibration_iterations: int = Field(3, ge=0, description="pose graph: variance-component re-weighting rounds")
+    information_calibration_iterations: int = Field(10, ge=0, description="pose graph: at most this many variance-component re-weighting rounds (they stop once no group's scale changes by more than 5 %)")
 
 
 @dataclass
@@ -321,15 +321,22 @@ def _edge_residual_chi2(T_from_to: np.ndarray, information: np.ndarray, T_world_
 
 
 def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_odometry: bool) -> bool:
-    """Whether odometry edges take the revision-0 relative pose (frame-to-map odometry, which is more accurate
-    than a keyframe-to-keyframe registration) or the keyframe registration (KISS-ICP, given poses)."""
+    """Whether odometry edges take the revision-0 relative pose or the keyframe registration.
+
+    ``auto``: the relative pose when the frames were tracked against a map of *every* frame so far
+    (``gicp_map`` without a horizon): such an odometry re-registers a revisited place to its first pass by
+    itself, and its relative poses are more accurate than a keyframe-to-keyframe registration. Otherwise
+    (KISS-ICP, a windowed ``gicp_map``, given poses) the keyframe registration: a local-map odometry's
+    relative poses carry the drift the loops must take out, and as trajectory edges they could not be
+    calibrated (they start at zero residual), so their raw GICP information would hold the drift in place
+    (measured in docs/build.md)."""
     if config.odometry_edges == "trajectory":
         return True
     if config.odometry_edges == "registration" or not own_odometry or len(store) == 0:
         return False
     kind = store.frame(int(store.frame_ids[0])).sensor_kind
     cfg = config.odometry or OdometryConfig.for_sensor(kind)
-    return cfg.method is OdometryMethod.GICP_MAP
+    return cfg.method is OdometryMethod.GICP_MAP and cfg.gicp_map_horizon_frames is None
 
 
 def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
