@@ -105,6 +105,9 @@ def test_loop_closure_brings_the_map_to_the_ground_truth_level(diagnosed: dict) 
                                                                         rev0["smearing_score_m"])
     assert head["smearing_score_revisit_m"] < rev0["smearing_score_revisit_m"]
     assert _frac(head) <= 1.5 * _frac(gt), (_frac(head), _frac(gt))
+    # a well-posed real map stays under the 1 % false-flag bar (measured 0.63 %; the data set's own
+    # poses give 1.36 % on these frames, their inconsistencies confirmed by `diagnose --verify`)
+    assert _frac(head) <= 0.01, _frac(head)
     assert _frac(head) <= 0.5 * _frac(rev0), (_frac(head), _frac(rev0))
     assert diagnosed["ate_head_m"] < 0.9 * diagnosed["ate_rev0_m"], (diagnosed["ate_head_m"], diagnosed["ate_rev0_m"])
     wall = _loop_wall(rev0)
