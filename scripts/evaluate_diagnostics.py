@@ -12,10 +12,12 @@ poses as the reference), diagnose, and record what changed:
 4. linear drift 0.25/0.5/1/2 %/m and 0.05/0.1/0.2 deg/m over seeds (random directions / axes): smearing
    score rank correlation, drift-rate estimate;
 5. depth-scale and focal-length errors applied to the frames before storing them (build time);
-6. with ``--build``: ``driftmap build`` (KISS-ICP odometry, loop closure) on frames 0:1000:2 against the
-   reference-posed map of the same frames.
+6. with ``--build``: ``driftmap build`` (loop closure on three odometries: the default frame-to-map GICP,
+   KISS-ICP, and a frame-to-map GICP with a 30-frame window that drifts into a loop double wall) on frames
+   ``--build-frames`` (default 0:1000:4), revision 0 and the loop-closed revision, against the reference-posed
+   map of the same frames.
 
-Usage: .venv/bin/python scripts/evaluate_diagnostics.py [--frames 0:1000:5] [--quick] [--build] [--json OUT]
+Usage: .venv/bin/python scripts/evaluate_diagnostics.py [--frames 0:1000:5] [--quick] [--build [--build-frames F]] [--json OUT]
 """
 
 from __future__ import annotations
@@ -226,33 +228,59 @@ def sensor_errors(tmp: Path, frames: str, report: dict) -> None:
     report["sensor_errors"] = out
 
 
-def build_comparison(tmp: Path, report: dict) -> None:
-    from driftmap.pipeline.build import build
+#: the odometries compared in section 6: the default frame-to-map GICP, KISS-ICP, and the windowed frame-to-map
+#: GICP that drifts into a loop double wall (tests/test_diagnose_loop_7scenes.py)
+BUILD_ODOMETRIES = {
+    "gicp_map (default)": None,
+    "kiss": {"method": "kiss"},
+    "gicp_map, 30-frame window": {"method": "gicp_map", "gicp_map_horizon_frames": 30},
+}
 
-    print("\n== 6. driftmap build (KISS-ICP odometry + loop closure) vs the reference poses, frames 0:1000:2 ==")
-    frames = "0:1000:2"
-    build(KITCHEN, tmp / "built", frames=frames)
+
+def build_comparison(tmp: Path, report: dict, frames: str) -> None:
+    from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+    from driftmap.pipeline.build import BuildConfig, build
+
+    print(f"\n== 6. driftmap build (odometry + loop closure) vs the reference poses, frames {frames} ==")
     build(KITCHEN, tmp / "reference", frames=frames, poses_from_source=True, loop_closure=False)
-    built, ref = FrameStore.open(tmp / "built"), FrameStore.open(tmp / "reference")
+    ref = FrameStore.open(tmp / "reference")
     d_ref = diagnose_store(ref, 0)
-    d0 = diagnose_store(built, 0)
-    d1 = diagnose_store(built, built.head)
-    rows = {"reference": d_ref, "odometry (rev 0)": d0, f"loop closure (rev {built.head})": d1}
-    for name, d in rows.items():
-        big = [r for r in d.double_walls.regions if r.separation_m >= 0.03]
-        print(f"  {name:22s} smearing {1000 * d.smearing_score_m:.2f} mm, flagged {fmt_pct(d.double_walls.fraction_flagged)}, "
-              f"regions >= 3 cm: {len(big)}" + (f" (largest {100 * max(r.separation_m for r in big):.1f} cm)" if big else ""))
-    print(f"  loop closure / reference score: {d1.smearing_score_m / d_ref.smearing_score_m:.2f} (target <= 1.5); "
-          f"odometry / reference: {d0.smearing_score_m / d_ref.smearing_score_m:.2f}")
-    report["build"] = {name: {"smearing_score_m": d.smearing_score_m, "fraction_flagged": d.double_walls.fraction_flagged}
-                       for name, d in rows.items()}
+    print(f"  {'reference poses':34s} smearing {1000 * d_ref.smearing_score_m:.2f} mm, flagged {fmt_pct(d_ref.double_walls.fraction_flagged)}")
+    report["build"] = {"frames": frames, "reference": {"smearing_score_m": d_ref.smearing_score_m,
+                                                       "fraction_flagged": d_ref.double_walls.fraction_flagged}}
+    for label, odometry in BUILD_ODOMETRIES.items():
+        out = tmp / f"built-{len(report['build'])}"
+        config = BuildConfig.model_validate({"odometry": odometry} if odometry else {})
+        build(KITCHEN, out, frames=frames, config=config)
+        built = FrameStore.open(out)
+        cloud = DiagnosticCloud.from_store(built)  # the same samples for both revisions
+        entry = {}
+        for rev in sorted({0, built.head}):
+            d = diagnose_store(built, rev, cloud=cloud)
+            ate = trajectory_errors(built.poses(rev), ref.poses(0)).ate_rmse_m
+            big = [r for r in d.double_walls.regions if r.separation_m >= 0.03]
+            largest = ""
+            if big:
+                r = max(big, key=lambda r: r.separation_m)
+                largest = (f" (largest {100 * r.separation_m:.1f} cm, frames {r.frames_a.min()}-{r.frames_a.max()} vs "
+                           f"{r.frames_b.min()}-{r.frames_b.max()})")
+            name = f"{label}, rev {rev}"
+            print(f"  {name:34s} smearing {1000 * d.smearing_score_m:.2f} mm ({d.smearing_score_m / d_ref.smearing_score_m:.2f}x "
+                  f"the reference), flagged {fmt_pct(d.double_walls.fraction_flagged)}, ATE {100 * ate:.2f} cm, "
+                  f"regions >= 3 cm: {len(big)}{largest}")
+            entry[f"rev{rev}"] = {"smearing_score_m": d.smearing_score_m, "fraction_flagged": d.double_walls.fraction_flagged,
+                                  "ate_rmse_m": ate, "regions_3cm": len(big)}
+        report["build"][label] = entry
+        built.close()
+    ref.close()
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--frames", default="0:1000:5", help="7-Scenes frames (START:STOP:STEP)")
     parser.add_argument("--quick", action="store_true", help="fewer step frames, magnitudes and seeds")
-    parser.add_argument("--build", action="store_true", help="also run driftmap build (KISS-ICP + loop closure), ~1 min")
+    parser.add_argument("--build", action="store_true", help="also run driftmap build (three odometries + loop closure), a few minutes")
+    parser.add_argument("--build-frames", default="0:1000:4", help="frames of the --build comparison")
     parser.add_argument("--json", type=Path, help="write the numbers here")
     parser.add_argument("--step-frames", help="frame ids of the injected steps, comma-separated (default 400,500,600,700)")
     args = parser.parse_args()
@@ -271,7 +299,7 @@ def main() -> None:
         drifts(store, cloud, report, args.quick)
         sensor_errors(tmp, args.frames, report)
         if args.build:
-            build_comparison(tmp, report)
+            build_comparison(tmp, report, args.build_frames)
         store.close()
     print(f"\n{time.perf_counter() - t0:.0f} s")
     if args.json:
