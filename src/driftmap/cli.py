@@ -398,7 +398,8 @@ def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Fr
 def _verification_note(check: RegionCheck) -> str:
     if check.offset_b_minus_a_m is None:
         return f"; unverifiable ({check.note})"
-    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' if check.confirmed else 'NOT confirmed'}"
+    cause = {True: ", a pose error", False: ", local (its surroundings agree: not a pose error)", None: ""}[check.pose_explained]
+    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' if check.confirmed else 'NOT confirmed'}{cause}"
 
 
 @app.command()
@@ -484,7 +485,9 @@ def diagnose(
     if result.verification is not None:
         ver = data["double_wall"]["verified"]
         rows.append(("regions confirmed (Open3D)", f"{ver['regions_confirmed']} / {ver['regions_checked']}; "
-                                                   f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed"))
+                                                   f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed, "
+                                                   f"{ver['regions_local']} regions local"))
+        rows.append(("flagged, confirmed pose errors", f"{100 * ver['fraction_pose']:.2f} % of evaluated voxels"))
     for k, v in rows:
         table.add_row(k, v)
     console.print(table)

@@ -25,6 +25,15 @@ Per region (see ``docs/diagnostics.md``, "Verification"):
 4. **Confirmed** when the measured offset has the reported sign and differs from it by at most
    ``max(abs_tolerance_m, rel_tolerance * |reported|)``; a region without enough points or correspondences
    is not confirmed, and ``note`` says why.
+5. **Pose or local?** (``context_offset_m``, ``pose_explained``): a pose error moves *everything* a frame sees.
+   For the best-ranked frames of each layer (pairs: 1st with 1st, 2nd with 2nd, ...) the points *around* the
+   region -- within ``context_radius_m`` of the centre but outside ``radius_m``, so the region itself takes no
+   part -- are aligned B onto A with Open3D point-to-plane ICP, and the displacement this rigid correction
+   gives the region centre along the normal (sign flipped) is the offset the surroundings explain; the median
+   over the pairs is ``context_offset_m``. ``pose_explained`` is True when it agrees with the measured offset
+   (same rule as 4.), False when the surroundings agree with each other but the region does not (a moved
+   object, a door, a sensor artefact: the map *is* doubled there, but no pose correction removes it), None
+   when undecidable (too few surrounding points facing the normal, or ICP did not hold).
 """
 
 from __future__ import annotations
@@ -72,6 +81,10 @@ class RegionCheck:
     frames_b_used: tuple[int, ...]
     confirmed: bool
     note: str | None = None
+    context_offset_m: float | None = None
+    """The offset of B from A that a rigid alignment of the two layers' surroundings explains (None: undecidable)."""
+    pose_explained: bool | None = None
+    """Whether ``context_offset_m`` agrees with the measured offset (None: undecidable or unverifiable)."""
 
     @property
     def verifiable(self) -> bool:
@@ -90,6 +103,8 @@ class RegionCheck:
             "n_correspondences": int(self.n_correspondences),
             "frames_a_used": [int(v) for v in self.frames_a_used],
             "frames_b_used": [int(v) for v in self.frames_b_used],
+            "context_offset_m": _num(self.context_offset_m),
+            "pose_explained": self.pose_explained,
         }
 
 
@@ -102,23 +117,30 @@ def is_confirmed(measured_m: float | None, reported_m: float, *, abs_tolerance_m
     """Same sign as ``reported_m`` and within ``max(abs_tolerance_m, rel_tolerance * |reported_m|)`` of it."""
     if measured_m is None or not math.isfinite(measured_m):
         return False
-    return (np.sign(measured_m) == np.sign(reported_m)
-            and abs(measured_m - reported_m) <= max(abs_tolerance_m, rel_tolerance * abs(reported_m)))
+    return bool(np.sign(measured_m) == np.sign(reported_m)
+                and abs(measured_m - reported_m) <= max(abs_tolerance_m, rel_tolerance * abs(reported_m)))
 
 
 def verification_summary(checks: Sequence[RegionCheck], regions: Sequence[DoubleWallRegion],
                          voxels_evaluated: int) -> dict:
     """``regions_checked``, ``regions_confirmed``, ``regions_unverifiable``, ``voxels_unconfirmed`` (flagged voxels of
-    the regions not confirmed) and ``fraction_unconfirmed`` (of the evaluated voxels)."""
+    the regions not confirmed) and ``fraction_unconfirmed`` (of the evaluated voxels); ``regions_local`` (confirmed,
+    but the surroundings say no pose error: ``pose_explained`` False), ``voxels_local`` and ``fraction_pose``:
+    the flagged voxels confirmed and not local, of the evaluated voxels -- the share a pose correction can fix."""
     if len(checks) != len(regions):
         raise ConfigError(f"verification summary: {len(checks)} checks for {len(regions)} regions")
     unconfirmed = sum(int(r.n_voxels) for c, r in zip(checks, regions) if not c.confirmed)
+    local = [(c, r) for c, r in zip(checks, regions) if c.confirmed and c.pose_explained is False]
+    pose = sum(int(r.n_voxels) for c, r in zip(checks, regions) if c.confirmed and c.pose_explained is not False)
     return {
         "regions_checked": len(checks),
         "regions_confirmed": sum(bool(c.confirmed) for c in checks),
         "regions_unverifiable": sum(not c.verifiable for c in checks),
         "voxels_unconfirmed": int(unconfirmed),
         "fraction_unconfirmed": unconfirmed / voxels_evaluated if voxels_evaluated else 0.0,
+        "regions_local": len(local),
+        "voxels_local": int(sum(int(r.n_voxels) for _, r in local)),
+        "fraction_pose": pose / voxels_evaluated if voxels_evaluated else 0.0,
     }
 
 
@@ -130,6 +152,8 @@ class _Layer:
     points: NDArray[np.float64]
     normals: NDArray[np.float64]
     frames: tuple[int, ...]
+    ranked: tuple[int, ...] = ()
+    """``frames`` best first (most points near the centre)."""
 
 
 def _pose_rows(store: FrameStore, frame_ids: NDArray[np.int64]) -> NDArray[np.int64]:
@@ -209,7 +233,7 @@ def _layer(store: FrameStore, frame_ids: NDArray[np.int64], poses: NDArray[np.fl
             used.append(int(ids[k]))
     if not pts_out:
         return _Layer(np.zeros((0, 3)), np.zeros((0, 3)), ())
-    return _Layer(np.concatenate(pts_out), np.concatenate(nrm_out), tuple(sorted(used)))
+    return _Layer(np.concatenate(pts_out), np.concatenate(nrm_out), tuple(sorted(used)), tuple(used))
 
 
 def _signed_distances(query: _Layer, reference: _Layer, normal: NDArray[np.float64], gate_m: float,
@@ -262,6 +286,47 @@ def _icp_offset(a: _Layer, b: _Layer, center: NDArray[np.float64], normal: NDArr
     return float(-(moved - center) @ normal)
 
 
+def _context_cloud(store: FrameStore, frame_id: int, T: NDArray[np.float64], center: NDArray[np.float64], inner_m: float,
+                   outer_m: float, voxel_m: float, search: o3d.geometry.KDTreeSearchParamHybrid) -> o3d.geometry.PointCloud:
+    """One frame's points between ``inner_m`` and ``outer_m`` of the centre, in the world, voxel-averaged, with normals
+    oriented to its sensor."""
+    near = _near_points(store.frame(int(frame_id)).points_sensor, T, center, outer_m).astype(np.float64)
+    world = near @ T[:3, :3].T + T[:3, 3]
+    world = world[np.einsum("ij,ij->i", world - center, world - center) > inner_m * inner_m]
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(world)).voxel_down_sample(voxel_m)
+    pcd.estimate_normals(search)
+    pcd.orient_normals_towards_camera_location(T[:3, 3])
+    return pcd
+
+
+def _context_offset(store: FrameStore, poses: NDArray[np.float64], a: _Layer, b: _Layer, center: NDArray[np.float64],
+                    normal: NDArray[np.float64], *, inner_m: float, outer_m: float, pairs: int, max_corr_m: float,
+                    voxel_m: float, min_facing_points: int, cos_max: float, search: o3d.geometry.KDTreeSearchParamHybrid,
+                    max_iterations: int, min_fitness: float = 0.3) -> tuple[float | None, str | None]:
+    """The offset of layer B from layer A that a rigid alignment of their surroundings explains (module doc, 5.)."""
+    offsets = []
+    why = "no frame pair"
+    reg = o3d.pipelines.registration
+    for fa, fb in list(zip(a.ranked, b.ranked))[:pairs]:
+        Ta, Tb = poses[_pose_rows(store, np.array([fa]))[0]], poses[_pose_rows(store, np.array([fb]))[0]]
+        target = _context_cloud(store, fa, Ta, center, inner_m, outer_m, voxel_m, search)
+        source = _context_cloud(store, fb, Tb, center, inner_m, outer_m, voxel_m, search)
+        facing = [int(np.sum(np.abs(np.asarray(c.normals) @ normal) >= cos_max)) for c in (target, source)]
+        if min(facing) < min_facing_points:
+            why = f"frames {fa}/{fb}: {min(facing)} surrounding points face the normal (< {min_facing_points})"
+            continue
+        result = reg.registration_icp(source, target, max_corr_m, np.eye(4), reg.TransformationEstimationPointToPlane(),
+                                      reg.ICPConvergenceCriteria(max_iteration=max_iterations))
+        if result.fitness < min_fitness:
+            why = f"frames {fa}/{fb}: surroundings overlap {result.fitness:.2f} after ICP (< {min_fitness})"
+            continue
+        T = np.asarray(result.transformation)
+        offsets.append(float(-((T[:3, :3] @ center + T[:3, 3]) - center) @ normal))
+    if not offsets:
+        return None, why
+    return float(np.median(offsets)), None
+
+
 # ---------------------------------------------------------------------------------------------- verify
 
 
@@ -270,11 +335,15 @@ def verify_regions(store: FrameStore, revision: int, regions: Sequence[DoubleWal
                    normal_max_nn: int = 30, normal_voxel_m: float = 0.02, min_points_per_layer: int = 100,
                    min_correspondences: int = 50, gate_m: float | None = None, max_lateral_m: float = 0.03,
                    neighbours: int = 8, icp: bool = True, icp_max_iterations: int = 30, abs_tolerance_m: float = 0.005,
-                   rel_tolerance: float = 0.25) -> list[RegionCheck]:
+                   rel_tolerance: float = 0.25, context: bool = True, context_radius_m: float = 3.0,
+                   context_pairs: int = 3, context_voxel_m: float = 0.03, context_min_facing_points: int = 100,
+                   context_abs_tolerance_m: float = 0.01, context_rel_tolerance: float = 0.35) -> list[RegionCheck]:
     """Check every region against the stored frames placed with ``revision``'s poses (see the module doc).
 
     ``gate_m`` (default ``2 |reported offset| + 2 cm``, symmetric about zero, so it does not favour the
     reported value) bounds the point-to-plane distances used and is ICP's maximum correspondence distance.
+    ``context`` adds step 5 (the surroundings within ``context_radius_m``, ``context_pairs`` frame pairs);
+    ``pose_explained`` uses ``max(context_abs_tolerance_m, context_rel_tolerance * |measured|)``.
     """
     if radius_m <= 0 or normal_radius_m <= 0 or max_lateral_m <= 0:
         raise ConfigError(f"verify_regions: radius_m, normal_radius_m and max_lateral_m must be positive "
@@ -322,12 +391,28 @@ def verify_regions(store: FrameStore, revision: int, regions: Sequence[DoubleWal
         reverse = float(-np.median(d_ab)) if len(d_ab) >= min_correspondences else None
         icp_off = _icp_offset(a, b, center, normal, gate, icp_max_iterations, normal_voxel_m) if icp else None
         ok = is_confirmed(measured, reported, abs_tolerance_m=abs_tolerance_m, rel_tolerance=rel_tolerance)
-        note = None
+        notes = []
         if not ok:
-            note = (f"measured {100 * measured:+.1f} cm, reported {100 * reported:+.1f} cm "
-                    f"(tolerance {100 * max(abs_tolerance_m, rel_tolerance * abs(reported)):.1f} cm)")
+            notes.append(f"measured {100 * measured:+.1f} cm, reported {100 * reported:+.1f} cm "
+                         f"(tolerance {100 * max(abs_tolerance_m, rel_tolerance * abs(reported)):.1f} cm)")
+        ctx = explained = None
+        if context:
+            ctx, why = _context_offset(
+                store, poses, a, b, center, normal, inner_m=radius_m, outer_m=context_radius_m, pairs=context_pairs,
+                max_corr_m=gate, voxel_m=context_voxel_m, min_facing_points=context_min_facing_points, cos_max=cos_max,
+                search=o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * context_voxel_m, max_nn=normal_max_nn),
+                max_iterations=icp_max_iterations)
+            if ctx is None:
+                notes.append(f"pose or local: undecidable ({why})")
+            else:
+                explained = is_confirmed(ctx, measured, abs_tolerance_m=context_abs_tolerance_m,
+                                         rel_tolerance=context_rel_tolerance)
+                if not explained:
+                    notes.append(f"the surroundings explain {100 * ctx:+.1f} cm of the measured {100 * measured:+.1f} cm: "
+                                 f"not a pose error of these frames (a local change or artefact)")
         checks.append(RegionCheck(offset_b_minus_a_m=measured, offset_reverse_m=reverse, offset_icp_m=icp_off,
-                                  spread_m=spread, n_correspondences=len(d_ba), confirmed=ok, note=note, **base))
-        logger.info("region %d: reported %+.4f m, measured %+.4f m (reverse %s, ICP %s), %s", k, reported, measured,
-                    reverse, icp_off, "confirmed" if ok else "NOT confirmed")
+                                  spread_m=spread, n_correspondences=len(d_ba), confirmed=ok,
+                                  note="; ".join(notes) or None, context_offset_m=ctx, pose_explained=explained, **base))
+        logger.info("region %d: reported %+.4f m, measured %+.4f m (reverse %s, ICP %s, surroundings %s), %s", k, reported,
+                    measured, reverse, icp_off, ctx, "confirmed" if ok else "NOT confirmed")
     return checks
