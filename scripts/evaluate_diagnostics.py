@@ -78,10 +78,13 @@ def reference_map(store: FrameStore, cloud: DiagnosticCloud, report: dict) -> No
               f"{region.frames_a.min()}-{region.frames_a.max()} vs {region.frames_b.min()}-{region.frames_b.max()}, {region.n_voxels} voxels")
     a = attribute(cloud.place(base))
     print(f"  change points: {[(c.frame_id, round(100 * c.jump_m, 1)) for c in a.change_points]} (frame, cm); "
-          f"revisited {100 * a.revisit_fraction:.0f} %; drift estimate {a.drift.percent_per_m:.2f} %/m {a.drift.deg_per_m:.3f} deg/m")
+          f"revisited {100 * a.revisit_fraction:.0f} %; drift estimate {a.drift.percent_per_m:.2f} %/m {a.drift.deg_per_m:.3f} deg/m "
+          f"(per-frame noise floor {100 * a.drift.noise_floor_m:.2f} cm, {a.drift.noise_floor_deg:.2f} deg)")
     report["reference"] = {"fraction_flagged_seeds": fractions, "voxels_evaluated": first.voxels_evaluated,
                            "smearing_score_m": first.smearing_score_m,
-                           "change_points": [(c.frame_id, c.jump_m) for c in a.change_points]}
+                           "change_points": [(c.frame_id, c.jump_m) for c in a.change_points],
+                           "drift_rate": {"percent_per_m": a.drift.percent_per_m, "deg_per_m": a.drift.deg_per_m,
+                                          "noise_floor_m": a.drift.noise_floor_m, "noise_floor_deg": a.drift.noise_floor_deg}}
 
 
 def synthetic_control(report: dict) -> None:

@@ -15,7 +15,7 @@ from typer.testing import CliRunner
 from driftmap.cli import app
 from driftmap.demo import embedded_log_path
 from driftmap.diagnostics import perturb
-from driftmap.diagnostics.attribution import attribute, segment_errors
+from driftmap.diagnostics.attribution import AttributionConfig, FrameAlignment, attribute, drift_rate, segment_errors
 from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallConfig, SamplingConfig, detect_double_walls, map_entropy
 from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
@@ -269,16 +269,50 @@ def test_kitchen_smearing_score_rises_with_linear_drift(kitchen: FrameStore, kit
     assert spearmanr(x, y).statistic >= 0.95
 
 
+def test_drift_rate_fit_separates_the_noise_floor_from_the_drift() -> None:
+    """Disagreements built from the model: the fit returns the rate and the floor it was built with, and a pure
+    noise floor reads as no drift (a line through the origin read it as drift)."""
+    rng = np.random.default_rng(3)
+    M = 200
+    s = rng.uniform(1.0, 5.0, M)
+    q = rng.choice([1.0, 2.0 / 3.0], (M, 2))
+
+    def alignment(rate_m_per_m: float, rate_deg_per_m: float, floor_m: float, floor_deg: float) -> FrameAlignment:
+        def vectors(norms: np.ndarray) -> np.ndarray:
+            v = rng.normal(size=(M, 3))
+            return v / np.linalg.norm(v, axis=1, keepdims=True) * norms[:, None]
+        t = vectors(np.sqrt(floor_m**2 + q[:, 0] * (rate_m_per_m * s) ** 2))
+        r = vectors(np.sqrt(floor_deg**2 + q[:, 1] * (rate_deg_per_m * s) ** 2))
+        return FrameAlignment(t, r, np.full(M, 500), np.zeros(M, np.int64), np.zeros(M), np.zeros((M, 3)), q)
+
+    d = drift_rate(alignment(0.01, 0.2, 0.012, 0.9), s, AttributionConfig())
+    assert d.percent_per_m == pytest.approx(1.0, rel=1e-6) and d.deg_per_m == pytest.approx(0.2, rel=1e-6)
+    assert d.noise_floor_m == pytest.approx(0.012, rel=1e-6) and d.noise_floor_deg == pytest.approx(0.9, rel=1e-6)
+    assert d.n_frames == M and d.path_span_m == pytest.approx(s.max())
+    still = drift_rate(alignment(0.0, 0.0, 0.012, 0.9), s, AttributionConfig())
+    assert still.percent_per_m == pytest.approx(0.0, abs=1e-6) and still.deg_per_m == pytest.approx(0.0, abs=1e-6)
+    # frames closer than revisit_min_path_m do not count; none left: no estimate
+    none = drift_rate(alignment(0.01, 0.2, 0.0, 0.0), s * 0.1, AttributionConfig())
+    assert none.percent_per_m is None and none.n_frames == 0
+
+
 def test_kitchen_drift_rate_estimate_follows_the_injected_drift(kitchen: FrameStore, kitchen_cloud: DiagnosticCloud) -> None:
     base = kitchen.poses(0)
     floor = attribute(kitchen_cloud.place(base))
     assert floor.revisit_fraction > 0.5 and floor.revisit_note is None
+    # the reference poses: no phantom drift from the per-frame noise floor (a line through the origin read 0.31 %/m)
+    assert floor.drift.percent_per_m < 0.1
+    assert 0.003 < floor.drift.noise_floor_m < 0.03 and 0.1 < floor.drift.noise_floor_deg < 3.0
     rates = []
     for p in (1.0, 2.0):
         a = attribute(kitchen_cloud.place(perturb.linear_drift(base, percent_per_m=p, direction=(0.6, 0.0, 0.8))))
         rates.append(a.drift.percent_per_m)
     assert floor.drift.percent_per_m < rates[0] < rates[1]
-    assert rates[1] == pytest.approx(2.0, rel=0.5)
+    assert rates[0] == pytest.approx(1.0, rel=0.35) and rates[1] == pytest.approx(2.0, rel=0.35)
+    deg = [attribute(kitchen_cloud.place(perturb.linear_drift(base, deg_per_m=d, axis=(0.0, 1.0, 0.3)))).drift.deg_per_m
+           for d in (0.2, 0.4)]
+    assert floor.drift.deg_per_m < deg[0] < deg[1]
+    assert deg[1] == pytest.approx(0.4, rel=0.5)
     # the first 20 frames travel less than a metre: nothing is revisited, and the result says drift is invisible
     first = kitchen_cloud.subset(np.arange(20))
     alone = attribute(first.place(base[:20]))

@@ -474,7 +474,10 @@ def diagnose(
         ("change points (frame: jump)", ", ".join(f"{c.frame_id}: {100 * c.jump_m:.1f} cm" for c in result.attribution.change_points) or "-"),
         ("revisited", f"{100 * result.attribution.revisit_fraction:.0f} %"),
         ("drift rate", "-" if result.attribution.drift.percent_per_m is None else
-         f"{result.attribution.drift.percent_per_m:.2f} %/m, {result.attribution.drift.deg_per_m:.3f} deg/m"),
+         f"{result.attribution.drift.percent_per_m:.2f} %/m, {result.attribution.drift.deg_per_m:.3f} deg/m"
+         + ("" if result.attribution.drift.noise_floor_m is None else
+            f" (above a per-frame floor of {100 * result.attribution.drift.noise_floor_m:.1f} cm, "
+            f"{result.attribution.drift.noise_floor_deg:.2f} deg)")),
         ("MME / MPV", f"{result.entropy.mme:.3f} / {result.entropy.mpv_m2:.2e} m^2 (r = {result.entropy.radius_m:g} m)"),
     ]
     if result.trajectory is not None:
