@@ -71,7 +71,7 @@ def render() -> str:
         inspect.cleandoc(root.help or ""),
         "",
         "Global options (before the command): `--version`, `--debug` (debug logs and full tracebacks), "
-        "`--verbose/-v` (info logs). Errors print one line (`error: ...`) and exit with code 1.",
+        "`--verbose/-v` (info logs). Errors (bad input files, unwritable outputs, library errors) print one line (`error: ...`) and exit with code 1; usage errors (an unknown option value, a missing argument) print click's usage message and exit with code 2.",
         "",
         "| command | what it does |",
         "|---|---|",

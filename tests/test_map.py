@@ -353,6 +353,35 @@ def test_kitti_import_by_index_with_a_sliced_store(tmp_path: Path, kitchen_frame
     np.testing.assert_allclose(out.poses, full[[0, 50, 100, 150]], atol=1e-9)
 
 
+def test_kitti_export_of_a_sliced_store_is_not_read_back_onto_the_wrong_frames(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    """The KITTI export (one row per stored frame, the contract) of a store whose ids are not 0..N-1 does not
+    read back as row i = frame_id i: import refuses it by default instead of moving frames; the TUM export
+    round-trips by stamp, and re-importing the head's own poses writes no empty revision."""
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in kitchen_frames[:6]:  # frame ids 0, 50, ..., 250
+            store.append(f)
+        store.export_trajectory(tmp_path / "own.kitti", format="kitti")
+        with pytest.raises(StoreError, match="one per stored frame"):
+            store.import_poses(tmp_path / "own.kitti", format="kitti")
+        with pytest.raises(ConfigError, match="no stamps"):
+            store.import_poses(tmp_path / "own.kitti", format="kitti", match="stamp")
+        store.export_trajectory(tmp_path / "own.tum", format="tum")
+        with pytest.raises(StoreError, match="no revision written"):
+            store.import_poses(tmp_path / "own.tum", format="tum")
+        assert len(store.revisions) == 1
+        # a real change still imports, and a rollback to the poses head already has is refused
+        moved = store.poses(0).copy()
+        moved[3:, 0, 3] += 0.02
+        write_tum(tmp_path / "moved.tum", Trajectory(store.ledger.stamps_ns, moved))
+        rev, _ = store.import_poses(tmp_path / "moved.tum")
+        d = store.diff(0, rev.revision_id)
+        assert np.count_nonzero(d.translation_m > 1e-6) == 3
+        with pytest.raises(StoreError, match="nothing to roll back"):
+            store.rollback(rev.revision_id)
+        assert store.rollback(0).revision_id == rev.revision_id + 1
+        np.testing.assert_array_equal(store.poses(), store.poses(0))
+
+
 def test_cli_info(kitchen_store: FrameStore) -> None:
     path = kitchen_store.path
     kitchen_store.close()

@@ -19,6 +19,7 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
+from rich.text import Text
 
 from driftmap import __version__
 from driftmap.errors import DriftmapError
@@ -35,8 +36,21 @@ app = typer.Typer(
 )
 # piped output (logs, other tools) gets wide tables instead of rich's 80-column default
 _PIPE_WIDTH = None if sys.stdout.isatty() else int(os.environ.get("COLUMNS", "160"))
-console = Console(width=_PIPE_WIDTH)
-err_console = Console(stderr=True)
+# no rich markup in printed text: paths and messages may contain brackets ("run[1].tum")
+console = Console(width=_PIPE_WIDTH, markup=False)
+err_console = Console(stderr=True, markup=False)
+
+
+def _bold(label: str, value: object, rest: str = "") -> Text:
+    return Text.assemble(label, (str(value), "bold"), rest)
+
+
+def _choice(value: str, allowed: tuple[str, ...], flag: str) -> str:
+    """A usage error (exit 2) for an option value outside ``allowed`` (case-insensitive)."""
+    v = value.lower()
+    if v not in allowed:
+        raise typer.BadParameter(f"{value!r} is not one of {', '.join(allowed)}", param_hint=flag)
+    return v
 
 _state = {"debug": False}
 
@@ -100,8 +114,8 @@ def demo(
     console.print(table)
     for name, path in result.files.items():
         console.print(f"  {name:28s} {path}", highlight=False)
-    console.print(f"report: [bold]{result.files.get('report_html', '-')}[/bold]")
-    console.print(f"results: [bold]{result.out_dir}[/bold]")
+    console.print(_bold("report: ", result.files.get("report_html", "-")))
+    console.print(_bold("results: ", result.out_dir))
 
 
 @app.command("config")
@@ -149,7 +163,7 @@ def synth(
                              scale_drift_percent=scale_drift_percent)
     with console.status("ray-casting the synthetic room"):
         path = generate_synthetic_log(out, cfg)
-    console.print(f"synthetic log: [bold]{path.resolve()}[/bold]")
+    console.print(_bold("synthetic log: ", path.resolve()))
 
 
 # ------------------------------------------------------------------------------------------ sources / build
@@ -241,7 +255,7 @@ def build(
     for k, v in rows:
         table.add_row(k, v)
     console.print(table)
-    console.print(f"store: [bold]{Path(result.store).resolve()}[/bold] (config and summary saved beside it)")
+    console.print(_bold("store: ", Path(result.store).resolve(), " (build_config.json and build_summary.json saved in it)"))
 
 
 # ------------------------------------------------------------------------------------------ store / ledger
@@ -252,7 +266,7 @@ def _open_store(path: Path, mode: str = "r"):
 
     store = FrameStore.open(path, mode)
     for event in store.recovery_events:
-        err_console.print(f"[yellow]recovered:[/yellow] {event}", highlight=False)
+        err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
     return store
 
 
@@ -269,6 +283,11 @@ def correct(
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
 ) -> None:
     """Import a pose file as a new revision (a correction); nothing is overwritten."""
+    from driftmap.frame import PoseSource
+
+    format = _choice(format, ("tum", "kitti"), "--format")
+    match = None if match is None else _choice(match, ("stamp", "index"), "--match")
+    source = _choice(source, tuple(s.value for s in PoseSource if s is not PoseSource.NONE), "--source")
     with _open_store(store_path, "a") as store:
         revision, matched = store.import_poses(poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
                                                source=source, propagate=not no_propagate, kitti_frame=kitti_frame,
@@ -286,6 +305,8 @@ def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="
     """List the pose revisions: id, parent, source, frames changed, max displacement."""
     import datetime
 
+    from driftmap.store.ledger import SAME_POSE_DEG, SAME_POSE_M
+
     with _open_store(store_path) as store:
         table = Table(title=f"pose revisions of {store_path}")
         for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
@@ -296,7 +317,7 @@ def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="
                 table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")
                 continue
             d = store.diff(rev.parent_id, rev.revision_id)
-            changed = int(np.count_nonzero((d.translation_m > 0) | (d.rotation_deg > 0)))
+            changed = int(np.count_nonzero((d.translation_m > SAME_POSE_M) | (d.rotation_deg > SAME_POSE_DEG)))
             created = datetime.datetime.fromtimestamp(rev.created_ns / 1e9).isoformat(timespec="seconds")
             table.add_row(str(rev.revision_id), str(rev.parent_id), rev.source.value, created, str(changed),
                           f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note)
@@ -328,6 +349,7 @@ def export(
     """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
     if map_path is None and trajectory is None and mcap_path is None:
         raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
+    format = _choice(format, ("tum", "kitti"), "--format")
     with _open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
@@ -336,8 +358,9 @@ def export(
             console.print(f"trajectory (revision {rev}, {format}): {trajectory}")
         if map_path is not None:
             view = store.map(rev)
-            view.export(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
-            console.print(f"map (revision {rev}, {view.n_points:,} points{f', voxel {voxel_size_m} m' if voxel_size_m else ''}): {map_path}")
+            _, n_written = view.write(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
+            detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
+            console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
         if mcap_path is not None:
             from driftmap.map.foxglove_export import export_foxglove_mcap
 
@@ -399,7 +422,7 @@ def _verification_note(check: RegionCheck) -> str:
     if check.offset_b_minus_a_m is None:
         return f"; unverifiable ({check.note})"
     cause = {True: ", a pose error", False: ", local (its surroundings agree: not a pose error)", None: ""}[check.pose_explained]
-    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' if check.confirmed else 'NOT confirmed'}{cause}"
+    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' + cause if check.confirmed else 'NOT confirmed'}"
 
 
 @app.command()
@@ -500,13 +523,13 @@ def diagnose(
                       f"{region.frames_b.min()}-{region.frames_b.max()}"
                       + ("" if result.verification is None else _verification_note(result.verification[k])), highlight=False)
     if result.attribution.revisit_note:
-        console.print(f"[yellow]{result.attribution.revisit_note}[/yellow]")
+        console.print(Text(result.attribution.revisit_note, style="yellow"))
     if report is not None:
         compare = {f"revision {other.revision}": other, f"revision {result.revision}": result} if other is not None else None
         files = write_report(report, result, compare=compare)
         for name, file in files.items():
             console.print(f"  {name:20s} {file}")
-    console.print(f"diagnosis: [bold]{json_path}[/bold]")
+    console.print(_bold("diagnosis: ", json_path))
 
 
 @app.command()
@@ -529,7 +552,7 @@ def view(
             result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
                                 headless=headless, backend=backend, reference_revision=reference)
     if result.fallback_reason:
-        err_console.print(f"[yellow]{result.fallback_reason}; used the software renderer[/yellow]", highlight=False)
+        err_console.print(Text(f"{result.fallback_reason}; used the software renderer", style="yellow"), highlight=False)
     lo, hi = result.value_range
     console.print(f"revision {result.revision}, colour {result.color} ({result.value_label}: {lo:.4g} .. {hi:.4g}), "
                   f"{result.n_points_shown:,} of {result.n_points_map:,} points (voxel {result.voxel_size_m:g} m), "
@@ -570,7 +593,7 @@ def perturb(
         drift_percent_per_m=drift_percent_per_m, drift_direction=parse_vector(drift_direction, "--drift-direction"),
         drift_deg_per_m=drift_deg_per_m, drift_axis=parse_vector(drift_axis, "--drift-axis"),
     )
-    result = perturb_pose_file(poses_in, poses_out, perturbation, format=format.lower())
+    result = perturb_pose_file(poses_in, poses_out, perturbation, format=_choice(format, ("tum", "kitti"), "--format"))
     console.print(f"wrote {len(result)} perturbed poses to {poses_out}")
 
 
@@ -581,11 +604,23 @@ def main() -> None:
     except DriftmapError as exc:
         if _state["debug"]:
             raise
-        err_console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
-        sys.exit(1)
+        _error(str(exc))
+    except UnicodeDecodeError as exc:
+        if _state["debug"]:
+            raise
+        _error(f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); run with --debug to see which")
+    except OSError as exc:  # unwritable output, a directory where a file was expected, a full disk ...
+        if _state["debug"]:
+            raise
+        _error(f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
     except KeyboardInterrupt:
-        err_console.print("[red]interrupted[/red]")
+        err_console.print(Text("interrupted", style="red"))
         sys.exit(130)
+
+
+def _error(message: str) -> None:
+    err_console.print(Text.assemble(("error:", "red"), f" {message}"), highlight=False, soft_wrap=True)
+    sys.exit(1)
 
 
 if __name__ == "__main__":

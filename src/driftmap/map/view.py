@@ -764,9 +764,14 @@ class MapView:
     def export(self, path: str | Path, *, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None,
                provenance: bool = False) -> Path:
         """Write the map as PLY or PCD (Open3D); with ``provenance`` also ``<path>.provenance.npz``."""
+        return self.write(path, voxel_size_m=voxel_size_m, roi=roi, provenance=provenance)[0]
+
+    def write(self, path: str | Path, *, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None,
+              provenance: bool = False) -> tuple[Path, int]:
+        """:meth:`export`, also returning how many points the file holds (after voxel fusion)."""
         fused = self.fused(voxel_size_m, roi)
         out = write_cloud(path, fused.points_world)
         if provenance:
             np.savez_compressed(Path(str(out) + ".provenance.npz"), offsets=fused.provenance_offsets,
                                 frame_ids=fused.provenance_frame_ids)
-        return out
+        return out, len(fused.points_world)

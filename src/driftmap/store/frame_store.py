@@ -41,7 +41,17 @@ from numpy.typing import NDArray
 from driftmap import __version__
 from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource
-from driftmap.store.ledger import PoseDiff, PoseLedger, PoseMatch, PoseMatchMode, Revision, match_trajectory
+from driftmap.store.ledger import (
+    SAME_POSE_DEG,
+    SAME_POSE_M,
+    PoseDiff,
+    PoseLedger,
+    PoseMatch,
+    PoseMatchMode,
+    Revision,
+    match_trajectory,
+    same_pose,
+)
 from driftmap.store.segment import (
     SegmentScan,
     SegmentWriter,
@@ -101,6 +111,12 @@ def _restrict_revision(revision_json: dict[str, Any], frame_ids: set[int]) -> di
     logger.warning("revision %d: dropping poses of %d lost frames", rev.revision_id,
                    len(rev.set_directly) + len(rev.propagated) - len(keep) - len(prop))
     return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns, rev.note, keep, prop, rev.restores).to_json()
+
+
+def _id_sample(ids: NDArray[np.int64]) -> str:
+    """``0, 5, 10, ..., 95`` for messages."""
+    shown = ", ".join(str(int(i)) for i in ids[:3])
+    return f"{shown}, ..., {int(ids[-1])}" if len(ids) > 4 else ", ".join(str(int(i)) for i in ids)
 
 
 def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
@@ -496,9 +512,13 @@ class FrameStore:
         return self._persist(revision)
 
     def rollback(self, to: int, *, note: str = "") -> Revision:
-        """A new revision whose poses equal revision ``to`` (nothing is deleted)."""
+        """A new revision whose poses equal revision ``to`` (nothing is deleted). Rolling back to poses the
+        head already has is refused (it would only add an empty revision)."""
         self._writable()
-        return self._persist(self.ledger.plan_rollback(to, note=note))
+        revision = self.ledger.plan_rollback(to, note=note)
+        if not revision.set_directly:
+            raise StoreError(f"{self.path}: revision {self.head} already has the poses of revision {to}; nothing to roll back")
+        return self._persist(revision)
 
     def diff(self, a: int, b: int) -> PoseDiff:
         return self.ledger.diff(a, b)
@@ -522,7 +542,19 @@ class FrameStore:
         mode = PoseMatchMode(match) if match is not None else (PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX)
         if fmt is TrajectoryFormat.TUM and (kitti_frame != "auto" or calib_file is not None):
             raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
+        if fmt is TrajectoryFormat.KITTI and mode is PoseMatchMode.STAMP:
+            raise ConfigError(f"{file}: KITTI pose files have no stamps (row i is frame_id i): match by index")
         trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
+        ids = self.ledger.frame_ids
+        if (match is None and mode is PoseMatchMode.INDEX and len(trajectory) == len(ids) and len(ids) > 1
+                and not np.array_equal(ids, np.arange(len(ids)))):
+            # the signature of a file written one row per *stored* frame (a KITTI export of a sliced store), read
+            # as one row per frame *id*; an explicit match="index" takes the rows as frame ids all the same
+            raise StoreError(
+                f"{file}: {len(trajectory)} rows for the {len(ids)} stored frames, but matching by index takes row i "
+                f"as frame_id i and the stored ids are {_id_sample(ids)}, not 0..{len(ids) - 1}: the rows look like one "
+                f"per stored frame. Use a TUM file matched by stamp (driftmap export --format tum writes one), or match "
+                f"by index explicitly if row i really is frame_id i")
         if fmt is TrajectoryFormat.KITTI:
             from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
 
@@ -537,16 +569,28 @@ class FrameStore:
         if matched.unmatched_frames:
             logger.warning("%s: %d stored frames had no row (%s)", file, len(matched.unmatched_frames),
                            "propagated from the matched frames" if propagate else "they keep their poses")
+        head_poses = self.poses()
+        row = {int(f): k for k, f in enumerate(ids)}
+        if all(same_pose(P, head_poses[row[fid]]) for fid, P in matched.poses.items()):
+            raise StoreError(f"{file}: every matched pose equals revision {self.head}'s within "
+                             f"{SAME_POSE_M * 1e6:g} um / {SAME_POSE_DEG:g} deg; no revision written")
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
         return revision, matched
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,
                           format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:
         """Write the poses of a revision: TUM with the frames' stamps, or KITTI one row per stored frame in
-        frame order."""
+        frame order (which reads back as row i = frame_id i only when the ids are 0..N-1: a warning otherwise)."""
         fmt = TrajectoryFormat(format)
+        ids = self.ledger.frame_ids
+        if fmt is TrajectoryFormat.KITTI and not np.array_equal(ids, np.arange(len(ids))):
+            # KITTI has neither stamps nor ids: the readers (correct, build --poses, diagnose --gt) take row i as
+            # frame_id i, so this file does not read back onto these frames
+            logger.warning("%s: KITTI export writes one row per stored frame, but the frame ids are %s (not 0..%d): "
+                           "reading it back takes row i as frame_id i; export TUM (with stamps) to round-trip",
+                           file, _id_sample(ids), len(ids) - 1)
         poses = self.poses(revision)
-        traj = Trajectory(self.ledger.stamps_ns.copy(), poses, self.ledger.frame_ids.copy())
+        traj = Trajectory(self.ledger.stamps_ns.copy(), poses, ids.copy())
         file = Path(file)
         file.parent.mkdir(parents=True, exist_ok=True)
         (write_tum if fmt is TrajectoryFormat.TUM else write_kitti)(file, traj)

@@ -139,6 +139,20 @@ def _rotation_angle_rad(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> N
     return np.arctan2(sin_part, cos_part)
 
 
+SAME_POSE_M = 1e-6
+"""Pose differences below this translation (and :data:`SAME_POSE_DEG`) are text round-off, not a change (a TUM
+file written with 9 decimals and read back moves poses by ~1e-9 m)."""
+SAME_POSE_DEG = 1e-5
+
+
+def same_pose(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> bool:
+    """Whether two 4x4 poses agree within :data:`SAME_POSE_M` / :data:`SAME_POSE_DEG`."""
+    a, b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
+    if np.linalg.norm(a[:3, 3] - b[:3, 3]) > SAME_POSE_M:
+        return False
+    return bool(np.degrees(_rotation_angle_rad(a[None, :3, :3], b[None, :3, :3])[0]) <= SAME_POSE_DEG)
+
+
 # --------------------------------------------------------------------------------------------------------------
 # Revision
 # --------------------------------------------------------------------------------------------------------------

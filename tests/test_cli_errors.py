@@ -1,0 +1,119 @@
+"""The CLI's handling of bad input: usage errors for option values, one-line errors (exit 1) for unreadable or
+unwritable files, file names printed verbatim (no rich markup), and counts that match what was written."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from driftmap.sources.synthetic import SyntheticLog
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import Trajectory, read_tum, write_tum
+
+
+def _cli(*args: object) -> subprocess.CompletedProcess:
+    env = {**os.environ, "COLUMNS": "200"}
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=300, env=env)
+
+
+@pytest.fixture(scope="module")
+def store_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from driftmap.demo import embedded_log_path
+
+    path = tmp_path_factory.mktemp("cli") / "store"
+    with FrameStore.create(path) as store:
+        for k, frame in enumerate(SyntheticLog(embedded_log_path())):
+            if k >= 8:
+                break
+            store.append(frame)
+    return path
+
+
+def _one_line_error(out: subprocess.CompletedProcess) -> str:
+    assert out.returncode == 1, (out.returncode, out.stdout, out.stderr)
+    assert "Traceback" not in out.stderr, out.stderr
+    lines = [line for line in out.stderr.strip().splitlines() if line.strip()]
+    assert lines and lines[-1].startswith("error:"), out.stderr
+    return lines[-1]
+
+
+@pytest.mark.parametrize("args", [
+    ("correct", "{store}", "--poses", "{tum}", "--format", "xyz"),
+    ("correct", "{store}", "--poses", "{tum}", "--match", "foo"),
+    ("correct", "{store}", "--poses", "{tum}", "--source", "banana"),
+    ("export", "{store}", "--trajectory", "{tmp}/t.txt", "--format", "xyz"),
+    ("perturb", "{tum}", "{tmp}/p.tum", "--format", "xyz", "--drift-percent-per-m", "1"),
+])
+def test_bad_option_values_are_usage_errors(store_path: Path, tmp_path: Path, args: tuple[str, ...]) -> None:
+    tum = tmp_path / "own.tum"
+    assert _cli("export", store_path, "--trajectory", tum).returncode == 0
+    out = _cli(*(a.format(store=store_path, tum=tum, tmp=tmp_path) for a in args))
+    assert out.returncode == 2, (out.stdout, out.stderr)
+    assert "Traceback" not in out.stderr and "is not one of" in out.stderr
+
+
+def test_unwritable_outputs_and_undecodable_inputs_give_one_line_errors(store_path: Path, tmp_path: Path) -> None:
+    a_dir = tmp_path / "a_dir"
+    a_dir.mkdir()
+    line = _one_line_error(_cli("export", store_path, "--trajectory", a_dir))
+    assert str(a_dir) in line
+    a_file = tmp_path / "a_file"
+    a_file.write_text("x")
+    line = _one_line_error(_cli("export", store_path, "--trajectory", a_file / "t.tum"))
+    assert str(a_file) in line
+    binary = tmp_path / "b.tum"
+    binary.write_bytes(b"\xff\xfe\x00garbage")
+    _one_line_error(_cli("perturb", binary, tmp_path / "o.tum", "--drift-percent-per-m", "1"))
+
+
+def test_file_names_are_printed_verbatim(store_path: Path, tmp_path: Path) -> None:
+    """Brackets in a path are not rich markup: "o[red].tum" is printed as it is, and "run[/].tum" does not crash."""
+    tum = tmp_path / "own.tum"
+    assert _cli("export", store_path, "--trajectory", tum).returncode == 0
+    for name in ("o[red].tum", "run[/].tum"):
+        out = _cli("perturb", tum, tmp_path / name, "--drift-percent-per-m", "1")
+        assert out.returncode == 0, out.stderr
+        assert name in out.stdout and (tmp_path / name).exists()
+
+
+def test_map_export_reports_the_points_written(store_path: Path, tmp_path: Path) -> None:
+    ply = tmp_path / "m.ply"
+    out = _cli("export", store_path, "--map", ply, "--voxel-size-m", "0.05")
+    assert out.returncode == 0, out.stderr
+    n = len(o3d.io.read_point_cloud(str(ply)).points)
+    assert f"{n:,} points" in out.stdout, (n, out.stdout)
+    assert "provenance" in out.stdout and Path(str(ply) + ".provenance.npz").exists()
+
+
+def test_revisions_count_real_changes_only(store_path: Path, tmp_path: Path) -> None:
+    """A correction that moves the last 3 frames reports 3 frames changed, not the TUM round-off of the others;
+    re-importing the head's own poses and rolling back to the head are refused (no empty revisions)."""
+    work = tmp_path / "s"
+    import shutil
+
+    shutil.copytree(store_path, work)
+    own = tmp_path / "own.tum"
+    assert _cli("export", work, "--trajectory", own).returncode == 0
+    _one_line_error(_cli("correct", work, "--poses", own))
+    traj = read_tum(own)
+    moved = traj.poses.copy()
+    moved[-3:, :3, 3] += 0.05
+    write_tum(tmp_path / "moved.tum", Trajectory(traj.stamps_ns, moved))
+    out = _cli("correct", work, "--poses", tmp_path / "moved.tum", "--no-propagate")
+    assert out.returncode == 0, out.stderr
+    table = _cli("revisions", work)
+    assert table.returncode == 0
+    row = next(line for line in table.stdout.splitlines() if "external_file" in line)
+    cells = [c.strip() for c in row.split("│") if c.strip()]
+    assert cells[4] == "3", row
+    _one_line_error(_cli("rollback", work, "--to", "1"))
+    with FrameStore.open(work) as store:
+        assert len(store.revisions) == 2
+        np.testing.assert_allclose(store.poses()[-3:, :3, 3] - store.poses(0)[-3:, :3, 3], 0.05, atol=1e-6)
