@@ -117,3 +117,8 @@ def test_revisions_count_real_changes_only(store_path: Path, tmp_path: Path) -> 
     with FrameStore.open(work) as store:
         assert len(store.revisions) == 2
         np.testing.assert_allclose(store.poses()[-3:, :3, 3] - store.poses(0)[-3:, :3, 3], 0.05, atol=1e-6)
+
+
+def test_diagnose_gt_options_without_gt_are_refused(store_path: Path, tmp_path: Path) -> None:
+    line = _one_line_error(_cli("diagnose", store_path, "--gt-format", "kitti", "--json", tmp_path / "d.json"))
+    assert "--gt-format" in line and not (tmp_path / "d.json").exists()

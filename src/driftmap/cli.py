@@ -431,7 +431,7 @@ def diagnose(
     json_path: Annotated[Path, typer.Option("--json", help="Write the diagnosis here (JSON).")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth poses (T_world_sensor) for ATE/RPE.")] = None,
-    gt_format: Annotated[str, typer.Option("--gt-format", help="tum (matched by stamp) | kitti (row i = frame_id i)")] = "tum",
+    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i)")] = None,
     report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
     compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
     points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
@@ -455,11 +455,11 @@ def diagnose(
         cfg = DiagnoseConfig.for_sensor(kind)
         if points_per_frame is not None:
             cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
-        if gt is None and (kitti_frame != "auto" or calib is not None):
+        if gt is None and (kitti_frame != "auto" or calib is not None or gt_format is not None):
             from driftmap.errors import ConfigError
 
-            raise ConfigError("--kitti-frame / --calib describe the --gt FILE; give one")
-        ground_truth = (read_ground_truth(store, gt, gt_format, kitti_frame=kitti_frame, calib_file=calib)
+            raise ConfigError("--gt-format / --kitti-frame / --calib describe the --gt FILE; give one")
+        ground_truth = (read_ground_truth(store, gt, gt_format or "tum", kitti_frame=kitti_frame, calib_file=calib)
                         if gt is not None else None)
         with console.status(f"sampling {len(store)} frames"):
             t0 = time.perf_counter()
