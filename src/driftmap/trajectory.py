@@ -1,10 +1,19 @@
 """Trajectory files: TUM (``stamp tx ty tz qx qy qz qw``) and KITTI (3x4 row-major per line).
 
 Readers return a :class:`Trajectory` (stamps in int nanoseconds, poses as 4x4 float64); writers take one.
+
+Every reader validates what it reads and raises :class:`SourceError` naming the file, the 1-based line and the
+field: text that is not UTF-8, a wrong column count, a value that is not a number or not finite (NaN, inf),
+a quaternion that is not unit length, a KITTI rotation block that is not a rotation (within
+:data:`driftmap.geometry.RIGID_TOLERANCE`, checked by :func:`driftmap.geometry.as_rigid`), and a stamp that
+goes back in time. A stamp written twice (two rows, same instant) is kept and logged as a warning: the
+official TUM ``fr2_desk`` ground truth has one (line 10863), and nearest-stamp lookups stay well defined.
 """
 
 from __future__ import annotations
 
+import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -12,7 +21,10 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from driftmap.errors import SourceError
+from driftmap import geometry
+from driftmap.errors import SourceError, TransformError
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,28 +69,95 @@ def _format_stamp_ns(stamp_ns: int) -> str:
     return f"{sign}{s}.{ns:09d}"
 
 
-def _poses_from_rows(path: Path, translation_m: NDArray[np.float64], quat_xyzw: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(N, 4, 4) poses from translations and unit quaternions; a non-unit quaternion names its data row."""
+def _read_lines(path: Path, what: str) -> list[str]:
+    """The lines of a text file (split at ``\\n`` only, so line numbers are the ones an editor shows).
+
+    A file that cannot be read, or is not UTF-8, raises :class:`SourceError` naming it (and the line of the
+    first byte that is not UTF-8). A leading UTF-8 byte-order mark is ignored.
+    """
+    try:
+        raw = path.read_bytes()
+    except OSError as exc:
+        raise SourceError(f"{path}: cannot read {what} ({exc})") from exc
+    bom = b"\xef\xbb\xbf"
+    start = len(bom) if raw.startswith(bom) else 0
+    try:
+        text = raw[start:].decode("utf-8")
+    except UnicodeDecodeError as exc:
+        offset = start + exc.start
+        lineno = raw.count(b"\n", 0, offset) + 1
+        utf16 = raw[:2] in (b"\xff\xfe", b"\xfe\xff")
+        hint = "; it starts with a UTF-16 byte-order mark, save it as UTF-8" if utf16 else ""
+        raise SourceError(
+            f"{path}:{lineno}: not UTF-8 text (byte 0x{raw[offset]:02x} at byte offset {offset}); "
+            f"cannot read {what}{hint}"
+        ) from exc
+    return text.split("\n")
+
+
+def _check_finite(path: Path, data: NDArray[np.float64], linenos: Sequence[int],
+                  columns: Sequence[tuple[str, str, int]]) -> None:
+    """``columns[j] = (field, name, column)`` describes ``data[:, j]`` (column 1-based in the file); the first
+    NaN or inf raises naming its line, field and column."""
+    bad = ~np.isfinite(data)
+    if bad.any():
+        r, c = (int(v) for v in np.argwhere(bad)[0])
+        field, name, column = columns[c]
+        raise SourceError(f"{path}:{linenos[r]}: {field} is not finite (column {column}: {name}={data[r, c]})")
+
+
+def _check_stamp_order(path: Path, stamps_ns: Sequence[int], linenos: Sequence[int], texts: Sequence[str]) -> None:
+    """A stamp earlier than the one before it raises naming both lines; a repeated stamp is logged (the rows
+    are kept). ``texts`` are the stamps as written in the file, for the messages."""
+    if len(stamps_ns) < 2:
+        return
+    steps = np.diff(np.asarray(stamps_ns, dtype=np.int64))
+    back = np.flatnonzero(steps < 0)
+    if back.size:
+        k = int(back[0]) + 1
+        raise SourceError(
+            f"{path}:{linenos[k]}: stamp goes back in time: {texts[k]} is earlier than {texts[k - 1]} "
+            f"on line {linenos[k - 1]} (stamps must increase)"
+        )
+    repeated = np.flatnonzero(steps == 0)
+    if repeated.size:
+        k = int(repeated[0]) + 1
+        logger.warning(
+            "%s:%d: duplicate stamp: %s is also on line %d; both rows kept (%d repeated stamp(s) in the file)",
+            path, linenos[k], texts[k], linenos[k - 1], repeated.size,
+        )
+
+
+def _poses_from_rows(path: Path, translation_m: NDArray[np.float64], quat_xyzw: NDArray[np.float64],
+                     linenos: Sequence[int]) -> NDArray[np.float64]:
+    """(N, 4, 4) poses from translations and unit quaternions; a non-unit quaternion names its line."""
     norms = np.linalg.norm(quat_xyzw, axis=1)
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:
-        raise SourceError(f"{path}: quaternion on data row {bad[0] + 1} has norm {norms[bad[0]]:.4f}, expected 1")
+        raise SourceError(f"{path}:{linenos[bad[0]]}: quaternion has norm {norms[bad[0]]:.4f}, expected 1")
     poses = np.tile(np.eye(4), (len(translation_m), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
     poses[:, :3, 3] = translation_m
     return poses
 
 
+#: (field, name, 1-based file column) of the values after the stamp in a TUM row.
+_TUM_COLUMNS = [("translation", n, c) for c, n in enumerate(("tx", "ty", "tz"), start=2)] + [
+    ("quaternion", n, c) for c, n in enumerate(("qx", "qy", "qz", "qw"), start=5)
+]
+
+
 def read_tum(path: str | Path) -> Trajectory:
-    """Read a TUM trajectory file; comment lines start with ``#``."""
+    """Read a TUM trajectory file; comment lines start with ``#``.
+
+    Stamps must not go back in time; a repeated stamp is kept with a logged warning (see the module docs).
+    """
     path = Path(path)
     stamps: list[int] = []
     rows: list[list[float]] = []
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot read TUM trajectory ({exc})") from exc
-    for lineno, line in enumerate(lines, start=1):
+    linenos: list[int] = []
+    stamp_texts: list[str] = []
+    for lineno, line in enumerate(_read_lines(path, "TUM trajectory"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -90,41 +169,83 @@ def read_tum(path: str | Path) -> Trajectory:
             rows.append([float(p) for p in parts[1:]])
         except ValueError as exc:
             raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
+        except OverflowError as exc:  # e.g. "1e400" as a stamp
+            raise SourceError(f"{path}:{lineno}: stamp {parts[0]!r} is not finite") from exc
+        linenos.append(lineno)
+        stamp_texts.append(parts[0])
     if not rows:
         raise SourceError(f"{path}: no poses in TUM file")
     data = np.asarray(rows)
-    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], data[:, 3:7]))
+    _check_finite(path, data, linenos, _TUM_COLUMNS)
+    _check_stamp_order(path, stamps, linenos, stamp_texts)
+    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], data[:, 3:7], linenos))
+
+
+def _format_number(value: float) -> str:
+    """The shortest text that reads back as exactly ``value`` (Python's ``repr`` of a float)."""
+    return repr(float(value))
 
 
 def write_tum(path: str | Path, trajectory: Trajectory) -> None:
-    """Write a TUM file (stamps in seconds with nanosecond digits, quaternions ``qx qy qz qw``)."""
+    """Write a TUM file (stamps in seconds with nanosecond digits, quaternions ``qx qy qz qw``); numbers are
+    written with the shortest digits that read back exactly, so :func:`read_tum` returns the same poses."""
     quat = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat()
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for stamp, T, q in zip(trajectory.stamps_ns, trajectory.poses, quat, strict=True):
         t = T[:3, 3]
-        lines.append(f"{_format_stamp_ns(int(stamp))} " + " ".join(f"{v:.9f}" for v in (*t, *q)))
+        lines.append(f"{_format_stamp_ns(int(stamp))} " + " ".join(_format_number(v) for v in (*t, *q)))
     Path(path).write_text("\n".join(lines) + "\n")
 
 
+#: (field, name, 1-based file column) of the 12 numbers of a KITTI row (3x4 row-major ``[R | t]``).
+_KITTI_COLUMNS = [
+    ("translation", ("tx", "ty", "tz")[i], 4 * i + 4) if j == 3 else ("rotation", f"R[{i},{j}]", 4 * i + j + 1)
+    for i in range(3)
+    for j in range(4)
+]
+
+
 def read_kitti(path: str | Path) -> Trajectory:
-    """Read a KITTI pose file (12 numbers per line, the top 3x4 of ``T_world_x``); stamps are row indices."""
+    """Read a KITTI pose file (12 numbers per line, the top 3x4 of ``T_world_x``); stamps are row indices.
+
+    ``#`` starts a comment. Each rotation block must be a rotation within the tolerance of
+    :func:`driftmap.geometry.as_rigid` (orthonormal, determinant +1); rows are kept as written (not projected).
+    """
     path = Path(path)
-    try:
-        data = np.loadtxt(path, ndmin=2)
-    except (OSError, ValueError) as exc:
-        raise SourceError(f"{path}: cannot read KITTI poses ({exc})") from exc
-    if data.shape[1] != 12:
-        raise SourceError(f"{path}: expected 12 columns per KITTI pose row, got {data.shape[1]}")
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    for lineno, line in enumerate(_read_lines(path, "KITTI poses"), start=1):
+        parts = line.partition("#")[0].split()
+        if not parts:
+            continue
+        if len(parts) != 12:
+            raise SourceError(
+                f"{path}:{lineno}: expected 12 numbers per KITTI pose row (3x4 row-major T_world_x), got {len(parts)}"
+            )
+        try:
+            rows.append([float(p) for p in parts])
+        except ValueError as exc:
+            raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
+        linenos.append(lineno)
+    if not rows:
+        raise SourceError(f"{path}: no poses in KITTI file")
+    data = np.asarray(rows)
+    _check_finite(path, data, linenos, _KITTI_COLUMNS)
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
+    for k, T in enumerate(poses):
+        try:
+            geometry.as_rigid(T, f"{path}:{linenos[k]} (frame {k})")
+        except TransformError as exc:
+            raise SourceError(str(exc)) from exc
     ids = np.arange(len(data), dtype=np.int64)
     return Trajectory(ids.copy(), poses, ids)
 
 
 def write_kitti(path: str | Path, trajectory: Trajectory) -> None:
-    """Write one 3x4 row-major line per pose."""
+    """Write one 3x4 row-major line per pose, with the shortest digits that read back exactly."""
     rows = trajectory.poses[:, :3, :].reshape(-1, 12)
-    np.savetxt(path, rows, fmt="%.9e")
+    Path(path).write_text("".join(" ".join(_format_number(v) for v in row) + "\n" for row in rows))
 
 
 # ---- EuRoC, Redwood .log, and format detection -----------------------------------------------------------------
@@ -138,20 +259,25 @@ TRAJECTORY_FORMATS = {
 }
 
 
+#: (field, name, 1-based file column) of the 7 pose values after the stamp in an EuRoC row.
+_EUROC_COLUMNS = [("position", n, c) for c, n in enumerate(("p_x", "p_y", "p_z"), start=2)] + [
+    ("quaternion", n, c) for c, n in enumerate(("q_w", "q_x", "q_y", "q_z"), start=5)
+]
+
+
 def read_euroc(path: str | Path) -> Trajectory:
     """Read an EuRoC ground-truth CSV (``#timestamp [ns], p_RS_R_x, p_RS_R_y, p_RS_R_z, q_RS_w, q_RS_x, q_RS_y,
     q_RS_z, ...``): poses ``T_R_S`` (body ``S`` in the world ``R``); columns after the quaternion are ignored.
 
-    The quaternion is stored **w first**; it is reordered to scipy's ``(x, y, z, w)`` here.
+    The quaternion is stored **w first**; it is reordered to scipy's ``(x, y, z, w)`` here. Stamps must not
+    go back in time; a repeated stamp is kept with a logged warning.
     """
     path = Path(path)
-    try:
-        lines = path.read_text().splitlines()
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot read EuRoC trajectory ({exc})") from exc
     stamps: list[int] = []
     rows: list[list[float]] = []
-    for lineno, line in enumerate(lines, start=1):
+    linenos: list[int] = []
+    stamp_texts: list[str] = []
+    for lineno, line in enumerate(_read_lines(path, "EuRoC trajectory"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -169,11 +295,16 @@ def read_euroc(path: str | Path) -> Trajectory:
             rows.append([float(p) for p in parts[1:8]])
         except ValueError as exc:
             raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
+        linenos.append(lineno)
+        stamp_texts.append(parts[0])
     if not rows:
         raise SourceError(f"{path}: no poses in EuRoC file")
     data = np.asarray(rows)
+    _check_finite(path, data, linenos, _EUROC_COLUMNS)
+    _check_stamp_order(path, stamps, linenos, stamp_texts)
     quat_wxyz = data[:, 3:7]
-    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], quat_wxyz[:, [1, 2, 3, 0]]))
+    return Trajectory(np.asarray(stamps, dtype=np.int64),
+                      _poses_from_rows(path, data[:, :3], quat_wxyz[:, [1, 2, 3, 0]], linenos))
 
 
 def read_redwood_log(path: str | Path) -> Trajectory:
@@ -183,14 +314,8 @@ def read_redwood_log(path: str | Path) -> Trajectory:
     frame ids (as :func:`read_kitti` uses row indices). Each matrix must be rigid (within the tolerance of
     :func:`driftmap.geometry.as_rigid`, which also projects it onto SO(3)).
     """
-    from driftmap import geometry
-    from driftmap.errors import TransformError
-
     path = Path(path)
-    try:
-        raw = path.read_text().splitlines()
-    except OSError as exc:
-        raise SourceError(f"{path}: cannot read Redwood .log trajectory ({exc})") from exc
+    raw = _read_lines(path, "Redwood .log trajectory")
     lines = [(n, line.split()) for n, line in enumerate(raw, start=1) if line.strip()]
     if not lines:
         raise SourceError(f"{path}: no poses in Redwood .log file")
@@ -229,7 +354,7 @@ def read_redwood_log(path: str | Path) -> Trajectory:
 def _first_data_lines(path: Path, n: int = 5) -> list[str]:
     """The first ``n`` non-empty lines that are not ``#`` comments (reads only the head of the file)."""
     out: list[str] = []
-    with path.open("r", errors="replace") as fh:
+    with path.open("r", encoding="utf-8-sig") as fh:
         for line in fh:
             line = line.strip()
             if line and not line.startswith("#"):
@@ -247,10 +372,13 @@ def detect_trajectory_format(path: str | Path) -> str:
     path = Path(path)
     try:
         head = _first_data_lines(path)
-        with path.open("r", errors="replace") as fh:
+        with path.open("r", encoding="utf-8-sig") as fh:
             first_line = fh.readline()
     except OSError as exc:
         raise SourceError(f"{path}: cannot read trajectory file ({exc})") from exc
+    except UnicodeDecodeError as exc:
+        _read_lines(path, "trajectory file")  # raises naming the line of the first byte that is not UTF-8
+        raise SourceError(f"{path}: not UTF-8 text ({exc}); cannot read trajectory file") from exc
     tried = "; ".join(f"{name}: {what}" for name, what in TRAJECTORY_FORMATS.items())
     if not head:
         raise SourceError(f"{path}: no data lines; cannot tell the trajectory format (tried {tried})")

@@ -512,12 +512,13 @@ class FrameStore:
         return self._persist(revision)
 
     def rollback(self, to: int, *, note: str = "") -> Revision:
-        """A new revision whose poses equal revision ``to`` (nothing is deleted). Rolling back to poses the
-        head already has is refused (it would only add an empty revision)."""
+        """A new revision whose poses equal revision ``to`` (nothing is deleted; a warning when the head already
+        has those poses)."""
         self._writable()
         revision = self.ledger.plan_rollback(to, note=note)
         if not revision.set_directly:
-            raise StoreError(f"{self.path}: revision {self.head} already has the poses of revision {to}; nothing to roll back")
+            logger.warning("%s: revision %d already has the poses of revision %d: the rollback changes no pose",
+                           self.path, self.head, to)
         return self._persist(revision)
 
     def diff(self, a: int, b: int) -> PoseDiff:
@@ -572,8 +573,9 @@ class FrameStore:
         head_poses = self.poses()
         row = {int(f): k for k, f in enumerate(ids)}
         if all(same_pose(P, head_poses[row[fid]]) for fid, P in matched.poses.items()):
-            raise StoreError(f"{file}: every matched pose equals revision {self.head}'s within "
-                             f"{SAME_POSE_M * 1e6:g} um / {SAME_POSE_DEG:g} deg; no revision written")
+            # still recorded (the history says the file was imported), but the user should know it moved nothing
+            logger.warning("%s: every matched pose equals revision %d's within %g um / %g deg: the new revision "
+                           "changes no pose", file, self.head, SAME_POSE_M * 1e6, SAME_POSE_DEG)
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
         return revision, matched
 
