@@ -121,3 +121,9 @@ def test_revisions_count_real_changes_only(store_path: Path, tmp_path: Path) -> 
 def test_diagnose_gt_options_without_gt_are_refused(store_path: Path, tmp_path: Path) -> None:
     line = _one_line_error(_cli("diagnose", store_path, "--gt-format", "kitti", "--json", tmp_path / "d.json"))
     assert "--gt-format" in line and not (tmp_path / "d.json").exists()
+
+
+def test_convert_with_an_empty_selection_writes_nothing(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "e.mcap"
+    line = _one_line_error(_cli("convert", sevenscenes_dir, out, "--frames", "3:3"))
+    assert "no frame" in line and not out.exists() and not list(tmp_path.glob("*.partial"))

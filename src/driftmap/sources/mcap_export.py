@@ -369,6 +369,9 @@ def export_mcap(
                 state.n_points += frame.n_points
                 state.last_stamp_ns = frame.stamp_ns
                 n_frames += 1
+            if n_frames == 0:
+                uri = getattr(source_or_frames, "uri", "the frames")
+                raise ExportError(f"{uri}: no frame to write to {out_path} (an empty --frames selection?); nothing written")
             writer.add_metadata(
                 EXPORT_METADATA_NAME,
                 {
