@@ -42,6 +42,7 @@ def test_poses_from_source_reproduces_the_ground_truth(sevenscenes_dir: Path, tm
     with FrameStore.open(tmp_path / "s") as store:
         assert [int(i) for i in store.frame_ids] == list(range(0, 1000, 50))
         assert store.head == 0
+        assert store.revisions[0].source.value == "ground_truth"  # the label `driftmap revisions` shows
         for frame, T in zip(source, store.poses(0)):
             assert frame.T_world_sensor.tobytes() == T.tobytes()  # exactly the source's poses
         np.testing.assert_allclose(store.poses(0), source.ground_truth().poses, atol=5e-4)  # the files, to their precision

@@ -10,6 +10,7 @@ from __future__ import annotations
 import enum
 import json
 import logging
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
@@ -87,6 +88,8 @@ class BuildResult:
     loops: list[dict[str, Any]] = field(default_factory=list)
     odometry_edges: int = 0
     information_scale: dict[str, float] = field(default_factory=dict)
+    source: dict[str, Any] | None = None
+    """What the store was built from (resolved path, format, the path as given); see ``build_source.json``."""
 
     @property
     def frames_per_second(self) -> float:
@@ -118,12 +121,104 @@ def _open(source: str | Path, format: str | None, frames: str | None, config: Bu
     if "pixel_stride" in params:
         options["pixel_stride"] = config.pixel_stride if config.pixel_stride is not None else 0  # 0: decide below
     src = open_source(path, fmt, **{k: v for k, v in options.items() if k != "pixel_stride" or v})
+    _require_frames(src, path, fmt, frames, {k: v for k, v in options.items() if k not in ("frames", "pixel_stride")})
     if "pixel_stride" in params and not config.pixel_stride:
         first = src.frame(0)
         stride = 2 if first.intrinsics is not None and first.intrinsics.width >= 640 else 1
         if stride != 1:
             src = open_source(path, fmt, **{**options, "pixel_stride": stride})
     return src
+
+
+def _require_frames(src: FrameSource, path: Path, fmt: str | None, frames: str | None, options: dict[str, Any]) -> None:
+    """An empty selection is an error that names ``--frames`` and the source's length (not a failed index 0)."""
+    try:
+        n = len(src)
+    except SourceError:  # the length is unknown for this source: the frames are counted as they come
+        return
+    if n:
+        return
+    if frames is None:
+        raise SourceError(f"{path}: the source has no frames")
+    total = len(open_source(path, fmt, **options))
+    raise ConfigError(f"--frames {frames} selects no frame of {path} (the source has {total} frames"
+                      + (f", indices 0..{total - 1})" if total else ")"))
+
+
+#: beside the store: what it was built from, written when the store is created, checked by ``--resume``
+BUILD_SOURCE_FILE = "build_source.json"
+
+
+def _source_record(source: str | Path, src: FrameSource) -> dict[str, Any]:
+    return {"path": str(Path(source).resolve()), "format": src.format_name, "given": str(source)}
+
+
+def _check_recorded_source(out: Path, record: dict[str, Any]) -> bool:
+    """``--resume``: refuse a source other than the one the store was built from (its resolved path or format
+    differ). False when the store has no record (built before the record existed): see :func:`_check_stored_frames`."""
+    file = out / BUILD_SOURCE_FILE
+    try:
+        recorded = json.loads(file.read_text())
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError) as exc:
+        raise StoreError(f"{file}: unreadable build source record ({exc})") from exc
+    if recorded.get("path") != record["path"] or recorded.get("format") != record["format"]:
+        raise ConfigError(
+            f"{out}: cannot --resume from a different source: the store was built from {recorded.get('path')} "
+            f"(format {recorded.get('format')}, recorded in {file}), the source given is {record['path']} "
+            f"(format {record['format']}); resume with the same source or build into another --out")
+    return True
+
+
+def _check_stored_frames(store: FrameStore, src: FrameSource, record: dict[str, Any]) -> None:
+    """``--resume`` on a store without a source record: its first frame's sensor kind and (when it is a file
+    that exists) the file it came from must fit the source given."""
+    if len(store) == 0:
+        return
+    info = store.frame_info(int(store.frame_ids[0]))
+    stored_kind = info.get("sensor_kind")
+    given_kind = src.frame(0).sensor_kind.value if len(src) else None
+    origin = (info.get("provenance") or {}).get("source_uri")
+    origin_path = Path(origin) if origin else None
+    source_path = Path(record["path"])
+    foreign_origin = (origin_path is not None and origin_path.is_absolute() and origin_path.exists()
+                      and origin_path.resolve() != source_path and source_path not in origin_path.resolve().parents)
+    if (given_kind is not None and stored_kind != given_kind) or foreign_origin:
+        raise ConfigError(
+            f"{store.path}: cannot --resume from a different source: the store holds {stored_kind} frames from "
+            f"{origin} (it has no {BUILD_SOURCE_FILE}), the source given is {record['path']} (format "
+            f"{record['format']}, {given_kind} frames); resume with the same source or build into another --out")
+
+
+def _check_first_frame_poses(src: FrameSource, pose_of: Callable[[Frame], np.ndarray] | None,
+                             poses_from_source: bool) -> None:
+    """Before a new store is created: the first selected frame must have a pose (``--poses`` /
+    ``--poses-from-source``)."""
+    if pose_of is None and not poses_from_source:
+        return
+    first = src.frame(0)
+    if pose_of is not None:
+        pose_of(first)  # raises naming the pose file and the frame
+    elif first.pose.source is PoseSource.NONE:
+        raise SourceError(f"{src.uri}: frame {first.frame_id} has no pose in the source (--poses-from-source)")
+
+
+def _remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> None:
+    """Undo :meth:`FrameStore.create` of a build that failed before storing a frame: the store directory if this
+    build made it (and the parents it made, when empty), else only the files it put into the empty folder."""
+    try:
+        if out_existed:
+            for child in out.iterdir():
+                shutil.rmtree(child) if child.is_dir() and not child.is_symlink() else child.unlink()
+        else:
+            shutil.rmtree(out)
+            for parent in new_dirs[1:]:
+                parent.rmdir()  # only when empty
+    except OSError as exc:
+        logger.warning("build failed: could not remove the empty store it created at %s (%s)", out, exc)
+        return
+    logger.warning("build failed before any frame was stored: removed the empty store it created at %s", out)
 
 
 def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: str = "auto",
@@ -194,31 +289,57 @@ def build(
     tick = progress or (lambda stage, done, total: None)
     stages: dict[str, float] = {}
     out = Path(out)
+    store_exists = (out / "store.json").exists()
+    if store_exists and not resume:
+        raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
     src = _open(source, format, frames, config, poses_from_source)
     if config.depth_scale_error != 1.0 or config.focal_length_error != 1.0:
         logger.warning("build: frames perturbed on purpose (depth scale x%g, focal length x%g); recorded in build_config.json",
                        config.depth_scale_error, config.focal_length_error)
-    if resume and (out / "store.json").exists():
+    record = _source_record(source, src)
+    # inputs are checked before a store is created or opened for appending: a pose file that cannot be read
+    # leaves nothing behind
+    pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file) if poses_file is not None else None
+    new_store = not (resume and store_exists)
+    out_existed, new_dirs = out.exists(), [p for p in (out, *out.parents) if not p.exists()]  # what create() makes
+    has_record = False
+    if not new_store:
+        has_record = _check_recorded_source(out, record)
         store = FrameStore.open(out, "a")
         for event in store.recovery_events:
             logger.warning("resume: %s", event)
-    elif (out / "store.json").exists():
-        raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
+        if not has_record:
+            try:
+                _check_stored_frames(store, src, record)
+            except BaseException:
+                store.close()
+                raise
     else:
+        _check_first_frame_poses(src, pose_of, poses_from_source)
         store = FrameStore.create(out)
     try:
-        return _build(src, store, config, poses_file, poses_from_source, loop_closure, tick, stages, inject_wrong_loop,
-                      kitti_frame=kitti_frame, calib_file=calib_file)
+        if not has_record:  # a new store, or one built before the record existed (and checked above)
+            (out / BUILD_SOURCE_FILE).write_text(json.dumps(record, indent=2) + "\n")
+        return _build(src, store, config, pose_of, poses_from_source, loop_closure, tick, stages, inject_wrong_loop,
+                      source_record=record)
+    except BaseException:
+        n_stored = len(store)
+        store.close()
+        if new_store and n_stored == 0:
+            _remove_new_store(out, out_existed, new_dirs)
+        elif new_store:
+            logger.warning("build failed after storing %d frames; %s is kept (continue it with --resume)",
+                           n_stored, out)
+        raise
     finally:
         store.close()
 
 
-def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file: str | Path | None, poses_from_source: bool,
-           loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
-           inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, kitti_frame: str = "auto",
-           calib_file: str | Path | None = None) -> BuildResult:
+def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Callable[[Frame], np.ndarray] | None,
+           poses_from_source: bool, loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
+           inject_wrong_loop: tuple[int, int, np.ndarray] | None, *,
+           source_record: dict[str, Any] | None = None) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
-    pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file) if poses_file is not None else None
     pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
     odometry: KissOdometry | GicpMapOdometry | None = None
     n_total = len(src)
@@ -274,11 +395,11 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, poses_file:
         store=str(store.path), n_frames=len(store), n_frames_new=n_new,
         mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,
         pose_source=pose_source.value if n_new else store.ledger.revision(0).source.value,
-        odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages,
+        odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
     )
     if loop_closure and len(store) >= 2:
         _close_loops(store, config, result, tick, stages, inject_wrong_loop,
-                     own_odometry=poses_file is None and not poses_from_source)
+                     own_odometry=pose_of is None and not poses_from_source)
     (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result

@@ -287,7 +287,8 @@ class FrameStore:
             if ref.frame_id in self._refs:
                 raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path, offset=ref.payload_offset)
             self._refs[ref.frame_id] = ref
-            self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]), np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4))
+            self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]), np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4),
+                                  ref.info["pose"].get("source"))
         for rev in scan.revisions:
             self.ledger.commit(Revision.from_json(rev))
 
@@ -426,7 +427,7 @@ class FrameStore:
             raise StoreError(f"{self.path}: frame {frame.frame_id} is already stored; frame ids must be unique")
         writer = self._writable()
         payload_offset, info = writer.append_frame(frame)
-        self.ledger.add_frame(frame.frame_id, frame.stamp_ns, frame.pose.T_world_sensor)
+        self.ledger.add_frame(frame.frame_id, frame.stamp_ns, frame.pose.T_world_sensor, frame.pose.source)
         self._refs[frame.frame_id] = StoredFrameRef(info, writer.path, payload_offset)
 
     def frame_info(self, frame_id: int) -> dict[str, Any]:

@@ -349,6 +349,7 @@ class PoseLedger:
         self._base_source = _as_source(base_source)
         self._created_ns = time.time_ns() if created_ns is None else _as_int(created_ns, "created_ns")
         self._known: set[int] = set()
+        self._frame_sources: set[PoseSource] = set()
         # frames arrive one at a time: appended to these lists and merged into the sorted arrays on demand
         self._pending_ids: list[int] = []
         self._pending_stamps: list[int] = []
@@ -362,15 +363,18 @@ class PoseLedger:
 
     # ---- frames ----------------------------------------------------------------------------------------------
 
-    def add_frame(self, frame_id: int, stamp_ns: int, T_world_sensor: ArrayLike) -> None:
+    def add_frame(self, frame_id: int, stamp_ns: int, T_world_sensor: ArrayLike, source: PoseSource | str | None = None) -> None:
         """Register a frame and its revision-0 pose (validated rigid). A duplicate ``frame_id`` is a StoreError;
-        a rejected call leaves the ledger unchanged."""
+        a rejected call leaves the ledger unchanged. ``source``: where that pose came from; when every frame
+        names the same one, revision 0 is labelled with it (else with the ledger's ``base_source``)."""
         fid = _as_int(frame_id, "frame_id")
         stamp = _as_int(stamp_ns, f"frame {fid}: stamp_ns")
         T = geometry.as_rigid(T_world_sensor, f"frame {fid}: T_world_sensor")
         if fid in self._known:
             raise StoreError(f"frame {fid} is already in the pose ledger")
         self._known.add(fid)
+        if source is not None:
+            self._frame_sources.add(_as_source(source))
         self._pending_ids.append(fid)
         self._pending_stamps.append(stamp)
         self._pending_poses.append(T)
@@ -434,7 +438,7 @@ class PoseLedger:
             self._revision0 = Revision(
                 revision_id=0,
                 parent_id=None,
-                source=self._base_source,
+                source=next(iter(self._frame_sources)) if len(self._frame_sources) == 1 else self._base_source,
                 created_ns=self._created_ns,
                 note="poses that produced the frames",
                 set_directly=dict(zip(self._ids.tolist(), self._base, strict=True)),

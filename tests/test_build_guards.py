@@ -1,0 +1,205 @@
+"""``build`` guards on real data: ``--resume`` refuses another source, a build that fails before storing a frame
+removes the store it created (and only that), an empty ``--frames`` selection says so.
+
+Broken inputs are made in ``tmp_path`` from symlinks to the shared 7-Scenes files (nothing is copied) plus
+files the tests write themselves (an unreadable depth image, pose files)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.errors import ConfigError, SourceError
+from driftmap.pipeline.build import BUILD_SOURCE_FILE, BuildConfig, build
+from driftmap.sources.kitti import KittiOdometry
+from driftmap.sources.sevenscenes import SevenScenes
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import Trajectory, write_kitti, write_tum
+
+
+def _stored(path: Path) -> tuple[list[int], set[str]]:
+    """Frame ids and sensor kinds of a store."""
+    with FrameStore.open(path) as store:
+        ids = [int(i) for i in store.frame_ids]
+        return ids, {store.frame_info(i)["sensor_kind"] for i in ids}
+
+
+def _linked_7scenes(sevenscenes_dir: Path, folder: Path, ids: list[int], *, poses: bool = True,
+                    unreadable: int | None = None) -> Path:
+    """A 7-Scenes folder of symlinks to the shared frames ``ids``; frame ``unreadable`` gets a depth file that
+    is not an image."""
+    folder.mkdir()
+    (folder / "camera-intrinsics.txt").symlink_to(sevenscenes_dir / "camera-intrinsics.txt")
+    for i in ids:
+        name = f"frame-{i:06d}"
+        if i == unreadable:
+            (folder / f"{name}.depth.png").write_bytes(b"not a png")
+        else:
+            (folder / f"{name}.depth.png").symlink_to(sevenscenes_dir / f"{name}.depth.png")
+        if poses:
+            (folder / f"{name}.pose.txt").symlink_to(sevenscenes_dir / f"{name}.pose.txt")
+    return folder
+
+
+# ------------------------------------------------------------------------------------ 1. --resume, another source
+
+
+def test_resume_refuses_a_different_source(sevenscenes_dir: Path, kitti_dir: Path, tmp_path: Path) -> None:
+    built = tmp_path / "s"
+    build(sevenscenes_dir, built, poses_from_source=True, loop_closure=False, frames="0:20:5")
+    record = json.loads((built / BUILD_SOURCE_FILE).read_text())
+    assert record["path"] == str(sevenscenes_dir.resolve()) and record["format"] == "7scenes"
+    assert json.loads((built / "build_summary.json").read_text())["source"] == record
+    store = tmp_path / "t"
+    shutil.copytree(built, store)
+    before = _stored(store)
+    assert before == ([0, 5, 10, 15], {"depth_camera"})
+
+    with pytest.raises(ConfigError, match="different source") as err:
+        build(kitti_dir, store, resume=True, poses_from_source=True, frames="0:3")
+    message = str(err.value)
+    assert str(store) in message and str(sevenscenes_dir.resolve()) in message and str(kitti_dir.resolve()) in message
+    assert "kitti" in message and "7scenes" in message
+    assert _stored(store) == before, "the refused resume must not touch the store"
+
+    # the same source continues, also when given through a symlink (the resolved path is compared)
+    link = tmp_path / "link"
+    link.symlink_to(sevenscenes_dir)
+    result = build(link, store, resume=True, poses_from_source=True, loop_closure=False, frames="0:40:5")
+    assert (result.n_frames_new, result.n_frames) == (4, 8)
+    assert _stored(store) == ([0, 5, 10, 15, 20, 25, 30, 35], {"depth_camera"})
+
+
+def test_resume_of_a_store_without_a_source_record_checks_its_frames(sevenscenes_dir: Path, kitti_dir: Path,
+                                                                     tmp_path: Path) -> None:
+    """A store from before the record (or made without ``build``): its stored frames' sensor kind and file
+    decide; a resume that passes writes the record."""
+    store = tmp_path / "s"
+    build(sevenscenes_dir, store, poses_from_source=True, loop_closure=False, frames="0:20:5")
+    (store / BUILD_SOURCE_FILE).unlink()
+    with pytest.raises(ConfigError, match="different source") as err:
+        build(kitti_dir, store, resume=True, poses_from_source=True, frames="0:3")
+    assert "depth_camera" in str(err.value) and "lidar" in str(err.value) and str(store) in str(err.value)
+    assert _stored(store) == ([0, 5, 10, 15], {"depth_camera"})
+    assert not (store / BUILD_SOURCE_FILE).exists()
+
+    result = build(sevenscenes_dir, store, resume=True, poses_from_source=True, loop_closure=False, frames="0:30:5")
+    assert (result.n_frames_new, result.n_frames) == (2, 6)
+    assert json.loads((store / BUILD_SOURCE_FILE).read_text())["path"] == str(sevenscenes_dir.resolve())
+
+
+# ------------------------------------------------------------------ 2. a failed build leaves no empty store behind
+
+
+def _pose_file(tmp_path: Path, case: str) -> Path:
+    if case == "missing":
+        return tmp_path / "nope.tum"
+    if case == "empty":
+        (tmp_path / "empty.tum").write_text("")
+        return tmp_path / "empty.tum"
+    # readable, but its stamps (100 s and later) match no 7-Scenes frame of 0:3 (stamps < 0.1 s)
+    write_tum(tmp_path / "far.tum", Trajectory(np.array([100_000_000_000, 101_000_000_000]), np.stack([np.eye(4)] * 2)))
+    return tmp_path / "far.tum"
+
+
+@pytest.mark.parametrize("case", ["missing", "empty", "unmatched"])
+def test_a_pose_file_that_cannot_be_used_leaves_no_store(sevenscenes_dir: Path, tmp_path: Path, case: str) -> None:
+    poses = _pose_file(tmp_path, case)
+    expected = {"missing": "cannot read trajectory file", "empty": "no data lines",
+                "unmatched": "no pose within 20 ms of frame 0"}
+    out = tmp_path / "x"
+    with pytest.raises(SourceError, match=expected[case]) as err:
+        build(sevenscenes_dir, out, frames="0:3", poses_file=poses, loop_closure=False)
+    assert poses.name in str(err.value)
+    assert not out.exists()
+    result = build(sevenscenes_dir, out, frames="0:3", poses_from_source=True, loop_closure=False)  # the retry
+    assert result.n_frames == 3
+
+
+def test_a_kitti_pose_file_without_the_rows_leaves_no_store(kitti_dir: Path, tmp_path: Path) -> None:
+    short = tmp_path / "short.txt"
+    write_kitti(short, Trajectory(np.arange(2), np.stack([np.eye(4)] * 2), np.arange(2)))
+    out = tmp_path / "k"
+    with pytest.raises(SourceError, match="2 rows, no pose for frame 4"):
+        build(kitti_dir, out, frames="4:8", poses_file=short, loop_closure=False, kitti_frame="velodyne")
+    assert not out.exists()
+    result = build(kitti_dir, out, frames="4:8", poses_file=kitti_dir / "poses.txt", loop_closure=False)
+    assert result.n_frames == 4
+
+
+def test_poses_from_a_source_without_poses_leaves_no_store(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    folder = _linked_7scenes(sevenscenes_dir, tmp_path / "no-poses", [0, 1, 2], poses=False)
+    out = tmp_path / "x"
+    with pytest.raises(SourceError, match="pose of frame 0 not found"):
+        build(folder, out, poses_from_source=True, loop_closure=False)
+    assert not out.exists()
+    result = build(folder, out, loop_closure=False)  # the retry, with our own odometry
+    assert result.n_frames == 3 and result.pose_source == "odometry"
+
+
+def test_a_failure_before_the_first_frame_removes_only_what_the_build_created(sevenscenes_dir: Path,
+                                                                              tmp_path: Path) -> None:
+    """The safety net behind the input checks: frame 0 cannot be read once the store exists (pixel_stride
+    given, so nothing reads a frame before)."""
+    folder = _linked_7scenes(sevenscenes_dir, tmp_path / "broken", [0, 1], unreadable=0)
+    config = BuildConfig(pixel_stride=4)
+    nested = tmp_path / "a" / "b" / "store"  # build creates a, a/b and the store
+    with pytest.raises(SourceError, match="cannot read depth image of frame 0"):
+        build(folder, nested, config=config, loop_closure=False)
+    assert not (tmp_path / "a").exists()
+    assert tmp_path.exists() and folder.exists()
+
+    empty = tmp_path / "empty"  # a folder that was there (empty) before stays, empty
+    empty.mkdir()
+    with pytest.raises(SourceError, match="cannot read depth image of frame 0"):
+        build(folder, empty, config=config, loop_closure=False)
+    assert empty.is_dir() and not any(empty.iterdir())
+
+    result = build(sevenscenes_dir, nested, config=config, frames="0:2", loop_closure=False)  # the retry
+    assert result.n_frames == 2
+
+
+def test_a_store_with_frames_or_a_resumed_store_is_never_deleted(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    folder = _linked_7scenes(sevenscenes_dir, tmp_path / "broken", [0, 1, 2], unreadable=2)
+    config = BuildConfig(pixel_stride=4)
+    # a new store that failed after two frames: kept, with them
+    kept = tmp_path / "kept"
+    with pytest.raises(SourceError, match="frame 2"):
+        build(folder, kept, config=config, poses_from_source=True, loop_closure=False)
+    assert _stored(kept)[0] == [0, 1]
+
+    # a resumed store, with frames or without, is not removed when the resume fails before storing a frame
+    with pytest.raises(SourceError, match="frame 2"):
+        build(folder, kept, config=config, poses_from_source=True, loop_closure=False, resume=True)
+    assert _stored(kept)[0] == [0, 1]
+    empty = tmp_path / "empty-store"
+    FrameStore.create(empty).close()
+    with pytest.raises(SourceError, match="frame 2"):
+        build(folder, empty, config=config, frames="2:3", loop_closure=False, resume=True)
+    assert (empty / "store.json").exists() and _stored(empty)[0] == []
+
+
+# ------------------------------------------------------------------------------------ 3. an empty --frames selection
+
+
+@pytest.mark.parametrize("frames", ["5:5", "2000:2010"])
+def test_an_empty_frame_selection_says_so(sevenscenes_dir: Path, tmp_path: Path, frames: str) -> None:
+    n = len(SevenScenes(sevenscenes_dir))
+    with pytest.raises(ConfigError) as err:
+        build(sevenscenes_dir, tmp_path / "x", frames=frames)
+    assert str(err.value).startswith(f"--frames {frames} selects no frame")
+    assert f"the source has {n} frames" in str(err.value) and str(sevenscenes_dir) in str(err.value)
+    assert "out of range" not in str(err.value)
+    assert not (tmp_path / "x").exists()
+
+
+def test_an_empty_frame_selection_on_a_lidar_source(kitti_dir: Path, tmp_path: Path) -> None:
+    """KITTI reads no frame while opening (no pixel stride to pick): the selection is checked by its length."""
+    n = len(KittiOdometry(kitti_dir))
+    with pytest.raises(ConfigError, match=f"--frames {n}:{n + 10} selects no frame .*the source has {n} frames"):
+        build(kitti_dir, tmp_path / "k", frames=f"{n}:{n + 10}")
+    assert not (tmp_path / "k").exists()
