@@ -203,3 +203,13 @@ def test_an_empty_frame_selection_on_a_lidar_source(kitti_dir: Path, tmp_path: P
     with pytest.raises(ConfigError, match=f"--frames {n}:{n + 10} selects no frame .*the source has {n} frames"):
         build(kitti_dir, tmp_path / "k", frames=f"{n}:{n + 10}")
     assert not (tmp_path / "k").exists()
+
+
+def test_a_run_too_short_for_loop_closure_says_so(sevenscenes_dir: Path, tmp_path: Path,
+                                                  caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    with caplog.at_level(logging.WARNING, logger="driftmap.pipeline.build"):
+        result = build(sevenscenes_dir, tmp_path / "s", poses_from_source=True, frames="0:3")
+    assert result.loop_revision is None
+    assert any("loop closure skipped" in r.getMessage() for r in caplog.records)

@@ -468,7 +468,8 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     poses = store.poses(0)
     key_rows = select_keyframes(poses, lc)
     if inject_wrong_loop is None and (len(key_rows) < 2 or key_rows[-1] - key_rows[0] < lc.min_gap_frames):
-        logger.info("loop closure skipped: %d frames, fewer than min_gap_frames = %d apart", len(ids), lc.min_gap_frames)
+        logger.warning("loop closure skipped: %d frames, %d keyframes, fewer than min_gap_frames = %d apart (too short "
+                       "a run to revisit a place)", len(ids), len(key_rows), lc.min_gap_frames)
         return
     keyframes: list[Keyframe] = []
     cache: dict[int, np.ndarray] = {}
