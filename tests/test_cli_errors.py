@@ -127,3 +127,17 @@ def test_convert_with_an_empty_selection_writes_nothing(sevenscenes_dir: Path, t
     out = tmp_path / "e.mcap"
     line = _one_line_error(_cli("convert", sevenscenes_dir, out, "--frames", "3:3"))
     assert "no frame" in line and not out.exists() and not list(tmp_path.glob("*.partial"))
+
+
+def test_export_checks_the_map_name_before_writing_anything(store_path: Path, tmp_path: Path) -> None:
+    out = _cli("export", store_path, "--trajectory", tmp_path / "t.tum", "--map", tmp_path / "m.xyz")
+    assert out.returncode == 2 and ".ply or .pcd" in " ".join(out.stderr.split()), out.stderr
+    assert not (tmp_path / "t.tum").exists()
+
+
+def test_poses_from_source_on_a_converted_log_points_to_its_ground_truth(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    log = tmp_path / "c.mcap"
+    assert _cli("convert", sevenscenes_dir, log, "--frames", "0:6:3").returncode == 0
+    line = " ".join(_cli("build", log, "--out", tmp_path / "s", "--poses-from-source").stderr.split())
+    assert "has no pose in the source" in line and "ground truth" in line, line
+    assert not (tmp_path / "s").exists()

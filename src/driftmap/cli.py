@@ -350,6 +350,8 @@ def export(
     if map_path is None and trajectory is None and mcap_path is None:
         raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
     format = _choice(format, ("tum", "kitti"), "--format")
+    if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
+        raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
     with _open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)

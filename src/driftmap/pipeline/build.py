@@ -21,7 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, SourceError, StoreError
+from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
 from driftmap.registration.loops import (
@@ -201,7 +201,20 @@ def _check_first_frame_poses(src: FrameSource, pose_of: Callable[[Frame], np.nda
     if pose_of is not None:
         pose_of(first)  # raises naming the pose file and the frame
     elif first.pose.source is PoseSource.NONE:
-        raise SourceError(f"{src.uri}: frame {first.frame_id} has no pose in the source (--poses-from-source)")
+        raise SourceError(_no_pose_message(src, first.frame_id))
+
+
+def _no_pose_message(src: FrameSource, frame_id: int) -> str:
+    msg = f"{src.uri}: frame {frame_id} has no pose in the source (--poses-from-source)"
+    try:
+        has_ground_truth = src.ground_truth() is not None
+    except (DriftmapError, OSError):  # only a hint: an unreadable ground truth gives none
+        has_ground_truth = False
+    if has_ground_truth:
+        msg += ("; it holds ground truth on its own (in an MCAP from `driftmap convert`, on the sensor's ground_truth "
+                "topic), which is never taken as the pose estimate: build from the original data set with "
+                "--poses-from-source, or drop the flag to run odometry")
+    return msg
 
 
 def _remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> None:
@@ -368,7 +381,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             T = pose_of(frame)
         elif poses_from_source:
             if frame.pose.source is PoseSource.NONE:
-                raise SourceError(f"{src.uri}: frame {frame.frame_id} has no pose in the source (--poses-from-source)")
+                raise SourceError(_no_pose_message(src, frame.frame_id))
             T = frame.T_world_sensor
             pose_source = frame.pose.source
         else:
