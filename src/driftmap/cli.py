@@ -305,8 +305,6 @@ def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="
     """List the pose revisions: id, parent, source, frames changed, max displacement."""
     import datetime
 
-    from driftmap.store.ledger import SAME_POSE_DEG, SAME_POSE_M
-
     with _open_store(store_path) as store:
         table = Table(title=f"pose revisions of {store_path}")
         for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
@@ -317,7 +315,7 @@ def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="
                 table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")
                 continue
             d = store.diff(rev.parent_id, rev.revision_id)
-            changed = int(np.count_nonzero((d.translation_m > SAME_POSE_M) | (d.rotation_deg > SAME_POSE_DEG)))
+            changed = d.n_changed
             created = datetime.datetime.fromtimestamp(rev.created_ns / 1e9).isoformat(timespec="seconds")
             table.add_row(str(rev.revision_id), str(rev.parent_id), rev.source.value, created, str(changed),
                           f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note)

@@ -50,7 +50,6 @@ from driftmap.store.ledger import (
     PoseMatchMode,
     Revision,
     match_trajectory,
-    same_pose,
 )
 from driftmap.store.segment import (
     SegmentScan,
@@ -571,13 +570,11 @@ class FrameStore:
         if matched.unmatched_frames:
             logger.warning("%s: %d stored frames had no row (%s)", file, len(matched.unmatched_frames),
                            "propagated from the matched frames" if propagate else "they keep their poses")
-        head_poses = self.poses()
-        row = {int(f): k for k, f in enumerate(ids)}
-        if all(same_pose(P, head_poses[row[fid]]) for fid, P in matched.poses.items()):
-            # still recorded (the history says the file was imported), but the user should know it moved nothing
-            logger.warning("%s: every matched pose equals revision %d's within %g um / %g deg: the new revision "
-                           "changes no pose", file, self.head, SAME_POSE_M * 1e6, SAME_POSE_DEG)
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
+        if self.diff(revision.parent_id, revision.revision_id).n_changed == 0:
+            # still recorded (the history says the file was imported), but the user should know it moved nothing
+            logger.warning("%s: every pose equals revision %d's within %g um / %g deg: the new revision changes no "
+                           "pose", file, revision.parent_id, SAME_POSE_M * 1e6, SAME_POSE_DEG)
         return revision, matched
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,

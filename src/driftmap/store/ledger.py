@@ -145,14 +145,6 @@ file written with 9 decimals and read back moves poses by ~1e-9 m)."""
 SAME_POSE_DEG = 1e-5
 
 
-def same_pose(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> bool:
-    """Whether two 4x4 poses agree within :data:`SAME_POSE_M` / :data:`SAME_POSE_DEG`."""
-    a, b = np.asarray(T_a, dtype=np.float64), np.asarray(T_b, dtype=np.float64)
-    if np.linalg.norm(a[:3, 3] - b[:3, 3]) > SAME_POSE_M:
-        return False
-    return bool(np.degrees(_rotation_angle_rad(a[None, :3, :3], b[None, :3, :3])[0]) <= SAME_POSE_DEG)
-
-
 # --------------------------------------------------------------------------------------------------------------
 # Revision
 # --------------------------------------------------------------------------------------------------------------
@@ -335,6 +327,11 @@ class PoseDiff:
     @property
     def max_rotation_deg(self) -> float:
         return float(self.rotation_deg.max()) if len(self.rotation_deg) else 0.0
+
+    @property
+    def n_changed(self) -> int:
+        """Frames that moved by more than :data:`SAME_POSE_M` or turned by more than :data:`SAME_POSE_DEG`."""
+        return int(np.count_nonzero((self.translation_m > SAME_POSE_M) | (self.rotation_deg > SAME_POSE_DEG)))
 
 
 # --------------------------------------------------------------------------------------------------------------
