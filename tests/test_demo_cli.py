@@ -140,3 +140,34 @@ def test_config_show_lists_settings_with_units() -> None:
     assert out.returncode == 0, out.stderr
     for name in ("depth.max_depth_m", "map.export_voxel_size_m", "build.loop_closure.proximity_radius_m"):
         assert name in out.stdout
+
+
+def test_one_config_file_holds_the_general_and_the_build_settings(tmp_path: Path) -> None:
+    """`config --show` lists build.* keys; a file with a [build] table sets exactly those (what `build --config`
+    reads), next to the general tables; a file without one is a bare build config, as before."""
+    from driftmap.config import DriftmapConfig
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.build import BuildConfig
+
+    both = tmp_path / "driftmap.toml"
+    both.write_text('[map]\nexport_voxel_size_m = 0.03\n\n[build]\npixel_stride = 3\n\n[build.loop_closure]\n'
+                    'proximity_radius_m = 1.5\n')
+    assert BuildConfig.load(both).pixel_stride == 3
+    assert BuildConfig.load(both).loop_closure.proximity_radius_m == 1.5
+    assert DriftmapConfig.load(both).map.export_voxel_size_m == 0.03
+    out = _cli("config", "--file", both)
+    assert out.returncode == 0, out.stderr
+    rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") >= 3}
+    assert rows["build.pixel_stride"] == "3" and rows["build.loop_closure.proximity_radius_m"] == "1.5"
+    assert rows["map.export_voxel_size_m"] == "0.03"
+    bare = tmp_path / "build.json"
+    bare.write_text(json.dumps({"pixel_stride": 4}))
+    assert BuildConfig.load(bare).pixel_stride == 4
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[mapp]\nexport_voxel_size_m = 0.03\n\n[build]\npixel_stride = 3\n")
+    with pytest.raises(ConfigError, match="mapp"):
+        BuildConfig.load(typo)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text("[build]\npixel_strid = 3\n")
+    with pytest.raises(ConfigError, match="pixel_strid"):
+        BuildConfig.load(wrong)

@@ -121,7 +121,7 @@ def demo(
 @app.command("config")
 def config_cmd(
     show: Annotated[bool, typer.Option("--show", help="Print every setting with its default and meaning.")] = True,
-    file: Annotated[Optional[Path], typer.Option("--file", help="Show the values a config file (JSON/TOML) yields.")] = None,
+    file: Annotated[Optional[Path], typer.Option("--file", help="Show the values a config file (JSON/TOML) yields; its [build] table is what 'build --config' reads.")] = None,
 ) -> None:
     """Print the configuration (defaults < file < DRIFTMAP_* environment) with units in every name."""
     from pydantic import BaseModel
@@ -143,7 +143,7 @@ def config_cmd(
                 table.add_row(prefix + name, str(shown), field.description or "")
 
     walk(DriftmapConfig.load(file), "")
-    walk(BuildConfig(), "build.")
+    walk(BuildConfig() if file is None else BuildConfig.load(file), "build.")
     console.print(table)
 
 
@@ -191,20 +191,9 @@ _CALIB_HELP = "KITTI calib.txt (line Tr) for --kitti-frame cam0 (default: the da
 
 
 def _load_build_config(path: Optional[Path]):
-    import tomllib
-
     from driftmap.pipeline.build import BuildConfig
 
-    if path is None:
-        return BuildConfig()
-    try:
-        text = path.read_text()
-        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
-        return BuildConfig(**data)
-    except (OSError, ValueError) as exc:
-        from driftmap.errors import ConfigError
-
-        raise ConfigError(f"{path}: invalid build config ({exc})") from exc
+    return BuildConfig() if path is None else BuildConfig.load(path)
 
 
 @app.command()
@@ -212,7 +201,7 @@ def build(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],
     out: Annotated[Path, typer.Option("--out", help="Store directory to create (or continue with --resume).")],
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
-    config: Annotated[Optional[Path], typer.Option("--config", help="Build config (JSON or TOML).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Build config (JSON or TOML): its [build] table (the build.* keys 'driftmap config' lists), or the whole file.")] = None,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,

@@ -2,6 +2,10 @@
 
 Environment variables use the prefix ``DRIFTMAP_`` and ``__`` between levels, e.g.
 ``DRIFTMAP_DEPTH__MAX_DEPTH_M=4.0``. The configuration that produced a result is written next to it.
+
+One file can hold both: the ``depth`` / ``preprocess`` / ``map`` tables are :class:`DriftmapConfig`, a ``build``
+table is ``driftmap build``'s :class:`~driftmap.pipeline.build.BuildConfig` (``driftmap config --file F`` shows
+both, ``driftmap build --config F`` reads the ``build`` table; a file without one is a bare build config).
 """
 
 from __future__ import annotations
@@ -64,12 +68,8 @@ class DriftmapConfig(BaseSettings):
         """Defaults, then the file (``.json`` or ``.toml``), then ``DRIFTMAP_*`` environment, then ``overrides``."""
         data: dict[str, Any] = {}
         if path is not None:
-            path = Path(path)
-            try:
-                text = path.read_text()
-                data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
-            except (OSError, ValueError) as exc:
-                raise ConfigError(f"{path}: cannot read config ({exc})") from exc
+            data = read_config_file(path)
+            data.pop(BUILD_TABLE, None)  # driftmap build's settings (BuildConfig.load reads them)
         try:
             # file values act as init values, which pydantic-settings ranks above the environment;
             # build from the environment first, then layer file and overrides so the order is documented
@@ -84,6 +84,23 @@ class DriftmapConfig(BaseSettings):
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(self.model_dump_json(indent=2) + "\n")
         return path
+
+
+BUILD_TABLE = "build"
+"""The table of a config file that holds ``driftmap build``'s settings."""
+
+
+def read_config_file(path: str | Path) -> dict[str, Any]:
+    """The top-level table of a ``.toml`` file, or the object of any other (JSON) file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file holds an object of settings, not {type(data).__name__}")
+    return data
 
 
 def _explicit(model: BaseModel) -> dict[str, Any]:

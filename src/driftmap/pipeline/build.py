@@ -49,6 +49,31 @@ class BuildConfig(BaseModel):
     """Everything ``build`` decides; saved next to the store as ``build_config.json``."""
 
     model_config = ConfigDict(extra="forbid")
+
+    @classmethod
+    def load(cls, path: str | Path) -> BuildConfig:
+        """A build config file (JSON or TOML): its ``build`` table, next to which only the general sections
+        (``depth``, ``preprocess``, ``map``: :class:`driftmap.config.DriftmapConfig`) may stand; or, without a
+        ``build`` table, the whole file."""
+        from pydantic import ValidationError
+
+        from driftmap.config import BUILD_TABLE, DriftmapConfig, read_config_file
+
+        data = read_config_file(path)
+        if BUILD_TABLE in data:
+            rest = {k: v for k, v in data.items() if k != BUILD_TABLE}
+            unknown = sorted(set(rest) - set(DriftmapConfig.model_fields))
+            if unknown:
+                raise ConfigError(f"{path}: unknown top-level settings {unknown} next to the [{BUILD_TABLE}] table "
+                                  f"(allowed: {sorted(DriftmapConfig.model_fields)})")
+            data = data[BUILD_TABLE]
+            if not isinstance(data, dict):
+                raise ConfigError(f"{path}: '{BUILD_TABLE}' must be a table of settings")
+        try:
+            return cls(**data)
+        except ValidationError as exc:
+            raise ConfigError(f"{path}: invalid build config ({exc})") from exc
+
     pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
     odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind)")
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
