@@ -72,7 +72,8 @@ def reference_map(store: FrameStore, cloud: DiagnosticCloud, report: dict) -> No
             first = r
     print(f"  flagged: {', '.join(fmt_pct(f) for f in fractions)} of {first.voxels_evaluated} surface voxels (seeds 0, 1, 2; "
           f"target <= 1 %); smearing {1000 * first.smearing_score_m:.2f} mm "
-          f"({', '.join(f'{k:g} m: {1000 * v:.2f}' for k, v in first.score_per_scale_m.items())})")
+          f"({', '.join(f'{k:g} m: {1000 * v:.2f}' for k, v in first.score_per_scale_m.items())}; frame to frame "
+          f"{1000 * first.frame_smearing_score_m:.2f} mm)")
     for k, region in enumerate(first.regions[:5]):
         print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm, frames "
               f"{region.frames_a.min()}-{region.frames_a.max()} vs {region.frames_b.min()}-{region.frames_b.max()}, {region.n_voxels} voxels")
@@ -81,7 +82,7 @@ def reference_map(store: FrameStore, cloud: DiagnosticCloud, report: dict) -> No
           f"revisited {100 * a.revisit_fraction:.0f} %; drift estimate {a.drift.percent_per_m:.2f} %/m {a.drift.deg_per_m:.3f} deg/m "
           f"(per-frame noise floor {100 * a.drift.noise_floor_m:.2f} cm, {a.drift.noise_floor_deg:.2f} deg)")
     report["reference"] = {"fraction_flagged_seeds": fractions, "voxels_evaluated": first.voxels_evaluated,
-                           "smearing_score_m": first.smearing_score_m,
+                           "smearing_score_m": first.smearing_score_m, "smearing_score_frames_m": first.frame_smearing_score_m,
                            "change_points": [(c.frame_id, c.jump_m) for c in a.change_points],
                            "drift_rate": {"percent_per_m": a.drift.percent_per_m, "deg_per_m": a.drift.deg_per_m,
                                           "noise_floor_m": a.drift.noise_floor_m, "noise_floor_deg": a.drift.noise_floor_deg}}
@@ -93,8 +94,9 @@ def synthetic_control(report: dict) -> None:
     cloud = DiagnosticCloud.from_frames(list(log))
     gt, odo = log.ground_truth().poses, log.odometry().poses
     rg, ro = detect_double_walls(cloud.place(gt)), detect_double_walls(cloud.place(odo))
-    print(f"  ground truth: {fmt_pct(rg.fraction_flagged)} flagged, smearing {1000 * rg.smearing_score_m:.2f} mm; drifting odometry: "
-          f"{fmt_pct(ro.fraction_flagged)} flagged, smearing {1000 * ro.smearing_score_m:.2f} mm, largest region "
+    print(f"  ground truth: {fmt_pct(rg.fraction_flagged)} flagged, smearing {1000 * rg.smearing_score_m:.2f} mm "
+          f"(frame to frame {1000 * rg.frame_smearing_score_m:.2f}); drifting odometry: {fmt_pct(ro.fraction_flagged)} flagged, "
+          f"smearing {1000 * ro.smearing_score_m:.2f} mm (frame to frame {1000 * ro.frame_smearing_score_m:.2f}), largest region "
           f"{100 * ro.regions[0].separation_m:.1f} cm (frames {ro.regions[0].frames_a.min()}-{ro.regions[0].frames_a.max()} vs "
           f"{ro.regions[0].frames_b.min()}-{ro.regions[0].frames_b.max()})")
     report["synthetic"] = {"gt_fraction_flagged": rg.fraction_flagged, "gt_smearing_m": rg.smearing_score_m,
@@ -183,11 +185,11 @@ def drifts(store: FrameStore, cloud: DiagnosticCloud, report: dict, quick: bool)
     base = store.poses(0)
     seeds = range(3 if quick else 5)
     for kind, mags in (("percent_per_m", (0.25, 0.5, 1.0, 2.0)), ("deg_per_m", (0.05, 0.1, 0.2))):
-        x, y, yr, monotone, monotone_r, estimates = [], [], [], 0, 0, {m: [] for m in mags}
+        x, y, yr, yf, monotone, monotone_r, monotone_f, estimates = [], [], [], [], 0, 0, 0, {m: [] for m in mags}
         for seed in seeds:
             v = np.random.default_rng(seed).normal(size=3)
             v /= np.linalg.norm(v)
-            scores, revisit = [], []
+            scores, revisit, frame = [], [], []
             for m in mags:
                 poses = (perturb.linear_drift(base, percent_per_m=m, direction=v) if kind == "percent_per_m"
                          else perturb.linear_drift(base, deg_per_m=m, axis=v))
@@ -195,22 +197,27 @@ def drifts(store: FrameStore, cloud: DiagnosticCloud, report: dict, quick: bool)
                 result = detect_double_walls(placed)
                 scores.append(result.smearing_score_m)
                 revisit.append(result.revisit_score_m(1.0))
+                frame.append(result.frame_smearing_score_m)
                 a = attribute(placed)
                 estimates[m].append(a.drift.percent_per_m if kind == "percent_per_m" else a.drift.deg_per_m)
             monotone += bool(np.all(np.diff(scores) > 0))
             monotone_r += bool(np.all(np.diff(revisit) > 0))
+            monotone_f += bool(np.all(np.diff(frame) > 0))
             x += list(mags)
             y += scores
             yr += revisit
-        rho, rho_r = spearmanr(x, y).statistic, spearmanr(x, yr).statistic
+            yf += frame
+        rho, rho_r, rho_f = spearmanr(x, y).statistic, spearmanr(x, yr).statistic, spearmanr(x, yf).statistic
         n = len(list(seeds))
         print(f"  {kind}: smearing score Spearman {rho:.3f} over {n} seeds (target >= 0.95), strictly increasing in "
-              f"{monotone}/{n} seeds, {1000 * min(y):.2f}..{1000 * max(y):.2f} mm; revisit-only score Spearman {rho_r:.3f}, "
-              f"increasing in {monotone_r}/{n}")
+              f"{monotone}/{n} seeds, {1000 * min(y):.2f}..{1000 * max(y):.2f} mm; frame-to-frame score Spearman {rho_f:.3f}, "
+              f"increasing in {monotone_f}/{n}, {1000 * min(yf):.2f}..{1000 * max(yf):.2f} mm; its revisit-only form "
+              f"Spearman {rho_r:.3f}, increasing in {monotone_r}/{n}")
         print("    drift-rate estimate (median over seeds): " + ", ".join(
             f"{m:g} -> {np.median([e for e in estimates[m] if e is not None]):.3f}" for m in mags))
         report[f"drift_{kind}"] = {"spearman": rho, "monotone_seeds": monotone, "spearman_revisit": rho_r,
-                                   "monotone_seeds_revisit": monotone_r, "seeds": n,
+                                   "monotone_seeds_revisit": monotone_r, "spearman_frames": rho_f,
+                                   "monotone_seeds_frames": monotone_f, "seeds": n,
                                    "estimates": {str(m): estimates[m] for m in mags}}
 
 
@@ -225,8 +232,10 @@ def sensor_errors(tmp: Path, frames: str, report: dict) -> None:
         store = build_store(tmp / f"sensor-{name.replace(' ', '-')}", frames, transform)
         d = diagnose_store(store, 0)
         out.append({"perturbation": name, "smearing_score_m": d.smearing_score_m,
+                    "smearing_score_frames_m": d.double_walls.frame_smearing_score_m,
                     "fraction_flagged": d.double_walls.fraction_flagged})
-        print(f"  {name:18s} smearing {1000 * d.smearing_score_m:.2f} mm, flagged {fmt_pct(d.double_walls.fraction_flagged)}")
+        print(f"  {name:18s} smearing {1000 * d.smearing_score_m:.2f} mm (frame to frame "
+              f"{1000 * d.double_walls.frame_smearing_score_m:.2f}), flagged {fmt_pct(d.double_walls.fraction_flagged)}")
         store.close()
     report["sensor_errors"] = out
 
@@ -248,8 +257,10 @@ def build_comparison(tmp: Path, report: dict, frames: str) -> None:
     build(KITCHEN, tmp / "reference", frames=frames, poses_from_source=True, loop_closure=False)
     ref = FrameStore.open(tmp / "reference")
     d_ref = diagnose_store(ref, 0)
-    print(f"  {'reference poses':34s} smearing {1000 * d_ref.smearing_score_m:.2f} mm, flagged {fmt_pct(d_ref.double_walls.fraction_flagged)}")
+    print(f"  {'reference poses':34s} smearing {1000 * d_ref.smearing_score_m:.2f} mm (frame to frame "
+          f"{1000 * d_ref.double_walls.frame_smearing_score_m:.2f}), flagged {fmt_pct(d_ref.double_walls.fraction_flagged)}")
     report["build"] = {"frames": frames, "reference": {"smearing_score_m": d_ref.smearing_score_m,
+                                                       "smearing_score_frames_m": d_ref.double_walls.frame_smearing_score_m,
                                                        "fraction_flagged": d_ref.double_walls.fraction_flagged}}
     for label, odometry in BUILD_ODOMETRIES.items():
         out = tmp / f"built-{len(report['build'])}"
@@ -269,9 +280,12 @@ def build_comparison(tmp: Path, report: dict, frames: str) -> None:
                            f"{r.frames_b.min()}-{r.frames_b.max()})")
             name = f"{label}, rev {rev}"
             print(f"  {name:34s} smearing {1000 * d.smearing_score_m:.2f} mm ({d.smearing_score_m / d_ref.smearing_score_m:.2f}x "
-                  f"the reference), flagged {fmt_pct(d.double_walls.fraction_flagged)}, ATE {100 * ate:.2f} cm, "
+                  f"the reference; frame to frame {1000 * d.double_walls.frame_smearing_score_m:.2f} mm, "
+                  f"{d.double_walls.frame_smearing_score_m / d_ref.double_walls.frame_smearing_score_m:.2f}x), "
+                  f"flagged {fmt_pct(d.double_walls.fraction_flagged)}, ATE {100 * ate:.2f} cm, "
                   f"regions >= 3 cm: {len(big)}{largest}")
-            entry[f"rev{rev}"] = {"smearing_score_m": d.smearing_score_m, "fraction_flagged": d.double_walls.fraction_flagged,
+            entry[f"rev{rev}"] = {"smearing_score_m": d.smearing_score_m,
+                                  "smearing_score_frames_m": d.double_walls.frame_smearing_score_m, "fraction_flagged": d.double_walls.fraction_flagged,
                                   "ate_rmse_m": ate, "regions_3cm": len(big)}
         report["build"][label] = entry
         built.close()

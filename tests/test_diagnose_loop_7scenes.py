@@ -101,8 +101,13 @@ def test_loop_closure_brings_the_map_to_the_ground_truth_level(diagnosed: dict) 
     rev0, head, gt = diagnosed["rev0"], diagnosed["head"], diagnosed["gt"]
     # issue 6: the corrected map's smearing score within 1.5x of the ground-truth-posed map's
     assert head["smearing_score_m"] <= 1.5 * gt["smearing_score_m"], (head["smearing_score_m"], gt["smearing_score_m"])
-    assert head["smearing_score_m"] <= rev0["smearing_score_m"] / 1.1, (head["smearing_score_m"],
+    # ... and far below the odometry-only map's: the between-visit score, measured 1.66-1.70x (6.3-6.4 mm against
+    # 3.8 mm; the reference 4.0 mm)
+    assert head["smearing_score_m"] <= rev0["smearing_score_m"] / 1.4, (head["smearing_score_m"],
                                                                         rev0["smearing_score_m"])
+    # the frame-to-frame score, which also holds every pose estimate's jitter, still drops (measured 1.24x)
+    assert head["smearing_score_frames_m"] <= rev0["smearing_score_frames_m"] / 1.1, (
+        head["smearing_score_frames_m"], rev0["smearing_score_frames_m"])
     assert head["smearing_score_revisit_m"] < rev0["smearing_score_revisit_m"]
     assert _frac(head) <= 1.5 * _frac(gt), (_frac(head), _frac(gt))
     # a well-posed real map stays under the issue's 1 % false-flag bar (measured 0.63 %; the data set's own

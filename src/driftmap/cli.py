@@ -479,7 +479,8 @@ def diagnose(
     table.add_column("value", justify="right")
     rows = [
         ("smearing score", f"{1000 * dw.smearing_score_m:.2f} mm ("
-                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + ")"),
+                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"),
+        ("smearing score, frame to frame", f"{1000 * dw.frame_smearing_score_m:.2f} mm"),
         ("surface voxels doubled", f"{dw.voxels_flagged} / {dw.voxels_evaluated} ({100 * dw.fraction_flagged:.2f} %)"),
         ("median separation", "-" if dw.median_separation_m is None else f"{100 * dw.median_separation_m:.1f} cm"),
         ("double-wall regions", str(len(dw.regions))),

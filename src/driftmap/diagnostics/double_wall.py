@@ -23,6 +23,14 @@ Method (see ``docs/diagnostics.md`` for the reasoning and the measured numbers):
 4. The separation is measured where both layers were seen: per shared lateral cell, the difference of
    the two layers' mean offsets; its uncertainty combines the spread over cells and the frame-to-frame
    jitter of each layer.
+5. **Smearing score**: per group, its frames are split into *visits* (runs without ``visit_gap_m`` of travel
+   between two frames that saw it); the visits' mean offsets should agree. Their dispersion, less what the
+   sensor noise and the group's own frame-to-frame jitter within visits explain, is the group's smearing; the
+   score is its RMS over the groups (a group seen in one visit counts 0: drift without a revisit is
+   invisible). Within-visit jitter (viewpoint-dependent depth distortion, pose jitter) is the same for every
+   pose estimate, so leaving it out is what separates a drifting map from a good one. The frame-level
+   score (between-frame instead of between-visit dispersion) is kept beside it: it also sees a jump inside
+   one pass.
 """
 
 from __future__ import annotations
@@ -368,6 +376,7 @@ class DoubleWallConfig(BaseModel):
     min_overlap: float = Field(0.25, ge=0.0, le=1.0, description="share of the smaller layer's points in lateral cells both layers saw")
     min_shared_cells: int = Field(2, ge=1, description="lateral cells seen by both layers")
     kmeans_iterations: int = Field(8, ge=1, description="Lloyd iterations of the 1-D two-layer split")
+    visit_gap_m: float = Field(1.0, gt=0.0, description="a surface seen again after this much travel without seeing it is a new visit (m)")
     merge_angle_deg: float = Field(25.0, gt=0.0, description="flagged voxels merge into one region when their normals agree within this")
 
 
@@ -394,6 +403,11 @@ class ScaleResult:
     """Per group: sqrt of the between-frame dispersion of mean offsets minus what noise explains."""
     path_span_m: NDArray[np.float64]
     """Per group: distance travelled between the first and the last frame that saw it."""
+    visit_smear_m: NDArray[np.float64]
+    """Per group: sqrt of the between-visit dispersion of mean offsets minus what noise and within-visit jitter
+    explain (NaN for a group seen in one visit)."""
+    n_visits: NDArray[np.int64]
+    """Per group: visits (runs of frames without ``visit_gap_m`` of travel between them)."""
     gf_group: NDArray[np.int64]
     """Per (group, frame) pair: the group, the frame row, its point count, its mean residual offset, its layer
     (0: A, 1: B, -1: none)."""
@@ -412,12 +426,25 @@ class ScaleResult:
 
     @property
     def score_m(self) -> float:
-        """Smearing score: RMS over evaluated groups of their excess between-frame dispersion (m)."""
+        """Smearing score: RMS over evaluated groups of how far their visits disagree beyond noise and
+        within-visit jitter (m); a group seen in one visit shows no drift and counts as 0."""
+        s = self.visit_smear_m[self.evaluated]
+        return float(np.sqrt(np.mean(np.nan_to_num(s, nan=0.0) ** 2))) if s.size else float("nan")
+
+    @property
+    def frame_score_m(self) -> float:
+        """The frame-level smearing score: RMS over evaluated groups of their excess between-frame dispersion (m).
+        Sees a jump inside one pass too, but also the frame-to-frame jitter of every pose estimate."""
         s = self.smear_m[self.evaluated]
         return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
 
+    @property
+    def groups_revisited(self) -> int:
+        """Evaluated groups seen in two visits or more (the groups the smearing score can see drift in)."""
+        return int(np.count_nonzero(self.evaluated & (self.n_visits >= 2)))
+
     def revisit_score_m(self, min_path_m: float = 1.0) -> float:
-        """The smearing score over the groups seen again after ``min_path_m`` of travel (where drift shows)."""
+        """The frame-level smearing score over the groups seen again after ``min_path_m`` of travel."""
         s = self.smear_m[self.evaluated & (self.path_span_m >= min_path_m)]
         return float(np.sqrt(np.mean(s**2))) if s.size else float("nan")
 
@@ -490,11 +517,19 @@ class DoubleWallResult:
     @property
     def smearing_score_m(self) -> float:
         """RMS of the per-scale smearing scores (every scale weighs the same)."""
-        vals = np.array([s.score_m for s in self.scales if np.isfinite(s.score_m)])
-        return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
+        return _rms([s.score_m for s in self.scales])
+
+    @property
+    def frame_score_per_scale_m(self) -> dict[float, float]:
+        return {s.voxel_size_m: s.frame_score_m for s in self.scales}
+
+    @property
+    def frame_smearing_score_m(self) -> float:
+        """RMS of the per-scale frame-level smearing scores."""
+        return _rms([s.frame_score_m for s in self.scales])
 
     def revisit_score_m(self, min_path_m: float = 1.0) -> float:
-        """The smearing score over revisited groups only (RMS of the per-scale values); NaN without a revisit."""
+        """The frame-level score over revisited groups only (RMS of the per-scale values); NaN without a revisit."""
         vals = np.array([v for s in self.scales if np.isfinite(v := s.revisit_score_m(min_path_m))])
         return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
 
@@ -507,10 +542,16 @@ class DoubleWallResult:
             "regions": [r.to_json() for r in self.regions],
             "per_scale": [
                 {"voxel_size_m": s.voxel_size_m, "voxels_evaluated": s.voxels_evaluated, "voxels_flagged": s.voxels_flagged,
-                 "smearing_score_m": _finite_or_none(s.score_m)}
+                 "smearing_score_m": _finite_or_none(s.score_m), "smearing_score_frames_m": _finite_or_none(s.frame_score_m),
+                 "voxels_revisited": s.groups_revisited}
                 for s in self.scales
             ],
         }
+
+
+def _rms(values: Sequence[float]) -> float:
+    vals = np.array([v for v in values if np.isfinite(v)])
+    return float(np.sqrt(np.mean(vals**2))) if vals.size else float("nan")
 
 
 def _finite_or_none(v: float) -> float | None:
@@ -650,6 +691,7 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
     np.minimum.at(s_lo, e_group[e_ok], e_path[e_ok])
     np.maximum.at(s_hi, e_group[e_ok], e_path[e_ok])
     path_span = np.where(n_frames > 0, s_hi - s_lo, 0.0)
+    visit_smear, n_visits = _visit_smear(e_group, e_path, e_n.astype(np.float64), e_mean, e_ok, point_var, G, cfg.visit_gap_m)
 
     # two layers of frames: precision-weighted 1-D 2-means on the per-frame means
     floor2 = cfg.frame_jitter_floor_m**2
@@ -743,8 +785,49 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
         voxel_size_m=size_m, centers_m=center, normals=normal, n_points=cnt.astype(np.int64), n_frames=n_frames,
         evaluated=evaluated, flagged=flagged, separation_m=sep, separation_sigma_m=sep_sigma, ashman_d=ashman,
         delta_bic=delta_bic, purity=purity, overlap=overlap, layer_fraction=layer_fraction, smear_m=smear, path_span_m=path_span,
+        visit_smear_m=visit_smear, n_visits=n_visits,
         gf_group=e_group, gf_frame=e_frame, gf_points=e_n.astype(np.int64), gf_mean_m=e_mean, gf_layer=e_layer,
     )
+
+
+def _visit_smear(e_group: NDArray[np.int64], e_path: NDArray[np.float64], e_n: NDArray[np.float64], e_mean: NDArray[np.float64],
+                 e_ok: NDArray[np.bool_], point_var: NDArray[np.float64], G: int, gap_m: float) -> tuple[NDArray, NDArray]:
+    """Per group: how far its visits disagree beyond what noise and frame-to-frame jitter explain (m; NaN with one visit).
+
+    A visit is a run of the group's frames, ordered by path travelled, without a gap of more than ``gap_m``. Each
+    visit's mean offset is point-weighted; the frame-to-frame jitter *within* visits (sensor distortion that changes
+    with the viewpoint, pose jitter) is estimated from the group itself and removed from the visit means' variance, so
+    what is left is the disagreement that needs travel: drift, a pose jump, a loop that did not close."""
+    idx = np.flatnonzero(e_ok)
+    n_visits = np.zeros(G, np.int64)
+    out = np.full(G, np.nan)
+    if idx.size == 0:
+        return out, n_visits
+    idx = idx[np.lexsort((e_path[idx], e_group[idx]))]
+    g, p, n, m = e_group[idx], e_path[idx], e_n[idx], e_mean[idx]
+    start = np.r_[True, (g[1:] != g[:-1]) | (np.diff(p) > gap_m)]
+    v = np.cumsum(start) - 1
+    V = int(v[-1]) + 1
+    vg = g[start]
+    n_visits = np.bincount(vg, minlength=G).astype(np.int64)
+    N = _sums(v, V, n)
+    mv = _sums(v, V, n * m) / np.maximum(N, 1e-12)
+    pv = point_var[vg]
+    # within-visit jitter tau^2 (pooled per group): E[sum n (m - m_v)^2] = pv (F_v - 1) + tau^2 (N_v - sum n^2 / N_v)
+    n2 = _sums(v, V, n * n)
+    F = np.bincount(v, minlength=V).astype(np.float64)
+    A = _sums(vg, G, _sums(v, V, n * (m - mv[v]) ** 2))
+    B = _sums(vg, G, pv * (F - 1.0))
+    C = _sums(vg, G, N - n2 / np.maximum(N, 1e-12))
+    tau2 = np.where(C > 0, np.maximum(A - B, 0.0) / np.maximum(C, 1e-12), 0.0)
+    var_v = pv / np.maximum(N, 1e-12) + tau2[vg] * n2 / np.maximum(N, 1e-12) ** 2
+    # between visits: point-weighted dispersion of the visit means minus its expectation under noise alone
+    W = _sums(vg, G, N)
+    mbar = _sums(vg, G, N * mv) / np.maximum(W, 1e-12)
+    disp = _sums(vg, G, N * (mv - mbar[vg]) ** 2) / np.maximum(W, 1e-12)
+    noise = _sums(vg, G, N * var_v * (1.0 - N / np.maximum(W[vg], 1e-12))) / np.maximum(W, 1e-12)
+    out = np.where(n_visits >= 2, np.sqrt(np.maximum(disp - noise, 0.0)), np.nan)
+    return out, n_visits
 
 
 def _merge_regions(scales: list[ScaleResult], cloud: PlacedCloud, cfg: DoubleWallConfig) -> list[DoubleWallRegion]:

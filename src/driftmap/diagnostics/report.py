@@ -71,7 +71,7 @@ class DiagnoseConfig(BaseModel):
         if kind is SensorKind.LIDAR:
             return cls(
                 sampling=SamplingConfig(points_budget=1_000_000, min_points_per_frame=2000, normals_oversample=4.0, normals_k=20),
-                double_wall=DoubleWallConfig(voxel_sizes_m=(0.5, 1.0, 2.0), min_separation_m=0.05),
+                double_wall=DoubleWallConfig(voxel_sizes_m=(0.5, 1.0, 2.0), min_separation_m=0.05, visit_gap_m=10.0),
                 attribution=AttributionConfig(voxel_size_m=1.0, huber_m=0.1, max_residual_m=0.5, min_jump_m=0.05,
                                               revisit_min_path_m=10.0),
                 entropy=EntropyConfig(radius_m=0.5),
@@ -105,6 +105,7 @@ class Diagnosis:
             "smearing_score_m": _num(dw.smearing_score_m),
             "smearing_score_per_scale_m": {f"{k:g}": _num(v) for k, v in dw.score_per_scale_m.items()},
             "smearing_score_revisit_m": _num(dw.revisit_score_m(at.config.revisit_min_path_m)),
+            "smearing_score_frames_m": _num(dw.frame_smearing_score_m),
             "double_wall": dw.to_json(),
             "frames": at.frames_json(),
             "change_points": [c.to_json() for c in at.change_points],
