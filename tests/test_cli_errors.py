@@ -141,3 +141,23 @@ def test_poses_from_source_on_a_converted_log_points_to_its_ground_truth(sevensc
     line = " ".join(_cli("build", log, "--out", tmp_path / "s", "--poses-from-source").stderr.split())
     assert "has no pose in the source" in line and "ground truth" in line, line
     assert not (tmp_path / "s").exists()
+
+
+def test_export_refuses_existing_outputs_without_overwrite(store_path: Path, tmp_path: Path) -> None:
+    """Every export output (--map, --trajectory, --mcap, the map's provenance file) is refused when it exists,
+    before anything is written; --overwrite replaces them."""
+    tum, ply = tmp_path / "t.tum", tmp_path / "m.ply"
+    assert _cli("export", store_path, "--trajectory", tum, "--map", ply, "--voxel-size-m", "0.05").returncode == 0
+    before = {p: p.read_bytes() for p in (tum, ply, Path(f"{ply}.provenance.npz"))}
+    fresh = tmp_path / "fresh.tum"
+    for args, name in (((("--trajectory", tum)), "t.tum"), (("--trajectory", fresh, "--map", ply), "m.ply")):
+        line = _one_line_error(_cli("export", store_path, *args))
+        assert name in line and "--overwrite" in line, line
+    assert not fresh.exists()  # nothing written when one output is refused
+    ply.unlink()
+    line = _one_line_error(_cli("export", store_path, "--map", ply, "--voxel-size-m", "0.05"))
+    assert "provenance" in line, line
+    assert not ply.exists()
+    out = _cli("export", store_path, "--trajectory", tum, "--map", ply, "--voxel-size-m", "0.05", "--overwrite")
+    assert out.returncode == 0, out.stderr
+    assert tum.read_bytes() == before[tum] and ply.exists()

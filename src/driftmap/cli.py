@@ -331,7 +331,7 @@ def export(
     trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
     mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --mcap file.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
 ) -> None:
     """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
     if map_path is None and trajectory is None and mcap_path is None:
@@ -339,6 +339,15 @@ def export(
     format = _choice(format, ("tum", "kitti"), "--format")
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
+    if not overwrite:  # every output checked before anything is written
+        from driftmap.sources.mcap_export import ExportError
+
+        outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")]
+        if map_path is not None and voxel_size_m is not None:
+            outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
+        for path, flag in outputs:
+            if path is not None and path.is_file():
+                raise ExportError(f"{path}: already exists ({flag}); pass --overwrite to replace it")
     with _open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
