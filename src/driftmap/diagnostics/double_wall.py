@@ -520,10 +520,6 @@ class DoubleWallResult:
         return _rms([s.score_m for s in self.scales])
 
     @property
-    def frame_score_per_scale_m(self) -> dict[float, float]:
-        return {s.voxel_size_m: s.frame_score_m for s in self.scales}
-
-    @property
     def frame_smearing_score_m(self) -> float:
         """RMS of the per-scale frame-level smearing scores."""
         return _rms([s.frame_score_m for s in self.scales])

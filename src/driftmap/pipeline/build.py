@@ -49,6 +49,22 @@ class BuildConfig(BaseModel):
     """Everything ``build`` decides; saved next to the store as ``build_config.json``."""
 
     model_config = ConfigDict(extra="forbid")
+    pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
+    odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind)")
+    loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
+    loop_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="robust kernel on loop edges")
+    optimizer: Optimizer = Field(Optimizer.LM, description="pose-graph optimiser")
+    odometry_edge_max_disagreement_m: float = Field(0.1, gt=0.0, description="GICP may refine an odometry edge by at most this (m)")
+    fallback_sigma_translation: float = Field(0.02, gt=0.0, description="odometry edge sigma when registration fails: fraction of the motion + 1 cm")
+    fallback_sigma_rotation_deg: float = Field(1.0, gt=0.0, description="odometry edge rotation sigma when registration fails (deg)")
+    resume_seed_frames: int = Field(10, ge=1, description="stored frames used to re-seed odometry on --resume")
+    odometry_edge_window: int = Field(3, ge=1, description="pose graph: each keyframe is linked to the next this many keyframes")
+    odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
+        "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
+                            "or auto (trajectory for frame-to-map odometry that keeps its whole map, else registration)")
+    depth_scale_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: scale every frame's ranges by this factor before odometry and storing (1 = none)")
+    focal_length_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: depth cameras as if back-projected with this times the true focal length (1 = none)")
+    information_calibration_iterations: int = Field(10, ge=0, description="pose graph: at most this many variance-component re-weighting rounds (they stop once no group's scale changes by more than 5 %)")
 
     @classmethod
     def load(cls, path: str | Path) -> BuildConfig:
@@ -73,23 +89,6 @@ class BuildConfig(BaseModel):
             return cls(**data)
         except ValidationError as exc:
             raise ConfigError(f"{path}: invalid build config ({exc})") from exc
-
-    pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
-    odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind)")
-    loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
-    loop_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="robust kernel on loop edges")
-    optimizer: Optimizer = Field(Optimizer.LM, description="pose-graph optimiser")
-    odometry_edge_max_disagreement_m: float = Field(0.1, gt=0.0, description="GICP may refine an odometry edge by at most this (m)")
-    fallback_sigma_translation: float = Field(0.02, gt=0.0, description="odometry edge sigma when registration fails: fraction of the motion + 1 cm")
-    fallback_sigma_rotation_deg: float = Field(1.0, gt=0.0, description="odometry edge rotation sigma when registration fails (deg)")
-    resume_seed_frames: int = Field(10, ge=1, description="stored frames used to re-seed odometry on --resume")
-    odometry_edge_window: int = Field(3, ge=1, description="pose graph: each keyframe is linked to the next this many keyframes")
-    odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
-        "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
-                            "or auto (trajectory for frame-to-map odometry that keeps its whole map, else registration)")
-    depth_scale_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: scale every frame's ranges by this factor before odometry and storing (1 = none)")
-    focal_length_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: depth cameras as if back-projected with this times the true focal length (1 = none)")
-    information_calibration_iterations: int = Field(10, ge=0, description="pose graph: at most this many variance-component re-weighting rounds (they stop once no group's scale changes by more than 5 %)")
 
 
 @dataclass
