@@ -58,6 +58,22 @@ def _diagnose(store: Path, gt: Path, out: Path, *extra: str) -> dict:
     return json.loads(out.read_text())["trajectory"]
 
 
+def test_diagnose_says_when_nothing_was_revisited(kitti_dir: Path, tmp_path: Path) -> None:
+    """Scans 0-5 cover 4.3 m of road, less than the 10 m of travel that makes a second visit: no surface can be
+    seen on two visits, so the between-visit smearing score is 0 and the output says why, while the
+    frame-to-frame score still measures. (With every 3rd of the 16 frames, 13 m, some far surfaces are.)"""
+    store = tmp_path / "short"
+    build(kitti_dir, store, poses_from_source=True, frames="0:6", loop_closure=False)
+    out = tmp_path / "d.json"
+    result = CliRunner().invoke(app, ["diagnose", str(store), "--json", str(out)])
+    assert result.exit_code == 0, (result.output, result.exception)
+    data = json.loads(out.read_text())
+    assert data["double_wall"]["voxels_evaluated"] > 100
+    assert all(s["voxels_revisited"] == 0 for s in data["double_wall"]["per_scale"])
+    assert data["smearing_score_m"] == 0.0 and data["smearing_score_frames_m"] > 0.0
+    assert "no surface was seen on two visits" in " ".join(result.output.split())
+
+
 def _correct(store: Path, poses: Path, *extra: str) -> None:
     result = CliRunner().invoke(app, ["correct", str(store), "--poses", str(poses), "--format", "kitti", *extra])
     assert result.exit_code == 0, (result.output, result.exception)

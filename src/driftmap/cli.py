@@ -488,7 +488,10 @@ def diagnose(
     table.add_column("value", justify="right")
     rows = [
         ("smearing score", f"{1000 * dw.smearing_score_m:.2f} mm ("
-                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"),
+                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"
+         if dw.voxels_revisited else
+         f"{1000 * dw.smearing_score_m:.2f} mm: no surface was seen on two visits "
+         f"({dw.config.visit_gap_m:g} m of travel apart), so drift cannot show"),
         ("smearing score, frame to frame", f"{1000 * dw.frame_smearing_score_m:.2f} mm"),
         ("surface voxels doubled", f"{dw.voxels_flagged} / {dw.voxels_evaluated} ({100 * dw.fraction_flagged:.2f} %)"),
         ("median separation", "-" if dw.median_separation_m is None else f"{100 * dw.median_separation_m:.1f} cm"),

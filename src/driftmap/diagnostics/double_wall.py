@@ -520,6 +520,11 @@ class DoubleWallResult:
         return _rms([s.score_m for s in self.scales])
 
     @property
+    def voxels_revisited(self) -> int:
+        """Evaluated groups (all scales) seen in two visits or more: 0 means the smearing score cannot see drift."""
+        return sum(s.groups_revisited for s in self.scales)
+
+    @property
     def frame_smearing_score_m(self) -> float:
         """RMS of the per-scale frame-level smearing scores."""
         return _rms([s.frame_score_m for s in self.scales])
