@@ -250,6 +250,50 @@ def test_truncated_closed_segment_is_a_typed_error_and_recoverable(tmp_path: Pat
     assert FrameStore.recover(path) == []  # healthy now
 
 
+def test_recover_rebuilds_an_unreadable_or_missing_manifest_from_the_segments(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """store.json garbled (or deleted): opening is a typed error; `recover` rebuilds it from the segments, which
+    name their store, and every frame and revision comes back. Segments of two stores are refused."""
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:4]:
+            store.append(f)
+    with FrameStore.open(path, "a") as store:  # a second writer session: a second segment
+        for f in synthetic_frames[4:7]:
+            store.append(f)
+        moved = store.poses(0)[-1].copy()
+        moved[:3, 3] += [0.05, 0.0, 0.0]
+        store.add_revision({6: moved}, source=PoseSource.EXTERNAL_FILE, propagate=False, note="moved frame 6")
+        uuid = store._manifest["store_uuid"]
+        poses = {rev: store.poses(rev) for rev in (0, 1)}
+    manifest = path / "store.json"
+    manifest.write_text('{"format": "driftmap-store", "vers')  # a torn write by some other tool
+    with pytest.raises(StoreCorruptError, match="manifest"):
+        FrameStore.open(path)
+    events = FrameStore.recover(path)
+    assert [e.segment for e in events] == ["store.json"] and "2 segments" in events[0].action
+    assert (path / "store.json.damaged").read_text().startswith('{"format"')
+    with FrameStore.open(path) as store:
+        assert store._manifest["store_uuid"] == uuid and "rebuilt_because" in store._manifest
+        assert [int(i) for i in store.frame_ids] == list(range(7)) and store.head == 1
+        for rev, expected in poses.items():
+            np.testing.assert_array_equal(store.poses(rev), expected)
+        for f in synthetic_frames[:7]:
+            assert_frames_identical(store.frame(f.frame_id), f)
+    assert FrameStore.recover(path) == []  # healthy now
+    manifest.unlink()
+    with pytest.raises(StoreError, match="missing"):
+        FrameStore.open(path)
+    assert "rebuilt" in FrameStore.recover(path)[0].action
+    with FrameStore.open(path) as store:
+        assert len(store) == 7 and store.head == 1
+    with FrameStore.create(tmp_path / "other") as other:  # a segment of another store dropped in by mistake
+        other.append(synthetic_frames[7])
+    os.replace(tmp_path / "other" / "segment-000000.mcap", path / "segment-000002.mcap")
+    manifest.write_text("garbage")
+    with pytest.raises(StoreError, match="exactly one store"):
+        FrameStore.recover(path)
+
+
 def test_corrupted_bytes_are_detected_and_only_the_damaged_frame_is_lost(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
     path = tmp_path / "s"
     with FrameStore.create(path) as store:

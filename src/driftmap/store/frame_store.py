@@ -221,6 +221,37 @@ class FrameStore:
                              f"(this driftmap reads version {FORMAT_VERSION})")
         return manifest
 
+    @staticmethod
+    def _manifest_from_segments(path: Path, why: str) -> dict[str, Any]:
+        """A manifest for the ``segment-NNNNNN.mcap`` files of ``path``; every readable one must name the same store.
+
+        A segment that was not closed cleanly is listed as open, so recovery rewrites it."""
+        files = sorted(path.glob("segment-*.mcap"))
+        if not files:
+            raise StoreError(f"{why}; no segment files in {path} to rebuild it from")
+        uuids: dict[str, list[str]] = {}
+        segments = []
+        for file in files:
+            scan = scan_segment(file, verify=True, stop_on_error=False)
+            if scan.store_uuid is not None:
+                uuids.setdefault(scan.store_uuid, []).append(file.name)
+            clean = scan.complete and not scan.problem and not scan.damaged_chunks
+            segments.append({"name": file.name, "state": "closed" if clean else "open", "bytes": scan.size if clean else None})
+        if len(uuids) != 1:
+            found = "; ".join(f"{u}: {', '.join(n)}" for u, n in uuids.items()) or "none"
+            raise StoreError(f"{why}; cannot rebuild it: the segments of {path} must name exactly one store (found {found})")
+        (store_uuid,) = uuids
+        return {
+            "format": FORMAT_NAME,
+            "version": FORMAT_VERSION,
+            "store_uuid": store_uuid,
+            "created_ns": min(f.stat().st_mtime_ns for f in files),
+            "driftmap_version": __version__,
+            "segments": segments,
+            "rebuilt_ns": time.time_ns(),
+            "rebuilt_because": why,
+        }
+
     def _acquire_lock(self) -> None:
         fh = open(self.path / LOCK_FILE, "a+")
         try:
@@ -345,14 +376,32 @@ class FrameStore:
 
         Each damaged segment is rewritten from its intact chunks (damaged chunks are skipped, a truncated
         tail is cut); the damaged file is kept beside it as ``<name>.damaged``. Frames whose revisions
-        refer to lost frames keep their revision-0 poses. Safe to run on a healthy store (no-op).
+        refer to lost frames keep their revision-0 poses. An unreadable ``store.json`` is rebuilt from the
+        segments (each names its store), the damaged one kept as ``store.json.damaged``. Safe to run on a
+        healthy store (no-op).
         """
         path = Path(path)
-        manifest = cls._read_manifest(path)
+        events: list[RecoveryEvent] = []
+        rebuilt = False
+        try:
+            manifest = cls._read_manifest(path)
+        except StoreCorruptError as exc:
+            manifest, rebuilt = cls._manifest_from_segments(path, str(exc)), True
+        except StoreError:
+            if (path / MANIFEST).exists() or not any(path.glob("segment-*.mcap")):
+                raise
+            manifest, rebuilt = cls._manifest_from_segments(path, f"{path / MANIFEST}: missing"), True
         store = cls(path, "a", manifest)
         store._acquire_lock()
-        events: list[RecoveryEvent] = []
         try:
+            if rebuilt:
+                kept = ""
+                if (path / MANIFEST).exists():
+                    os.replace(path / MANIFEST, path / (MANIFEST + ".damaged"))
+                    kept = f" (damaged original kept as {MANIFEST}.damaged)"
+                store._write_manifest()
+                events.append(RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{kept}",
+                                            0, 0, 0, manifest["rebuilt_because"]))
             known_frames: set[int] = set()
             for index, seg in enumerate(store._segments):
                 file = path / seg.name

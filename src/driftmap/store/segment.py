@@ -371,6 +371,8 @@ class SegmentScan:
     problem_offset: int | None = None
     damaged_chunks: list[tuple[int, str]] = field(default_factory=list)
     """(offset, reason) of damaged chunks skipped with ``stop_on_error=False``."""
+    store_uuid: str | None = None
+    """The store this segment belongs to, from its ``segment_start`` event (None: that chunk was not read)."""
 
 
 def _read_string(buf: memoryview, pos: int) -> tuple[str, int]:
@@ -467,6 +469,7 @@ def _scan_chunk(buf: memoryview, body: int, end: int, path: Path, channels: dict
         frames: list[StoredFrameRef] = []
         revisions: list[dict[str, Any]] = []
         pending: dict[str, Any] | None = None
+        start_uuid: str | None = None
         pos = 0
         n = len(records)
         while pos < n:
@@ -498,6 +501,10 @@ def _scan_chunk(buf: memoryview, body: int, end: int, path: Path, channels: dict
                     pending = None
                 elif topic == TOPIC_REVISIONS:
                     revisions.append(json.loads(bytes(records[data_start:data_end])))
+                elif topic == TOPIC_SEGMENT:
+                    event = json.loads(bytes(records[data_start:data_end]))
+                    if event.get("event") == "segment_start":
+                        start_uuid = str(event["store_uuid"])
             pos = body_pos + length
         if pending is not None:
             return f"frame {pending['frame_id']}: metadata without points"
@@ -505,6 +512,8 @@ def _scan_chunk(buf: memoryview, body: int, end: int, path: Path, channels: dict
         return f"unreadable chunk content ({exc})"
     scan.frames.extend(frames)
     scan.revisions.extend(revisions)
+    if start_uuid is not None:
+        scan.store_uuid = start_uuid
     return None
 
 
