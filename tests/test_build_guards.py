@@ -120,6 +120,30 @@ def test_a_pose_file_that_cannot_be_used_leaves_no_store(sevenscenes_dir: Path, 
     assert result.n_frames == 3
 
 
+def test_the_pose_stamp_tolerance_is_an_option(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """A TUM pose file 15 ms late matches within the default 20 ms (the poses are used as given) and is refused
+    with --max-dt-ms 10, the error naming the tolerance and the offset."""
+    from typer.testing import CliRunner
+
+    from driftmap.cli import app
+
+    frames = list(SevenScenes(sevenscenes_dir, frames="0:3"))
+    late = tmp_path / "late.tum"
+    poses = np.stack([f.pose.T_world_sensor for f in frames])
+    write_tum(late, Trajectory(np.array([f.stamp_ns + 15_000_000 for f in frames]), poses))
+    result = build(sevenscenes_dir, tmp_path / "ok", frames="0:3", poses_file=late, loop_closure=False)
+    assert result.n_frames == 3
+    with FrameStore.open(tmp_path / "ok") as store:
+        np.testing.assert_allclose(store.poses(0), poses, atol=1e-9)
+    with pytest.raises(SourceError, match=r"no pose within 10 ms of frame 0 .*\+15000000 ns away"):
+        build(sevenscenes_dir, tmp_path / "strict", frames="0:3", poses_file=late, loop_closure=False,
+              poses_max_dt_ns=10_000_000)
+    assert not (tmp_path / "strict").exists()
+    out = CliRunner().invoke(app, ["build", str(sevenscenes_dir), "--out", str(tmp_path / "cli"), "--frames", "0:3",
+                                   "--poses", str(late), "--no-loop-closure", "--max-dt-ms", "10"])
+    assert out.exit_code != 0 and "within 10 ms" in " ".join(str(out.exception).split())
+
+
 def test_a_kitti_pose_file_without_the_rows_leaves_no_store(kitti_dir: Path, tmp_path: Path) -> None:
     short = tmp_path / "short.txt"
     write_kitti(short, Trajectory(np.arange(2), np.stack([np.eye(4)] * 2), np.arange(2)))

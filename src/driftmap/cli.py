@@ -209,11 +209,14 @@ def build(
     resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
     from driftmap.pipeline.build import build as run_build
 
     cfg = _load_build_config(config)
+    if max_dt_ms < 0:
+        raise typer.BadParameter(f"must be >= 0, got {max_dt_ms:g}", param_hint="--max-dt-ms")
     with _progress() as progress:
         tasks: dict[str, int] = {}
 
@@ -224,7 +227,7 @@ def build(
 
         result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
                            loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick,
-                           kitti_frame=kitti_frame, calib_file=calib)
+                           kitti_frame=kitti_frame, calib_file=calib, poses_max_dt_ns=round(max_dt_ms * 1e6))
     table = Table(title=f"driftmap build: {source} -> {out}")
     table.add_column("quantity")
     table.add_column("value", justify="right")

@@ -45,6 +45,10 @@ logger = logging.getLogger(__name__)
 ProgressCallback = Callable[[str, int, int | None], None]
 
 
+DEFAULT_POSES_MAX_DT_NS = 20_000_000
+"""A ``--poses`` TUM row matches a frame within this (20 ms, as TUM's ``associate.py``)."""
+
+
 class BuildConfig(BaseModel):
     """Everything ``build`` decides; saved next to the store as ``build_config.json``."""
 
@@ -259,7 +263,8 @@ def _remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> Non
 
 
 def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: str = "auto",
-                      calib_file: str | Path | None = None) -> Callable[[Frame], np.ndarray]:
+                      calib_file: str | Path | None = None,
+                      max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS) -> Callable[[Frame], np.ndarray]:
     traj = read_trajectory(poses_file)
     is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
     if is_kitti:  # row i is the pose of frame_id i
@@ -277,8 +282,9 @@ def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: 
     def by_stamp(frame: Frame) -> np.ndarray:
         i = int(np.clip(np.searchsorted(stamps, frame.stamp_ns), 1, len(stamps) - 1))
         j = i - 1 if abs(stamps[i - 1] - frame.stamp_ns) <= abs(stamps[i] - frame.stamp_ns) else i
-        if abs(int(stamps[j]) - frame.stamp_ns) > 20_000_000:
-            raise SourceError(f"{poses_file}: no pose within 20 ms of frame {frame.frame_id} (stamp {frame.stamp_ns} ns)")
+        if abs(int(stamps[j]) - frame.stamp_ns) > max_dt_ns:
+            raise SourceError(f"{poses_file}: no pose within {max_dt_ns / 1e6:g} ms of frame {frame.frame_id} "
+                              f"(stamp {frame.stamp_ns} ns; the nearest is {int(stamps[j]) - frame.stamp_ns:+d} ns away)")
         return traj.poses[j]
     return by_stamp
 
@@ -309,16 +315,21 @@ def build(
     inject_wrong_loop: tuple[int, int, np.ndarray] | None = None,
     kitti_frame: str = "auto",
     calib_file: str | Path | None = None,
+    poses_max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS,
 ) -> BuildResult:
     """Build (or ``resume``) a store from a source. See the module docstring for the stages.
 
     ``kitti_frame`` / ``calib_file``: the frame of a KITTI ``poses_file`` (``auto`` | ``velodyne`` | ``cam0``)
     and the calibration for ``cam0``; see :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`.
+    ``poses_max_dt_ns``: a TUM ``poses_file`` row is a frame's pose when it is the nearest within this (20 ms,
+    as TUM's ``associate.py``).
 
     ``inject_wrong_loop=(frame_a, frame_b, T_a_b)`` adds a deliberately wrong loop measurement (for testing
     the robust back end); it is reported like any other loop.
     """
     config = config or BuildConfig()
+    if poses_max_dt_ns < 0:
+        raise ConfigError(f"the stamp tolerance of --poses must be >= 0, got {poses_max_dt_ns} ns")
     if poses_file is not None and poses_from_source:
         raise ConfigError("give either --poses FILE or --poses-from-source, not both")
     if poses_file is None and (kitti_frame != "auto" or calib_file is not None):
@@ -336,7 +347,7 @@ def build(
     record = _source_record(source, src)
     # inputs are checked before a store is created or opened for appending: a pose file that cannot be read
     # leaves nothing behind
-    pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file) if poses_file is not None else None
+    pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file, poses_max_dt_ns) if poses_file is not None else None
     new_store = not (resume and store_exists)
     out_existed, new_dirs = out.exists(), [p for p in (out, *out.parents) if not p.exists()]  # what create() makes
     has_record = False
