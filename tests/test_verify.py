@@ -172,6 +172,26 @@ def test_moved_patch_is_confirmed_but_not_a_pose_error(moved_patch) -> None:
     assert summary["regions_local"] == len(patch) and summary["fraction_pose"] == 0.0
 
 
+def test_surroundings_misaligned_by_another_amount_are_undecidable(moved_patch, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The pose/local call on the moved patch (measured ~4 cm) when the surroundings' rigid alignment says
+    +4 cm (pose), +0.5 cm (they agree: local) or -5 cm (they are misaligned too, by another amount: neither,
+    as on the real 7-Scenes loop wall, where the old rule said "local")."""
+    from driftmap.diagnostics import verify
+
+    store, regions, normal = moved_patch
+    patch = [r for r in regions if abs(float(r.normal @ normal)) > 0.9][:1]
+    assert patch
+    measured = verify_regions(store, store.head, patch, context=False)[0].offset_b_minus_a_m
+    assert measured is not None and abs(measured) > 0.03
+    sign = float(np.sign(measured))
+    for ctx, expected in ((measured, True), (0.005 * sign, False), (-0.05 * sign, None)):
+        monkeypatch.setattr(verify, "_context_offset", lambda *a, _c=ctx, **k: (_c, None))
+        (check,) = verify_regions(store, store.head, patch)
+        assert check.context_offset_m == pytest.approx(ctx) and check.pose_explained is expected, check
+        if expected is None:
+            assert "undecidable" in check.note and "not a pose error" not in check.note
+
+
 def test_exact_poses_flag_nothing_and_fabricated_regions_are_rejected(synthetic_regions) -> None:
     """With exact poses the detector flags nothing; the step's regions checked against the exact poses (claimed
     1-3 cm, really 0) and the same regions claiming 5 cm are not confirmed, and the measured offset is ~0."""

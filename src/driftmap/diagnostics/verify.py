@@ -31,9 +31,12 @@ Per region (see ``docs/diagnostics.md``, "Verification"):
    part -- are aligned B onto A with Open3D point-to-plane ICP, and the displacement this rigid correction
    gives the region centre along the normal (sign flipped) is the offset the surroundings explain; the median
    over the pairs is ``context_offset_m``. ``pose_explained`` is True when it agrees with the measured offset
-   (same rule as 4.), False when the surroundings agree with each other but the region does not (a moved
-   object, a door, a sensor artefact: the map *is* doubled there, but no pose correction removes it), None
-   when undecidable (too few surrounding points facing the normal, or ICP did not hold).
+   (same rule as 4.), False when the surroundings agree with each other (``|context_offset_m|`` within
+   ``context_abs_tolerance_m``) but the region does not (a moved object, a door, a sensor artefact: the map
+   *is* doubled there, but no pose correction removes it), None when undecidable (too few surrounding points
+   facing the normal, ICP did not hold, or the surroundings are misaligned by another amount than the region:
+   on real RGB-D data, depth distortion that changes with the viewing range moves single frames'
+   surroundings too).
 """
 
 from __future__ import annotations
@@ -404,12 +407,15 @@ def verify_regions(store: FrameStore, revision: int, regions: Sequence[DoubleWal
                 max_iterations=icp_max_iterations)
             if ctx is None:
                 notes.append(f"pose or local: undecidable ({why})")
-            else:
-                explained = is_confirmed(ctx, measured, abs_tolerance_m=context_abs_tolerance_m,
-                                         rel_tolerance=context_rel_tolerance)
-                if not explained:
-                    notes.append(f"the surroundings explain {100 * ctx:+.1f} cm of the measured {100 * measured:+.1f} cm: "
-                                 f"not a pose error of these frames (a local change or artefact)")
+            elif is_confirmed(ctx, measured, abs_tolerance_m=context_abs_tolerance_m, rel_tolerance=context_rel_tolerance):
+                explained = True
+            elif abs(ctx) <= context_abs_tolerance_m:
+                explained = False
+                notes.append(f"the surroundings agree ({100 * ctx:+.1f} cm) but the region is {100 * measured:+.1f} cm off: "
+                             f"not a pose error of these frames (a local change or artefact)")
+            else:  # the surroundings are misaligned too, by another amount: neither call is supported
+                notes.append(f"pose or local: undecidable (the surroundings are {100 * ctx:+.1f} cm off, the region "
+                             f"{100 * measured:+.1f} cm)")
         checks.append(RegionCheck(offset_b_minus_a_m=measured, offset_reverse_m=reverse, offset_icp_m=icp_off,
                                   spread_m=spread, n_correspondences=len(d_ba), confirmed=ok,
                                   note="; ".join(notes) or None, context_offset_m=ctx, pose_explained=explained, **base))
