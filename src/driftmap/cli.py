@@ -209,14 +209,12 @@ def build(
     resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
-    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", min=0.0, help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
     from driftmap.pipeline.build import build as run_build
 
     cfg = _load_build_config(config)
-    if max_dt_ms < 0:
-        raise typer.BadParameter(f"must be >= 0, got {max_dt_ms:g}", param_hint="--max-dt-ms")
     with _progress() as progress:
         tasks: dict[str, int] = {}
 
@@ -269,7 +267,7 @@ def correct(
     format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
     match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM, index for KITTI: row i = frame_id i)")] = None,
     source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
-    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", help="Stamp matching tolerance (ms).")] = 10.0,
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", min=0.0, help="Stamp matching tolerance (ms).")] = 10.0,
     no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,

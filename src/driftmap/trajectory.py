@@ -233,9 +233,14 @@ def read_kitti(path: str | Path) -> Trajectory:
     _check_finite(path, data, linenos, _KITTI_COLUMNS)
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
-    for k, T in enumerate(poses):
+    R = poses[:, :3, :3]
+    ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((ortho_err > geometry.RIGID_TOLERANCE)
+                         | (np.abs(np.linalg.det(R) - 1.0) > geometry.RIGID_TOLERANCE))
+    if bad.size:  # as_rigid names what is wrong with the first such row
+        k = int(bad[0])
         try:
-            geometry.as_rigid(T, f"{path}:{linenos[k]} (frame {k})")
+            geometry.as_rigid(poses[k], f"{path}:{linenos[k]} (frame {k})")
         except TransformError as exc:
             raise SourceError(str(exc)) from exc
     ids = np.arange(len(data), dtype=np.int64)

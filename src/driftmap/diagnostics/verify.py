@@ -87,7 +87,8 @@ class RegionCheck:
     context_offset_m: float | None = None
     """The offset of B from A that a rigid alignment of the two layers' surroundings explains (None: undecidable)."""
     pose_explained: bool | None = None
-    """Whether ``context_offset_m`` agrees with the measured offset (None: undecidable or unverifiable)."""
+    """True: ``context_offset_m`` agrees with the measured offset (a pose error); False: the surroundings agree with
+    each other but the region does not (local); None: undecidable or unverifiable."""
 
     @property
     def verifiable(self) -> bool:

@@ -564,11 +564,16 @@ class FrameStore:
         """A new revision whose poses equal revision ``to`` (nothing is deleted; a warning when the head already
         has those poses)."""
         self._writable()
-        revision = self.ledger.plan_rollback(to, note=note)
-        if not revision.set_directly:
-            logger.warning("%s: revision %d already has the poses of revision %d: the rollback changes no pose",
-                           self.path, self.head, to)
-        return self._persist(revision)
+        revision = self._persist(self.ledger.plan_rollback(to, note=note))
+        self._warn_if_unchanged(revision, f"{self.path}: rolling back to revision {to}")
+        return revision
+
+    def _warn_if_unchanged(self, revision: Revision, what: str) -> None:
+        """A revision that moves no frame beyond text round-off is still recorded (the history says it was made),
+        but the user should know (the same rule ``driftmap revisions`` counts changes with)."""
+        if self.diff(revision.parent_id, revision.revision_id).n_changed == 0:
+            logger.warning("%s: every pose equals revision %d's within %g um / %g deg: the new revision changes no "
+                           "pose", what, revision.parent_id, SAME_POSE_M * 1e6, SAME_POSE_DEG)
 
     def diff(self, a: int, b: int) -> PoseDiff:
         return self.ledger.diff(a, b)
@@ -620,10 +625,7 @@ class FrameStore:
             logger.warning("%s: %d stored frames had no row (%s)", file, len(matched.unmatched_frames),
                            "propagated from the matched frames" if propagate else "they keep their poses")
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
-        if self.diff(revision.parent_id, revision.revision_id).n_changed == 0:
-            # still recorded (the history says the file was imported), but the user should know it moved nothing
-            logger.warning("%s: every pose equals revision %d's within %g um / %g deg: the new revision changes no "
-                           "pose", file, revision.parent_id, SAME_POSE_M * 1e6, SAME_POSE_DEG)
+        self._warn_if_unchanged(revision, str(file))
         return revision, matched
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,
