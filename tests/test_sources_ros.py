@@ -310,6 +310,30 @@ def test_tf_errors_name_frames() -> None:
         buffer.add_static("map", "base_link", np.eye(4))
 
 
+def test_tf_samples_added_after_a_lookup_join_the_earlier_ones_and_batched_lookups_agree(bags_dir: Path) -> None:
+    # a live stack interleaves add() and lookup(): the samples given before a lookup must stay
+    buffer = TfBuffer()
+    buffer.add("odom", "base_link", 0, np.eye(4))
+    buffer.add("odom", "base_link", 10, geometry.make_transform(None, (10.0, 0, 0)))
+    assert np.allclose(buffer.lookup("odom", "base_link", 5)[:3, 3], (5.0, 0, 0))
+    buffer.add("odom", "base_link", 20, geometry.make_transform(None, (20.0, 0, 0)))
+    assert buffer.time_range_ns("odom", "base_link") == (0, 20)
+    assert np.allclose(buffer.lookup("odom", "base_link", 5)[:3, 3], (5.0, 0, 0))
+    assert np.allclose(buffer.lookup("odom", "base_link", 15)[:3, 3], (15.0, 0, 0))
+    assert len(buffer.series("odom", "base_link")) == 3
+    # lookup_many (one batch per edge) equals one lookup per stamp on a real chain: dynamic map->odom->base_link,
+    # static base_link -> camera optical frame, both directions, exact stamps and stamps between samples
+    real = read_tf(bags_dir / "nav2_turtlebot.mcap")
+    lo, hi = real.time_range_ns("map", "base_link")
+    stamps = np.linspace(lo, hi, 97).astype(np.int64)
+    for target, source in (("map", "oakd_rgb_camera_optical_frame"), ("oakd_rgb_camera_optical_frame", "map")):
+        many = real.lookup_many(target, source, stamps)
+        one = np.stack([real.lookup(target, source, int(s)) for s in stamps])
+        assert many.shape == (97, 4, 4) and np.abs(many - one).max() < 1e-12
+    with pytest.raises(TfError, match=r"map <- base_link.*no data at"):
+        real.lookup_many("map", "base_link", [lo, hi + 10**9])
+
+
 def test_nav2_odometry_matches_messages_and_tf(bags_dir: Path) -> None:
     path = bags_dir / "nav2_turtlebot.mcap"
     series = read_pose_topic(path, "/odom")

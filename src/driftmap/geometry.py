@@ -55,11 +55,13 @@ def as_rigid(T: ArrayLike, name: str = "transform", *, tolerance: float = RIGID_
 
 
 def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Inverse of a rigid transform (uses ``R^T``, not a general matrix inverse)."""
-    R = T[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
+    """Inverse of a rigid transform or a (..., 4, 4) stack of them (uses ``R^T``, not a general matrix inverse)."""
+    T = np.asarray(T, dtype=np.float64)
+    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
+    out = np.zeros(T.shape, dtype=np.float64)
+    out[..., :3, :3] = R_t
+    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
+    out[..., 3, 3] = 1.0
     return out
 
 
@@ -132,16 +134,6 @@ def _hat(phi: NDArray[np.float64]) -> NDArray[np.float64]:
     )
 
 
-def _invert_rigid(T: NDArray[np.float64]) -> NDArray[np.float64]:
-    """:func:`invert` for a (..., 4, 4) stack of rigid transforms."""
-    R_t = np.swapaxes(T[..., :3, :3], -1, -2)
-    out = np.zeros(T.shape, dtype=np.float64)
-    out[..., :3, :3] = R_t
-    out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_t, T[..., :3, 3])
-    out[..., 3, 3] = 1.0
-    return out
-
-
 def se3_exp(xi: ArrayLike) -> NDArray[np.float64]:
     """``T = exp(xi)`` for a twist ``xi = [rho(3), phi(3)]`` (or a (..., 6) stack); exact ``I`` for ``xi = 0``.
 
@@ -206,6 +198,6 @@ def interpolate_se3(T_a: ArrayLike, T_b: ArrayLike, alpha: ArrayLike) -> NDArray
     T_a = np.asarray(T_a, dtype=np.float64)
     T_b = np.asarray(T_b, dtype=np.float64)
     alpha = np.asarray(alpha, dtype=np.float64)
-    delta = se3_log(_invert_rigid(T_a) @ T_b)
+    delta = se3_log(invert(T_a) @ T_b)
     xi = alpha[..., None] * delta
     return T_a @ se3_exp(xi)

@@ -564,7 +564,7 @@ class PoseLedger:
         ids, stamps = self.frame_ids, self.stamps_ns
         n = len(ids)
         key_idx = self._index_of(key_ids)
-        D_key = key_poses @ geometry._invert_rigid(O[key_idx])  # world-frame correction of each keyframe
+        D_key = key_poses @ geometry.invert(O[key_idx])  # world-frame correction of each keyframe
         key_row = np.full(n, -1, dtype=np.intp)
         key_row[key_idx] = np.arange(len(key_idx))
 
@@ -596,7 +596,7 @@ class PoseLedger:
             pairs, inverse = np.unique(np.stack([ka, kb], axis=1), axis=0, return_inverse=True)
             inverse = inverse.reshape(-1)
             Da, Db = D_key[pairs[:, 0]], D_key[pairs[:, 1]]
-            xi = geometry.se3_log(geometry._invert_rigid(Da) @ Db)
+            xi = geometry.se3_log(geometry.invert(Da) @ Db)
             xi[np.all(Da == Db, axis=(1, 2))] = 0.0
             D_both = D_key[ka] @ geometry.se3_exp(alpha[:, None] * xi[inverse])
             # exactly on a keyframe's stamp: that keyframe's correction, bit for bit
