@@ -16,7 +16,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 from driftmap import Frame, PointAttributes, PoseEstimate, SensorKind, geometry
-from driftmap.errors import ConfigError, StoreError
+from driftmap.errors import ConfigError, StoreError, TransformError
 from driftmap.map import view as view_module
 from driftmap.map.view import MapView
 from driftmap.preprocess.cloud import BoxROI
@@ -289,6 +289,50 @@ def test_a_failed_read_in_one_segment_leaves_no_frame_of_a_later_segment_silentl
     store.close()
 
 
+def test_nan_points_stay_out_of_fused_voxels_and_changed_voxel_keys(tmp_path: Path, kitchen_frames: list[Frame]) -> None:
+    f = kitchen_frames[2]
+    pts = f.points_sensor.copy()
+    bad = np.random.default_rng(9).choice(len(pts), 25, replace=False)
+    pts[bad, np.arange(25) % 3] = np.nan
+    g = f.with_points(pts)
+    clean = f.with_points(np.delete(f.points_sensor, bad, axis=0))
+    with FrameStore.create(tmp_path / "nan") as store:
+        store.append(g)
+        store.append(Frame(frame_id=99, stamp_ns=g.stamp_ns + 1, sensor_name=g.sensor_name, sensor_kind=g.sensor_kind,
+                           points_sensor=np.full((4, 3), np.nan, np.float32), pose=g.pose))  # nothing but NaN
+        view, ref = store.map(), MapView.from_frames([clean])
+        fused, expected = view.fused(0.05), ref.fused(0.05)
+        assert np.all(np.isfinite(fused.points_world))
+        np.testing.assert_allclose(fused.points_world, expected.points_world, atol=1e-6)
+        assert np.array_equal(fused.provenance_offsets, expected.provenance_offsets)
+        assert len(view.fused(None).points_world) == len(clean.points_sensor)
+        moved = np.array([g.T_world_sensor, g.T_world_sensor])
+        moved[:, 0, 3] += 0.3
+        changes = view.apply(1, poses=moved, voxel_size_m=0.1)
+        ref_changes = ref.apply(1, poses=moved[:1], voxel_size_m=0.1)
+        got = {c.frame_id: c for c in changes.changes}
+        assert np.array_equal(got[g.frame_id].voxels_before, ref_changes.changes[0].voxels_before)
+        assert np.array_equal(got[g.frame_id].voxels_after, ref_changes.changes[0].voxels_after)
+        assert got[99].voxels_before.shape == (0, 3) and got[99].voxels_after.shape == (0, 3)
+
+
+def test_map_from_frames_refuses_duplicates_missing_and_non_rigid_poses(kitchen_frames: list[Frame]) -> None:
+    frames = kitchen_frames[:2]
+    with pytest.raises(StoreError, match=rf"frame id\(s\) \[{frames[0].frame_id}\] given more than once"):
+        MapView.from_frames([frames[0], frames[1], frames[0]])
+    with pytest.raises(StoreError, match=rf"no pose for frame\(s\) \[{frames[1].frame_id}\]"):
+        MapView.from_frames(frames, poses={frames[0].frame_id: np.eye(4)})
+    with pytest.raises(TransformError, match=rf"from_frames: pose of frame {frames[1].frame_id} rotation block"):
+        MapView.from_frames(frames, poses={frames[0].frame_id: np.eye(4), frames[1].frame_id: 2 * np.eye(4) + np.diag([0, 0, 0, -1])})
+    view = MapView.from_frames(frames)
+    scaled = np.array([np.eye(4), np.eye(4)])
+    scaled[1, :3, :3] *= 1.01
+    with pytest.raises(TransformError, match=rf"apply: pose of frame {frames[1].frame_id}"):
+        view.apply(1, poses=scaled)
+    with pytest.raises(ConfigError, match="voxel_size_m must be positive"):
+        view.apply(1, poses=np.array([f.T_world_sensor for f in frames]), voxel_size_m=-1.0)
+
+
 def test_map_from_frames_without_a_store(kitchen_frames: list[Frame]) -> None:
     view = MapView.from_frames(kitchen_frames[:3])
     np.testing.assert_allclose(view.points_world, reference_map(kitchen_frames[:3], [f.T_world_sensor for f in kitchen_frames[:3]]), atol=1e-6)
@@ -533,7 +577,11 @@ def test_compiled_queries_equal_numpy_on_random_grids(query_mode: str) -> None:
         assert n_on_faces > 0
         nothing = (np.zeros((0, 3), np.float32), np.zeros(0, np.int64))
         assert_same_result(view.query_box([9, 9, 9], [10, 10, 10]), nothing)
-        assert_same_result(view.query_radius([np.nan, 0, 0], 1.0), nothing)
+        # a NaN query position is an upstream bug: answering "nothing there" would read as free space
+        for query in (lambda: view.query_radius([np.nan, 0, 0], 1.0), lambda: view.nearest([0, np.nan, 0]),
+                      lambda: view.query_box([0, 0, np.nan], [1, 1, 1])):
+            with pytest.raises(ConfigError, match="NaN coordinate"):
+                query()
 
 
 def test_height_band_filters_nearest_and_the_queries(kitchen_store: FrameStore, query_mode: str) -> None:

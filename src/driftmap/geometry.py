@@ -54,6 +54,34 @@ def as_rigid(T: ArrayLike, name: str = "transform", *, tolerance: float = RIGID_
     return M
 
 
+def rigid_stack_problems(poses: ArrayLike, *, tolerance: float = RIGID_TOLERANCE) -> tuple[NDArray[np.int64], str | None]:
+    """Vectorised rigidity check of an (N, 4, 4) stack (not modified): the rows that are not rigid, and what is
+    wrong with the first of them (``None`` when all are). A rigid row is finite, its rotation block is within
+    ``tolerance`` of SO(3) (as :func:`as_rigid` checks) and its last row is exactly ``[0, 0, 0, 1]``."""
+    T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+    if len(T) == 0:
+        return np.zeros(0, np.int64), None
+    R = T[:, :3, :3]
+    finite = np.all(np.isfinite(T), axis=(1, 2))
+    last_row = np.all(T[:, 3] == (0.0, 0.0, 0.0, 1.0), axis=1)
+    with np.errstate(invalid="ignore"):
+        ortho = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
+        det = np.linalg.det(np.where(finite[:, None, None], R, 0.0))
+    ok = finite & last_row & (ortho <= tolerance) & (np.abs(det - 1.0) <= tolerance)
+    bad = np.flatnonzero(~ok)
+    if bad.size == 0:
+        return bad, None
+    i = bad[0]
+    reason = (
+        "contains NaN or inf"
+        if not finite[i]
+        else f"last row is {T[i, 3].tolist()}, expected [0, 0, 0, 1]"
+        if not last_row[i]
+        else f"rotation block is not a rotation (max |R^T R - I| = {ortho[i]:.3g}, det = {det[i]:.6g})"
+    )
+    return bad, reason
+
+
 def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
     """Inverse of a rigid transform or a (..., 4, 4) stack of them (uses ``R^T``, not a general matrix inverse)."""
     T = np.asarray(T, dtype=np.float64)

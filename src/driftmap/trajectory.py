@@ -233,10 +233,7 @@ def read_kitti(path: str | Path) -> Trajectory:
     _check_finite(path, data, linenos, _KITTI_COLUMNS)
     poses = np.tile(np.eye(4), (len(data), 1, 1))
     poses[:, :3, :] = data.reshape(-1, 3, 4)
-    R = poses[:, :3, :3]
-    ortho_err = np.abs(np.einsum("nji,njk->nik", R, R) - np.eye(3)).max(axis=(1, 2))
-    bad = np.flatnonzero((ortho_err > geometry.RIGID_TOLERANCE)
-                         | (np.abs(np.linalg.det(R) - 1.0) > geometry.RIGID_TOLERANCE))
+    bad, _ = geometry.rigid_stack_problems(poses)
     if bad.size:  # as_rigid names what is wrong with the first such row
         k = int(bad[0])
         try:

@@ -25,7 +25,8 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.errors import ConfigError, StoreError
+from driftmap import geometry
+from driftmap.errors import ConfigError, StoreError, TransformError
 from driftmap.frame import Frame
 from driftmap.map._kernels import (
     INF_KEY,
@@ -165,7 +166,16 @@ def _vec3(method: str, name: str, value: Sequence[float]) -> NDArray[np.float64]
     out = np.array(value, dtype=np.float64)
     if out.shape != (3,):
         raise ConfigError(f"{method}: {name} must be 3 numbers (x, y, z), got shape {out.shape}")
+    if np.isnan(out).any():
+        raise ConfigError(f"{method}: {name} has a NaN coordinate: {out.tolist()}")
     return out
+
+
+def _check_poses(method: str, poses: NDArray[np.float64], frame_ids: Sequence[int] | NDArray[np.int64]) -> None:
+    """Refuse a pose stack with a non-rigid row (a scaled or NaN matrix would silently warp the map)."""
+    bad, reason = geometry.rigid_stack_problems(poses)
+    if bad.size:
+        raise TransformError(f"{method}: pose of frame {int(frame_ids[bad[0]])} {reason} ({bad.size} bad pose(s) in all)")
 
 
 def _z_range(method: str, z_range_m: tuple[float, float]) -> tuple[float, float]:
@@ -335,14 +345,25 @@ class MapView:
         """A view over in-memory frames, placed with their own poses (or ``poses[frame_id]``)."""
         view = cls()
         frames = list(frames)
+        ids = [int(f.frame_id) for f in frames]
+        if len(set(ids)) != len(ids):
+            dup = sorted({i for i in ids if ids.count(i) > 1})
+            raise StoreError(f"from_frames: frame id(s) {dup[:10]} given more than once")
+        if poses is not None:
+            missing = [i for i in ids if i not in poses]
+            if missing:
+                raise StoreError(f"from_frames: no pose for frame(s) {missing[:10]} in `poses` ({len(missing)} missing)")
+        placed = np.array([f.T_world_sensor if poses is None else poses[f.frame_id] for f in frames],
+                          dtype=np.float64).reshape(-1, 4, 4)
+        _check_poses("from_frames", placed, ids)
         view._add(
-            [f.frame_id for f in frames],
+            ids,
             [f.stamp_ns for f in frames],
             [view._register(np.ascontiguousarray(f.points_sensor).reshape(-1), None) for f in frames],
             [0] * len(frames),
             [3] * len(frames),
             [f.n_points for f in frames],
-            np.array([f.T_world_sensor if poses is None else poses[f.frame_id] for f in frames]).reshape(-1, 4, 4),
+            placed,
         )
         return view
 
@@ -501,6 +522,8 @@ class MapView:
         Returns per moved frame its displacement and world boxes before and after (and, with
         ``voxel_size_m``, the voxel keys it occupied before and after).
         """
+        if voxel_size_m is not None and not voxel_size_m > 0:
+            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
         if poses is None:
             if self._store is None:
                 raise StoreError("this map has no store; pass the target poses explicitly")
@@ -511,6 +534,7 @@ class MapView:
             target = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
             if len(target) != len(self.frame_ids):
                 raise StoreError(f"apply: {len(target)} poses for {len(self.frame_ids)} frames")
+            _check_poses("apply", target, self.frame_ids)
         moved = np.flatnonzero(~np.all(np.abs(target - self._T) <= POSE_EPSILON, axis=(1, 2)))  # NaN: stale, redo
         before_boxes = self._boxes[moved].copy()
         before_voxels = [self._voxels(r, voxel_size_m) for r in moved] if voxel_size_m else None
@@ -585,7 +609,8 @@ class MapView:
     def _voxels(self, row: int, voxel_size_m: float) -> NDArray[np.int64]:
         if not voxel_size_m > 0:
             raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
-        keys = np.floor(self.frame_points_world(int(self.frame_ids[row])) / voxel_size_m).astype(np.int64)
+        pts = self.frame_points_world(int(self.frame_ids[row]))
+        keys = np.floor(pts[np.isfinite(pts).all(axis=1)] / voxel_size_m).astype(np.int64)
         if len(keys) == 0:
             return keys
         _, first = np.unique(_packed_voxel_keys(keys, None), return_index=True)
@@ -728,9 +753,16 @@ class MapView:
 
     def fused(self, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None) -> FusedMap:
         """Voxel-deduplicated map (centroid per voxel) with per-voxel provenance; points inside ``roi``
-        (world-frame ROI) are kept at full resolution. Without ``voxel_size_m`` every point is kept."""
+        (world-frame ROI) are kept at full resolution. Without ``voxel_size_m`` every finite point is kept.
+        Non-finite points (NaN/inf, e.g. organised clouds) are left out and counted in a debug log."""
+        if voxel_size_m is not None and not voxel_size_m > 0:
+            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
         pts = self.points_world
         ids = self.point_frame_ids()
+        finite = np.isfinite(pts).all(axis=1)
+        if not finite.all():
+            logger.debug("fused(): %d non-finite points left out", int(len(pts) - finite.sum()))
+            pts, ids = pts[finite], ids[finite]
         keep = np.zeros(len(pts), bool)
         if roi is not None:
             if not roi.in_world:
@@ -739,8 +771,6 @@ class MapView:
         if voxel_size_m is None:
             offsets = np.arange(len(pts) + 1, dtype=np.int64)
             return FusedMap(pts.copy(), offsets, ids, None, int(keep.sum()))
-        if not voxel_size_m > 0:
-            raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
         rest = ~keep
         p, f = pts[rest], ids[rest]
         _, inverse, counts = np.unique(_packed_voxel_keys(p, voxel_size_m), return_inverse=True, return_counts=True)

@@ -83,28 +83,10 @@ def _readonly(array: NDArray[Any]) -> NDArray[Any]:
 
 
 def _check_rigid_stack(poses: NDArray[np.float64], frame_ids: NDArray[np.int64], what: str) -> None:
-    """Vectorised rigidity check of stored poses (they are not modified): a finite rotation block within
-    :data:`geometry.RIGID_TOLERANCE` of SO(3) and a last row of exactly ``[0, 0, 0, 1]``."""
-    if len(poses) == 0:
-        return
-    R = poses[:, :3, :3]
-    finite = np.all(np.isfinite(poses), axis=(1, 2))
-    last_row = np.all(poses[:, 3] == (0.0, 0.0, 0.0, 1.0), axis=1)
-    with np.errstate(invalid="ignore"):
-        ortho = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
-        det = np.linalg.det(np.where(finite[:, None, None], R, 0.0))
-    ok = finite & last_row & (ortho <= geometry.RIGID_TOLERANCE) & (np.abs(det - 1.0) <= geometry.RIGID_TOLERANCE)
-    bad = np.flatnonzero(~ok)
+    """Vectorised rigidity check of stored poses (they are not modified): see :func:`geometry.rigid_stack_problems`."""
+    bad, reason = geometry.rigid_stack_problems(poses)
     if bad.size:
-        i = bad[0]
-        reason = (
-            "contains NaN or inf"
-            if not finite[i]
-            else f"last row is {poses[i, 3].tolist()}, expected [0, 0, 0, 1]"
-            if not last_row[i]
-            else f"rotation block is not a rotation (max |R^T R - I| = {ortho[i]:.3g}, det = {det[i]:.6g})"
-        )
-        raise TransformError(f"{what}: pose of frame {int(frame_ids[i])} {reason} ({bad.size} bad pose(s) in all)")
+        raise TransformError(f"{what}: pose of frame {int(frame_ids[bad[0]])} {reason} ({bad.size} bad pose(s) in all)")
 
 
 def _pose_table(poses: Mapping[Any, ArrayLike], what: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
