@@ -320,6 +320,25 @@ def test_frame_rejects_bad_scalars() -> None:
         make_frame(np.zeros((1, 3), np.float32), depth_scale=0.0)
     with pytest.raises(GeometryError, match="depth_scale"):
         make_frame(np.zeros((1, 3), np.float32), depth_scale=float("nan"))
+    with pytest.raises(GeometryError, match="depth_scale must be a positive number, got '1'"):
+        make_frame(np.zeros((1, 3), np.float32), depth_scale="1")
+    # ids and stamps go into int64 columns of the store: a uint64 hash or sequence number must not get in
+    pts = np.zeros((1, 3), np.float32)
+    with pytest.raises(GeometryError, match=r"Frame.frame_id = 9223372036854775808 does not fit"):
+        make_frame(pts, frame_id=2**63)
+    with pytest.raises(GeometryError, match=r"frame 7: stamp_ns = 18446744073709551615 does not fit"):
+        make_frame(pts, stamp_ns=np.uint64(2**64 - 1))
+    with pytest.raises(GeometryError, match="Frame.frame_id must be an integer, got None"):
+        make_frame(pts, frame_id=None)
+    with pytest.raises(GeometryError, match=r"frame 7: stamp_ns must be an integer number of nanoseconds, got None"):
+        make_frame(pts, stamp_ns=None)
+    assert make_frame(pts, frame_id=2**63 - 1, stamp_ns=-(2**63)).frame_id == 2**63 - 1
+    with pytest.raises(GeometryError, match=r"frame 7: sensor_kind: 'sonar' is not one of \['depth_camera', 'lidar'\]"):
+        Frame(frame_id=7, stamp_ns=0, sensor_name="x", sensor_kind="sonar", points_sensor=pts, pose=PoseEstimate(np.eye(4)))
+    with pytest.raises(GeometryError, match=r"PoseEstimate.source: 'bogus' is not one of"):
+        PoseEstimate(np.eye(4), source="bogus")
+    with pytest.raises(GeometryError, match=r"PoseEstimate.revision must be >= 0"):
+        PoseEstimate(np.eye(4), revision=-1)
 
 
 def test_top_level_entry_points_are_lazy() -> None:

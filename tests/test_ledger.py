@@ -758,3 +758,41 @@ def test_screw_correction_of_keyframes_is_interpolated_exactly(sevenscenes_dir: 
     back = ledger.commit(ledger.plan_rollback(0))
     assert sorted(back.set_directly) == list(range(1, 100))  # frame 0 had C(0) = I: never changed
     np.testing.assert_array_equal(bits(ledger.poses(back.revision_id)), bits(O))
+
+
+def test_frames_added_between_corrections_get_their_own_pose_in_every_cached_revision() -> None:
+    # a live stack appends frames between corrections (ids out of order too): the cached revisions grow with the
+    # new frames' revision-0 poses and must equal a ledger replayed from scratch in one go
+    rng = np.random.default_rng(11)
+    live = PoseLedger()
+    added: list[tuple[int, int, np.ndarray]] = []
+    plans: list[tuple[int, dict[int, np.ndarray], int | None]] = []  # (frames known, poses, parent)
+    ids = rng.permutation(60) * 3
+    for k, fid in enumerate(ids):
+        T = random_rigid(rng)
+        live.add_frame(int(fid), int(fid) * MS, T)
+        added.append((int(fid), int(fid) * MS, T))
+        if k % 7 == 6:  # a correction of some known frames, sometimes on an older parent (a branch)
+            known = [a[0] for a in added]
+            keys = rng.choice(known, size=min(3, len(known)), replace=False)
+            poses = {int(f): random_rigid(rng) for f in keys}
+            parent = int(rng.integers(0, live.head + 1)) if k % 3 == 0 else None
+            live.commit(live.plan_correction(poses, source=PoseSource.LOOP_CLOSURE, parent=parent))
+            plans.append((len(added), poses, parent))
+        for r in range(live.head + 1):  # touch every revision, so the cache holds entries built before later frames
+            live.poses(r)
+    replay = PoseLedger()
+    done = 0
+    for n_known, poses, parent in plans:
+        for fid, stamp, T in added[done:n_known]:
+            replay.add_frame(fid, stamp, T)
+        done = n_known
+        replay.commit(replay.plan_correction(poses, source=PoseSource.LOOP_CLOSURE, parent=parent))
+    for fid, stamp, T in added[done:]:
+        replay.add_frame(fid, stamp, T)
+    assert live.head == replay.head == len(plans) >= 8
+    assert np.array_equal(live.frame_ids, replay.frame_ids)
+    for r in range(live.head + 1):
+        assert np.array_equal(live.poses(r), replay.poses(r)), f"revision {r}"
+        for fid in live.frame_ids[::9]:
+            assert np.array_equal(live.pose(r, int(fid)), live.poses(r)[np.searchsorted(live.frame_ids, fid)])

@@ -113,6 +113,27 @@ class PinholeIntrinsics:
         return dataclasses.asdict(self)
 
 
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+
+def _int64(value: object, what: str, expected: str, *, allow_float: bool = True) -> int:
+    """``value`` as a Python int that fits the store's int64 columns; :class:`GeometryError` naming ``what``."""
+    ok = isinstance(value, (int, np.integer)) or (allow_float and isinstance(value, (float, np.floating)))
+    if isinstance(value, bool) or not ok or int(value) != value:
+        raise GeometryError(f"{what} must be {expected}, got {value!r}")
+    out = int(value)
+    if not _INT64_MIN <= out <= _INT64_MAX:
+        raise GeometryError(f"{what} = {out} does not fit in a signed 64-bit integer")
+    return out
+
+
+def _enum(kind: type[enum.Enum], value: object, what: str) -> Any:
+    try:
+        return kind(value)
+    except ValueError:
+        raise GeometryError(f"{what}: {value!r} is not one of {[m.value for m in kind]}") from None
+
+
 @dataclass(frozen=True, slots=True)
 class PoseEstimate:
     """A pose estimate ``T_world_sensor`` and where it came from."""
@@ -125,8 +146,12 @@ class PoseEstimate:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "T_world_sensor", geometry.as_rigid(self.T_world_sensor, "PoseEstimate.T_world_sensor"))
+        revision = _int64(self.revision, "PoseEstimate.revision", "an integer")
+        if revision < 0:
+            raise GeometryError(f"PoseEstimate.revision must be >= 0, got {revision}")
+        object.__setattr__(self, "revision", revision)
         if not isinstance(self.source, PoseSource):
-            object.__setattr__(self, "source", PoseSource(self.source))
+            object.__setattr__(self, "source", _enum(PoseSource, self.source, "PoseEstimate.source"))
         if self.covariance_6x6 is not None:
             cov = np.array(self.covariance_6x6, dtype=np.float64)
             if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
@@ -246,14 +271,11 @@ class Frame:
     base_frame: str = "base_link"
 
     def __post_init__(self) -> None:
-        if isinstance(self.frame_id, bool) or int(self.frame_id) != self.frame_id:
-            raise GeometryError(f"Frame.frame_id must be an integer, got {self.frame_id!r}")
-        object.__setattr__(self, "frame_id", int(self.frame_id))
-        if isinstance(self.stamp_ns, float) or int(self.stamp_ns) != self.stamp_ns:
-            raise GeometryError(f"frame {self.frame_id}: stamp_ns must be an integer number of nanoseconds")
-        object.__setattr__(self, "stamp_ns", int(self.stamp_ns))
+        object.__setattr__(self, "frame_id", _int64(self.frame_id, "Frame.frame_id", "an integer"))
+        object.__setattr__(self, "stamp_ns", _int64(self.stamp_ns, f"frame {self.frame_id}: stamp_ns",
+                                                    "an integer number of nanoseconds", allow_float=False))
         if not isinstance(self.sensor_kind, SensorKind):
-            object.__setattr__(self, "sensor_kind", SensorKind(self.sensor_kind))
+            object.__setattr__(self, "sensor_kind", _enum(SensorKind, self.sensor_kind, f"frame {self.frame_id}: sensor_kind"))
         if not isinstance(self.pose, PoseEstimate):
             geometry.as_rigid(self.pose, f"frame {self.frame_id}: pose")  # a malformed matrix: TransformError
             raise GeometryError(
@@ -264,8 +286,9 @@ class Frame:
         object.__setattr__(self, "points_sensor", pts)
         object.__setattr__(self, "attributes", self.attributes.validated(len(pts)))
         object.__setattr__(self, "T_base_sensor", geometry.as_rigid(self.T_base_sensor, f"frame {self.frame_id}: T_base_sensor"))
-        if self.depth_scale is not None and not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
-            raise GeometryError(f"frame {self.frame_id}: depth_scale must be positive, got {self.depth_scale}")
+        if self.depth_scale is not None and not (isinstance(self.depth_scale, (int, float, np.number))
+                                                 and math.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise GeometryError(f"frame {self.frame_id}: depth_scale must be a positive number, got {self.depth_scale!r}")
 
     @property
     def n_points(self) -> int:

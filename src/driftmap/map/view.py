@@ -385,7 +385,10 @@ class MapView:
         """Add the store's frames that are not in the view yet (placed in the view's revision)."""
         if self._store is None:
             return []
-        new = [int(f) for f in self._store.frame_ids if int(f) not in self._index]
+        stored = self._store.frame_ids
+        if len(stored) == len(self.frame_ids):  # the view only ever holds stored frames
+            return []
+        new = [int(f) for f in stored[~np.isin(stored, self.frame_ids)]]
         if not new:
             return []
         ids, stamps, bufs, starts, strides, counts = [], [], [], [], [], []

@@ -338,7 +338,9 @@ class PoseLedger:
         self._base: NDArray[np.float64] = _readonly(np.zeros((0, 4, 4)))
         self._committed: list[Revision] = []  # revisions 1..head
         self._revision0: Revision | None = None
-        self._pose_cache: OrderedDict[int, NDArray[np.float64]] = OrderedDict()
+        # revision -> (the sorted frame ids it was built for, their poses); frames added later are filled in with
+        # their revision-0 poses when the entry is next used (no revision can name a frame it predates)
+        self._pose_cache: OrderedDict[int, tuple[NDArray[np.int64], NDArray[np.float64]]] = OrderedDict()
 
     # ---- frames ----------------------------------------------------------------------------------------------
 
@@ -358,7 +360,6 @@ class PoseLedger:
         self._pending_stamps.append(stamp)
         self._pending_poses.append(T)
         self._revision0 = None
-        self._pose_cache.clear()
 
     def _consolidate(self) -> None:
         if not self._pending_ids:
@@ -441,7 +442,7 @@ class PoseLedger:
         """(M, 4, 4) read-only ``T_world_sensor`` of every frame in a revision, aligned with :attr:`frame_ids`."""
         rid = self._require_revision(revision_id)
         self._consolidate()
-        cached = self._pose_cache.get(rid)
+        cached = self._cached_poses(rid)
         if cached is not None:
             self._pose_cache.move_to_end(rid)
             return cached
@@ -450,8 +451,7 @@ class PoseLedger:
         start: NDArray[np.float64] | None = None
         cur = rid
         while cur != 0:
-            if cur in self._pose_cache:
-                start = self._pose_cache[cur]
+            if (start := self._cached_poses(cur)) is not None:
                 break
             chain.append(cur)
             if self._committed[cur - 1].n_changed == len(self._ids):
@@ -463,10 +463,23 @@ class PoseLedger:
             rev = self._committed[cur - 1]
             out[self._index_of(rev._ids)] = rev._poses
         out = _readonly(out)
-        self._pose_cache[rid] = out
+        self._pose_cache[rid] = (self._ids, out)
         while len(self._pose_cache) > POSE_CACHE_SIZE:
             self._pose_cache.popitem(last=False)
         return out
+
+    def _cached_poses(self, rid: int) -> NDArray[np.float64] | None:
+        """The cached poses of a revision, brought up to the current frames (consolidated), or ``None``."""
+        entry = self._pose_cache.get(rid)
+        if entry is None:
+            return None
+        ids, poses = entry
+        if ids is not self._ids:
+            grown = np.array(self._base, copy=True)
+            grown[self._index_of(ids)] = poses
+            poses = _readonly(grown)
+            self._pose_cache[rid] = (self._ids, poses)
+        return poses
 
     def pose(self, revision_id: int, frame_id: int) -> NDArray[np.float64]:
         """Read-only ``T_world_sensor`` of one frame in one revision."""
