@@ -401,6 +401,14 @@ def test_invalid_intrinsics_raise(kwargs: dict, field: str) -> None:
         PinholeIntrinsics(**params)
 
 
+@pytest.mark.parametrize("stride", [0, -2, 1.5])
+def test_a_bad_pixel_stride_is_an_intrinsics_error(stride: float) -> None:
+    depth = np.full((H, W), 1500, np.uint16)
+    with pytest.raises(IntrinsicsError, match=rf"pixel stride must be a positive integer, got {stride}"):
+        depth_frame(depth, SEVENSCENES_INTR, frame_id=0, stamp_ns=0, depth_scale=1000.0,
+                    pose=PoseEstimate(np.eye(4)), pixel_stride=stride)
+
+
 def test_intrinsics_error_is_a_driftmap_error() -> None:
     assert issubclass(IntrinsicsError, driftmap.GeometryError)
     assert issubclass(DepthScaleError, driftmap.DepthError)

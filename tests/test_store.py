@@ -17,6 +17,7 @@ import pytest
 from PIL import Image
 
 from driftmap import Frame, PinholeIntrinsics, PointAttributes, PoseEstimate, PoseSource, StoreError
+from driftmap.errors import ConfigError
 from driftmap.preprocess.depth import depth_frame
 from driftmap.sources.synthetic import SyntheticLog
 from driftmap.demo import embedded_log_path
@@ -121,6 +122,20 @@ def test_bad_appends_are_rejected_and_change_nothing(tmp_path: Path, synthetic_f
             store.add_revision({999: np.eye(4)}, source="external_file")
         with pytest.raises(StoreError, match="(?i)parent"):
             store.add_revision({1: np.eye(4)}, source="external_file", parent=7)
+        # misspelt choices are typed errors naming the accepted values, not bare ValueErrors
+        with pytest.raises(ConfigError, match=r"add_revision source: 'bogus' is not one of \[.*'loop_closure'"):
+            store.add_revision({1: np.eye(4)}, source="bogus")
+        poses = tmp_path / "poses.txt"
+        store.export_trajectory(poses)
+        with pytest.raises(ConfigError, match=r"poses.txt: format: 'xyz' is not one of \['tum', 'kitti'\]"):
+            store.import_poses(poses, format="xyz")
+        with pytest.raises(ConfigError, match=r"poses.txt: match: 'nearest' is not one of"):
+            store.import_poses(poses, match="nearest")
+        with pytest.raises(ConfigError, match=r"poses.txt: source: 'gps' is not one of"):
+            store.import_poses(poses, source="gps")
+        with pytest.raises(ConfigError, match=r"out.txt: format: 'xyz' is not one of"):
+            store.export_trajectory(tmp_path / "out.txt", format="xyz")
+        assert not (tmp_path / "out.txt").exists()
         assert store.size_bytes() == size_before
         assert len(store.revisions) == 2 and len(store) == 4
     with FrameStore.open(path) as store:
@@ -280,6 +295,16 @@ def test_recover_rebuilds_an_unreadable_or_missing_manifest_from_the_segments(tm
         for f in synthetic_frames[:7]:
             assert_frames_identical(store.frame(f.frame_id), f)
     assert FrameStore.recover(path) == []  # healthy now
+    good = manifest.read_text()
+    for shape in ('["segments"]', good.replace('"segments"', '"segment_list"'), good.replace('"name"', '"nom"', 1)):
+        manifest.write_text(shape)  # valid JSON of the wrong shape: the same typed error, and recover rebuilds it
+        with pytest.raises(StoreCorruptError, match="unreadable manifest"):
+            FrameStore.open(path)
+        assert "rebuilt" in FrameStore.recover(path)[0].action
+        with FrameStore.open(path) as store:
+            assert len(store) == 7 and store.head == 1
+    with pytest.raises(StoreError, match="is a file, not a store directory"):
+        FrameStore.create(manifest)
     manifest.unlink()
     with pytest.raises(StoreError, match="missing"):
         FrameStore.open(path)

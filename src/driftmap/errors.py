@@ -6,6 +6,11 @@ Every error names what it is about (file, frame, field) in its message.
 
 from __future__ import annotations
 
+import enum
+from typing import TypeVar
+
+E = TypeVar("E", bound=enum.Enum)
+
 
 class DriftmapError(Exception):
     """Root of every error driftmap raises on purpose."""
@@ -46,3 +51,13 @@ class SourceError(DriftmapError):
 
 class StoreError(DriftmapError):
     """The frame store or pose ledger rejected an operation or is damaged."""
+
+
+def parse_enum(kind: type[E], value: object, what: str, error: type[DriftmapError] = ConfigError) -> E:
+    """``kind(value)``, or ``error`` naming ``what`` and the accepted values (instead of a bare ``ValueError``)."""
+    if isinstance(value, kind):
+        return value
+    try:
+        return kind(value)
+    except ValueError:
+        raise error(f"{what}: {value!r} is not one of {[m.value for m in kind]}") from None

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import GeometryError, IntrinsicsError
+from driftmap.errors import GeometryError, IntrinsicsError, parse_enum
 
 
 class SensorKind(enum.Enum):
@@ -127,13 +127,6 @@ def _int64(value: object, what: str, expected: str, *, allow_float: bool = True)
     return out
 
 
-def _enum(kind: type[enum.Enum], value: object, what: str) -> Any:
-    try:
-        return kind(value)
-    except ValueError:
-        raise GeometryError(f"{what}: {value!r} is not one of {[m.value for m in kind]}") from None
-
-
 @dataclass(frozen=True, slots=True)
 class PoseEstimate:
     """A pose estimate ``T_world_sensor`` and where it came from."""
@@ -151,7 +144,7 @@ class PoseEstimate:
             raise GeometryError(f"PoseEstimate.revision must be >= 0, got {revision}")
         object.__setattr__(self, "revision", revision)
         if not isinstance(self.source, PoseSource):
-            object.__setattr__(self, "source", _enum(PoseSource, self.source, "PoseEstimate.source"))
+            object.__setattr__(self, "source", parse_enum(PoseSource, self.source, "PoseEstimate.source", GeometryError))
         if self.covariance_6x6 is not None:
             cov = np.array(self.covariance_6x6, dtype=np.float64)
             if cov.shape != (6, 6) or not np.all(np.isfinite(cov)):
@@ -275,7 +268,7 @@ class Frame:
         object.__setattr__(self, "stamp_ns", _int64(self.stamp_ns, f"frame {self.frame_id}: stamp_ns",
                                                     "an integer number of nanoseconds", allow_float=False))
         if not isinstance(self.sensor_kind, SensorKind):
-            object.__setattr__(self, "sensor_kind", _enum(SensorKind, self.sensor_kind, f"frame {self.frame_id}: sensor_kind"))
+            object.__setattr__(self, "sensor_kind", parse_enum(SensorKind, self.sensor_kind, f"frame {self.frame_id}: sensor_kind", GeometryError))
         if not isinstance(self.pose, PoseEstimate):
             geometry.as_rigid(self.pose, f"frame {self.frame_id}: pose")  # a malformed matrix: TransformError
             raise GeometryError(

@@ -315,8 +315,8 @@ def depth_frame(
     """
     if pixel_stride != 1:
         intrinsics.check_image_shape(np.shape(depth), f"frame {frame_id}")
+        intrinsics = intrinsics.subsampled(pixel_stride)  # first: it names a bad stride (IntrinsicsError)
         depth = np.ascontiguousarray(np.asarray(depth)[::pixel_stride, ::pixel_stride])
-        intrinsics = intrinsics.subsampled(pixel_stride)
         if color_rgb is not None:
             color_rgb = np.ascontiguousarray(np.asarray(color_rgb)[::pixel_stride, ::pixel_stride])
     what = f"frame {frame_id}" + (f" ({provenance.source_uri})" if provenance else "")

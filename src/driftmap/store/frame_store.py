@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import __version__
-from driftmap.errors import ConfigError, StoreError
+from driftmap.errors import ConfigError, StoreError, parse_enum
 from driftmap.frame import Frame, PoseEstimate, PoseSource
 from driftmap.store.ledger import (
     SAME_POSE_DEG,
@@ -167,9 +167,14 @@ class FrameStore:
     def create(cls, path: str | Path, *, fsync: bool = False) -> FrameStore:
         """Create a new, empty store directory (it must not exist or be empty) and open it for appending."""
         path = Path(path)
+        if path.exists() and not path.is_dir():
+            raise StoreError(f"{path}: exists and is a file, not a store directory")
         if path.exists() and any(path.iterdir()):
             raise StoreError(f"{path}: exists and is not empty; open it instead of creating it")
-        path.mkdir(parents=True, exist_ok=True)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise StoreError(f"{path}: cannot create the store directory ({exc.strerror or exc})") from exc
         manifest = {
             "format": FORMAT_NAME,
             "version": FORMAT_VERSION,
@@ -214,11 +219,21 @@ class FrameStore:
             raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
         except (OSError, json.JSONDecodeError) as exc:
             raise StoreCorruptError(f"{file}: unreadable manifest ({exc})", path=file, offset=None) from exc
+        if not isinstance(manifest, dict):
+            raise StoreCorruptError(f"{file}: unreadable manifest (a JSON {type(manifest).__name__}, not an object)",
+                                    path=file, offset=None)
         if manifest.get("format") != FORMAT_NAME:
             raise StoreError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}")
         if manifest.get("version") != FORMAT_VERSION:
             raise StoreError(f"{file}: store format version {manifest.get('version')} is not supported "
                              f"(this driftmap reads version {FORMAT_VERSION})")
+        segments = manifest.get("segments")
+        shape_ok = (isinstance(manifest.get("store_uuid"), str) and isinstance(segments, list)
+                    and all(isinstance(seg, dict) and isinstance(seg.get("name"), str) and isinstance(seg.get("state"), str)
+                            and isinstance(seg.get("bytes"), (int, type(None))) for seg in segments))
+        if not shape_ok:
+            raise StoreCorruptError(f"{file}: unreadable manifest (store_uuid or the segment list is missing or malformed)",
+                                    path=file, offset=None)
         return manifest
 
     @staticmethod
@@ -557,7 +572,8 @@ class FrameStore:
         """Store a correction as a new revision. Poses given for a subset of frames (keyframes) propagate to
         the others when ``propagate`` (see :meth:`PoseLedger.plan_correction`)."""
         self._writable()
-        revision = self.ledger.plan_correction(poses, source=PoseSource(source), parent=parent, propagate=propagate, note=note)
+        source = parse_enum(PoseSource, source, f"{self.path}: add_revision source")
+        revision = self.ledger.plan_correction(poses, source=source, parent=parent, propagate=propagate, note=note)
         return self._persist(revision)
 
     def rollback(self, to: int, *, note: str = "") -> Revision:
@@ -593,8 +609,10 @@ class FrameStore:
         ``calib_file`` as in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (``auto`` converts the data
         set's own cam0 ``poses.txt`` to the Velodyne frame).
         """
-        fmt = TrajectoryFormat(format)
-        mode = PoseMatchMode(match) if match is not None else (PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX)
+        fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
+        source = parse_enum(PoseSource, source, f"{file}: source")
+        default_mode = PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX
+        mode = default_mode if match is None else parse_enum(PoseMatchMode, match, f"{file}: match")
         if fmt is TrajectoryFormat.TUM and (kitti_frame != "auto" or calib_file is not None):
             raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
         if fmt is TrajectoryFormat.KITTI and mode is PoseMatchMode.STAMP:
@@ -632,7 +650,7 @@ class FrameStore:
                           format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:
         """Write the poses of a revision: TUM with the frames' stamps, or KITTI one row per stored frame in
         frame order (which reads back as row i = frame_id i only when the ids are 0..N-1: a warning otherwise)."""
-        fmt = TrajectoryFormat(format)
+        fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
         ids = self.ledger.frame_ids
         if fmt is TrajectoryFormat.KITTI and not np.array_equal(ids, np.arange(len(ids))):
             # KITTI has neither stamps nor ids: the readers (correct, build --poses, diagnose --gt) take row i as
