@@ -796,3 +796,15 @@ def test_frames_added_between_corrections_get_their_own_pose_in_every_cached_rev
         assert np.array_equal(live.poses(r), replay.poses(r)), f"revision {r}"
         for fid in live.frame_ids[::9]:
             assert np.array_equal(live.pose(r, int(fid)), live.poses(r)[np.searchsorted(live.frame_ids, fid)])
+
+
+def test_rotation_angles_are_precise_for_tiny_and_large_angles() -> None:
+    # arccos of the trace loses everything below ~1e-6 deg (it returned 0.0 for 1e-7 deg); atan2 keeps it
+    for deg in (1e-9, 1e-7, 1e-3, 1.0, 90.0, 179.0):
+        axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+        T = geometry.make_transform(Rotation.from_rotvec(np.radians(deg) * axis))
+        A = random_rigid(np.random.default_rng(int(deg * 1e9) % 1000))
+        assert geometry.rotation_angle_deg(A, A @ T) == pytest.approx(deg, rel=1e-6)
+    stack = np.stack([Rz(d) for d in (0.0, 1e-6, 45.0)])
+    np.testing.assert_allclose(np.degrees(geometry.relative_rotation_angle_rad(np.eye(3), stack)), [0.0, 1e-6, 45.0],
+                               rtol=1e-9, atol=0)

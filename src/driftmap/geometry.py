@@ -134,11 +134,22 @@ def translation_distance_m(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -
     return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3]))
 
 
+def relative_rotation_angle_rad(R_a: ArrayLike, R_b: ArrayLike) -> NDArray[np.float64]:
+    """Angle of ``R_a^T R_b`` for (..., 3, 3) rotations (or the rotation blocks of (..., 4, 4) poses), in radians:
+    ``atan2`` of the sine and cosine parts, so it stays precise for tiny angles (unlike ``arccos`` of the trace)."""
+    A = np.asarray(R_a, dtype=np.float64)[..., :3, :3]
+    B = np.asarray(R_b, dtype=np.float64)[..., :3, :3]
+    R = np.swapaxes(A, -1, -2) @ B
+    sin_part = 0.5 * np.linalg.norm(
+        np.stack([R[..., 2, 1] - R[..., 1, 2], R[..., 0, 2] - R[..., 2, 0], R[..., 1, 0] - R[..., 0, 1]], axis=-1), axis=-1
+    )
+    cos_part = 0.5 * (np.trace(R, axis1=-2, axis2=-1) - 1.0)
+    return np.arctan2(sin_part, cos_part)
+
+
 def rotation_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
-    """Angle of the relative rotation between two poses, in degrees."""
-    R = T_a[:3, :3].T @ T_b[:3, :3]
-    c = (np.trace(R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Angle of the relative rotation between two poses, in degrees (precise for tiny angles too)."""
+    return float(np.degrees(relative_rotation_angle_rad(T_a, T_b)))
 
 
 # --------------------------------------------------------------------------------------------------------------

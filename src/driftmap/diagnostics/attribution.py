@@ -37,7 +37,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
 from driftmap.diagnostics.double_wall import PlacedCloud, SurfaceGroups, _dense_ids, surface_groups
-from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+from driftmap.diagnostics.trajectory_metrics import project_rotations, relative_pose_errors, trajectory_errors
 from driftmap.errors import ConfigError
 
 logger = logging.getLogger(__name__)
@@ -503,18 +503,19 @@ def segment_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float
     gt = np.asarray(ground_truth, dtype=np.float64)
     if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
         raise ConfigError(f"segment_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
+    est, gt = project_rotations(est), project_rotations(gt)  # as trajectory_errors: files store a few digits
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
     L = np.asarray(lengths_m, dtype=np.float64)
-    t_err, r_err, count = np.zeros(len(L)), np.zeros(len(L)), np.zeros(len(L), np.int64)
-    for first in range(0, len(gt), step_frames):
-        for li, length in enumerate(L):
-            last = int(np.searchsorted(s, s[first] + length))
-            if last >= len(gt):
-                continue
-            E = geometry.invert(geometry.invert(gt[first]) @ gt[last]) @ (geometry.invert(est[first]) @ est[last])
-            t_err[li] += np.linalg.norm(E[:3, 3]) / length
-            r_err[li] += geometry.rotation_angle_deg(np.eye(4), E) / length
-            count[li] += 1
+    starts = np.arange(0, len(gt), step_frames)
+    first = np.repeat(starts, len(L))
+    li = np.tile(np.arange(len(L)), len(starts))
+    last = np.searchsorted(s, s[first] + L[li])  # the first frame at least `length` along the path
+    ok = last < len(gt)
+    first, li, last = first[ok], li[ok], last[ok]
+    E = relative_pose_errors(est, gt, first, last)
+    t_err = np.bincount(li, np.linalg.norm(E[:, :3, 3], axis=1) / L[li], minlength=len(L))
+    r_err = np.bincount(li, np.degrees(geometry.relative_rotation_angle_rad(np.eye(3), E)) / L[li], minlength=len(L))
+    count = np.bincount(li, minlength=len(L)).astype(np.int64)
     with np.errstate(invalid="ignore", divide="ignore"):
         return SegmentErrors(L, 100.0 * t_err / np.maximum(count, 1), r_err / np.maximum(count, 1), count)
 

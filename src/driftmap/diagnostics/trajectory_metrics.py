@@ -33,7 +33,7 @@ def umeyama(source_m: NDArray[np.float64], target_m: NDArray[np.float64], *, wit
     return T, scale
 
 
-def _project_rotations(poses: NDArray[np.float64]) -> NDArray[np.float64]:
+def project_rotations(poses: NDArray[np.float64]) -> NDArray[np.float64]:
     """The nearest rotation (SVD) in every pose's rotation block; poses already orthonormal are unchanged."""
     U, _, Vt = np.linalg.svd(poses[:, :3, :3])
     R = U @ Vt
@@ -57,6 +57,17 @@ class TrajectoryErrors:
     scale: float
 
 
+def relative_pose_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], first: NDArray[np.integer],
+                         last: NDArray[np.integer] | int) -> NDArray[np.float64]:
+    """(K, 4, 4) errors ``inv(inv(gt[i]) @ gt[j]) @ (inv(est[i]) @ est[j])`` of the relative motions from frames
+    ``first`` to ``last`` (``last`` an index array, or an int offset added to ``first``)."""
+    i = np.asarray(first, dtype=np.int64)
+    j = i + last if isinstance(last, (int, np.integer)) else np.asarray(last, dtype=np.int64)
+    rel_gt = geometry.invert(ground_truth[i]) @ ground_truth[j]
+    rel_est = geometry.invert(estimate[i]) @ estimate[j]
+    return geometry.invert(rel_gt) @ rel_est
+
+
 def trajectory_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *, delta: int = 1,
                       with_scale: bool = False) -> TrajectoryErrors:
     """ATE (positions after Umeyama alignment of the estimate onto the ground truth) and RPE over ``delta``
@@ -67,20 +78,18 @@ def trajectory_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.fl
         raise ConfigError(f"trajectory_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
     # pose files store rotations to a few digits (KITTI: 6 significant): project them onto SO(3) so that the
     # rigid inverse is exact and a perfect estimate gives zero rotation error
-    est, gt = _project_rotations(est), _project_rotations(gt)
+    est, gt = project_rotations(est), project_rotations(gt)
     T, s = umeyama(est[:, :3, 3], gt[:, :3, 3], with_scale=with_scale)
     aligned = s * est[:, :3, 3] @ T[:3, :3].T + T[:3, 3]
     err = np.linalg.norm(aligned - gt[:, :3, 3], axis=1)
-    trans, rot = [], []
-    for i in range(len(est) - delta):
-        E = geometry.invert(geometry.invert(gt[i]) @ gt[i + delta]) @ (geometry.invert(est[i]) @ est[i + delta])
-        trans.append(np.linalg.norm(E[:3, 3]))
-        rot.append(geometry.rotation_angle_deg(np.eye(4), E))
+    E = relative_pose_errors(est, gt, np.arange(max(len(est) - delta, 0)), delta)
+    trans = np.linalg.norm(E[:, :3, 3], axis=1)
+    rot = np.degrees(geometry.relative_rotation_angle_rad(np.eye(3), E))
     return TrajectoryErrors(
         ate_rmse_m=float(np.sqrt(np.mean(err**2))),
         ate_max_m=float(err.max()),
-        rpe_trans_rmse_m=float(np.sqrt(np.mean(np.square(trans)))) if trans else 0.0,
-        rpe_rot_rmse_deg=float(np.sqrt(np.mean(np.square(rot)))) if rot else 0.0,
+        rpe_trans_rmse_m=float(np.sqrt(np.mean(np.square(trans)))) if trans.size else 0.0,
+        rpe_rot_rmse_deg=float(np.sqrt(np.mean(np.square(rot)))) if rot.size else 0.0,
         n_poses=len(est),
         alignment=T,
         scale=s,

@@ -51,7 +51,6 @@ from driftmap.map._kernels import (
 )
 from driftmap.map.fusion import write_cloud
 from driftmap.preprocess.cloud import RegionOfInterest
-from driftmap.store.ledger import _rotation_angle_rad
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -158,7 +157,7 @@ def _displacements(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[
     """Per pose pair of two (K, 4, 4) stacks: distance of the origins (m) and relative rotation angle (deg),
     computed as :meth:`PoseLedger.diff` does (one numpy pass, not a Python call per frame)."""
     translation_m = np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1)
-    return translation_m, np.degrees(_rotation_angle_rad(T_a[:, :3, :3], T_b[:, :3, :3]))
+    return translation_m, np.degrees(geometry.relative_rotation_angle_rad(T_a, T_b))
 
 
 def _vec3(method: str, name: str, value: Sequence[float]) -> NDArray[np.float64]:

@@ -110,17 +110,6 @@ def _pose_table(poses: Mapping[Any, ArrayLike], what: str) -> tuple[NDArray[np.i
     return _readonly(ids), _readonly(stack)
 
 
-def _rotation_angle_rad(R_a: NDArray[np.float64], R_b: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Angle of ``R_a^T R_b`` for (N, 3, 3) stacks; ``atan2`` of the sine and cosine parts, so it stays precise
-    for tiny angles (unlike ``arccos`` of the trace)."""
-    R = np.einsum("nki,nkj->nij", R_a, R_b)
-    sin_part = 0.5 * np.linalg.norm(
-        np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1), axis=1
-    )
-    cos_part = 0.5 * (np.trace(R, axis1=1, axis2=2) - 1.0)
-    return np.arctan2(sin_part, cos_part)
-
-
 SAME_POSE_M = 1e-6
 """Pose differences below this translation (and :data:`SAME_POSE_DEG`) are text round-off, not a change (a TUM
 file written with 9 decimals and read back moves poses by ~1e-9 m)."""
@@ -659,7 +648,7 @@ class PoseLedger:
     def _difference(self, a: int, b: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         P_a, P_b = self.poses(a), self.poses(b)
         translation_m = np.linalg.norm(P_a[:, :3, 3] - P_b[:, :3, 3], axis=1)
-        return translation_m, _rotation_angle_rad(P_a[:, :3, :3], P_b[:, :3, :3])
+        return translation_m, geometry.relative_rotation_angle_rad(P_a, P_b)
 
     def diff(self, a: int, b: int) -> PoseDiff:
         """Per-frame position distance (m) and relative rotation angle (deg) between revisions ``a`` and ``b``."""
