@@ -17,9 +17,9 @@ from driftmap.demo import embedded_log_path
 from driftmap.diagnostics import perturb
 from driftmap.diagnostics.attribution import AttributionConfig, FrameAlignment, attribute, drift_rate, segment_errors
 from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallConfig, SamplingConfig, detect_double_walls, map_entropy
-from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame, PoseEstimate, SensorKind
 from driftmap.sources.synthetic import SyntheticLog
 from driftmap.store.frame_store import FrameStore
@@ -452,6 +452,11 @@ def test_cli_diagnose_writes_the_json_contract_and_figures(kitchen: FrameStore, 
     diagnosis = diagnose_store(FrameStore.open(store_path), 0, config=small_cfg)
     assert "trajectory" not in diagnosis.to_json()
     assert CliRunner().invoke(app, ["diagnose", str(store_path), "--revision", "7", "--json", str(out)]).exit_code != 0
+    # ground truth for too few frames is refused when it is read, before the diagnosis (which is the costly part)
+    few = tmp_path / "few.kitti"
+    write_kitti(few, Trajectory(np.arange(2), full[:2]))
+    with pytest.raises(StoreError, match=r"few.kitti: ground truth matched only 1 of the 80 stored frames.*at least 3"):
+        read_ground_truth(FrameStore.open(store_path), few, "kitti")
 
 
 def test_double_wall_config_rejects_nonsense() -> None:

@@ -38,7 +38,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -184,16 +184,20 @@ class DiagnosticCloud:
 
     @classmethod
     def from_store(cls, store: FrameStore, config: SamplingConfig | None = None, noise: NoiseModel | None = None,
-                   frame_ids: Sequence[int] | None = None) -> DiagnosticCloud:
-        """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here."""
+                   frame_ids: Sequence[int] | None = None,
+                   progress: Callable[[str, int, int | None], None] | None = None) -> DiagnosticCloud:
+        """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here. ``progress(stage, done,
+        total)`` is called after each frame (the sampling with its normals is most of a diagnosis' time)."""
         cfg = config or SamplingConfig()
         ids = store.frame_ids if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
         keep = cfg.per_frame(len(ids))
         rows = []
-        for fid in ids:
+        for k, fid in enumerate(ids):
             frame = store.frame(int(fid))
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
                                       frame.attributes.normal_sensor, cfg, keep, noise))
+            if progress is not None:
+                progress("sampling frames", k + 1, len(ids))
         return cls._assemble(rows)
 
     @classmethod

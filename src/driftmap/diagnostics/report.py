@@ -135,6 +135,10 @@ class Diagnosis:
         return out
 
 
+MIN_GT_FRAMES = 3
+"""ATE (a rigid alignment) and RPE need at least this many frames with a ground-truth pose."""
+
+
 def _num(v: float | None) -> float | None:
     return float(v) if v is not None and math.isfinite(v) else None
 
@@ -171,8 +175,8 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
         gt = np.asarray(ground_truth, dtype=np.float64).reshape(-1, 4, 4)
         if len(rows) != len(gt):
             raise ConfigError(f"ground truth: {len(gt)} poses for {len(rows)} frame rows")
-        if len(rows) < 3:
-            raise ConfigError(f"ground truth matched only {len(rows)} frames; ATE needs at least 3")
+        if len(rows) < MIN_GT_FRAMES:
+            raise ConfigError(f"ground truth matched only {len(rows)} frames; ATE needs at least {MIN_GT_FRAMES}")
         trajectory = ground_truth_errors(placed.poses[rows], gt)
         trajectory["n_frames_matched"] = int(len(rows))
     return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds)
@@ -205,6 +209,9 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
     if not matched.poses:
         raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value})")
+    if len(matched.poses) < MIN_GT_FRAMES:  # found before the costly diagnosis, not after it
+        raise StoreError(f"{path}: ground truth matched only {len(matched.poses)} of the {len(store.ledger.frame_ids)} "
+                         f"stored frames (by {mode.value}); ATE/RPE need at least {MIN_GT_FRAMES}")
     if matched.unmatched_frames:
         logger.warning("%s: %d stored frames have no ground-truth pose; they are left out of ATE/RPE", path,
                        len(matched.unmatched_frames))
