@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -361,3 +362,247 @@ def test_store_opens_in_a_generic_mcap_reader(tmp_path: Path, synthetic_frames: 
     pts = np.frombuffer(cloud.data, dtype="<f4").reshape(-1, 3)
     np.testing.assert_array_equal(pts, synthetic_frames[1].points_sensor)
     assert [f.name for f in cloud.fields] == ["x", "y", "z"]
+
+
+# ------------------------------------------------------------------------------------------ losses and recovery
+
+
+def _snapshot(path: Path) -> dict[str, bytes]:
+    """Every file of a store with its bytes (to show that a second recovery changes nothing)."""
+    return {f.name: f.read_bytes() for f in sorted(path.iterdir()) if f.name != "writer.lock"}
+
+
+def _moved(T: np.ndarray, dx_m: float) -> np.ndarray:
+    out = np.array(T, dtype=np.float64, copy=True)
+    out[0, 3] += dx_m
+    return out
+
+
+def _flip_byte(file: Path, offset: int) -> None:
+    with open(file, "r+b") as fh:
+        fh.seek(offset)
+        byte = fh.read(1)
+        fh.seek(offset)
+        fh.write(bytes([byte[0] ^ 0xFF]))
+
+
+def _rows(store: FrameStore, revision: int, ids: list[int]) -> bytes:
+    """The poses of ``ids`` in ``revision``, as bytes (compared bit for bit)."""
+    return store.poses(revision)[np.searchsorted(store.frame_ids, ids)].tobytes()
+
+
+def test_recover_keeps_a_later_revision_that_names_frames_of_a_truncated_segment(tmp_path: Path, sevenscenes_dir: Path) -> None:
+    """The audit's case on real 7-Scenes frames: a correction stored in a later segment names frames that a
+    truncation of the first segment took with it. Recovery must leave a store that opens, with every revision,
+    each keeping the poses of the frames that remain (bit for bit), and must say what was lost."""
+    frames = [sevenscenes_frame(sevenscenes_dir, i, stride_px=8) for i in range(0, 100, 10)]
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in frames:
+            store.append(f)
+        cut_at = store._refs[60].payload_offset + 1000  # in the middle of frame 60's points
+    with FrameStore.open(path, "a") as store:  # a later writer session (segment 1) corrects the poses
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02), 90: _moved(store.poses(0)[-1], 0.05)},
+                           source=PoseSource.LOOP_CLOSURE, note="loop")  # propagated to every frame
+        store.add_revision({80: _moved(store.poses(1)[8], 0.01), 90: _moved(store.poses(1)[9], 0.01)},
+                           source=PoseSource.EXTERNAL_FILE, propagate=False, note="only frames that will be lost")
+        store.add_revision({10: _moved(store.poses(2)[1], 0.03)}, source=PoseSource.EXTERNAL_FILE, propagate=False)
+        before = {rev: store.poses(rev).copy() for rev in range(4)}
+    os.truncate(path / "segment-000000.mcap", cut_at)
+    kept, lost = [0, 10, 20, 30, 40, 50], [60, 70, 80, 90]
+    with pytest.raises(StoreCorruptError, match="driftmap recover"):
+        FrameStore.open(path)
+
+    events = FrameStore.recover(path)
+    assert [e.segment for e in events] == ["segment-000000.mcap", "segment-000002.mcap"]
+    assert events[0].frames_kept == len(kept) and events[0].dropped_bytes > 0
+    loss = events[1].loss
+    assert loss is not None and list(loss.frame_ids) == lost and loss.revision_ids == ()
+    assert loss.trimmed == {1: tuple(lost), 2: (80, 90)}
+    assert (events[1].frames_kept, events[1].revisions_kept) == (len(kept), 4)
+    assert "frames [60, 70, 80, 90] are lost" in str(events[1]) and "revision 2 lost the poses of [80, 90]" in str(events[1])
+
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == kept and store.head == 3
+        assert list(store.loss.frame_ids) == lost and store.loss.trimmed == loss.trimmed
+        for rev in range(4):  # the kept frames are the first six of the ten
+            assert store.poses(rev).tobytes() == before[rev][: len(kept)].tobytes(), rev
+        assert store.revisions[1].n_changed == len(kept) and store.revisions[1].source is PoseSource.LOOP_CLOSURE
+        assert store.revisions[2].n_changed == 0 and store.revisions[2].parent_id == 1  # kept: it is history
+        assert "lost frame" in store.revisions[2].note
+        assert_frames_identical(store.frame(50), frames[5])
+
+    snapshot = _snapshot(path)
+    assert FrameStore.recover(path) == []  # idempotent: nothing to do, nothing written, and the store opens
+    assert _snapshot(path) == snapshot
+    with FrameStore.open(path) as store:
+        assert len(store) == len(kept) and store.head == 3
+
+
+def test_recover_after_a_segment_file_was_deleted(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """A deleted segment: opening names it and asks for `driftmap recover`; so does a store whose manifest was
+    tidied by hand, with a revision naming the frames that went with it (not a message about "commit").
+    Recovery keeps the revisions, says what was lost, and the store accepts new segments (and the lost frames)."""
+    path = tmp_path / "s"
+    for session in (synthetic_frames[:4], synthetic_frames[4:8]):
+        with (FrameStore.create(path) if not path.exists() else FrameStore.open(path, "a")) as store:
+            for f in session:
+                store.append(f)
+    with FrameStore.open(path, "a") as store:  # session 3 (segment 2): two corrections
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02), 7: _moved(store.poses(0)[7], 0.04)}, source="loop_closure")
+        store.add_revision({2: _moved(store.poses(1)[2], 0.01)}, source="external_file", propagate=False)
+        before = {rev: store.poses(rev).copy() for rev in range(3)}
+    (path / "segment-000001.mcap").unlink()
+    with pytest.raises(StoreCorruptError, match=r"segment-000001.mcap: segment listed in the manifest is missing.*driftmap recover"):
+        FrameStore.open(path)
+
+    tidied = tmp_path / "tidied"  # the same damage after someone removed the segment from store.json by hand
+    shutil.copytree(path, tidied)
+    manifest = json.loads((tidied / "store.json").read_text())
+    manifest["segments"] = [s for s in manifest["segments"] if s["name"] != "segment-000001.mcap"]
+    (tidied / "store.json").write_text(json.dumps(manifest))
+    with pytest.raises(StoreCorruptError, match=r"revision 1 holds poses of frames \[4, 5, 6, 7\].*driftmap recover") as err:
+        FrameStore.open(tidied)
+    assert "commit" not in str(err.value)
+
+    for store_path in (path, tidied):
+        events = FrameStore.recover(store_path)
+        assert [e.action for e in events][:-1] == (["missing segment removed from the manifest"] if store_path == path else [])
+        loss = events[-1].loss
+        assert loss is not None and loss.frame_ids == (4, 5, 6, 7) and loss.trimmed == {1: (4, 5, 6, 7)}
+        assert FrameStore.recover(store_path) == []
+        with FrameStore.open(store_path) as store:
+            assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3] and store.head == 2
+            for rev in range(3):
+                assert store.poses(rev).tobytes() == before[rev][:4].tobytes()
+
+    with FrameStore.open(path, "a") as store:  # appending goes on in a new segment (no name of a lost one reused)
+        store.append(synthetic_frames[5])  # a lost frame stored again is a new frame: no old revision moves it
+        store.append(synthetic_frames[8])
+    manifest = json.loads((path / "store.json").read_text())
+    assert [s["name"] for s in manifest["segments"]] == ["segment-000000.mcap", "segment-000002.mcap",
+                                                        "segment-000003.mcap", "segment-000004.mcap"]
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3, 5, 8] and store.loss.frame_ids == (4, 6, 7)
+        for rev in (1, 2):
+            assert store.poses(rev)[4].tobytes() == synthetic_frames[5].T_world_sensor.tobytes()
+        assert_frames_identical(store.frame(5), synthetic_frames[5])
+
+
+def test_recover_after_bit_flips_in_a_frame_chunk_and_in_a_revision_chunk(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """A flipped bit in a frame's chunk loses that frame; one in a revision's chunk loses that revision. The
+    revisions after it keep their ids (a stand-in holds the lost one's place) and the report says which revision
+    lost its parent."""
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        damaged_at = store._refs[2].payload_offset + 4096
+    with FrameStore.open(path, "a") as store:
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02), 5: _moved(store.poses(0)[5], 0.02)}, source="loop_closure")
+        store.add_revision({0: _moved(store.poses(1)[0], 0.01)}, source="external_file", propagate=False, note="lost")
+        store.add_revision({1: _moved(store.poses(2)[1], 0.03)}, source="external_file", propagate=False, note="child")
+        before = {rev: store.poses(rev).copy() for rev in range(4)}
+    _flip_byte(path / "segment-000000.mcap", damaged_at)
+    seg1 = path / "segment-000001.mcap"
+    data = seg1.read_bytes()
+    _flip_byte(seg1, data.index(b'"revision_id":2,') + 200)  # in revision 2's matrices
+    with pytest.raises(StoreCorruptError, match="CRC"):
+        FrameStore.open(path)
+
+    events = FrameStore.recover(path)
+    assert [e.segment for e in events] == ["segment-000000.mcap", "segment-000001.mcap", "segment-000002.mcap"]
+    assert events[0].frames_kept == 5 and events[0].dropped_bytes > synthetic_frames[2].n_points * 12
+    assert events[1].revisions_kept == 2 and events[1].dropped_bytes > 0
+    loss = events[2].loss
+    assert loss is not None and loss.frame_ids == (2,) and loss.revision_ids == (2,)
+    assert loss.trimmed == {1: (2,)} and loss.orphaned == {3: 2}
+    assert "revision 3: its parent 2 is lost, the frames it does not set take revision 1's poses" in str(events[2])
+
+    with FrameStore.open(path) as store:
+        kept = [0, 1, 3, 4, 5]
+        assert [int(i) for i in store.frame_ids] == kept and store.head == 3
+        rows = [0, 1, 3, 4, 5]
+        for rev in (0, 1):
+            assert store.poses(rev).tobytes() == before[rev][rows].tobytes()
+        stand_in = store.revisions[2]
+        assert stand_in.source is PoseSource.NONE and stand_in.n_changed == 0 and stand_in.parent_id == 1
+        assert store.poses(2).tobytes() == store.poses(1).tobytes()
+        # revision 3 keeps its own pose; the frames it does not set take revision 1's poses (revision 2 is gone)
+        assert _rows(store, 3, [1]) == before[3][1:2].tobytes()
+        assert _rows(store, 3, [0, 3, 4, 5]) == before[1][[0, 3, 4, 5]].tobytes()
+        assert store.loss.orphaned == {3: 2}
+    snapshot = _snapshot(path)
+    assert FrameStore.recover(path) == [] and _snapshot(path) == snapshot
+
+
+def test_recover_report_counts_and_manifest_errors_name_the_fix(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """A rebuilt store.json is reported with the frames and revisions the store kept (not 0 and 0), and a
+    missing or unreadable store.json tells the user to run `driftmap recover PATH`."""
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:4]:
+            store.append(f)
+    with FrameStore.open(path, "a") as store:
+        for f in synthetic_frames[4:7]:
+            store.append(f)
+        store.add_revision({6: _moved(store.poses(0)[6], 0.05)}, source="external_file", propagate=False)
+    manifest = path / "store.json"
+    manifest.write_text('{"format": "driftmap-store", "vers')
+    with pytest.raises(StoreCorruptError, match=f"unreadable manifest.*run `driftmap recover {path}`"):
+        FrameStore.open(path)
+    events = FrameStore.recover(path)
+    assert [e.segment for e in events] == ["store.json"]
+    assert (events[0].frames_kept, events[0].revisions_kept) == (7, 2)
+    assert "kept 7 frames and 2 revisions" in str(events[0])
+    manifest.unlink()
+    with pytest.raises(StoreCorruptError, match=f"store.json: missing.*run `driftmap recover {path}`"):
+        FrameStore.open(path)
+    seg1 = path / "segment-000001.mcap"  # and the revision's chunk cut off: the counts are those after recovery
+    os.truncate(seg1, seg1.read_bytes().index(b'"revision_id":1,'))
+    events = FrameStore.recover(path)
+    assert events[0].segment == "store.json" and (events[0].frames_kept, events[0].revisions_kept) == (7, 1)
+    assert "kept 7 frames and 1 revisions" in str(events[0])
+    assert events[1].segment == "segment-000001.mcap" and (events[1].frames_kept, events[1].revisions_kept) == (3, 0)
+    with FrameStore.open(path) as store:
+        assert len(store) == 7 and store.head == 0
+    with pytest.raises(StoreError, match="not a driftmap store") as err:  # an empty folder is no store to recover
+        FrameStore.open(tmp_path)
+    assert "driftmap recover" not in str(err.value)
+
+
+def test_an_interrupted_recovery_is_finished_by_the_next_one(tmp_path: Path, synthetic_frames: list[Frame],
+                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    """Recovery is idempotent and resumable: killed while it records the loss (after the damaged segment was
+    rewritten), the store is left in a state the next `recover` finishes, and a third run has nothing to do."""
+    from driftmap.store.segment import SegmentWriter
+
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        cut_at = store._refs[4].payload_offset + 100
+    with FrameStore.open(path, "a") as store:
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02), 5: _moved(store.poses(0)[5], 0.01)}, source="loop_closure")
+        before = store.poses(1).copy()
+    os.truncate(path / "segment-000000.mcap", cut_at)
+
+    def power_cut(self: SegmentWriter, payload: dict, log_time_ns: int) -> None:
+        raise OSError("simulated power cut while recording the loss")
+
+    monkeypatch.setattr(SegmentWriter, "append_event", power_cut)
+    with pytest.raises(OSError, match="power cut"):
+        FrameStore.recover(path)
+    monkeypatch.undo()
+    with pytest.raises(StoreCorruptError, match=r"revision 1 holds poses of frames \[4, 5\].*driftmap recover"):
+        FrameStore.open(path)  # segment 0 is clean now, but the loss is not recorded yet: not silently read
+
+    events = FrameStore.recover(path)
+    assert [e.segment for e in events] == ["segment-000002.mcap", "segment-000003.mcap"]  # the torn one, the record
+    assert events[-1].loss is not None and events[-1].loss.frame_ids == (4, 5) and events[-1].loss.trimmed == {1: (4, 5)}
+    assert (path / "segment-000000.mcap.damaged").stat().st_size == cut_at  # the first run's copy was not overwritten
+    snapshot = _snapshot(path)
+    assert FrameStore.recover(path) == [] and _snapshot(path) == snapshot
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3] and store.head == 1
+        assert store.poses(1).tobytes() == before[:4].tobytes()

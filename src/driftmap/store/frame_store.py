@@ -16,6 +16,16 @@ a clean, closed segment and keeps the dropped tail bytes in ``segment-NNNNNN.dro
 A *closed* segment that is truncated or damaged is never repaired silently: opening raises
 :class:`StoreCorruptError` naming the file and offset; ``FrameStore.recover(path)`` (``driftmap recover``)
 salvages every intact frame and revision into a new segment and keeps the damaged file beside it.
+
+Losses. Revision records are never rewritten to fit the frames that survived: a revision stored in an intact
+segment may still name frames a damaged (or deleted) segment took with it, and a revision may follow one whose
+record is gone. ``recover`` finds both and appends a ``data_lost`` event (in a new segment of its own) naming
+those frames and revisions. Opening then reads every revision without the poses of the lost frames (its other
+poses are kept, even if none are left: it is history), puts a stand-in without poses of its own (parent: the
+revision before it) in the place of each lost revision so later ids still mean the same revisions, and
+reports all of it in ``FrameStore.loss`` (:class:`DataLoss`). A revision naming a missing frame, or a gap in
+the revision ids, that no ``data_lost`` event declares is damage nobody has looked at: opening raises
+:class:`StoreCorruptError` asking for ``driftmap recover``.
 """
 
 from __future__ import annotations
@@ -28,10 +38,12 @@ import json
 import logging
 import mmap
 import os
+import re
+import shutil
 import time
 import uuid
 from collections.abc import Iterator, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -49,9 +61,11 @@ from driftmap.store.ledger import (
     PoseMatch,
     PoseMatchMode,
     Revision,
+    _preview,
     match_trajectory,
 )
 from driftmap.store.segment import (
+    EVENT_DATA_LOST,
     SegmentScan,
     SegmentWriter,
     StoredFrameRef,
@@ -68,6 +82,7 @@ FORMAT_NAME = "driftmap-store"
 FORMAT_VERSION = 1
 MANIFEST = "store.json"
 LOCK_FILE = "writer.lock"
+_SEGMENT_NAME = re.compile(r"segment-(\d+)\.")
 
 
 class StoreCorruptError(StoreError):
@@ -85,8 +100,57 @@ class TrajectoryFormat(enum.Enum):
 
 
 @dataclass(frozen=True)
+class DataLoss:
+    """What damage took from a store's frames and revisions (declared by ``recover``), and what it did to the
+    revisions that survived.
+
+    ``frame_ids``: the lost frames (named by a stored revision, held by no segment; a lost frame that nothing
+    names cannot be identified once its bytes are gone). ``revision_ids``: the revisions whose record is gone; a
+    stand-in without poses of its own (parent: the revision before it) holds each one's id. ``trimmed``: revision
+    -> the lost frames whose poses it no longer holds (it keeps all its other poses). ``orphaned``: revision ->
+    its lost parent (the frames it does not set now take the stand-in's poses, those of the revision before).
+    """
+
+    frame_ids: tuple[int, ...] = ()
+    revision_ids: tuple[int, ...] = ()
+    trimmed: Mapping[int, tuple[int, ...]] = field(default_factory=dict, hash=False)
+    orphaned: Mapping[int, int] = field(default_factory=dict, hash=False)
+
+    def __bool__(self) -> bool:
+        return bool(self.frame_ids or self.revision_ids)
+
+    def only(self, frame_ids: set[int], revision_ids: set[int]) -> DataLoss:
+        """The part of this loss that concerns ``frame_ids`` and ``revision_ids``."""
+        trimmed = {r: mine for r, lost in self.trimmed.items() if (mine := tuple(f for f in lost if f in frame_ids))}
+        return DataLoss(tuple(f for f in self.frame_ids if f in frame_ids),
+                        tuple(r for r in self.revision_ids if r in revision_ids), trimmed,
+                        {r: p for r, p in self.orphaned.items() if p in revision_ids})
+
+    def __str__(self) -> str:
+        parts = []
+        if self.frame_ids:
+            parts.append(f"frames {_preview(self.frame_ids)} are lost")
+        parts += [f"revision {r} lost the poses of {_preview(lost)}" for r, lost in sorted(self.trimmed.items())]
+        if self.revision_ids:
+            parts.append(f"the records of revisions {_preview(self.revision_ids)} are lost (a stand-in with the poses of "
+                         f"the revision before holds each one's place)")
+        for r, p in sorted(self.orphaned.items()):
+            base = p - 1
+            while base in self.revision_ids:
+                base -= 1
+            parts.append(f"revision {r}: its parent {p} is lost, the frames it does not set take revision {base}'s poses")
+        return "; ".join(parts) or "nothing lost"
+
+
+@dataclass(frozen=True)
 class RecoveryEvent:
-    """What opening or recovering a store had to drop or repair."""
+    """What opening or recovering a store had to drop or repair.
+
+    For a segment: the frames and revision records it kept and the bytes that were not carried over (an
+    unfinished tail, damaged chunks). For ``store.json`` and for the ``data_lost`` record: the frames and
+    revisions (revision 0 included, as ``driftmap revisions`` lists them) of the recovered store. ``loss``: the
+    frames and revisions this recovery found lost (see :class:`DataLoss`).
+    """
 
     segment: str
     action: str
@@ -94,22 +158,66 @@ class RecoveryEvent:
     revisions_kept: int
     dropped_bytes: int
     detail: str
+    loss: DataLoss | None = None
 
     def __str__(self) -> str:
-        return (f"{self.segment}: {self.action}: kept {self.frames_kept} frames and {self.revisions_kept} revisions, "
-                f"dropped {self.dropped_bytes} bytes ({self.detail})")
+        text = f"{self.segment}: {self.action}: kept {self.frames_kept} frames and {self.revisions_kept} revisions"
+        if self.dropped_bytes:
+            text += f", dropped {self.dropped_bytes} bytes"
+        if self.loss:
+            text += f"; {self.loss}"
+        return f"{text} ({self.detail})"
 
 
-def _restrict_revision(revision_json: dict[str, Any], frame_ids: set[int]) -> dict[str, Any]:
-    """A revision's JSON without the poses of frames that were lost (recovery keeps the rest)."""
-    rev = Revision.from_json(revision_json)
-    keep = {k: v for k, v in rev.set_directly.items() if k in frame_ids}
-    prop = {k: v for k, v in rev.propagated.items() if k in frame_ids}
-    if len(keep) == len(rev.set_directly) and len(prop) == len(rev.propagated):
-        return revision_json
-    logger.warning("revision %d: dropping poses of %d lost frames", rev.revision_id,
-                   len(rev.set_directly) + len(rev.propagated) - len(keep) - len(prop))
-    return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns, rev.note, keep, prop, rev.restores).to_json()
+def _without_frames(rev: Revision, lost: list[int]) -> Revision:
+    """``rev`` without the poses of the lost frames (every other field and pose unchanged)."""
+    gone = set(lost)
+    note = f"{rev.note} " if rev.note else ""
+    return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns,
+                    f"{note}[recovery: poses of {len(gone)} lost frame(s) removed]",
+                    {k: v for k, v in rev.set_directly.items() if k not in gone},
+                    {k: v for k, v in rev.propagated.items() if k not in gone}, rev.restores)
+
+
+def _lost_ids(event: dict[str, Any], file: Path) -> tuple[set[int], set[int]]:
+    """The frame and revision ids a ``data_lost`` event declares lost."""
+    ids = []
+    for key in ("frame_ids", "revision_ids"):
+        value = event.get(key)
+        if not isinstance(value, list) or any(isinstance(i, bool) or not isinstance(i, int) for i in value):
+            raise StoreCorruptError(f"{file}: malformed {EVENT_DATA_LOST} record ({key} must be a list of integers)",
+                                    path=file, offset=None)
+        ids.append(set(value))
+    return ids[0], ids[1]
+
+
+def _fsync_dir(path: Path) -> None:
+    dir_fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def _keep_copy(file: Path, copy: Path) -> None:
+    """Keep ``file``'s bytes as ``copy`` (a hard link, else a copy) while ``file`` itself stays in place."""
+    try:
+        os.link(file, copy)
+    except OSError:
+        tmp = copy.with_name(copy.name + ".tmp")
+        shutil.copyfile(file, tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, copy)
+
+
+def _free_name(path: Path) -> Path:
+    """``path``, or ``path.1``, ``path.2``, ... : the first that does not exist (never overwrite a kept file)."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}.{n}")
+    return candidate
 
 
 def _id_sample(ids: NDArray[np.int64]) -> str:
@@ -125,11 +233,7 @@ def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
         fh.flush()
         os.fsync(fh.fileno())
     os.replace(tmp, path)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    _fsync_dir(path.parent)
 
 
 @dataclass
@@ -159,6 +263,8 @@ class FrameStore:
         self._writer: SegmentWriter | None = None
         self._lock_fh: Any = None
         self.recovery_events: list[RecoveryEvent] = []
+        self.loss = DataLoss()
+        """The frames and revisions this store lost to damage, as ``recover`` declared them (empty: none)."""
         self._closed = False
 
     # ------------------------------------------------------------------------------------------ opening
@@ -211,16 +317,22 @@ class FrameStore:
         return store
 
     @staticmethod
-    def _read_manifest(path: Path) -> dict[str, Any]:
+    def _read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
+        """The manifest; a missing or unreadable one is a StoreCorruptError (``hint``: saying how to rebuild it)."""
         file = path / MANIFEST
+        fix = f"; run `driftmap recover {path}` to rebuild it from the segments" if hint else ""
         try:
             manifest = json.loads(file.read_text())
         except FileNotFoundError as exc:
+            segments = sorted(path.glob("segment-*.mcap")) if path.is_dir() else []
+            if segments:
+                raise StoreCorruptError(f"{file}: missing, but {path} holds {len(segments)} segment file(s){fix}",
+                                        path=file, offset=None) from exc
             raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
-        except (OSError, json.JSONDecodeError) as exc:
-            raise StoreCorruptError(f"{file}: unreadable manifest ({exc})", path=file, offset=None) from exc
+        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise StoreCorruptError(f"{file}: unreadable manifest ({exc}){fix}", path=file, offset=None) from exc
         if not isinstance(manifest, dict):
-            raise StoreCorruptError(f"{file}: unreadable manifest (a JSON {type(manifest).__name__}, not an object)",
+            raise StoreCorruptError(f"{file}: unreadable manifest (a JSON {type(manifest).__name__}, not an object){fix}",
                                     path=file, offset=None)
         if manifest.get("format") != FORMAT_NAME:
             raise StoreError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}")
@@ -232,7 +344,7 @@ class FrameStore:
                     and all(isinstance(seg, dict) and isinstance(seg.get("name"), str) and isinstance(seg.get("state"), str)
                             and isinstance(seg.get("bytes"), (int, type(None))) for seg in segments))
         if not shape_ok:
-            raise StoreCorruptError(f"{file}: unreadable manifest (store_uuid or the segment list is missing or malformed)",
+            raise StoreCorruptError(f"{file}: unreadable manifest (store_uuid or the segment list is missing or malformed){fix}",
                                     path=file, offset=None)
         return manifest
 
@@ -297,10 +409,12 @@ class FrameStore:
 
     def _load(self, *, verify: bool) -> None:
         live_writer = self._writer_alive()
+        scans: list[SegmentScan] = []
         for seg in self._segments:
             file = self.path / seg.name
             if not file.exists():
-                raise StoreCorruptError(f"{file}: segment listed in the manifest is missing", path=file, offset=None)
+                raise StoreCorruptError(f"{file}: segment listed in the manifest is missing; run `driftmap recover "
+                                        f"{self.path}`", path=file, offset=None)
             scan = scan_segment(file, verify=verify)
             if seg.state == "closed":
                 if seg.bytes is not None and scan.size != seg.bytes:
@@ -322,20 +436,82 @@ class FrameStore:
                 self.recovery_events.append(RecoveryEvent(seg.name, "crashed writer: unfinished tail dropped",
                                                           len(scan.frames), len(scan.revisions), dropped, scan.problem))
             seg.scan = scan
-            self._ingest(scan)
+            scans.append(scan)
+        self.loss = self._replay(scans, strict=True)[0]
+        if self.loss:
+            logger.info("%s: recorded losses: %s", self.path, self.loss)
         if self.mode == "a":
             self._recover_open_segments()
 
-    def _ingest(self, scan: SegmentScan) -> None:
-        """Add a scanned segment's frames and revisions in file order (revisions refer to earlier frames)."""
-        for ref in scan.frames:
-            if ref.frame_id in self._refs:
-                raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path, offset=ref.payload_offset)
-            self._refs[ref.frame_id] = ref
-            self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]), np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4),
-                                  ref.info["pose"].get("source"))
-        for rev in scan.revisions:
-            self.ledger.commit(Revision.from_json(rev))
+    def _replay(self, scans: list[SegmentScan], *, strict: bool) -> tuple[DataLoss, set[int], set[int]]:
+        """Add the scanned segments' frames and revisions to this (empty) store, in store order (a revision refers
+        to frames and revisions stored before it).
+
+        A revision that names frames no segment holds is read without their poses, and a gap before a revision's
+        id is filled with stand-ins, as far as the store's ``data_lost`` events declare those frames and revisions
+        lost. Anything undeclared raises :class:`StoreCorruptError` (``strict``) or is treated the same way and
+        returned (``recover`` declares it). Returns the loss, the undeclared frame ids and revision ids.
+        """
+        declared_frames: set[int] = set()
+        declared_revisions: set[int] = set()
+        for scan in scans:
+            for event in scan.data_lost:
+                frames, revisions = _lost_ids(event, scan.path)
+                declared_frames |= frames
+                declared_revisions |= revisions
+        new_frames: set[int] = set()
+        new_revisions: set[int] = set()
+        named_lost: set[int] = set()
+        stand_ins: list[int] = []
+        trimmed: dict[int, tuple[int, ...]] = {}
+        orphaned: dict[int, int] = {}
+        fix = f"; run `driftmap recover {self.path}`"
+        for scan in scans:
+            for ref in scan.frames:
+                if ref.frame_id in self._refs:
+                    raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path,
+                                            offset=ref.payload_offset)
+                self._refs[ref.frame_id] = ref
+                self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]),
+                                      np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4), ref.info["pose"].get("source"))
+            for rev_json in scan.revisions:
+                try:
+                    rev = Revision.from_json(rev_json)
+                except StoreError as exc:
+                    raise StoreCorruptError(f"{scan.path}: {exc}", path=scan.path, offset=None) from exc
+                rid, head = rev.revision_id, self.ledger.head
+                if rid <= head:
+                    raise StoreCorruptError(f"{scan.path}: revision {rid} is stored again after revision {head}",
+                                            path=scan.path, offset=None)
+                gap = list(range(head + 1, rid))
+                undeclared = [r for r in gap if r not in declared_revisions]
+                if undeclared and strict:
+                    raise StoreCorruptError(
+                        f"{scan.path}: revision {rid} follows revision {head}: no segment holds revisions "
+                        f"{_preview(undeclared)} (lost with a damaged or missing segment?){fix}", path=scan.path, offset=None)
+                new_revisions.update(undeclared)
+                for r in gap:
+                    # created_ns: that of the revision after the gap (the lost one was made no later)
+                    self.ledger.commit(Revision(r, r - 1, PoseSource.NONE, rev.created_ns,
+                                                f"[recovery: stand-in for lost revision {r}, with the poses of revision {r - 1}]"))
+                    stand_ins.append(r)
+                changed = rev.changed_frame_ids
+                absent = changed[~np.isin(changed, self.ledger.frame_ids)].tolist()
+                if absent:
+                    undeclared = [f for f in absent if f not in declared_frames]
+                    if undeclared and strict:
+                        raise StoreCorruptError(
+                            f"{scan.path}: revision {rid} holds poses of frames {_preview(undeclared)}, which no segment "
+                            f"of the store holds (lost with a damaged or missing segment?){fix}", path=scan.path, offset=None)
+                    new_frames.update(undeclared)
+                    named_lost.update(absent)
+                    trimmed[rid] = tuple(absent)
+                    rev = _without_frames(rev, absent)
+                if rev.parent_id in stand_ins:
+                    orphaned[rid] = int(rev.parent_id)
+                self.ledger.commit(rev)
+        lost_frames = sorted(f for f in named_lost | declared_frames if f not in self.ledger)
+        return DataLoss(tuple(lost_frames), tuple(stand_ins), trimmed, orphaned), new_frames, new_revisions
 
     def _recover_open_segments(self) -> None:
         """Rewrite segments left open by a crashed writer into clean, closed segments."""
@@ -387,71 +563,116 @@ class FrameStore:
 
     @classmethod
     def recover(cls, path: str | Path) -> list[RecoveryEvent]:
-        """Salvage every intact frame and revision of a damaged store; returns what was done.
+        """Salvage every intact frame and revision of a damaged store; returns what was done (nothing: ``[]``).
 
-        Each damaged segment is rewritten from its intact chunks (damaged chunks are skipped, a truncated
-        tail is cut); the damaged file is kept beside it as ``<name>.damaged``. Frames whose revisions
-        refer to lost frames keep their revision-0 poses. An unreadable ``store.json`` is rebuilt from the
-        segments (each names its store), the damaged one kept as ``store.json.damaged``. Safe to run on a
-        healthy store (no-op).
+        - An unreadable or missing ``store.json`` is rebuilt from the segments (each names its store); the
+          damaged one is kept as ``store.json.damaged``.
+        - Each damaged segment (truncated, damaged chunks, left open) is rewritten from its intact chunks; the
+          damaged file is kept beside it as ``<name>.damaged``. A missing segment is removed from the manifest.
+        - Revision records are kept as they are. The frames that stored revisions name but no segment holds any
+          more, and the revisions whose records are gone (a gap in the ids), are declared in a ``data_lost`` event
+          appended in a new segment: opening then reads each revision without the poses of the lost frames and
+          puts stand-ins in the place of lost revisions (see the module docstring and :class:`DataLoss`). The
+          event returned for it says which frames were lost and which revisions lost what.
+
+        Every step is a complete file written beside the old one and renamed into place, with the manifest
+        written after it, so an interrupted recovery is finished by running it again. Idempotent: on a healthy
+        store (or a second run) it returns ``[]``. Raises :class:`StoreCorruptError` if the store still does not
+        open afterwards.
         """
         path = Path(path)
         events: list[RecoveryEvent] = []
-        rebuilt = False
+        rebuilt_because: str | None = None
         try:
-            manifest = cls._read_manifest(path)
+            manifest = cls._read_manifest(path, hint=False)
         except StoreCorruptError as exc:
-            manifest, rebuilt = cls._manifest_from_segments(path, str(exc)), True
-        except StoreError:
-            if (path / MANIFEST).exists() or not any(path.glob("segment-*.mcap")):
-                raise
-            manifest, rebuilt = cls._manifest_from_segments(path, f"{path / MANIFEST}: missing"), True
-        store = cls(path, "a", manifest)
+            rebuilt_because = str(exc)
+            manifest = cls._manifest_from_segments(path, rebuilt_because)
+        store = cls(path, "a", manifest, fsync=True)
         store._acquire_lock()
+        kept_manifest = ""
         try:
-            if rebuilt:
-                kept = ""
+            if rebuilt_because is not None:
                 if (path / MANIFEST).exists():
-                    os.replace(path / MANIFEST, path / (MANIFEST + ".damaged"))
-                    kept = f" (damaged original kept as {MANIFEST}.damaged)"
+                    damaged_manifest = _free_name(path / (MANIFEST + ".damaged"))
+                    os.replace(path / MANIFEST, damaged_manifest)
+                    kept_manifest = f" (damaged original kept as {damaged_manifest.name})"
                 store._write_manifest()
-                events.append(RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{kept}",
-                                            0, 0, 0, manifest["rebuilt_because"]))
             known_frames: set[int] = set()
+            scans: list[SegmentScan] = []
+            damage: list[str] = []
             for index, seg in enumerate(store._segments):
                 file = path / seg.name
                 if not file.exists():
-                    events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0, "file not found"))
+                    events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0,
+                                                "file not found: its frames and revisions are lost"))
+                    damage.append(f"{seg.name} missing")
                     seg.state = "missing"
                     continue
                 scan = scan_segment(file, verify=True, stop_on_error=False)
                 healthy = (seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
                            and scan.size == seg.bytes)
-                if healthy:
-                    known_frames.update(r.frame_id for r in scan.frames)
-                    continue
-                scan.frames = [r for r in scan.frames if r.frame_id not in known_frames]
+                if not healthy:
+                    was_open = seg.state != "closed"
+                    scan.frames = [r for r in scan.frames if r.frame_id not in known_frames]
+                    tmp = file.with_name(file.name + ".recovering")
+                    tmp.unlink(missing_ok=True)
+                    writer = SegmentWriter(tmp, index, manifest["store_uuid"], fsync=True)
+                    store._copy_scan_into(scan, writer)
+                    for event in scan.data_lost:
+                        writer.append_event(event, int(event.get("recovered_ns", 0)))
+                    size = writer.close()
+                    damaged = _free_name(file.with_name(file.name + ".damaged"))
+                    _keep_copy(file, damaged)
+                    os.replace(tmp, file)  # atomic: the segment is never missing, whenever recovery stops
+                    _fsync_dir(path)
+                    seg.state, seg.bytes = "closed", size
+                    store._write_manifest()
+                    problems = [f"{why} at offset {off}" for off, why in scan.damaged_chunks]
+                    if scan.problem:
+                        problems.append(f"{scan.problem} at offset {scan.problem_offset}")
+                    detail = "; ".join(problems) or ("segment was not closed" if was_open else "size differs from the manifest")
+                    damage.append(f"{seg.name}: {detail}")
+                    tail = 0 if scan.complete else scan.size - scan.valid_bytes
+                    events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
+                                                len(scan.frames), len(scan.revisions), tail + scan.damaged_bytes, detail))
+                    scan = scan_segment(file, verify=False)  # the frames now live in the rewritten file
                 known_frames.update(r.frame_id for r in scan.frames)
-                scan.revisions = [_restrict_revision(rev, known_frames) for rev in scan.revisions]
-                tmp = file.with_name(file.name + ".recovering")
-                tmp.unlink(missing_ok=True)
-                writer = SegmentWriter(tmp, index, manifest["store_uuid"], fsync=True)
-                store._copy_scan_into(scan, writer)
-                size = writer.close()
-                damaged = file.with_name(file.name + ".damaged")
-                os.replace(file, damaged)
-                os.replace(tmp, file)
-                seg.state, seg.bytes = "closed", size
-                problems = [f"{why} at offset {off}" for off, why in scan.damaged_chunks]
-                if scan.problem:
-                    problems.append(f"{scan.problem} at offset {scan.problem_offset}")
-                events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
-                                            len(scan.frames), len(scan.revisions), scan.size - scan.valid_bytes,
-                                            "; ".join(problems) or "segment was not closed"))
-            store._segments = [s for s in store._segments if s.state != "missing"]
-            store._write_manifest()
+                scans.append(scan)
+            missing = [s.name for s in store._segments if s.state == "missing"]
+            if missing:
+                store._segments = [s for s in store._segments if s.state != "missing"]
+                lost_segments = [n for n in store._manifest.get("lost_segments", []) if isinstance(n, str)]
+                store._manifest["lost_segments"] = lost_segments + missing
+                store._write_manifest()
+            # what the damage took from the revisions that survived: declared in a data_lost event of its own
+            replayed = cls(path, "r", store._manifest)
+            loss, new_frames, new_revisions = replayed._replay(scans, strict=False)
+            if new_frames or new_revisions:
+                because = "; ".join(damage) or "stored revisions name frames or follow revisions that no segment holds"
+                now = time.time_ns()
+                writer = store._writable()
+                writer.append_event({"event": EVENT_DATA_LOST, "recovered_ns": now, "frame_ids": sorted(new_frames),
+                                     "revision_ids": sorted(new_revisions), "because": because}, now)
+                store._writer = None
+                store._segments[-1].state, store._segments[-1].bytes = "closed", writer.close()
+                store._write_manifest()
+                events.append(RecoveryEvent(store._segments[-1].name, f"recorded the loss in a {EVENT_DATA_LOST} event",
+                                            len(replayed), len(replayed.revisions), 0, because,
+                                            loss.only(new_frames, new_revisions)))
         finally:
+            if store._writer is not None:
+                store._writer.abandon()
             store._release()
+        try:
+            with cls.open(path, verify=False) as check:
+                n_frames, n_revisions = len(check), len(check.revisions)
+        except StoreError as exc:
+            raise StoreCorruptError(f"{path}: recovery could not make the store readable: {exc}",
+                                    path=path, offset=getattr(exc, "offset", None)) from exc
+        if rebuilt_because is not None:
+            events.insert(0, RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{kept_manifest}",
+                                           n_frames, n_revisions, 0, rebuilt_because))
         for event in events:
             logger.warning("recover %s: %s", path, event)
         return events
@@ -474,12 +695,19 @@ class FrameStore:
         if self.mode != "a":
             raise StoreError(f"{self.path}: opened read-only; open with mode='a' to append")
         if self._writer is None:
-            index = len(self._segments)
+            index = self._next_segment_index()
             name = f"segment-{index:06d}.mcap"
             self._segments.append(_Segment(name, "open", None))
             self._write_manifest()
             self._writer = SegmentWriter(self.path / name, index, self._manifest["store_uuid"], fsync=self._fsync)
         return self._writer
+
+    def _next_segment_index(self) -> int:
+        """One past the highest segment index in use: listed, removed by recovery, or any ``segment-N.*`` file
+        (kept damaged copies, an orphan of an interrupted recovery), so a new segment never takes a used name."""
+        names = [s.name for s in self._segments] + [n for n in self._manifest.get("lost_segments", []) if isinstance(n, str)]
+        names += [f.name for f in self.path.glob("segment-*")]
+        return max((int(m.group(1)) for n in names if (m := _SEGMENT_NAME.match(n))), default=-1) + 1
 
     def append(self, frame: Frame) -> None:
         """Store a frame (sensor-frame points and metadata) with the pose that produced it (revision 0).

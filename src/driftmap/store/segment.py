@@ -13,6 +13,11 @@ Every frame is one uncompressed MCAP chunk holding three messages, in this order
    so Foxglove places every cloud where the estimate that produced it put it.
 
 A pose revision is one chunk with one ``/driftmap/revisions`` message (``driftmap.PoseRevision``, JSON).
+Segment events (``/driftmap/segment``, ``driftmap.SegmentEvent``, JSON) are chunks of their own too:
+``segment_start`` (the store the segment belongs to), ``sensor`` (a new points channel) and ``data_lost``
+(written by recovery: the frames and revisions a damaged or missing segment took with it, see
+``driftmap.store.frame_store``).
+
 The writer flushes after every frame and revision: a chunk on disk is a committed frame; a writer killed
 mid-append leaves at most one incomplete chunk at the end of the file.
 
@@ -65,6 +70,7 @@ TOPIC_FRAMES = "/driftmap/frames"
 TOPIC_REVISIONS = "/driftmap/revisions"
 TOPIC_TF = "/tf"
 WORLD_FRAME = "world"
+EVENT_DATA_LOST = "data_lost"
 _CHUNK_HEADER_BYTES = 1 + 8 + 8 + 8 + 8 + 4 + 4 + 8  # opcode, length, start, end, size, crc, "" compression, records length
 _MESSAGE_HEADER_BYTES = 1 + 8 + 2 + 4 + 8 + 8  # opcode, length, channel, sequence, log_time, publish_time
 
@@ -261,6 +267,10 @@ class SegmentWriter:
         self._writer.add_message(self._channels[TOPIC_SEGMENT], log_time_ns, _json_bytes(payload), log_time_ns)
         self._commit()
 
+    def append_event(self, payload: dict[str, Any], log_time_ns: int) -> None:
+        """Write one segment event (``payload["event"]`` names its kind) as a chunk of its own."""
+        self._event(payload, log_time_ns)
+
     def _commit(self) -> None:
         self._writer.flush()  # finishes the chunk and flushes Python's buffer: the chunk is in the kernel
         if self.fsync:
@@ -371,8 +381,12 @@ class SegmentScan:
     problem_offset: int | None = None
     damaged_chunks: list[tuple[int, str]] = field(default_factory=list)
     """(offset, reason) of damaged chunks skipped with ``stop_on_error=False``."""
+    damaged_bytes: int = 0
+    """Bytes of the damaged chunks skipped with ``stop_on_error=False``."""
     store_uuid: str | None = None
     """The store this segment belongs to, from its ``segment_start`` event (None: that chunk was not read)."""
+    data_lost: list[dict[str, Any]] = field(default_factory=list)
+    """The ``data_lost`` events recovery wrote into this segment (frames and revisions the store lost)."""
 
 
 def _read_string(buf: memoryview, pos: int) -> tuple[str, int]:
@@ -427,6 +441,7 @@ def scan_segment(path: Path, *, verify: bool = True, stop_on_error: bool = True)
                             break
                         logger.warning("%s: skipping damaged chunk at offset %d: %s", path, pos, err)
                         scan.damaged_chunks.append((pos, err))
+                        scan.damaged_bytes += end - pos
                 elif opcode not in (Opcode.HEADER, Opcode.MESSAGE_INDEX, Opcode.METADATA, Opcode.ATTACHMENT):
                     if opcode == 0 or opcode > 0x0F:
                         scan.problem, scan.problem_offset = f"unknown record opcode 0x{opcode:02x}", pos
@@ -470,6 +485,7 @@ def _scan_chunk(buf: memoryview, body: int, end: int, path: Path, channels: dict
         revisions: list[dict[str, Any]] = []
         pending: dict[str, Any] | None = None
         start_uuid: str | None = None
+        lost: list[dict[str, Any]] = []
         pos = 0
         n = len(records)
         while pos < n:
@@ -505,13 +521,16 @@ def _scan_chunk(buf: memoryview, body: int, end: int, path: Path, channels: dict
                     event = json.loads(bytes(records[data_start:data_end]))
                     if event.get("event") == "segment_start":
                         start_uuid = str(event["store_uuid"])
+                    elif event.get("event") == EVENT_DATA_LOST:
+                        lost.append(event)
             pos = body_pos + length
         if pending is not None:
             return f"frame {pending['frame_id']}: metadata without points"
-    except (struct.error, ValueError, KeyError, UnicodeDecodeError) as exc:
+    except (struct.error, ValueError, KeyError, TypeError, AttributeError, UnicodeDecodeError) as exc:
         return f"unreadable chunk content ({exc})"
     scan.frames.extend(frames)
     scan.revisions.extend(revisions)
+    scan.data_lost.extend(lost)
     if start_uuid is not None:
         scan.store_uuid = start_uuid
     return None
