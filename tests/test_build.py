@@ -161,6 +161,18 @@ def test_loop_closure_on_sevenscenes_finds_the_loop_and_lowers_ate(sevenscenes_d
     assert ate["default"][1] < 1.1 * ate["default"][0], ate
 
 
+def test_min_gap_frames_counts_source_frames_at_any_stride(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """Every 40th frame of 200..1000: 20 stored frames, but 760 source frames apart; the 216-260 <-> 928-966
+    revisit is a loop (min_gap_frames = 60 counts the source's frame numbers, not the stored frames), and no
+    candidate joins frames fewer than 60 source frames apart."""
+    result = build(sevenscenes_dir, tmp_path / "s", poses_from_source=True, frames="200:1000:40")
+    assert result.n_frames == 20 and result.n_keyframes >= 2
+    assert result.loops and all(x["b"] - x["a"] >= 60 for x in result.loops)
+    revisit = [x for x in result.loops if x["accepted"] and 200 <= x["a"] <= 280 and 900 <= x["b"] <= 990]
+    assert revisit, [(x["a"], x["b"], x["reason"]) for x in result.loops]
+    assert result.loop_revision is not None
+
+
 def test_resume_after_a_killed_build(tmp_path: Path) -> None:
     out = tmp_path / "s"
     log = embedded_log_path()

@@ -1,5 +1,6 @@
-"""``build`` guards on real data: ``--resume`` refuses another source, a build that fails before storing a frame
-removes the store it created (and only that), an empty ``--frames`` selection says so.
+"""``build`` guards on real data: ``--resume`` refuses another source, pose mode or depth settings, a build that
+fails before storing a frame removes the store it created (and only that), an empty ``--frames`` selection says
+so, the ``depth.*`` settings reach the source in their documented order.
 
 Broken inputs are made in ``tmp_path`` from symlinks to the shared 7-Scenes files (nothing is copied) plus
 files the tests write themselves (an unreadable depth image, pose files)."""
@@ -236,4 +237,120 @@ def test_a_run_too_short_for_loop_closure_says_so(sevenscenes_dir: Path, tmp_pat
     with caplog.at_level(logging.WARNING, logger="driftmap.pipeline.build"):
         result = build(sevenscenes_dir, tmp_path / "s", poses_from_source=True, frames="0:3")
     assert result.loop_revision is None
-    assert any("loop closure skipped" in r.getMessage() for r in caplog.records)
+    skipped = [r.getMessage() for r in caplog.records if "loop closure skipped" in r.getMessage()]
+    assert len(skipped) == 1
+    # the summary counts the keyframes the warning names (it said 0 before), and the gap is in source frames
+    assert result.n_keyframes >= 1 and f"the {result.n_keyframes} keyframes (of 3 stored frames" in skipped[0]
+    assert "source frames 0..2" in skipped[0] and "min_gap_frames = 60" in skipped[0]
+    assert json.loads((tmp_path / "s" / "build_summary.json").read_text())["n_keyframes"] == result.n_keyframes
+
+
+# ------------------------------------------------------------------------ 4. --resume, another pose mode or depth
+
+
+def test_resume_refuses_a_different_pose_mode(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """Odometry, --poses FILE (and which file) and --poses-from-source put revision 0 in different coordinate
+    frames: a resume with another mode is refused, naming both, and leaves the store as it was."""
+    store = tmp_path / "s"
+    build(sevenscenes_dir, store, frames="0:9:3", loop_closure=False)  # our odometry: frame 0 at the origin
+    before = _stored(store)
+    with pytest.raises(ConfigError, match="different poses") as err:
+        build(sevenscenes_dir, store, frames="0:10", poses_from_source=True, loop_closure=False, resume=True)
+    assert "odometry" in str(err.value) and "--poses-from-source" in str(err.value) and str(store) in str(err.value)
+    gt = SevenScenes(sevenscenes_dir, frames="0:12", poses_from_ground_truth=True)
+    first = tmp_path / "first.tum"
+    write_tum(first, Trajectory(np.array([f.stamp_ns for f in gt]), np.stack([f.pose.T_world_sensor for f in gt])))
+    with pytest.raises(ConfigError, match="different poses") as err:
+        build(sevenscenes_dir, store, frames="0:12:3", poses_file=first, loop_closure=False, resume=True)
+    assert f"--poses {first}" in str(err.value)
+    assert _stored(store) == before
+    result = build(sevenscenes_dir, store, frames="0:12:3", loop_closure=False, resume=True)  # the same mode continues
+    assert (result.n_frames_new, result.n_frames) == (1, 4)
+
+    # a store placed with one pose file refuses another file, and the source's own poses
+    placed = tmp_path / "p"
+    build(sevenscenes_dir, placed, frames="0:6:3", poses_file=first, loop_closure=False)
+    second = tmp_path / "second.tum"
+    second.write_bytes(first.read_bytes())
+    with pytest.raises(ConfigError, match="different poses") as err:
+        build(sevenscenes_dir, placed, frames="0:12:3", poses_file=second, loop_closure=False, resume=True)
+    assert str(first) in str(err.value) and str(second) in str(err.value)
+    with pytest.raises(ConfigError, match="different poses"):
+        build(sevenscenes_dir, placed, frames="0:12:3", poses_from_source=True, loop_closure=False, resume=True)
+    assert build(sevenscenes_dir, placed, frames="0:12:3", poses_file=first, loop_closure=False, resume=True).n_frames == 4
+
+
+def test_resume_of_a_store_recorded_without_the_pose_mode_checks_revision_0(sevenscenes_dir: Path,
+                                                                             tmp_path: Path) -> None:
+    """A record from before the pose mode was recorded: revision 0's pose source decides (ground truth is not
+    odometry); a resume that passes completes the record."""
+    store = tmp_path / "s"
+    build(sevenscenes_dir, store, frames="0:6:3", poses_from_source=True, loop_closure=False)
+    record = json.loads((store / BUILD_SOURCE_FILE).read_text())
+    assert record["poses"] == {"mode": "source"} and record["depth"] == {}
+    old = {k: record[k] for k in ("path", "format", "given")}
+    (store / BUILD_SOURCE_FILE).write_text(json.dumps(old))
+    with pytest.raises(ConfigError, match="different poses.*ground_truth"):
+        build(sevenscenes_dir, store, frames="0:9:3", loop_closure=False, resume=True)
+    assert build(sevenscenes_dir, store, frames="0:9:3", poses_from_source=True, loop_closure=False, resume=True).n_frames == 3
+    assert json.loads((store / BUILD_SOURCE_FILE).read_text()) == record
+
+
+def test_depth_settings_reach_the_source_and_resume_checks_them(sevenscenes_dir: Path, kitti_dir: Path,
+                                                                tmp_path: Path) -> None:
+    from driftmap.config import DepthConfig
+
+    plain = build(sevenscenes_dir, tmp_path / "plain", frames="0:2", poses_from_source=True, loop_closure=False)
+    near = tmp_path / "near"
+    build(sevenscenes_dir, near, frames="0:2", poses_from_source=True, loop_closure=False,
+          depth=DepthConfig(max_depth_m=1.5))
+    with FrameStore.open(tmp_path / "plain") as a, FrameStore.open(near) as b:
+        for fid in (0, 1):
+            p, q = a.frame(fid).points_sensor, b.frame(fid).points_sensor
+            assert len(q) < 0.5 * len(p) and q[:, 2].max() < 1.5 <= p[:, 2].max()
+            # exactly the plain frame's points nearer than 1.5 m
+            assert len(q) == int(np.sum(p[:, 2] < 1.5))
+    assert plain.n_frames == 2
+    assert json.loads((near / BUILD_SOURCE_FILE).read_text())["depth"] == {"max_depth_m": 1.5}
+    with pytest.raises(ConfigError, match="different depth settings.*max_depth_m=1.5"):
+        build(sevenscenes_dir, near, frames="0:3", poses_from_source=True, loop_closure=False, resume=True)
+    with pytest.raises(ConfigError, match=r"depth\.max_depth_m: does not apply .*format kitti"):
+        build(kitti_dir, tmp_path / "k", frames="0:2", depth=DepthConfig(max_depth_m=1.5))
+    assert not (tmp_path / "k").exists()
+
+
+def test_build_applies_the_depth_table_environment_and_flag_in_order(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """defaults < [depth] table of --config < DRIFTMAP_DEPTH__* < --depth-scale; a typo in the table is refused
+    naming the file and the key, before any store is made."""
+    import os
+    import subprocess
+    import sys
+
+    def run(out: str, *args: object, env: dict[str, str] | None = None) -> subprocess.CompletedProcess:
+        clean = {k: v for k, v in os.environ.items() if not k.startswith("DRIFTMAP_DEPTH")}
+        return subprocess.run([sys.executable, "-m", "driftmap.cli", "build", str(sevenscenes_dir), "--out",
+                               str(tmp_path / out), "--frames", "0:1", "--no-loop-closure", "--poses-from-source",
+                               *map(str, args)], capture_output=True, text=True, timeout=300,
+                              env={**clean, "COLUMNS": "200", **(env or {})})
+
+    def max_z(out: str) -> float:
+        with FrameStore.open(tmp_path / out) as store:
+            return float(store.frame(0).points_sensor[:, 2].max())
+
+    config = tmp_path / "d.toml"
+    config.write_text("[depth]\nmax_depth_m = 1.5\n")
+    assert run("file", "--config", config).returncode == 0
+    assert run("env", "--config", config, env={"DRIFTMAP_DEPTH__MAX_DEPTH_M": "2.5"}).returncode == 0
+    assert run("default").returncode == 0
+    assert max_z("file") < 1.5 and 1.5 < max_z("env") < 2.5 and max_z("default") > 2.5
+    # --depth-scale above the environment: 2000 units/m halves every depth
+    assert run("flag", "--depth-scale", 2000, env={"DRIFTMAP_DEPTH__DEPTH_SCALE": "1000"}).returncode == 0
+    with FrameStore.open(tmp_path / "default") as a, FrameStore.open(tmp_path / "flag") as b:
+        p, q = a.frame(0).points_sensor, b.frame(0).points_sensor
+        # every point at half the range (depths halved below the 0.2 m minimum would be rejected)
+        np.testing.assert_allclose(q, 0.5 * p[p[:, 2] >= 0.4], rtol=1e-6)
+    typo = tmp_path / "typo.toml"
+    typo.write_text("[depth]\nmax_depth_mm = 1.5\n\n[build]\npixel_stride = 2\n")
+    out = run("typo", "--config", typo)
+    assert out.returncode == 1 and not (tmp_path / "typo").exists()
+    assert f"{typo}: depth.max_depth_mm: unknown setting" in " ".join(out.stderr.split()), out.stderr

@@ -50,6 +50,11 @@ def _one_line_error(out: subprocess.CompletedProcess) -> str:
     ("correct", "{store}", "--poses", "{tum}", "--source", "banana"),
     ("export", "{store}", "--trajectory", "{tmp}/t.txt", "--format", "xyz"),
     ("perturb", "{tum}", "{tmp}/p.tum", "--format", "xyz", "--drift-percent-per-m", "1"),
+    ("view", "{store}", "--color", "foo", "--out", "{tmp}/v"),
+    ("view", "{store}", "--backend", "foo", "--out", "{tmp}/v"),
+    ("diagnose", "{store}", "--json", "{tmp}/d.json", "--gt", "{tum}", "--gt-format", "foo"),
+    ("build", "{store}", "--out", "{tmp}/b", "--format", "foo"),
+    ("convert", "{store}", "{tmp}/c.mcap", "--format", "foo"),
 ])
 def test_bad_option_values_are_usage_errors(store_path: Path, tmp_path: Path, args: tuple[str, ...]) -> None:
     tum = tmp_path / "own.tum"
@@ -57,6 +62,9 @@ def test_bad_option_values_are_usage_errors(store_path: Path, tmp_path: Path, ar
     out = _cli(*(a.format(store=store_path, tum=tum, tmp=tmp_path) for a in args))
     assert out.returncode == 2, (out.stdout, out.stderr)
     assert "Traceback" not in out.stderr and "is not one of" in out.stderr
+    bad = next(a for a in args if a in ("xyz", "foo", "banana"))
+    assert bad in out.stderr and args[args.index(bad) - 1] in out.stderr  # the value and the option
+    assert not [p for p in tmp_path.iterdir() if p.name in ("v", "d.json", "b", "c.mcap")], "nothing is written"
 
 
 def test_unwritable_outputs_and_undecodable_inputs_give_one_line_errors(store_path: Path, tmp_path: Path) -> None:
@@ -161,3 +169,58 @@ def test_export_refuses_existing_outputs_without_overwrite(store_path: Path, tmp
     out = _cli("export", store_path, "--trajectory", tum, "--map", ply, "--voxel-size-m", "0.05", "--overwrite")
     assert out.returncode == 0, out.stderr
     assert tum.read_bytes() == before[tum] and ply.exists()
+
+
+def test_export_map_voxel_size_from_the_configuration(store_path: Path, tmp_path: Path) -> None:
+    """`export --map` without --voxel-size-m writes every point, unless map.export_voxel_size_m is set (environment
+    or the [map] table of --config); --voxel-size-m overrides both."""
+    def points(name: str) -> int:
+        return len(o3d.io.read_point_cloud(str(tmp_path / name)).points)
+
+    assert _cli("export", store_path, "--map", tmp_path / "all.ply").returncode == 0
+    with FrameStore.open(store_path) as store:
+        total = sum(store.frame(int(i)).n_points for i in store.frame_ids)
+    assert points("all.ply") == total
+    env = {**os.environ, "COLUMNS": "200", "DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M": "0.05"}
+    out = subprocess.run([sys.executable, "-m", "driftmap.cli", "export", str(store_path), "--map", str(tmp_path / "env.ply")],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    assert points("env.ply") < total / 10 and "voxel 0.05 m" in out.stdout
+    config = tmp_path / "c.toml"
+    config.write_text("[map]\nexport_voxel_size_m = 0.05\n")
+    assert _cli("export", store_path, "--map", tmp_path / "file.ply", "--config", config).returncode == 0
+    assert points("file.ply") == points("env.ply")
+    assert _cli("export", store_path, "--map", tmp_path / "flag.ply", "--config", config, "--voxel-size-m", "0.2").returncode == 0
+    assert points("flag.ply") < points("file.ply")
+    config.write_text("[map]\nexport_voxel_size = 0.05\n")
+    line = _one_line_error(_cli("export", store_path, "--map", tmp_path / "typo.ply", "--config", config))
+    assert f"{config}: map.export_voxel_size: unknown setting" in line and not (tmp_path / "typo.ply").exists()
+
+
+def test_a_wrong_depth_scale_names_the_flag_that_fixes_it(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """Depth images in 0.1 mm units read as millimetres: build refuses, naming --depth-scale 10000 (and the
+    check's switch), before a store exists; with --depth-scale 10000 the frames equal the original ones."""
+    from PIL import Image
+
+    folder = tmp_path / "tenth-mm"
+    folder.mkdir()
+    (folder / "camera-intrinsics.txt").symlink_to(sevenscenes_dir / "camera-intrinsics.txt")
+    for i in range(2):
+        depth = np.asarray(Image.open(sevenscenes_dir / f"frame-{i:06d}.depth.png")).astype(np.uint32)
+        valid = (depth != 0) & (depth != 65535)
+        Image.fromarray(np.where(valid, depth * 10, depth).astype(np.uint16)).save(folder / f"frame-{i:06d}.depth.png")
+    line = _one_line_error(_cli("build", folder, "--out", tmp_path / "s", "--no-loop-closure"))
+    assert "--depth-scale 10000" in line and "check_scale" in line and "sensor_range_m" not in line, line
+    assert not (tmp_path / "s").exists()
+    out = _cli("build", folder, "--out", tmp_path / "s", "--no-loop-closure", "--depth-scale", "10000")
+    assert out.returncode == 0, out.stderr
+    ref = _cli("build", sevenscenes_dir, "--out", tmp_path / "ref", "--frames", "0:2", "--no-loop-closure")
+    assert ref.returncode == 0, ref.stderr
+    with FrameStore.open(tmp_path / "s") as fixed, FrameStore.open(tmp_path / "ref") as original:
+        assert fixed.frame_ids.tolist() == original.frame_ids.tolist() == [0, 1]
+        for i in (0, 1):
+            np.testing.assert_allclose(fixed.frame(i).points_sensor, original.frame(i).points_sensor, atol=1e-6)
+    # a LiDAR source has no depth scale: the flag is refused, naming the setting and the format
+    kitti = _one_line_error(_cli("build", sevenscenes_dir.parent / "kitti-00-frames0-15", "--out", tmp_path / "k",
+                                 "--depth-scale", "1000"))
+    assert "depth.depth_scale (--depth-scale)" in kitti and "kitti" in kitti

@@ -84,7 +84,10 @@ def test_demo_exports(demo_run) -> None:
         assert Path(files[key]).stat().st_size > 100_000
     for key in ("trajectory_corrected_tum", "trajectory_odometry_tum"):
         assert len(Path(files[key]).read_text().splitlines()) == 61  # header + 60 frames
-    assert json.loads((out_dir / "config.json").read_text())["depth"]["max_depth_m"] > 0
+    from driftmap.config import DriftmapConfig
+
+    saved = DriftmapConfig.model_validate(json.loads((out_dir / "config.json").read_text()))
+    assert saved.depth.max_depth_m is None  # the synthetic log's own depth range (8 m)
     assert json.loads((out_dir / "build_config.json").read_text())["loop_closure"]["min_gap_frames"] == 20
     # the MCAP opens with a generic reader and carries Foxglove schemas
     from mcap.reader import make_reader
@@ -171,3 +174,58 @@ def test_one_config_file_holds_the_general_and_the_build_settings(tmp_path: Path
     wrong.write_text("[build]\npixel_strid = 3\n")
     with pytest.raises(ConfigError, match="pixel_strid"):
         BuildConfig.load(wrong)
+
+
+def test_config_errors_are_one_line_per_problem_naming_file_and_key(tmp_path: Path) -> None:
+    """A bad value, a typo and a removed table: one `error:` line per problem, each naming where the value came
+    from (the file or the environment variable) and the key, without pydantic's multi-line dump and links."""
+    bad = tmp_path / "c1.toml"
+    bad.write_text("[depth]\nmax_depth_m = -1.0\nmin_depth_mm = 0.3\n\n[build]\npixel_stride = 0\n")
+    for args in (("config", "--file", str(bad)), ("build", ".", "--out", str(tmp_path / "s"), "--config", str(bad))):
+        out = _cli(*args)
+        assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+        assert "pydantic" not in out.stderr and "http" not in out.stderr, out.stderr
+        lines = [line.strip() for line in out.stderr.strip().splitlines()]
+        expected = {f"{bad}: depth.max_depth_m: Input should be greater than 0 (got -1.0)",
+                    f"{bad}: depth.min_depth_mm: unknown setting"}
+        if args[0] == "build":  # build reads the [build] table too, and reports both at once
+            expected.add(f"{bad}: build.pixel_stride: Input should be greater than or equal to 1 (got 0)")
+        assert {line.removeprefix("error: ") for line in lines} == expected, out.stderr
+        assert lines[0].startswith("error: ")
+    assert not (tmp_path / "s").exists()
+    env = {**os.environ, "COLUMNS": "200", "DRIFTMAP_DEPTH__MAX_DEPTH_M": "far"}
+    out = subprocess.run([sys.executable, "-m", "driftmap.cli", "config"], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 1 and out.stderr.strip().startswith(
+        "error: environment DRIFTMAP_DEPTH__MAX_DEPTH_M: depth.max_depth_m: Input should be a valid number"), out.stderr
+    removed = tmp_path / "pre.toml"
+    removed.write_text("[preprocess]\nvoxel_size_m = 0.05\n")
+    out = _cli("config", "--file", str(removed))
+    assert out.returncode == 1 and "preprocess" in out.stderr and "not part of 'driftmap build'" in " ".join(out.stderr.split())
+
+
+def test_config_shows_only_settings_that_take_effect() -> None:
+    """The depth settings default to the source's own values (None), not a made-up range; there is no preprocess
+    table (build does no per-frame processing); the map export keeps every point by default."""
+    from driftmap.config import DriftmapConfig
+
+    out = _cli("config", "--show")
+    assert out.returncode == 0, out.stderr
+    rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") >= 3}
+    assert rows["depth.min_depth_m"] == rows["depth.max_depth_m"] == rows["depth.depth_scale"] == "None"
+    assert rows["map.export_voxel_size_m"] == "None" and not any(k.startswith("preprocess.") for k in rows)
+    assert set(DriftmapConfig.model_fields) == {"depth", "map"}
+
+
+def test_demo_applies_the_depth_settings(tmp_path: Path) -> None:
+    """DRIFTMAP_DEPTH__* reach the demo's build: with max_depth_m = 2 every stored point is nearer than 2 m (the
+    synthetic log's own range reaches 8 m), and config.json records it."""
+    from driftmap.store.frame_store import FrameStore
+
+    env = {**os.environ, "COLUMNS": "200", "DRIFTMAP_DEPTH__MAX_DEPTH_M": "2.0"}
+    out = subprocess.run([sys.executable, "-m", "driftmap.cli", "demo", "--frames", "4", "--out", str(tmp_path / "d")],
+                         capture_output=True, text=True, timeout=300, env=env)
+    assert out.returncode == 0, out.stderr
+    with FrameStore.open(tmp_path / "d" / "store") as store:
+        depths = np.concatenate([store.frame(int(i)).points_sensor[:, 2] for i in store.frame_ids])
+    assert depths.max() < 2.0 and len(depths) > 1000
+    assert json.loads((tmp_path / "d" / "config.json").read_text())["depth"]["max_depth_m"] == 2.0

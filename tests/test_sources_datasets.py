@@ -184,6 +184,38 @@ def test_sevenscenes_missing_pose_file_is_named(tmp_path: Path, sevenscenes_dir:
     assert open_source(tmp_path, lenient=True).ground_truth().frame_ids.tolist() == [0]
 
 
+def test_sevenscenes_missing_depth_image_is_named(tmp_path: Path, sevenscenes_dir: Path,
+                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """A sequence whose frame 1 has its pose (and colour) but no depth image: the source leaves it out, and
+    reading -- and building -- a selection that spans it logs a warning naming the frame and the file."""
+    from driftmap.pipeline.build import build
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    (folder / "camera-intrinsics.txt").symlink_to(sevenscenes_dir / "camera-intrinsics.txt")
+    for i in range(6):
+        for kind in ("depth.png", "pose.txt", "color.jpg"):
+            if not (i == 1 and kind == "depth.png"):
+                (folder / f"frame-{i:06d}.{kind}").symlink_to(sevenscenes_dir / f"frame-{i:06d}.{kind}")
+    (folder / "frame-000004.depth.png").unlink()
+    (folder / "frame-000004.pose.txt").unlink()
+    (folder / "frame-000004.color.jpg").unlink()  # a gap in the numbering: frame 4 has no file at all
+    src = SevenScenes(folder)
+    missing = folder / "frame-000001.depth.png"
+    assert src.frame_ids() == [0, 2, 3, 5] and src.missing_depth == [(1, missing), (4, folder / "frame-000004.depth.png")]
+
+    def warnings() -> list[str]:
+        return [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING and "no depth image" in r.getMessage()]
+
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.sevenscenes"):
+        assert [f.frame_id for f in SevenScenes(folder, frames="1:3")] == [2, 3]  # the selection spans neither
+        assert not warnings()
+        result = build(folder, tmp_path / "store", poses_from_source=True, loop_closure=False)
+    assert result.n_frames == 4
+    (message,) = warnings()
+    assert f"frame 1 ({missing} missing)" in message and "frame 4 (" in message and "2 frame(s)" in message
+
+
 # ---- TUM RGB-D (built from real 7-Scenes frames) -----------------------------------------------------------------
 
 TUM_START_S = 1305031102

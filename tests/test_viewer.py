@@ -264,4 +264,4 @@ def test_cli_view_headless_writes_png_views(tmp_path: Path) -> None:
     assert img.std() > 10 and len(np.unique(img.reshape(-1, 3), axis=0)) > 50
     bad = subprocess.run([sys.executable, "-m", "driftmap.cli", "view", str(store), "--color", "rainbow", "--out",
                           str(tmp_path / "v2")], capture_output=True, text=True, timeout=300, env=env)
-    assert bad.returncode == 1 and "rainbow" in bad.stderr and "Traceback" not in bad.stderr
+    assert bad.returncode == 2 and "rainbow" in bad.stderr and "Traceback" not in bad.stderr  # a usage error

@@ -121,9 +121,10 @@ def demo(
 @app.command("config")
 def config_cmd(
     show: Annotated[bool, typer.Option("--show", help="Print every setting with its default and meaning.")] = True,
-    file: Annotated[Optional[Path], typer.Option("--file", help="Show the values a config file (JSON/TOML) yields; its [build] table is what 'build --config' reads.")] = None,
+    file: Annotated[Optional[Path], typer.Option("--file", help="Show the values a config file (JSON/TOML) yields; 'build --config' reads its [build] and [depth] tables, 'export --config' its [map] table.")] = None,
 ) -> None:
-    """Print the configuration (defaults < file < DRIFTMAP_* environment) with units in every name."""
+    """Print the configuration (defaults < file < DRIFTMAP_* environment) with units in every name; every
+    setting shown takes effect (depth.* in build, map.* in export, build.* in build)."""
     from pydantic import BaseModel
 
     from driftmap.config import DriftmapConfig
@@ -179,6 +180,7 @@ def convert(
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.sources.mcap_export import convert as convert_source
 
+    format = _source_format(source, format)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames)
     console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
@@ -196,12 +198,41 @@ def _load_build_config(path: Optional[Path]):
     return BuildConfig() if path is None else BuildConfig.load(path)
 
 
+def _source_format(source: Path, format: Optional[str]) -> Optional[str]:
+    """``--format``: a registered source format (a usage error otherwise)."""
+    from driftmap.sources.base import registered_formats
+
+    return _choice(format, tuple(sorted(registered_formats())), "--format") if format is not None else None
+
+
+def _with_depth_scale_hint(exc: Exception, source: Path, format: Optional[str]) -> DriftmapError:
+    """A :class:`DepthScaleError` from ``build``, with the command line's way to fix it."""
+    from driftmap.errors import DepthScaleError
+    from driftmap.pipeline.build import _detect_format
+    from driftmap.sources.base import accepted_options, registered_formats
+
+    assert isinstance(exc, DepthScaleError)
+    fmt = _detect_format(source, format)
+    takes = accepted_options(registered_formats()[fmt].open) if fmt in registered_formats() else frozenset()
+    message = str(exc).replace("(sensor_range_m=None disables this check)", "").rstrip()
+    fixes = []
+    if "depth_scale" in takes:
+        fixes.append(f"set it with --depth-scale {exc.depth_scale_suggested:g}" if exc.depth_scale_suggested
+                     else "set it with --depth-scale UNITS_PER_M")
+    if "sensor_range_m" in takes:
+        fixes.append("skip this check with depth.check_scale = false (config file [depth] table, or "
+                     "DRIFTMAP_DEPTH__CHECK_SCALE=false)")
+    return DepthScaleError(message + ("; " + "; or ".join(fixes) if fixes else ""),
+                           depth_scale_used=exc.depth_scale_used, depth_scale_suggested=exc.depth_scale_suggested)
+
+
 @app.command()
 def build(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],
     out: Annotated[Path, typer.Option("--out", help="Store directory to create (or continue with --resume).")],
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
-    config: Annotated[Optional[Path], typer.Option("--config", help="Build config (JSON or TOML): its [build] table (the build.* keys 'driftmap config' lists), or the whole file.")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [build] table (the build.* keys 'driftmap config' lists) and [depth] table, or a bare build config (the whole file); DRIFTMAP_DEPTH__* environment variables and --depth-scale override the [depth] table.")] = None,
+    depth_scale: Annotated[Optional[float], typer.Option("--depth-scale", help="Depth-image units per metre (1000: millimetres, TUM 5000) for depth sources that take one (7-Scenes, TUM, Redwood / ICL-NUIM); default: the format's own (depth.depth_scale).")] = None,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
@@ -212,9 +243,22 @@ def build(
     max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", min=0.0, help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
+    from driftmap.config import DriftmapConfig
+    from driftmap.errors import ConfigError, DepthScaleError
     from driftmap.pipeline.build import build as run_build
 
-    cfg = _load_build_config(config)
+    format = _source_format(source, format)
+    problems = []  # every problem of the config file and the environment at once
+    try:
+        cfg = _load_build_config(config)
+    except ConfigError as exc:
+        problems.append(str(exc))
+    try:
+        settings = DriftmapConfig.load(config, **({"depth": {"depth_scale": depth_scale}} if depth_scale is not None else {}))
+    except ConfigError as exc:
+        problems.append(str(exc))
+    if problems:
+        raise ConfigError("\n".join(dict.fromkeys(problems)))
     with _progress() as progress:
         tasks: dict[str, int] = {}
 
@@ -223,9 +267,13 @@ def build(
                 tasks[stage] = progress.add_task(stage, total=total)
             progress.update(tasks[stage], completed=done, total=total)
 
-        result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
-                           loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick,
-                           kitti_frame=kitti_frame, calib_file=calib, poses_max_dt_ns=round(max_dt_ms * 1e6))
+        try:
+            result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
+                               loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick,
+                               kitti_frame=kitti_frame, calib_file=calib, poses_max_dt_ns=round(max_dt_ms * 1e6),
+                               depth=settings.depth)
+        except DepthScaleError as exc:
+            raise _with_depth_scale_hint(exc, source, format) from exc
     table = Table(title=f"driftmap build: {source} -> {out}")
     table.add_column("quantity")
     table.add_column("value", justify="right")
@@ -328,16 +376,22 @@ def export(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
-    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", help="Voxel-deduplicate the map (default: every point).")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
     trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
     mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [map] table sets map.export_voxel_size_m (DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M overrides it, --voxel-size-m both).")] = None,
 ) -> None:
     """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
+    from driftmap.config import DriftmapConfig
+
     if map_path is None and trajectory is None and mcap_path is None:
         raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
     format = _choice(format, ("tum", "kitti"), "--format")
+    settings = DriftmapConfig.load(config)  # validated also when --voxel-size-m is given
+    if voxel_size_m is None:
+        voxel_size_m = settings.map.export_voxel_size_m
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
     if not overwrite:  # every output checked before anything is written
@@ -447,6 +501,7 @@ def diagnose(
     from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth, write_report
     from driftmap.frame import SensorKind
 
+    gt_format = None if gt_format is None else _choice(gt_format, ("tum", "kitti"), "--gt-format")
     with _open_store(store_path) as store:
         if len(store) == 0:
             raise DriftmapError(f"{store_path}: the store has no frames")
@@ -548,7 +603,10 @@ def view(
 ) -> None:
     """Show the map of a revision coloured by frame, by correction displacement or by double-wall separation:
     an Open3D window with a display, PNG views (top + two oblique) without one."""
-    from driftmap.viewer import view_store
+    from driftmap.viewer import BACKENDS, COLOR_MODES, view_store
+
+    color = _choice(color, tuple(COLOR_MODES), "--color")
+    backend = _choice(backend, tuple(BACKENDS), "--backend")
 
     with _open_store(store_path) as store:
         with console.status(f"preparing the {color} view of {store_path}"):

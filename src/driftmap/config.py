@@ -1,16 +1,29 @@
 """Typed, layered configuration (pydantic): defaults < config file (JSON or TOML) < environment < flags.
 
 Environment variables use the prefix ``DRIFTMAP_`` and ``__`` between levels, e.g.
-``DRIFTMAP_DEPTH__MAX_DEPTH_M=4.0``. The configuration that produced a result is written next to it.
+``DRIFTMAP_DEPTH__MAX_DEPTH_M=3.0``. The configuration that produced a result is written next to it.
 
-One file can hold both: the ``depth`` / ``preprocess`` / ``map`` tables are :class:`DriftmapConfig`, a ``build``
-table is ``driftmap build``'s :class:`~driftmap.pipeline.build.BuildConfig` (``driftmap config --file F`` shows
-both, ``driftmap build --config F`` reads the ``build`` table; a file without one is a bare build config).
+One file can hold both: the ``depth`` / ``map`` tables are :class:`DriftmapConfig`, a ``build`` table is
+``driftmap build``'s :class:`~driftmap.pipeline.build.BuildConfig` (``driftmap config --file F`` shows both,
+``driftmap build --config F`` reads all three, ``driftmap export --config F`` the ``map`` table). A file with
+none of these tables is a bare build config.
+
+Every setting here takes effect (the tests check it):
+
+* ``depth.*`` -- ``driftmap build`` passes them to a depth-image source (7-Scenes, TUM, Redwood / ICL-NUIM,
+  synthetic logs, ROS depth topics, as far as the format takes the option); ``None`` keeps the source's own
+  default. A setting the format cannot take (e.g. ``max_depth_m`` on KITTI scans) is refused.
+* ``map.export_voxel_size_m`` -- ``driftmap export --map`` / ``--mcap`` without ``--voxel-size-m``.
+
+Per-frame point processing (``preprocess``: voxel downsampling, outlier removal, normals) is not part of
+``build`` -- the store keeps the frames at full resolution -- so it is not a table here; the library's
+:func:`driftmap.preprocess.cloud.process_frame` takes :class:`PreprocessConfig` (``**cfg.model_dump()``).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import tomllib
 from pathlib import Path
 from typing import Any
@@ -20,24 +33,37 @@ from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from driftmap.errors import ConfigError
 
+ENV_PREFIX = "DRIFTMAP_"
+ENV_DELIMITER = "__"
+
 
 class DepthConfig(BaseModel):
-    """Depth-image validation."""
+    """Depth-image sources: the options ``driftmap build`` passes to them (None: the source's own default)."""
 
     model_config = ConfigDict(extra="forbid")
-    min_depth_m: float = Field(0.1, ge=0.0, description="closest valid depth (m)")
-    max_depth_m: float = Field(10.0, gt=0.0, description="depth at and beyond which pixels are rejected (m), like Open3D depth_trunc")
-    check_scale: bool = Field(True, description="raise DepthScaleError when the depth scale puts the scene at an implausible distance")
+    min_depth_m: float | None = Field(None, ge=0.0, description="closest valid depth (m); None: the source's default (0.2 m for 7-Scenes, TUM, Redwood)")
+    max_depth_m: float | None = Field(None, gt=0.0, description="depth at and beyond which pixels are rejected (m), like Open3D depth_trunc; None: the source's default (7-Scenes 4.0 m, TUM and Redwood 5.0 m)")
+    depth_scale: float | None = Field(None, gt=0.0, description="depth-image units per metre (1000: millimetres, TUM 5000); None: the format's own; 'build --depth-scale' sets it")
+    check_scale: bool = Field(True, description="false: skip the sources' sensor-range check of the depth scale (the DepthScaleError that suggests another depth_scale)")
 
     @model_validator(mode="after")
     def _range(self) -> DepthConfig:
-        if self.max_depth_m <= self.min_depth_m:
+        if self.min_depth_m is not None and self.max_depth_m is not None and self.max_depth_m <= self.min_depth_m:
             raise ValueError(f"max_depth_m ({self.max_depth_m}) must exceed min_depth_m ({self.min_depth_m})")
         return self
 
+    def source_options(self) -> dict[str, Any]:
+        """The options this sets, as keyword arguments of a source opener (nothing for the defaults)."""
+        options: dict[str, Any] = {name: getattr(self, name) for name in ("min_depth_m", "max_depth_m", "depth_scale")
+                                   if getattr(self, name) is not None}
+        if not self.check_scale:
+            options["sensor_range_m"] = None
+        return options
+
 
 class PreprocessConfig(BaseModel):
-    """Per-frame processing of sensor-frame points."""
+    """Per-frame processing of sensor-frame points, for :func:`driftmap.preprocess.cloud.process_frame` (library
+    only: ``driftmap build`` stores full-resolution frames, so this is not a table of :class:`DriftmapConfig`)."""
 
     model_config = ConfigDict(extra="forbid")
     voxel_size_m: float | None = Field(None, gt=0.0, description="voxel size for per-frame downsampling (m); None keeps full resolution")
@@ -52,32 +78,42 @@ class MapConfig(BaseModel):
     """Fused map export."""
 
     model_config = ConfigDict(extra="forbid")
-    export_voxel_size_m: float = Field(0.01, gt=0.0, description="voxel size of the fused, deduplicated map export (m)")
+    export_voxel_size_m: float | None = Field(None, gt=0.0, description="voxel size of 'export --map' / '--mcap' without --voxel-size-m (m); None: every point (--map), 0.02 m (--mcap)")
 
 
 class DriftmapConfig(BaseSettings):
-    """Everything configurable in driftmap, with units in every name."""
+    """Everything configurable outside ``build.*``, with units in every name."""
 
-    model_config = SettingsConfigDict(env_prefix="DRIFTMAP_", env_nested_delimiter="__", extra="forbid")
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_nested_delimiter=ENV_DELIMITER, extra="forbid")
     depth: DepthConfig = Field(default_factory=DepthConfig)
-    preprocess: PreprocessConfig = Field(default_factory=PreprocessConfig)
     map: MapConfig = Field(default_factory=MapConfig)
 
     @classmethod
     def load(cls, path: str | Path | None = None, **overrides: Any) -> DriftmapConfig:
-        """Defaults, then the file (``.json`` or ``.toml``), then ``DRIFTMAP_*`` environment, then ``overrides``."""
-        data: dict[str, Any] = {}
-        if path is not None:
-            data = read_config_file(path)
-            data.pop(BUILD_TABLE, None)  # driftmap build's settings (BuildConfig.load reads them)
+        """Defaults, then the file (``.json`` or ``.toml``), then ``DRIFTMAP_*`` environment, then ``overrides``
+        (the command line's flags, nested: ``depth={"depth_scale": 5000.0}``).
+
+        Raises :class:`ConfigError` with one line per problem, each naming where the value came from (the file,
+        the environment variable or the command line) and the key."""
+        data = split_config_file(path)[0] if path is not None else {}
+        _check_env_tables()
         try:
             # file values act as init values, which pydantic-settings ranks above the environment;
             # build from the environment first, then layer file and overrides so the order is documented
             env_only = cls()
-            merged = _deep_merge(_deep_merge(data, _explicit(env_only)), overrides)
-            return cls(**merged)
         except ValidationError as exc:
-            raise ConfigError(f"invalid configuration{f' in {path}' if path else ''}: {exc}") from exc
+            raise ConfigError(validation_problems(exc, lambda loc: "environment", env_names=True)) from exc
+        env = _explicit(env_only)
+        try:
+            return cls(**_deep_merge(_deep_merge(data, env), overrides))
+        except ValidationError as exc:
+            def origin(loc: tuple[Any, ...]) -> str:
+                if _has(overrides, loc):
+                    return "command line"
+                if _has(env, loc):
+                    return "environment"
+                return str(path) if path is not None else "defaults"
+            raise ConfigError(validation_problems(exc, origin, env_names=True)) from exc
 
     def write(self, path: str | Path) -> Path:
         path = Path(path)
@@ -88,6 +124,14 @@ class DriftmapConfig(BaseSettings):
 
 BUILD_TABLE = "build"
 """The table of a config file that holds ``driftmap build``'s settings."""
+
+GENERAL_TABLES = tuple(DriftmapConfig.model_fields)
+"""The tables of a config file that are :class:`DriftmapConfig` (``depth``, ``map``)."""
+
+_REMOVED_TABLES = {
+    "preprocess": "per-frame processing is not part of 'driftmap build' (the store keeps full-resolution frames), so "
+                  "there are no preprocess.* settings (the library's process_frame takes driftmap.config.PreprocessConfig)",
+}
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:
@@ -101,6 +145,71 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file holds an object of settings, not {type(data).__name__}")
     return data
+
+
+def split_config_file(path: str | Path) -> tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]:
+    """``(general tables, build settings, the build settings' key prefix)`` of a config file.
+
+    A file with a ``build``, ``depth`` or ``map`` table holds only such tables (anything else at its top level
+    is refused, naming the file); a file with none of them is a bare build config (the whole file, prefix ``()``;
+    else ``("build",)``)."""
+    data = read_config_file(path)
+    tables = {BUILD_TABLE, *GENERAL_TABLES, *_REMOVED_TABLES}
+    if not tables & set(data):
+        return {}, data, ()
+    for name, why in _REMOVED_TABLES.items():
+        if name in data:
+            raise ConfigError(f"{path}: {name}: {why}")
+    unknown = sorted(set(data) - tables)
+    if unknown:
+        raise ConfigError(f"{path}: unknown top-level settings {unknown} next to the [{BUILD_TABLE}] / "
+                          f"[{'] / ['.join(GENERAL_TABLES)}] tables (build settings go into the [{BUILD_TABLE}] table)")
+    for name in (BUILD_TABLE, *GENERAL_TABLES):
+        if name in data and not isinstance(data[name], dict):
+            raise ConfigError(f"{path}: '{name}' must be a table of settings, not {type(data[name]).__name__}")
+    return {k: v for k, v in data.items() if k in GENERAL_TABLES}, data.get(BUILD_TABLE, {}), (BUILD_TABLE,)
+
+
+def validation_problems(exc: ValidationError, origin: Any, *, prefix: tuple[str, ...] = (), env_names: bool = False) -> str:
+    """One line per problem of a pydantic error: ``WHERE: KEY: what is wrong (got VALUE)``, no documentation
+    links. ``origin(loc)`` names where the value came from (a file, "environment", "command line");
+    ``env_names`` names the environment variable of a value from the environment."""
+    lines = []
+    for err in exc.errors(include_url=False):
+        loc = tuple(str(p) for p in err["loc"])
+        key = ".".join(prefix + loc) or "(top level)"
+        where = origin(loc) if callable(origin) else str(origin)
+        if env_names and where == "environment":
+            where = f"environment {ENV_PREFIX}{ENV_DELIMITER.join(prefix + loc).upper()}"
+        kind = err["type"]
+        if kind == "extra_forbidden":
+            message = "unknown setting"
+        else:
+            message = str(err["msg"]).removeprefix("Value error, ").removeprefix("Assertion failed, ")
+        value = err.get("input")
+        got = "" if kind in ("extra_forbidden", "missing") or isinstance(value, (dict, list)) else f" (got {value!r})"
+        lines.append(f"{where}: {key}: {message}{got}")
+    return "\n".join(lines)
+
+
+def _check_env_tables() -> None:
+    """``DRIFTMAP_X__...`` variables whose table X does not exist are refused (pydantic-settings ignores them)."""
+    known = {name.upper() for name in DriftmapConfig.model_fields}
+    for name in sorted(os.environ):
+        if not name.upper().startswith(ENV_PREFIX) or ENV_DELIMITER not in name:
+            continue
+        table = name[len(ENV_PREFIX):].split(ENV_DELIMITER)[0].upper()
+        if table not in known:
+            why = _REMOVED_TABLES.get(table.lower(), f"no such table (known: {', '.join(sorted(k.lower() for k in known))})")
+            raise ConfigError(f"environment {name}: {table.lower()}: {why}")
+
+
+def _has(data: dict[str, Any], loc: tuple[str, ...]) -> bool:
+    for part in loc:
+        if not isinstance(data, dict) or part not in data:
+            return False
+        data = data[part]
+    return True
 
 
 def _explicit(model: BaseModel) -> dict[str, Any]:

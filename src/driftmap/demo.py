@@ -50,6 +50,8 @@ LOOP_WALL = {"normal": (0.0, 1.0, 0.0), "offset_m": ROOM_MAX_M[1], "tangent": (1
              "tangent_range_m": (ROOM_MIN_M[0] + 0.4, ROOM_MAX_M[0] - 0.4)}
 
 #: The synthetic log is short (60 frames at 5 Hz): loops may be 20 frames apart, keyframes every 20 cm.
+DEMO_MAP_VOXEL_M = 0.01
+"""Voxel size of the demo's map exports unless ``map.export_voxel_size_m`` is set (m)."""
 DEMO_BUILD_CONFIG = BuildConfig(loop_closure=LoopClosureConfig(min_gap_frames=20, keyframe_distance_m=0.2, keyframe_angle_deg=15))
 
 #: (stage, done, total) -- the same shape as the build's progress callback
@@ -173,13 +175,15 @@ def run_demo(
     stages = _Stages(progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    log = SyntheticLog(Path(log_path) if log_path else embedded_log_path(),
-                       min_depth_m=config.depth.min_depth_m, max_depth_m=config.depth.max_depth_m)
+    log = SyntheticLog(Path(log_path) if log_path else embedded_log_path())
+    # the map exports: map.export_voxel_size_m when set, else the demo's own 1 cm
+    map_voxel_m = config.map.export_voxel_size_m if config.map.export_voxel_size_m is not None else DEMO_MAP_VOXEL_M
     n = len(log) if max_frames is None else min(max_frames, len(log))
     store_dir = out / "store"
     if store_dir.exists():
         shutil.rmtree(store_dir)
-    build_kwargs = dict(poses_from_source=True, frames=f"0:{n}", config=DEMO_BUILD_CONFIG, progress=stages.tick)
+    build_kwargs = dict(poses_from_source=True, frames=f"0:{n}", config=DEMO_BUILD_CONFIG, progress=stages.tick,
+                        depth=config.depth)
 
     # 1. the drifting odometry of the log becomes revision 0 of a new store
     t = time.perf_counter()
@@ -201,7 +205,7 @@ def run_demo(
         point_frames = view.point_frame_ids()
         n_points = len(odom_points)
         odom_spread = _loop_wall_spread(odom_points)
-        files["map_odometry_ply"] = str(view.export(out / "map_odometry.ply", voxel_size_m=config.map.export_voxel_size_m))
+        files["map_odometry_ply"] = str(view.export(out / "map_odometry.ply", voxel_size_m=map_voxel_m))
         files["trajectory_odometry_tum"] = str(store.export_trajectory(out / "trajectory_odometry.tum", revision=0))
         ate_odometry = trajectory_errors(store.poses(0), gt_poses).ate_rmse_m if len(store) >= 3 else None
         flagged = [int(f) for f in store.frame_ids if (store.frame_info(int(f)).get("quality") or {}).get("flags")]
@@ -224,7 +228,7 @@ def run_demo(
             corrected_points = view.points_world.copy()
             # 4. diagnose again with the same samples
             diag1 = stages.run(f"diagnose revision {rev}", lambda: diagnose_store(store, rev, config=dcfg, cloud=cloud, ground_truth=gt))
-            files["map_corrected_ply"] = str(view.export(out / "map_corrected.ply", voxel_size_m=config.map.export_voxel_size_m))
+            files["map_corrected_ply"] = str(view.export(out / "map_corrected.ply", voxel_size_m=map_voxel_m))
         files["trajectory_corrected_tum"] = str(store.export_trajectory(out / "trajectory_corrected.tum"))
         ate_corrected = trajectory_errors(store.poses(), gt_poses).ate_rmse_m if closed.loop_revision is not None and len(store) >= 3 else None
         rows_in_cloud = np.searchsorted(store.frame_ids, cloud.frame_ids)
@@ -233,7 +237,7 @@ def run_demo(
         # the ground-truth map, for the wall spread and the top view (a scratch view, not a revision)
         view.apply(-1, poses=gt_poses[np.searchsorted(store.frame_ids, view.frame_ids)])
         gt_points = view.points_world.copy()
-        files["map_ground_truth_ply"] = str(view.export(out / "map_ground_truth.ply", voxel_size_m=config.map.export_voxel_size_m))
+        files["map_ground_truth_ply"] = str(view.export(out / "map_ground_truth.ply", voxel_size_m=map_voxel_m))
         if closed.loop_revision is not None:
             files.update(_export_mcap(store, out, closed.loop_revision, diag1))
     gt_spread = _loop_wall_spread(gt_points)

@@ -21,6 +21,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
+from driftmap.config import DepthConfig
 from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
@@ -72,27 +73,19 @@ class BuildConfig(BaseModel):
 
     @classmethod
     def load(cls, path: str | Path) -> BuildConfig:
-        """A build config file (JSON or TOML): its ``build`` table, next to which only the general sections
-        (``depth``, ``preprocess``, ``map``: :class:`driftmap.config.DriftmapConfig`) may stand; or, without a
-        ``build`` table, the whole file."""
+        """A build config file (JSON or TOML): its ``build`` table, next to which only the general tables
+        (``depth``, ``map``: :class:`driftmap.config.DriftmapConfig`, read by :meth:`DriftmapConfig.load`) may
+        stand; or, without any of these tables, the whole file. Problems are :class:`ConfigError`, one line each,
+        naming the file and the key."""
         from pydantic import ValidationError
 
-        from driftmap.config import BUILD_TABLE, DriftmapConfig, read_config_file
+        from driftmap.config import split_config_file, validation_problems
 
-        data = read_config_file(path)
-        if BUILD_TABLE in data:
-            rest = {k: v for k, v in data.items() if k != BUILD_TABLE}
-            unknown = sorted(set(rest) - set(DriftmapConfig.model_fields))
-            if unknown:
-                raise ConfigError(f"{path}: unknown top-level settings {unknown} next to the [{BUILD_TABLE}] table "
-                                  f"(allowed: {sorted(DriftmapConfig.model_fields)})")
-            data = data[BUILD_TABLE]
-            if not isinstance(data, dict):
-                raise ConfigError(f"{path}: '{BUILD_TABLE}' must be a table of settings")
+        _, data, prefix = split_config_file(path)
         try:
             return cls(**data)
         except ValidationError as exc:
-            raise ConfigError(f"{path}: invalid build config ({exc})") from exc
+            raise ConfigError(validation_problems(exc, str(path), prefix=prefix)) from exc
 
 
 @dataclass
@@ -130,20 +123,39 @@ class BuildResult:
         return d
 
 
-def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool) -> FrameSource:
+#: the depth options (``DepthConfig.source_options``) and the setting that names each in messages
+_DEPTH_OPTION_SETTINGS = {"min_depth_m": "depth.min_depth_m", "max_depth_m": "depth.max_depth_m",
+                          "depth_scale": "depth.depth_scale (--depth-scale)", "sensor_range_m": "depth.check_scale = false"}
+
+
+def _detect_format(path: Path, format: str | None) -> str | None:
+    if format is not None:
+        return format
+    for spec in registered_formats().values():
+        try:
+            if spec.detect(path):
+                return spec.name
+        except Exception:  # noqa: BLE001 - detectors must not hide each other
+            continue
+    return None
+
+
+def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool,
+          depth_options: dict[str, Any] | None = None) -> FrameSource:
     path = Path(source)
     options: dict[str, Any] = {"frames": frames}
-    fmt = format
-    if fmt is None:
-        for spec in registered_formats().values():
-            try:
-                if spec.detect(path):
-                    fmt = spec.name
-                    break
-            except Exception:  # noqa: BLE001 - detectors must not hide each other
-                continue
+    fmt = _detect_format(path, format)
     opener = registered_formats()[fmt].open if fmt in registered_formats() else None
     params = accepted_options(opener) if opener is not None else frozenset()
+    if depth_options and opener is not None:
+        refused = [k for k in depth_options if k not in params]
+        if refused:
+            takes = [_DEPTH_OPTION_SETTINGS[k] for k in _DEPTH_OPTION_SETTINGS if k in params]
+            raise ConfigError(
+                f"{', '.join(_DEPTH_OPTION_SETTINGS[k] for k in refused)}: does not apply to {path} (format {fmt}"
+                + (f", which takes only {', '.join(takes)})" if takes else ", to which build passes no depth options)")
+                + "; remove it from the config file, the DRIFTMAP_DEPTH__* environment or the command line")
+        options.update(depth_options)
     if poses_from_source and "poses_from_ground_truth" in params:
         options["poses_from_ground_truth"] = True  # data sets: their ground truth; logs carry their own poses
     if "pixel_stride" in params:
@@ -177,18 +189,43 @@ def _require_frames(src: FrameSource, path: Path, fmt: str | None, frames: str |
 BUILD_SOURCE_FILE = "build_source.json"
 
 
-def _source_record(source: str | Path, src: FrameSource) -> dict[str, Any]:
-    return {"path": str(Path(source).resolve()), "format": src.format_name, "given": str(source)}
+def _source_record(source: str | Path, src: FrameSource, poses: dict[str, Any] | None = None,
+                   depth: dict[str, Any] | None = None) -> dict[str, Any]:
+    record = {"path": str(Path(source).resolve()), "format": src.format_name, "given": str(source)}
+    if poses is not None:
+        record["poses"] = poses
+    if depth is not None:
+        record["depth"] = {k: v for k, v in sorted(depth.items())}
+    return record
 
 
-def _check_recorded_source(out: Path, record: dict[str, Any]) -> bool:
+def _poses_record(poses_file: str | Path | None, poses_from_source: bool, kitti_frame: str,
+                  calib_file: str | Path | None) -> dict[str, Any]:
+    """Where revision 0's poses come from (the coordinate frame of the stored frames): ``--resume`` must match."""
+    if poses_file is not None:
+        return {"mode": "file", "file": str(Path(poses_file).resolve()), "kitti_frame": kitti_frame,
+                "calib": None if calib_file is None else str(Path(calib_file).resolve())}
+    return {"mode": "source" if poses_from_source else "odometry"}
+
+
+def _describe_poses(poses: dict[str, Any]) -> str:
+    if poses.get("mode") == "file":
+        extra = "" if poses.get("kitti_frame", "auto") == "auto" else f" --kitti-frame {poses['kitti_frame']}"
+        extra += "" if poses.get("calib") is None else f" --calib {poses['calib']}"
+        return f"--poses {poses.get('file')}{extra}"
+    return {"source": "--poses-from-source (the source's own poses)", "odometry": "odometry (no --poses, no --poses-from-source)"}.get(
+        str(poses.get("mode")), str(poses.get("mode")))
+
+
+def _check_recorded_source(out: Path, record: dict[str, Any]) -> dict[str, Any] | None:
     """``--resume``: refuse a source other than the one the store was built from (its resolved path or format
-    differ). False when the store has no record (built before the record existed): see :func:`_check_stored_frames`."""
+    differ). The record, or None when the store has none (built before the record existed): see
+    :func:`_check_stored_frames`."""
     file = out / BUILD_SOURCE_FILE
     try:
         recorded = json.loads(file.read_text())
     except FileNotFoundError:
-        return False
+        return None
     except (OSError, ValueError) as exc:
         raise StoreError(f"{file}: unreadable build source record ({exc})") from exc
     if recorded.get("path") != record["path"] or recorded.get("format") != record["format"]:
@@ -196,7 +233,48 @@ def _check_recorded_source(out: Path, record: dict[str, Any]) -> bool:
             f"{out}: cannot --resume from a different source: the store was built from {recorded.get('path')} "
             f"(format {recorded.get('format')}, recorded in {file}), the source given is {record['path']} "
             f"(format {record['format']}); resume with the same source or build into another --out")
-    return True
+    return recorded
+
+
+def _check_resume_settings(store: FrameStore, src: FrameSource, recorded: dict[str, Any] | None,
+                           record: dict[str, Any]) -> None:
+    """``--resume``: the poses of the new frames must be in the coordinate frame of the stored ones (the same
+    pose mode: odometry, ``--poses FILE`` -- the same file -- or ``--poses-from-source``), and the depth images
+    read the same way (the same ``depth.*`` options). A record from before these were recorded: the pose mode
+    is checked against revision 0's pose source where that tells them apart."""
+    out = store.path
+    file = out / BUILD_SOURCE_FILE
+    given = record["poses"]
+    if recorded is not None and "poses" in recorded:
+        if recorded["poses"] != given:
+            raise ConfigError(
+                f"{out}: cannot --resume with different poses: the stored frames were placed with "
+                f"{_describe_poses(recorded['poses'])} (recorded in {file}), this build asks for {_describe_poses(given)}; "
+                f"their poses would be in different coordinate frames. Resume with the same pose option or build "
+                f"into another --out")
+    elif len(store):
+        stored = store.ledger.revision(0).source
+        mode = given["mode"]
+        if mode == "odometry":
+            fits = stored is PoseSource.ODOMETRY
+        elif mode == "file":
+            fits = stored is PoseSource.EXTERNAL_FILE
+        else:
+            fits = stored is not PoseSource.EXTERNAL_FILE and (
+                stored is not PoseSource.ODOMETRY or src.frame(0).pose.source is PoseSource.ODOMETRY)
+        if not fits:
+            raise ConfigError(
+                f"{out}: cannot --resume with different poses: the stored frames' revision-0 poses are "
+                f"'{stored.value}', this build asks for {_describe_poses(given)}; their poses would be in different "
+                f"coordinate frames. Resume with the same pose option or build into another --out")
+    if recorded is not None and "depth" in recorded and recorded["depth"] != record["depth"]:
+        def show(options: dict[str, Any]) -> str:
+            return ", ".join(f"{_DEPTH_OPTION_SETTINGS.get(k, k).split(' ')[0]}={v}" for k, v in options.items()) or "the source's defaults"
+        raise ConfigError(
+            f"{out}: cannot --resume with different depth settings: the stored frames were read with "
+            f"{show(recorded['depth'])} (recorded in {file}), this build with {show(record['depth'])}; resume with "
+            f"the same depth.* settings (config file, DRIFTMAP_DEPTH__* environment, --depth-scale) or build into "
+            f"another --out")
 
 
 def _check_stored_frames(store: FrameStore, src: FrameSource, record: dict[str, Any]) -> None:
@@ -316,8 +394,14 @@ def build(
     kitti_frame: str = "auto",
     calib_file: str | Path | None = None,
     poses_max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS,
+    depth: DepthConfig | None = None,
 ) -> BuildResult:
     """Build (or ``resume``) a store from a source. See the module docstring for the stages.
+
+    ``depth``: how a depth-image source reads its images (:class:`driftmap.config.DepthConfig`; None or unset
+    fields: the source's own defaults). A set option the format does not take is a :class:`ConfigError`.
+    ``--resume`` refuses a different source, pose mode (odometry / ``poses_file`` / ``poses_from_source``, and
+    another ``poses_file``) or depth options than the store was built with (``build_source.json``).
 
     ``kitti_frame`` / ``calib_file``: the frame of a KITTI ``poses_file`` (``auto`` | ``velodyne`` | ``cam0``)
     and the calibration for ``cam0``; see :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`.
@@ -340,34 +424,38 @@ def build(
     store_exists = (out / "store.json").exists()
     if store_exists and not resume:
         raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
-    src = _open(source, format, frames, config, poses_from_source)
+    depth_options = (depth or DepthConfig()).source_options()
+    src = _open(source, format, frames, config, poses_from_source, depth_options)
     if config.depth_scale_error != 1.0 or config.focal_length_error != 1.0:
         logger.warning("build: frames perturbed on purpose (depth scale x%g, focal length x%g); recorded in build_config.json",
                        config.depth_scale_error, config.focal_length_error)
-    record = _source_record(source, src)
+    record = _source_record(source, src, _poses_record(poses_file, poses_from_source, kitti_frame, calib_file),
+                            depth_options)
     # inputs are checked before a store is created or opened for appending: a pose file that cannot be read
     # leaves nothing behind
     pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file, poses_max_dt_ns) if poses_file is not None else None
     new_store = not (resume and store_exists)
     out_existed, new_dirs = out.exists(), [p for p in (out, *out.parents) if not p.exists()]  # what create() makes
-    has_record = False
+    recorded: dict[str, Any] | None = None
     if not new_store:
-        has_record = _check_recorded_source(out, record)
+        recorded = _check_recorded_source(out, record)
         store = FrameStore.open(out, "a")
         for event in store.recovery_events:
             logger.warning("resume: %s", event)
-        if not has_record:
-            try:
+        try:
+            if recorded is None:
                 _check_stored_frames(store, src, record)
-            except BaseException:
-                store.close()
-                raise
+            _check_resume_settings(store, src, recorded, record)
+        except BaseException:
+            store.close()
+            raise
     else:
         _check_first_frame_poses(src, pose_of, poses_from_source)
         store = FrameStore.create(out)
     try:
-        if not has_record:  # a new store, or one built before the record existed (and checked above)
-            (out / BUILD_SOURCE_FILE).write_text(json.dumps(record, indent=2) + "\n")
+        if recorded is None or set(record) - set(recorded):
+            # a new store, or one whose record predates some fields (checked above): write the full record
+            (out / BUILD_SOURCE_FILE).write_text(json.dumps({**record, **(recorded or {})}, indent=2) + "\n")
         return _build(src, store, config, pose_of, poses_from_source, loop_closure, tick, stages, inject_wrong_loop,
                       source_record=record)
     except BaseException:
@@ -515,9 +603,14 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     ids = [int(i) for i in store.frame_ids]
     poses = store.poses(0)
     key_rows = select_keyframes(poses, lc)
-    if inject_wrong_loop is None and (len(key_rows) < 2 or key_rows[-1] - key_rows[0] < lc.min_gap_frames):
-        logger.warning("loop closure skipped: %d frames, %d keyframes, fewer than min_gap_frames = %d apart (too short "
-                       "a run to revisit a place)", len(ids), len(key_rows), lc.min_gap_frames)
+    result.n_keyframes = len(key_rows)
+    span = ids[key_rows[-1]] - ids[key_rows[0]]  # in the source's frame numbers, like min_gap_frames
+    if inject_wrong_loop is None and (len(key_rows) < 2 or span < lc.min_gap_frames):
+        logger.warning("loop closure skipped: the %d keyframes (of %d stored frames, source frames %d..%d) span "
+                       "source frames %d..%d, fewer than loop_closure.min_gap_frames = %d apart (loop candidates "
+                       "are at least that far apart in the source's frame numbering); store a longer stretch of "
+                       "the source, or lower min_gap_frames", len(key_rows), len(ids), ids[0], ids[-1],
+                       ids[key_rows[0]], ids[key_rows[-1]], lc.min_gap_frames)
         return
     keyframes: list[Keyframe] = []
     cache: dict[int, np.ndarray] = {}

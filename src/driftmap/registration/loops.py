@@ -37,8 +37,8 @@ class LoopClosureConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m)")
     keyframe_angle_deg: float = Field(10.0, gt=0.0, description="... or this much rotation (deg)")
-    keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many frames")
-    min_gap_frames: int = Field(60, ge=1, description="candidates must be at least this many frames apart")
+    keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many stored frames (counted in the --frames selection)")
+    min_gap_frames: int = Field(60, ge=1, description="candidates must be at least this many frames apart in the source's frame numbering (frame_id), whatever the --frames step")
     proximity_radius_m: float = Field(1.0, gt=0.0, description="odometry positions closer than this are candidates (m)")
     proximity_max_angle_deg: float = Field(45.0, gt=0.0, description="... if their viewing directions differ by less (deg)")
     max_candidates_per_keyframe: int = Field(15, ge=1, description="nearest proximity candidates kept per keyframe")
@@ -56,6 +56,7 @@ class LoopClosureConfig(BaseModel):
 @dataclass(frozen=True)
 class Keyframe:
     frame_id: int
+    """The source's frame number: ``min_gap_frames`` is counted in these."""
     index: int
     """Position in the frame sequence."""
     T_world_sensor: NDArray[np.float64]
@@ -123,12 +124,13 @@ def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> fl
 
 
 def proximity_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> list[tuple[int, int]]:
-    """Pairs (older, newer) of keyframe list positions that odometry places close together."""
+    """Pairs (older, newer) of keyframe list positions that odometry places close together, at least
+    ``min_gap_frames`` apart in frame numbers (``frame_id``)."""
     pos = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
-    idx = np.array([k.index for k in keyframes])
+    ids = np.array([k.frame_id for k in keyframes])
     pairs = []
     for j in range(len(keyframes)):
-        older = np.flatnonzero(idx <= idx[j] - config.min_gap_frames)
+        older = np.flatnonzero(ids <= ids[j] - config.min_gap_frames)
         if older.size == 0:
             continue
         d = np.linalg.norm(pos[older] - pos[j], axis=1)
@@ -145,10 +147,10 @@ def descriptor_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConf
     if config.descriptor_candidates == 0 or len(keyframes) < 2:
         return []
     desc = np.array([k.descriptor for k in keyframes])
-    idx = np.array([k.index for k in keyframes])
+    ids = np.array([k.frame_id for k in keyframes])
     pairs = []
     for j in range(len(keyframes)):
-        older = np.flatnonzero(idx <= idx[j] - config.min_gap_frames)
+        older = np.flatnonzero(ids <= ids[j] - config.min_gap_frames)
         if older.size == 0:
             continue
         dist = np.abs(desc[older] - desc[j]).sum(axis=1)

@@ -15,6 +15,7 @@ Layout of a sequence folder (``seq-01/`` in the official archives)::
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,7 @@ from driftmap.errors import SourceError, TransformError
 from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source
-from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
+from driftmap.sources.cloud_folder import frame_number, numbered_files, opener_for, pose_or_none
 from driftmap.sources.redwood import (
     KINECT_RANGE_M,
     NOMINAL_30HZ_PERIOD_NS,
@@ -121,6 +122,34 @@ class SevenScenes(FrameSource):
             self.intrinsics = DEFAULT_INTRINSICS
         self._frames = numbered_files(self.path, "7-Scenes depth", pattern="frame-*.depth.png")
         self._monitor = InvalidFractionMonitor()
+        self.missing_depth: list[tuple[int, Path]] = self._find_missing_depth()
+        """``(frame_id, depth file)`` of frames the sequence numbers (a gap in the numbering, or a pose / colour
+        file) without a depth image: they are not frames of this source (``--frames`` counts the others);
+        iterating over a selection that spans them logs a warning naming them."""
+
+    def _find_missing_depth(self) -> list[tuple[int, Path]]:
+        depth_ids = {frame_id for frame_id, _ in self._frames}
+        numbered = set(range(min(depth_ids), max(depth_ids) + 1))
+        for file in self.path.glob("frame-*.*"):
+            if file.name.endswith((".pose.txt", ".color.jpg", ".color.png")):
+                number = frame_number(file.name.split(".")[0])
+                if number is not None:
+                    numbered.add(number)
+        return [(i, self.path / f"frame-{i:06d}.depth.png") for i in sorted(numbered - depth_ids)]
+
+    def __iter__(self) -> Iterator[Frame]:
+        indices = self._indices()
+        if self.missing_depth and len(indices):
+            # the frames missing inside the selected stretch (and before / after it when it starts / ends the run)
+            lo = -1 if indices[0] == 0 else self._frames[indices[0]][0]
+            hi = None if indices[-1] == len(self._frames) - 1 else self._frames[indices[-1]][0]
+            inside = [(i, f) for i, f in self.missing_depth if i > lo and (hi is None or i < hi)]
+            if inside:
+                shown = "; ".join(f"frame {i} ({f} missing)" for i, f in inside[:5])
+                logger.warning("%s: %d frame(s) of the sequence have no depth image and are left out: %s%s "
+                               "(--frames START:STOP:STEP counts the frames that have one)", self.path, len(inside),
+                               shown, f"; and {len(inside) - 5} more" if len(inside) > 5 else "")
+        yield from super().__iter__()
 
     def _count(self) -> int:
         return len(self._frames)
