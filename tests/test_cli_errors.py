@@ -76,6 +76,14 @@ def test_unwritable_outputs_and_undecodable_inputs_give_one_line_errors(store_pa
     a_file.write_text("x")
     line = _one_line_error(_cli("export", store_path, "--trajectory", a_file / "t.tum"))
     assert str(a_file) in line
+    # diagnose, convert and perturb find such outputs before their work, and write nothing
+    for args, flag in ((("diagnose", store_path, "--json", a_file / "d.json"), "--json"),
+                       (("diagnose", store_path, "--json", tmp_path / "d.json", "--report", a_file), "--report"),
+                       (("convert", store_path, a_file / "c.mcap"), "OUT.mcap"),
+                       (("perturb", tmp_path / "none.tum", a_dir, "--drift-percent-per-m", "1"), "POSES_OUT")):
+        line = _one_line_error(_cli(*args))
+        assert flag in line and (str(a_file) in line or str(a_dir) in line), line
+    assert not (tmp_path / "d.json").exists()
     binary = tmp_path / "b.tum"
     binary.write_bytes(b"\xff\xfe\x00garbage")
     _one_line_error(_cli("perturb", binary, tmp_path / "o.tum", "--drift-percent-per-m", "1"))

@@ -476,6 +476,13 @@ def test_recover_after_a_segment_file_was_deleted(tmp_path: Path, synthetic_fram
             for rev in range(3):
                 assert store.poses(rev).tobytes() == before[rev][:4].tobytes()
 
+    env = {**os.environ, "COLUMNS": "300"}  # the command line shows the loss whenever the store is opened
+    info = subprocess.run([sys.executable, "-m", "driftmap.cli", "info", str(tidied)], capture_output=True, text=True, env=env)
+    assert info.returncode == 0, info.stderr
+    assert "recovered earlier: frames [4, 5, 6, 7] are lost" in info.stderr and "lost to damage" in info.stdout
+    again = subprocess.run([sys.executable, "-m", "driftmap.cli", "recover", str(tidied)], capture_output=True, text=True, env=env)
+    assert again.returncode == 0 and "nothing to do" in again.stdout
+
     with FrameStore.open(path, "a") as store:  # appending goes on in a new segment (no name of a lost one reused)
         store.append(synthetic_frames[5])  # a lost frame stored again is a new frame: no old revision moves it
         store.append(synthetic_frames[8])

@@ -52,6 +52,25 @@ def _choice(value: str, allowed: tuple[str, ...], flag: str) -> str:
         raise typer.BadParameter(f"{value!r} is not one of {', '.join(allowed)}", param_hint=flag)
     return v
 
+def _check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> None:
+    """Refuse, before any work, an output that cannot be written: a folder in its way (or, for ``folder``, a file),
+    a file where a parent folder must go, or a parent that is not writable (one error line, exit 1)."""
+    from driftmap.errors import ConfigError
+
+    if path is None:
+        return
+    if path.exists() and (path.is_dir() != folder):
+        what = "a folder" if path.is_dir() else "a file"
+        raise ConfigError(f"{path}: is {what}, but {flag} needs a {'folder' if folder else 'file'} path")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{path}: {parent} is a file, so {flag} cannot make a folder there")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{path}: {parent} is not writable ({flag})")
+
+
 _state = {"debug": False}
 
 
@@ -181,6 +200,7 @@ def convert(
     from driftmap.sources.mcap_export import convert as convert_source
 
     format = _source_format(source, format)
+    _check_output(out, "OUT.mcap")
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames)
     console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
@@ -305,6 +325,8 @@ def _open_store(path: Path, mode: str = "r"):
     store = FrameStore.open(path, mode)
     for event in store.recovery_events:
         err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
+    if store.loss:
+        err_console.print(Text.assemble(("recovered earlier:", "yellow"), f" {store.loss}"), highlight=False)
     return store
 
 
@@ -394,6 +416,8 @@ def export(
         voxel_size_m = settings.map.export_voxel_size_m
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
+    for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")):
+        _check_output(path, flag)
     if not overwrite:  # every output checked before anything is written
         from driftmap.sources.mcap_export import ExportError
 
@@ -452,6 +476,8 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")
         table.add_row("points (sensor frames)", f"{n_points:,}")
         table.add_row("revisions", f"{len(store.revisions)} (head {store.head}: {store.revisions[store.head].source.value})")
+        if store.loss:
+            table.add_row("lost to damage (driftmap recover)", str(store.loss))
         table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")
         if invalid:
             table.add_row("invalid-pixel fraction (mean / max)", f"{np.mean(invalid):.3f} / {np.max(invalid):.3f}")
@@ -466,7 +492,7 @@ def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Fr
 
     events = FrameStore.recover(store_path)
     if not events:
-        console.print(f"{store_path}: every segment is intact; nothing to do")
+        console.print(f"{store_path}: intact (or already recovered); nothing to do")
     for event in events:
         console.print(f"recovered {event}")
 
@@ -502,6 +528,8 @@ def diagnose(
     from driftmap.frame import SensorKind
 
     gt_format = None if gt_format is None else _choice(gt_format, ("tum", "kitti"), "--gt-format")
+    _check_output(json_path, "--json")  # before the diagnosis, not after it
+    _check_output(report, "--report", folder=True)
     with _open_store(store_path) as store:
         if len(store) == 0:
             raise DriftmapError(f"{store_path}: the store has no frames")
@@ -515,9 +543,11 @@ def diagnose(
             raise ConfigError("--gt-format / --kitti-frame / --calib describe the --gt FILE; give one")
         ground_truth = (read_ground_truth(store, gt, gt_format or "tum", kitti_frame=kitti_frame, calib_file=calib)
                         if gt is not None else None)
-        with console.status(f"sampling {len(store)} frames"):
+        with _progress() as progress:
+            task = progress.add_task("sampling frames", total=len(store))
             t0 = time.perf_counter()
-            cloud = DiagnosticCloud.from_store(store, cfg.sampling)
+            cloud = DiagnosticCloud.from_store(store, cfg.sampling,
+                                               progress=lambda stage, done, total: progress.update(task, completed=done))
             sampling_s = time.perf_counter() - t0
         with console.status("diagnosing"):
             result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
@@ -641,6 +671,7 @@ def perturb(
     from driftmap.diagnostics.perturb import PosePerturbation, parse_vector, perturb_pose_file
     from driftmap.errors import ConfigError
 
+    _check_output(poses_out, "POSES_OUT")
     if (step_m is not None or step_deg is not None) and step_frame is None:
         raise ConfigError("--step-m / --step-deg need --step-frame")
     if step_frame is not None and step_m is None and step_deg is None:

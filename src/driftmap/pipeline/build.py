@@ -458,14 +458,14 @@ def build(
             (out / BUILD_SOURCE_FILE).write_text(json.dumps({**record, **(recorded or {})}, indent=2) + "\n")
         return _build(src, store, config, pose_of, poses_from_source, loop_closure, tick, stages, inject_wrong_loop,
                       source_record=record)
-    except BaseException:
+    except BaseException as exc:
         n_stored = len(store)
         store.close()
+        what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
         if new_store and n_stored == 0:
             _remove_new_store(out, out_existed, new_dirs)
-        elif new_store:
-            logger.warning("build failed after storing %d frames; %s is kept (continue it with --resume)",
-                           n_stored, out)
+        elif n_stored:
+            logger.warning("build %s with %d frames stored; %s is kept (continue it with --resume)", what, n_stored, out)
         raise
     finally:
         store.close()
