@@ -232,3 +232,15 @@ def test_a_wrong_depth_scale_names_the_flag_that_fixes_it(sevenscenes_dir: Path,
     kitti = _one_line_error(_cli("build", sevenscenes_dir.parent / "kitti-00-frames0-15", "--out", tmp_path / "k",
                                  "--depth-scale", "1000"))
     assert "depth.depth_scale (--depth-scale)" in kitti and "kitti" in kitti
+
+
+def test_convert_keeps_an_existing_output_unless_overwrite(tmp_path: Path) -> None:
+    from driftmap.demo import embedded_log_path
+
+    out = tmp_path / "c.mcap"
+    assert _cli("convert", embedded_log_path(), out, "--frames", "0:2").returncode == 0
+    first = out.read_bytes()
+    line = _one_line_error(_cli("convert", embedded_log_path(), out, "--frames", "0:3"))
+    assert f"{out}: already exists (OUT.mcap); pass --overwrite" in line and out.read_bytes() == first
+    assert _cli("convert", embedded_log_path(), out, "--frames", "0:3", "--overwrite").returncode == 0
+    assert out.read_bytes() != first

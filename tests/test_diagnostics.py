@@ -111,8 +111,15 @@ def test_cli_perturb_matches_the_library(tmp_path: Path, fmt: str) -> None:
     np.testing.assert_allclose(got.poses, expected, atol=2e-8)
     if fmt == "tum":
         np.testing.assert_array_equal(got.stamps_ns, stamps)
-    bad = runner.invoke(app, ["perturb", str(src), str(out), "--step-m", "0.02,0,0"])
-    assert bad.exit_code != 0
+    bad = runner.invoke(app, ["perturb", str(src), str(out), "--step-m", "0.02,0,0", "--overwrite"])
+    assert bad.exit_code != 0 and "--step-frame" in str(bad.exception)
+    # an existing output is kept unless --overwrite
+    again = ["perturb", str(src), str(out), "--format", fmt, "--drift-percent-per-m", "1"]
+    refused = runner.invoke(app, again)
+    assert refused.exit_code != 0 and "already exists (POSES_OUT)" in str(refused.exception)
+    assert np.allclose((read_tum if fmt == "tum" else read_kitti)(out).poses, got.poses)
+    assert runner.invoke(app, [*again, "--overwrite"]).exit_code == 0
+    assert not np.allclose((read_tum if fmt == "tum" else read_kitti)(out).poses, got.poses)
 
 
 # ---------------------------------------------------------------------------------------------- MME / MPV

@@ -11,6 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from driftmap import SensorKind, geometry
+from driftmap.errors import SourceError
 from driftmap.demo import LOOP_WALL, embedded_log_path
 from driftmap.diagnostics.walls import wall_spread
 from driftmap.map.fusion import fuse
@@ -36,6 +37,20 @@ def test_generator_is_deterministic(tmp_path: Path) -> None:
     assert _digest(a) == _digest(b)
     c = generate_synthetic_log(tmp_path / "c", replace(SMALL, seed=SMALL.seed + 1))
     assert _digest(a)["depth/000001.png"] != _digest(c)["depth/000001.png"], "the seed must matter"
+
+
+def test_regenerating_into_an_earlier_log_leaves_no_stale_frames(tmp_path: Path) -> None:
+    out = tmp_path / "log"
+    generate_synthetic_log(out, replace(SMALL, n_frames=5, lidar=True))
+    generate_synthetic_log(out, replace(SMALL, n_frames=3))
+    fresh = generate_synthetic_log(tmp_path / "fresh", replace(SMALL, n_frames=3))
+    assert _digest(out) == _digest(fresh)  # frames 3-4 and the LiDAR scans of the earlier log are gone
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    with pytest.raises(SourceError, match=r"other: is not empty and holds no synthetic log"):
+        generate_synthetic_log(other, SMALL)
+    assert [p.name for p in other.iterdir()] == ["notes.txt"]
 
 
 def test_embedded_log_matches_its_generator(tmp_path: Path) -> None:

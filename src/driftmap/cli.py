@@ -71,6 +71,14 @@ def _check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> N
         raise ConfigError(f"{path}: {parent} is not writable ({flag})")
 
 
+def _refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
+    """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
+    from driftmap.errors import ConfigError
+
+    if path.is_file() and not overwrite:
+        raise ConfigError(f"{path}: already exists ({flag}); pass --overwrite to replace it")
+
+
 _state = {"debug": False}
 
 
@@ -195,12 +203,14 @@ def convert(
     out: Annotated[Path, typer.Argument(metavar="OUT.mcap", help="MCAP file to write (ROS 2 messages).")],
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
     frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing OUT.mcap; without it an existing file is refused before anything is read.")] = False,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.sources.mcap_export import convert as convert_source
 
     format = _source_format(source, format)
     _check_output(out, "OUT.mcap")
+    _refuse_existing(out, "OUT.mcap", overwrite)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames)
     console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
@@ -666,12 +676,14 @@ def perturb(
     drift_direction: Annotated[str, typer.Option("--drift-direction", help="World direction of the translation drift 'x,y,z'.")] = "1,0,0",
     drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", help="Rotation drift (deg per m travelled).")] = 0.0,
     drift_axis: Annotated[str, typer.Option("--drift-axis", help="World axis of the rotation drift 'x,y,z' (through the first position).")] = "0,0,1",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing POSES_OUT; without it an existing file is refused.")] = False,
 ) -> None:
     """Write a perturbed copy of a trajectory: a translation/rotation step at a frame and/or a linear drift."""
     from driftmap.diagnostics.perturb import PosePerturbation, parse_vector, perturb_pose_file
     from driftmap.errors import ConfigError
 
     _check_output(poses_out, "POSES_OUT")
+    _refuse_existing(poses_out, "POSES_OUT", overwrite)
     if (step_m is not None or step_deg is not None) and step_frame is None:
         raise ConfigError("--step-m / --step-deg need --step-frame")
     if step_frame is not None and step_m is None and step_deg is None:

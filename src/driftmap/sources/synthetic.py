@@ -246,10 +246,33 @@ def render_lidar(
     return np.hstack([pts, intensity[:, None]]).astype(np.float32)
 
 
+def _clear_earlier_log(out: Path) -> None:
+    """Remove the frame files of an earlier synthetic log in ``out``; refuse a folder that holds anything else."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise SourceError(f"{out}: is a file, not a folder for a synthetic log")
+    if not any(out.iterdir()):
+        return
+    try:
+        earlier = json.loads((out / METADATA_FILE).read_text()).get("format") == FORMAT_NAME
+    except (OSError, ValueError, AttributeError):
+        earlier = False
+    if not earlier:
+        raise SourceError(f"{out}: is not empty and holds no synthetic log ({METADATA_FILE}); give a new or empty folder")
+    stale = [*out.glob("depth/[0-9]*.png"), *out.glob("lidar/[0-9]*.bin")]
+    for f in stale:
+        f.unlink()
+    logger.info("%s: replacing an earlier synthetic log (%d frame files removed)", out, len(stale))
+
+
 def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | None = None) -> Path:
-    """Write a synthetic log to ``out_dir`` (created; existing files of the same names are replaced)."""
+    """Write a synthetic log to ``out_dir``: a new or empty folder, or an earlier synthetic log, which is replaced
+    (its frame files that the new log does not have are removed, so no stale frame stays behind). Any other
+    non-empty folder is refused with :class:`SourceError` (nothing of it is touched)."""
     config = config or SyntheticLogConfig()
     out = Path(out_dir)
+    _clear_earlier_log(out)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(config.seed)
     scene, glass_ids = _build_scene()
