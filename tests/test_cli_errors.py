@@ -149,6 +149,9 @@ def test_export_checks_the_map_name_before_writing_anything(store_path: Path, tm
     out = _cli("export", store_path, "--trajectory", tmp_path / "t.tum", "--map", tmp_path / "m.xyz")
     assert out.returncode == 2 and ".ply or .pcd" in " ".join(out.stderr.split()), out.stderr
     assert not (tmp_path / "t.tum").exists()
+    out = _cli("export", store_path, "--trajectory", tmp_path / "t.tum", "--map", tmp_path / "m.ply", "--voxel-size-m", "-1")
+    assert out.returncode == 2 and "--voxel-size-m" in out.stderr and "must be positive" in out.stderr, out.stderr
+    assert not (tmp_path / "t.tum").exists()
 
 
 def test_poses_from_source_on_a_converted_log_points_to_its_ground_truth(sevenscenes_dir: Path, tmp_path: Path) -> None:

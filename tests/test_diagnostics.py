@@ -113,6 +113,8 @@ def test_cli_perturb_matches_the_library(tmp_path: Path, fmt: str) -> None:
         np.testing.assert_array_equal(got.stamps_ns, stamps)
     bad = runner.invoke(app, ["perturb", str(src), str(out), "--step-m", "0.02,0,0", "--overwrite"])
     assert bad.exit_code != 0 and "--step-frame" in str(bad.exception)
+    beyond = runner.invoke(app, ["perturb", str(src), str(tmp_path / "x"), "--format", fmt, "--step-frame", "40", "--step-m", "0,0,1"])
+    assert beyond.exit_code != 0 and "the step frame 40 is not a row of the file (it has rows 0..39)" in str(beyond.exception)
     # an existing output is kept unless --overwrite
     again = ["perturb", str(src), str(out), "--format", fmt, "--drift-percent-per-m", "1"]
     refused = runner.invoke(app, again)

@@ -421,6 +421,8 @@ def export(
     if map_path is None and trajectory is None and mcap_path is None:
         raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
     format = _choice(format, ("tum", "kitti"), "--format")
+    if voxel_size_m is not None and not voxel_size_m > 0:
+        raise typer.BadParameter(f"must be positive, got {voxel_size_m}", param_hint="--voxel-size-m")
     settings = DriftmapConfig.load(config)  # validated also when --voxel-size-m is given
     if voxel_size_m is None:
         voxel_size_m = settings.map.export_voxel_size_m

@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
-from driftmap.errors import ConfigError, GeometryError
+from driftmap.errors import ConfigError, GeometryError, parse_enum
 from driftmap.frame import Frame, PointAttributes
 from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
 
@@ -147,11 +147,14 @@ def perturb_pose_file(path_in: str | Path, path_out: str | Path, perturbation: P
     ``step_frame`` (if given) is the frame at which the step happens: for KITTI the row index (row i is
     frame_id i), for TUM the row index too (rows in file order; the rows are sorted by stamp first).
     """
-    fmt = PoseFileFormat(format)
+    fmt = parse_enum(PoseFileFormat, format, f"{path_in}: format")
     traj = read_tum(path_in) if fmt is PoseFileFormat.TUM else read_kitti(path_in)
     order = np.argsort(traj.stamps_ns, kind="stable")
     if step_frame is not None:
         perturbation = PosePerturbation(**{**perturbation.__dict__, "step_index": int(step_frame)})
+    k = perturbation.step_index
+    if k is not None and not 0 <= k < len(traj):
+        raise ConfigError(f"{path_in}: the step frame {k} is not a row of the file (it has rows 0..{len(traj) - 1})")
     poses = perturbation.apply(traj.poses[order])
     out = np.empty_like(poses)
     out[order] = poses

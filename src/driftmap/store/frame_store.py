@@ -674,7 +674,7 @@ class FrameStore:
             events.insert(0, RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{kept_manifest}",
                                            n_frames, n_revisions, 0, rebuilt_because))
         for event in events:
-            logger.warning("recover %s: %s", path, event)
+            logger.info("recover %s: %s", path, event)  # returned to the caller, who reports them
         return events
 
     # ------------------------------------------------------------------------------------------ frames
