@@ -12,6 +12,7 @@ import pytest
 from scipy.stats import spearmanr
 from typer.testing import CliRunner
 
+from driftmap import geometry
 from driftmap.cli import app
 from driftmap.demo import embedded_log_path
 from driftmap.diagnostics import perturb
@@ -395,6 +396,23 @@ def test_trajectory_errors_agree_with_evo(kitchen: FrameStore) -> None:
     assert ours.ate_rmse_m == pytest.approx(ape.get_statistic(metrics.StatisticsType.rmse), rel=1e-6)
     assert ours.rpe_trans_rmse_m == pytest.approx(rpe_t.get_statistic(metrics.StatisticsType.rmse), rel=1e-6)
     assert ours.rpe_rot_rmse_deg == pytest.approx(rpe_r.get_statistic(metrics.StatisticsType.rmse), rel=1e-5)
+
+
+def test_ground_truth_of_another_trajectory_is_warned_about(caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    from driftmap.diagnostics.attribution import ground_truth_errors
+
+    rng = np.random.default_rng(3)
+    est = np.tile(np.eye(4), (50, 1, 1))
+    est[:, :3, 3] = np.cumsum(rng.normal(scale=0.05, size=(50, 3)), axis=0)
+    other = np.tile(np.eye(4), (50, 1, 1))
+    other[:, :3, 3] = np.cumsum(rng.normal(scale=5.0, size=(50, 3)), axis=0)  # a car's drive, not this camera's
+    with caplog.at_level(logging.WARNING, logger="driftmap.diagnostics.attribution"):
+        ground_truth_errors(est, est @ geometry.make_transform(None, (0.01, 0, 0)))
+        assert not caplog.records
+        out = ground_truth_errors(est, other)
+    assert out["ate_rmse_m"] > 10 and "is the ground truth for these frames" in caplog.records[0].getMessage()
 
 
 def test_kitti_segment_errors_of_a_known_drift() -> None:

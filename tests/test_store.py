@@ -613,3 +613,25 @@ def test_an_interrupted_recovery_is_finished_by_the_next_one(tmp_path: Path, syn
     with FrameStore.open(path) as store:
         assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3] and store.head == 1
         assert store.poses(1).tobytes() == before[:4].tobytes()
+
+
+def test_an_index_match_of_a_stamped_file_whose_stamps_disagree_is_warned_about(tmp_path: Path, synthetic_frames: list[Frame],
+                                                                                caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    from driftmap.trajectory import Trajectory, write_tum
+
+    with FrameStore.create(tmp_path / "s") as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        poses, stamps = store.poses(0), store.ledger.stamps_ns
+        own = tmp_path / "own.tum"
+        write_tum(own, Trajectory(stamps, poses))
+        other = tmp_path / "other.tum"  # another recording: the same number of rows, stamps an hour later
+        write_tum(other, Trajectory(stamps + 3600 * 10**9, poses))
+        with caplog.at_level(logging.WARNING, logger="driftmap.store.frame_store"):
+            store.import_poses(own, match="index")
+            assert not [r for r in caplog.records if "stamps differ" in r.getMessage()]
+            store.import_poses(other, match="index")
+        warned = [r.getMessage() for r in caplog.records if "stamps differ" in r.getMessage()]
+        assert len(warned) == 1 and "other.tum" in warned[0] and "3600.000 s" in warned[0]

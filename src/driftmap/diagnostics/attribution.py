@@ -530,6 +530,12 @@ def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.
     total = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
     lengths = segment_lengths_m or tuple(total * k / 8.0 for k in range(1, 8)) if total > 0 else ()
     seg = segment_errors(estimate, ground_truth, lengths_m=lengths, step_frames=1) if lengths else None
+    est_path = float(np.sum(np.linalg.norm(np.diff(np.asarray(estimate)[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    lengths_apart = max(total, est_path) > 3.0 * max(min(total, est_path), 0.1) and max(total, est_path) > 1.0
+    if lengths_apart or errs.ate_rmse_m > max(0.5 * max(total, est_path), 1.0):
+        logger.warning("ATE %.2f m over a path of %.2f m estimated and %.2f m in the ground truth: is the ground truth "
+                       "for these frames (the same sequence, frame numbering and sensor frame)?",
+                       errs.ate_rmse_m, est_path, total)
     return {
         "ate_rmse_m": errs.ate_rmse_m,
         "ate_max_m": errs.ate_max_m,

@@ -865,6 +865,15 @@ class FrameStore:
         matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
         if not matched.poses:
             raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}); nothing imported")
+        if fmt is TrajectoryFormat.TUM and mode is PoseMatchMode.INDEX and matched.rows:
+            # rows taken as frame ids although the file has stamps: say so when the stamps tell another story
+            fids = np.fromiter(matched.rows, dtype=np.int64)
+            rows = np.fromiter(matched.rows.values(), dtype=np.int64)
+            dt_ns = np.abs(trajectory.stamps_ns[rows] - self.ledger.stamps_ns[np.searchsorted(self.ledger.frame_ids, fids)])
+            if float(np.median(dt_ns)) > max_dt_ns:
+                logger.warning("%s: matched by index (row i = frame_id i), but the rows' stamps differ from their frames' "
+                               "by %.3f s (median): is the file for these frames? (match by stamp to use the stamps)",
+                               file, float(np.median(dt_ns)) / 1e9)
         if matched.unmatched_rows:
             logger.warning("%s: %d rows matched no stored frame and were ignored", file, len(matched.unmatched_rows))
         if matched.unmatched_frames:
