@@ -354,3 +354,33 @@ def test_build_applies_the_depth_table_environment_and_flag_in_order(sevenscenes
     out = run("typo", "--config", typo)
     assert out.returncode == 1 and not (tmp_path / "typo").exists()
     assert f"{typo}: depth.max_depth_mm: unknown setting" in " ".join(out.stderr.split()), out.stderr
+
+
+def test_intrinsics_reach_the_sources_that_take_them(datasets_dir: Path, kitti_dir: Path, tmp_path: Path) -> None:
+    """--intrinsics / depth.intrinsics: the data set's own values give the same frames; a focal length 10 % longer
+    pulls every point 10 % closer to the optical axis (x/z and y/z shrink by 1/1.1); a LiDAR source takes none."""
+    import subprocess
+    import sys
+
+    from driftmap.config import DepthConfig
+
+    icl = datasets_dir / "icl-nuim-livingroom1-5frames"
+    runs = {"own": None, "same": "525,525,319.5,239.5", "longer": "577.5,577.5,319.5,239.5,640,480"}
+    for name, value in runs.items():
+        build(icl, tmp_path / name, frames="0:2", poses_from_source=True, loop_closure=False,
+              depth=DepthConfig(intrinsics=value))
+    with FrameStore.open(tmp_path / "own") as a, FrameStore.open(tmp_path / "same") as b, \
+            FrameStore.open(tmp_path / "longer") as c:
+        for fid in a.frame_ids:
+            p, q, r = (s.frame(int(fid)).points_sensor for s in (a, b, c))
+            assert np.array_equal(p, q)
+            assert len(r) == len(p)
+            np.testing.assert_allclose(r[:, 2], p[:, 2], rtol=1e-6)
+            np.testing.assert_allclose(r[:, :2] * 1.1, p[:, :2], atol=2e-6)
+            assert c.frame(int(fid)).intrinsics.fx == pytest.approx(1.1 * a.frame(int(fid)).intrinsics.fx)  # (pixel stride 2)
+    with pytest.raises(ConfigError, match=r"depth\.intrinsics \(--intrinsics\): does not apply .*format kitti"):
+        build(kitti_dir, tmp_path / "k", frames="0:1", depth=DepthConfig(intrinsics="fr1"))
+    bad = subprocess.run([sys.executable, "-m", "driftmap.cli", "build", str(icl), "--out", str(tmp_path / "bad"),
+                          "--intrinsics", "525,525,319.5"], capture_output=True, text=True, timeout=300)
+    assert bad.returncode == 1 and "depth.intrinsics" in bad.stderr and "3 numbers" in bad.stderr, bad.stderr
+    assert not (tmp_path / "bad").exists()

@@ -28,7 +28,7 @@ import tomllib
 from pathlib import Path
 from typing import Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from driftmap.errors import ConfigError
@@ -45,6 +45,17 @@ class DepthConfig(BaseModel):
     max_depth_m: float | None = Field(None, gt=0.0, description="depth at and beyond which pixels are rejected (m), like Open3D depth_trunc; None: the source's default (7-Scenes 4.0 m, TUM and Redwood 5.0 m)")
     depth_scale: float | None = Field(None, gt=0.0, description="depth-image units per metre (1000: millimetres, TUM 5000); None: the format's own; 'build --depth-scale' sets it")
     check_scale: bool = Field(True, description="false: skip the sources' sensor-range check of the depth scale (the DepthScaleError that suggests another depth_scale)")
+    intrinsics: str | None = Field(None, description="depth camera intrinsics 'fx,fy,cx,cy[,width,height]' (pixels), a TUM setup fr1 | fr2 | fr3, or an Open3D intrinsics JSON path, for sources that take them (TUM, Redwood / ICL-NUIM); None: the source's own (its calibration file, the TUM folder name); 'build --intrinsics' sets it")
+
+    @field_validator("intrinsics")
+    @classmethod
+    def _intrinsics(cls, value: str | None) -> str | None:
+        if value is not None:
+            try:
+                _intrinsics_option(value)
+            except ConfigError as exc:
+                raise ValueError(str(exc).removeprefix("depth.intrinsics: ")) from None
+        return value
 
     @model_validator(mode="after")
     def _range(self) -> DepthConfig:
@@ -58,7 +69,23 @@ class DepthConfig(BaseModel):
                                    if getattr(self, name) is not None}
         if not self.check_scale:
             options["sensor_range_m"] = None
+        if self.intrinsics is not None:
+            options["intrinsics"] = _intrinsics_option(self.intrinsics)
         return options
+
+
+def _intrinsics_option(text: str) -> Any:
+    """``depth.intrinsics`` as a source takes it: numbers as a list, anything else (fr1, a JSON path) as given."""
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        numbers = [float(p) for p in parts]
+    except ValueError:
+        if len(parts) > 1:
+            raise ConfigError(f"depth.intrinsics: {text!r} is neither 'fx,fy,cx,cy[,width,height]' numbers nor a name or path") from None
+        return text
+    if len(numbers) not in (4, 6):
+        raise ConfigError(f"depth.intrinsics: {text!r} has {len(numbers)} numbers; give fx,fy,cx,cy[,width,height]")
+    return numbers[:4] + [int(v) for v in numbers[4:]]
 
 
 class PreprocessConfig(BaseModel):

@@ -125,7 +125,8 @@ class BuildResult:
 
 #: the depth options (``DepthConfig.source_options``) and the setting that names each in messages
 _DEPTH_OPTION_SETTINGS = {"min_depth_m": "depth.min_depth_m", "max_depth_m": "depth.max_depth_m",
-                          "depth_scale": "depth.depth_scale (--depth-scale)", "sensor_range_m": "depth.check_scale = false"}
+                          "depth_scale": "depth.depth_scale (--depth-scale)", "sensor_range_m": "depth.check_scale = false",
+                          "intrinsics": "depth.intrinsics (--intrinsics)"}
 
 
 def _detect_format(path: Path, format: str | None) -> str | None:
