@@ -296,6 +296,7 @@ def test_cli_convert_round_trip(tmp_path: Path) -> None:
     out = tmp_path / "log.mcap"
     result = _cli("convert", embedded_log_path(), out, "--frames", "0:5")
     assert result.returncode == 0, result.stderr
+    assert f"wrote {out} (" in result.stdout and ": 5 frames," in result.stdout, result.stdout  # a sentence, not a dump
     back = list(open_source(out))
     original = list(SyntheticLog(embedded_log_path(), frames="0:5"))
     assert [f.frame_id for f in back] == [f.frame_id for f in original]

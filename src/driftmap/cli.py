@@ -214,7 +214,13 @@ def convert(
     _refuse_existing(out, "OUT.mcap", overwrite)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames)
-    console.print(f"wrote {out}: " + ", ".join(f"{k} {v}" for k, v in summary.items() if not isinstance(v, (dict, list))))
+    extra = {k: v for k, v in summary.items()
+             if k not in ("out", "source", "frames", "points", "bytes", "skipped") and not isinstance(v, (dict, list))}
+    console.print(f"wrote {out} ({summary.get('bytes', 0) / 1e6:.1f} MB): {summary.get('frames')} frames, "
+                  f"{summary.get('points', 0):,} points from {summary.get('source')}"
+                  + (f"; {summary['skipped']} frames skipped (see the log)" if summary.get("skipped") else "")
+                  + ("; " + ", ".join(f"{k.replace('_', ' ')} {v}" for k, v in extra.items()) if extra else ""),
+                  highlight=False)
 
 
 _KITTI_FRAME_HELP = ("Frame of a KITTI pose file on a store of KITTI Velodyne scans: auto (the data set's own cam0 "
