@@ -270,7 +270,7 @@ def build(
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
     config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [build] table (the build.* keys 'driftmap config' lists) and [depth] table, or a bare build config (the whole file); DRIFTMAP_DEPTH__* environment variables and --depth-scale override the [depth] table.")] = None,
     depth_scale: Annotated[Optional[float], typer.Option("--depth-scale", help="Depth-image units per metre (1000: millimetres, TUM 5000) for depth sources that take one (7-Scenes, TUM, Redwood / ICL-NUIM); default: the format's own (depth.depth_scale).")] = None,
-    intrinsics: Annotated[Optional[str], typer.Option("--intrinsics", help="Depth camera intrinsics 'fx,fy,cx,cy[,width,height]', a TUM setup fr1|fr2|fr3, or an Open3D intrinsics JSON, for sources that take them (TUM, Redwood / ICL-NUIM); default: the source's own (depth.intrinsics).")] = None,
+    intrinsics: Annotated[Optional[str], typer.Option("--intrinsics", help="Depth camera intrinsics 'fx,fy,cx,cy[,width,height]', a TUM setup fr1|fr2|fr3, or an Open3D intrinsics JSON, for sources that take them (7-Scenes, TUM, Redwood / ICL-NUIM); default: the source's own (depth.intrinsics).")] = None,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,

@@ -45,7 +45,7 @@ class DepthConfig(BaseModel):
     max_depth_m: float | None = Field(None, gt=0.0, description="depth at and beyond which pixels are rejected (m), like Open3D depth_trunc; None: the source's default (7-Scenes 4.0 m, TUM and Redwood 5.0 m)")
     depth_scale: float | None = Field(None, gt=0.0, description="depth-image units per metre (1000: millimetres, TUM 5000); None: the format's own; 'build --depth-scale' sets it")
     check_scale: bool = Field(True, description="false: skip the sources' sensor-range check of the depth scale (the DepthScaleError that suggests another depth_scale)")
-    intrinsics: str | None = Field(None, description="depth camera intrinsics 'fx,fy,cx,cy[,width,height]' (pixels), a TUM setup fr1 | fr2 | fr3, or an Open3D intrinsics JSON path, for sources that take them (TUM, Redwood / ICL-NUIM); None: the source's own (its calibration file, the TUM folder name); 'build --intrinsics' sets it")
+    intrinsics: str | None = Field(None, description="depth camera intrinsics 'fx,fy,cx,cy[,width,height]' (pixels), a TUM setup fr1 | fr2 | fr3, or an Open3D intrinsics JSON path, for sources that take them (7-Scenes, TUM, Redwood / ICL-NUIM); None: the source's own (its calibration file, the TUM folder name); 'build --intrinsics' sets it")
 
     @field_validator("intrinsics")
     @classmethod
