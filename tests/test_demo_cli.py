@@ -143,6 +143,13 @@ def test_config_show_lists_settings_with_units() -> None:
     assert out.returncode == 0, out.stderr
     for name in ("depth.max_depth_m", "map.export_voxel_size_m", "build.loop_closure.proximity_radius_m"):
         assert name in out.stdout
+    # the odometry defaults depend on the sensor kind: both are listed (not just "None")
+    from driftmap.frame import SensorKind
+    from driftmap.registration.odometry import OdometryConfig
+
+    row = next(line for line in out.stdout.splitlines() if "build.odometry.max_range_m" in line)
+    depth, lidar = (OdometryConfig.for_sensor(k).max_range_m for k in (SensorKind.DEPTH_CAMERA, SensorKind.LIDAR))
+    assert f"depth: {depth}, lidar: {lidar}" in row
 
 
 def test_one_config_file_holds_the_general_and_the_build_settings(tmp_path: Path) -> None:

@@ -172,7 +172,17 @@ def config_cmd(
                 table.add_row(prefix + name, str(shown), field.description or "")
 
     walk(DriftmapConfig.load(file), "")
-    walk(BuildConfig() if file is None else BuildConfig.load(file), "build.")
+    build_cfg = BuildConfig() if file is None else BuildConfig.load(file)
+    walk(build_cfg, "build.")
+    if build_cfg.odometry is None:  # per sensor kind: show both defaults instead of "None"
+        from driftmap.frame import SensorKind
+        from driftmap.registration.odometry import OdometryConfig
+
+        depth, lidar = (OdometryConfig.for_sensor(k) for k in (SensorKind.DEPTH_CAMERA, SensorKind.LIDAR))
+        for name, field in OdometryConfig.model_fields.items():
+            a, b = (getattr(c, name) for c in (depth, lidar))
+            a, b = (v.value if hasattr(v, "value") else v for v in (a, b))
+            table.add_row(f"build.odometry.{name}", f"depth: {a}, lidar: {b}" if a != b else str(a), field.description or "")
     console.print(table)
 
 
