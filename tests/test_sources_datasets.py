@@ -391,9 +391,36 @@ def test_kitti_short_pose_file_names_the_first_frame_without_a_pose(tmp_path: Pa
     lines = (folder / "poses.txt").read_text().splitlines()
     (folder / "poses.txt").write_text("\n".join(lines[:2]) + "\n")
     expected = r"poses\.txt: 2 pose rows for 3 frames; the first frame without a pose is frame 2"
-    with pytest.raises(SourceError, match=expected):
-        open_source(folder)
+    with pytest.raises(SourceError, match=expected):  # the scans' poses would come from it: an error
+        open_source(folder, poses_from_ground_truth=True)
     assert open_source(folder, lenient=True).ground_truth().frame_ids.tolist() == [0, 1]
+    # ground truth nobody asked to place the scans with: a warning, the scans are read (odometry builds work)
+    assert open_source(folder).ground_truth().frame_ids.tolist() == [0, 1]
+
+
+def test_kitti_without_calibration_reads_the_scans_and_drops_nan_points(tmp_path: Path, kitti_dir: Path,
+                                                                       caplog: pytest.LogCaptureFixture) -> None:
+    import logging
+
+    folder = _small_kitti(tmp_path / "seq", kitti_dir)
+    (folder / "calib.txt").unlink()
+    with pytest.raises(SourceError, match=r"calib\.txt: calibration not found"):
+        open_source(folder, poses_from_ground_truth=True)
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
+        src = open_source(folder)
+    assert src.ground_truth() is None and any("without ground truth" in r.getMessage() for r in caplog.records)
+    full = src.frame(1).points_sensor
+    bin1 = folder / "velodyne" / "000001.bin"
+    scan = np.fromfile(bin1, dtype="<f4").reshape(-1, 4)
+    scan[[5, 17], 1] = [np.nan, np.inf]
+    bin1.unlink()  # a symlink or a copy: write a file of our own
+    scan.tofile(bin1)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
+        frame = open_source(folder).frame(1)
+    assert np.array_equal(frame.points_sensor, np.delete(full, [5, 17], axis=0))
+    assert len(frame.attributes.intensity) == len(frame.points_sensor)
+    assert any("000001.bin: frame 1: 2 of" in r.getMessage() for r in caplog.records)
 
 
 def test_kitti_non_monotonic_times_name_the_file_and_frames(tmp_path: Path, kitti_dir: Path) -> None:

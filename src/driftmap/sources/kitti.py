@@ -297,26 +297,38 @@ class KittiOdometry(FrameSource):
         self._gt: dict[int, NDArray[np.float64]] = {}
         self.T_cam0_velo: NDArray[np.float64] | None = None
         if self.poses_file is not None:
-            cam0 = read_kitti(self.poses_file)
-            self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
-            velo = velo_poses_from_cam0(cam0.poses, self.T_cam0_velo)
-            for n, _, _ in self._entries:
-                if n < len(velo):
-                    try:  # KITTI rows have 7 digits: project onto SO(3) like every stored pose
-                        self._gt[n] = geometry.as_rigid(velo[n], f"{self.poses_file} row {n + 1} (frame {n})")
-                    except TransformError as exc:
-                        raise SourceError(str(exc)) from exc
-            missing = [n for n, _, _ in self._entries if n >= len(velo)]
-            if missing:
-                reason = (f"{self.poses_file}: {len(velo)} pose rows for {len(self._entries)} frames; the first frame "
-                          f"without a pose is frame {missing[0]}")
-                if not lenient:
-                    raise SourceError(reason)
-                logger.warning("%s (%d frames have no ground truth)", reason, len(missing))
+            try:
+                # the scans' poses come from it: every problem is an error; otherwise it is extra: a warning
+                self._load_ground_truth(lenient=lenient or not poses_from_ground_truth)
+            except SourceError as exc:
+                if poses_from_ground_truth:
+                    raise
+                logger.warning("%s; the scans are read without ground truth", exc)
+                self.poses_file, self._gt, self.T_cam0_velo = None, {}, None
         elif poses_from_ground_truth:
             raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) but poses_from_ground_truth=True")
         elif (self.path / "calib.txt").is_file():
             self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
+
+    def _load_ground_truth(self, *, lenient: bool) -> None:
+        """``poses_file`` (cam0) as ``T_world_velo`` per frame, converted with ``calib.txt`` ``Tr``."""
+        assert self.poses_file is not None
+        cam0 = read_kitti(self.poses_file)
+        self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
+        velo = velo_poses_from_cam0(cam0.poses, self.T_cam0_velo)
+        for n, _, _ in self._entries:
+            if n < len(velo):
+                try:  # KITTI rows have 7 digits: project onto SO(3) like every stored pose
+                    self._gt[n] = geometry.as_rigid(velo[n], f"{self.poses_file} row {n + 1} (frame {n})")
+                except TransformError as exc:
+                    raise SourceError(str(exc)) from exc
+        missing = [n for n, _, _ in self._entries if n >= len(velo)]
+        if missing:
+            reason = (f"{self.poses_file}: {len(velo)} pose rows for {len(self._entries)} frames; the first frame "
+                      f"without a pose is frame {missing[0]}")
+            if not lenient:
+                raise SourceError(reason)
+            logger.warning("%s (%d frames have no ground truth)", reason, len(missing))
 
     def _find_poses(self, poses: str | Path | None) -> Path | None:
         if poses is not None:
@@ -360,6 +372,14 @@ class KittiOdometry(FrameSource):
         else:
             pose = pose_or_none(None, PoseSource.NONE)
         scan = self.read_scan(index)
+        finite = np.isfinite(scan[:, :3]).all(axis=1)
+        if not finite.all():  # as the cloud-folder and PointCloud2 readers: dropped and counted
+            logger.warning("%s: frame %d: %d of %d points have a NaN or infinite coordinate and are left out",
+                           file, frame_id, int(len(scan) - finite.sum()), len(scan))
+            scan = scan[finite]
+        if len(scan) < MIN_SCAN_POINTS:
+            logger.warning("%s: frame %d has only %d points (a full HDL-64 scan has ~120k): a truncated or "
+                           "filtered scan registers poorly", file, frame_id, len(scan))
         return Frame(
             frame_id=frame_id,
             stamp_ns=stamp_ns,
@@ -387,6 +407,10 @@ class KittiOdometry(FrameSource):
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "ground_truth": None if self.poses_file is None else str(self.poses_file),
                 "estimate": None}
+
+
+MIN_SCAN_POINTS = 1000
+"""A scan with fewer points than this is warned about (KITTI's HDL-64 gives ~120k per scan)."""
 
 
 def _detect(path: Path) -> bool:
