@@ -184,3 +184,19 @@ def test_process_frame_chain_on_a_synthetic_frame(embedded_frames: list) -> None
     # normals face the sensor: n . (0 - p) > 0 in the sensor frame
     facing = np.einsum("ij,ij->i", out.attributes.normal_sensor, -out.points_sensor)
     assert np.mean(facing > 0) > 0.99
+
+
+def test_ground_truth_and_odometry_follow_the_sensor_and_the_frame_selection(tmp_path: Path) -> None:
+    folder = generate_synthetic_log(tmp_path / "lidar", replace(SMALL, n_frames=4, lidar=True))
+    depth, lidar = SyntheticLog(folder), SyntheticLog(folder, sensor="lidar")
+    T_base_lidar = np.asarray(lidar.meta["T_base_lidar"])
+    for which in ("ground_truth", "odometry"):
+        d, li = getattr(depth, which)(), getattr(lidar, which)()
+        # the same base pose, seen through each sensor's mounting
+        np.testing.assert_allclose(li.poses, d.poses @ geometry.invert(depth.T_base_sensor) @ T_base_lidar, atol=1e-12)
+        assert not np.allclose(li.poses[:, :3, 3], d.poses[:, :3, 3])
+    # each LiDAR frame carries the odometry as its pose estimate: odometry() is exactly those poses
+    np.testing.assert_allclose(lidar.odometry().poses, [f.T_world_sensor for f in lidar], atol=1e-12)
+    part = SyntheticLog(folder, sensor="lidar", frames="1:4:2")
+    assert part.ground_truth().frame_ids.tolist() == [1, 3] == [f.frame_id for f in part]
+    np.testing.assert_array_equal(part.ground_truth().poses, lidar.ground_truth().poses[[1, 3]])

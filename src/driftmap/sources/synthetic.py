@@ -420,14 +420,23 @@ class SyntheticLog(FrameSource):
             provenance=Provenance(str(file.resolve()), index),
         )
 
+    def _of_selected_sensor(self, trajectory: Trajectory) -> Trajectory:
+        """A depth-camera trajectory of the log as ``T_world_sensor`` of this source's sensor, selected frames only."""
+        idx = np.asarray(self._indices(), dtype=np.int64)
+        ids = np.array([int(f["frame_id"]) for f in self.meta["frames"]], dtype=np.int64)[idx]
+        poses = trajectory.poses[idx]
+        if self.sensor == "lidar":  # the files hold the depth camera's poses; the LiDAR sits elsewhere on the base
+            poses = poses @ geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
+        return Trajectory(trajectory.stamps_ns[idx], poses, ids)
+
     def odometry(self) -> Trajectory:
-        return self._odometry
+        """The drifting odometry as ``T_world_sensor`` of the selected frames (the frames' own pose estimates)."""
+        return self._of_selected_sensor(self._odometry)
 
     def ground_truth(self) -> Trajectory:
-        """Ground-truth ``T_world_sensor`` of the depth camera (for evaluation only), all frames."""
-        gt = read_tum(self.path / self.meta["ground_truth"])
-        ids = np.array([int(f["frame_id"]) for f in self.meta["frames"]], dtype=np.int64)
-        return Trajectory(gt.stamps_ns, gt.poses, ids)
+        """Ground-truth ``T_world_sensor`` of the selected frames, for the sensor this source yields (the depth
+        camera, or with ``sensor="lidar"`` the LiDAR); for evaluation only."""
+        return self._of_selected_sensor(read_tum(self.path / self.meta["ground_truth"]))
 
 
 def _detect(path: Path) -> bool:
