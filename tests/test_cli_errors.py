@@ -247,3 +247,23 @@ def test_convert_keeps_an_existing_output_unless_overwrite(tmp_path: Path) -> No
     assert f"{out}: already exists (OUT.mcap); pass --overwrite" in line and out.read_bytes() == first
     assert _cli("convert", embedded_log_path(), out, "--frames", "0:3", "--overwrite").returncode == 0
     assert out.read_bytes() != first
+
+
+def test_messages_for_a_file_that_is_not_what_the_command_wants(store_path: Path, tmp_path: Path, kitti_dir: Path,
+                                                                datasets_dir: Path) -> None:
+    # a KITTI pose file read as TUM says so
+    line = _one_line_error(_cli("diagnose", store_path, "--json", tmp_path / "d.json", "--gt", kitti_dir / "poses.txt"))
+    assert "expected 8 columns" in line and "a KITTI pose file?" in line and "--gt-format kitti" in line
+    # stamps that never meet: both ranges are named
+    tum = tmp_path / "late.tum"
+    assert _cli("export", store_path, "--trajectory", tum).returncode == 0
+    rows = [line.split() for line in tum.read_text().splitlines() if line and not line.startswith("#")]
+    tum.write_text("".join(f"{float(r[0]) + 3600:.9f} {' '.join(r[1:])}\n" for r in rows))
+    line = _one_line_error(_cli("correct", store_path, "--poses", tum))
+    assert "no row matched a stored frame (match by stamp)" in line and "the file's stamps span" in line
+    line = _one_line_error(_cli("diagnose", store_path, "--json", tmp_path / "d.json", "--gt", tum))
+    assert "the file's stamps span" in line and "the frames'" in line
+    # a log file given where a store belongs: not a store (and no advice to recover it)
+    bag = datasets_dir / "bags" / "nav2_turtlebot.mcap"
+    line = _one_line_error(_cli("info", bag))
+    assert "is a file, not a driftmap store" in line and "recover" not in line

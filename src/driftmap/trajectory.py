@@ -163,7 +163,9 @@ def read_tum(path: str | Path) -> Trajectory:
             continue
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
-            raise SourceError(f"{path}:{lineno}: expected 8 columns 'stamp tx ty tz qx qy qz qw', got {len(parts)}")
+            hint = " (12 numbers per row: a KITTI pose file? read it as KITTI, e.g. --format kitti / --gt-format kitti)" \
+                if len(parts) == 12 else ""
+            raise SourceError(f"{path}:{lineno}: expected 8 columns 'stamp tx ty tz qx qy qz qw', got {len(parts)}{hint}")
         try:
             stamps.append(_stamp_s_to_ns(parts[0]))
             rows.append([float(p) for p in parts[1:]])

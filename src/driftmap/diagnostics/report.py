@@ -193,7 +193,7 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
     """
     from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
-    from driftmap.store.ledger import PoseMatchMode, match_trajectory
+    from driftmap.store.ledger import PoseMatchMode, match_trajectory, stamp_ranges_text
 
     fmt = format.lower()
     if fmt not in ("tum", "kitti"):
@@ -208,7 +208,8 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     mode = PoseMatchMode.STAMP if fmt == "tum" else PoseMatchMode.INDEX
     matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
     if not matched.poses:
-        raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value})")
+        why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
+        raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")
     if len(matched.poses) < MIN_GT_FRAMES:  # found before the costly diagnosis, not after it
         raise StoreError(f"{path}: ground truth matched only {len(matched.poses)} of the {len(store.ledger.frame_ids)} "
                          f"stored frames (by {mode.value}); ATE/RPE need at least {MIN_GT_FRAMES}")

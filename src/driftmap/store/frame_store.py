@@ -63,6 +63,7 @@ from driftmap.store.ledger import (
     Revision,
     _preview,
     match_trajectory,
+    stamp_ranges_text,
 )
 from driftmap.store.segment import (
     EVENT_DATA_LOST,
@@ -320,6 +321,9 @@ class FrameStore:
     def _read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
         """The manifest; a missing or unreadable one is a StoreCorruptError (``hint``: saying how to rebuild it)."""
         file = path / MANIFEST
+        if path.is_file():
+            raise StoreError(f"{path}: is a file, not a driftmap store (a store is a folder holding {MANIFEST} and "
+                             f"segment-NNNNNN.mcap files)")
         fix = f"; run `driftmap recover {path}` to rebuild it from the segments" if hint else ""
         try:
             manifest = json.loads(file.read_text())
@@ -864,7 +868,8 @@ class FrameStore:
             trajectory = Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
         matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
         if not matched.poses:
-            raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}); nothing imported")
+            why = f" ({stamp_ranges_text(trajectory, self.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
+            raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}){why}; nothing imported")
         if fmt is TrajectoryFormat.TUM and mode is PoseMatchMode.INDEX and matched.rows:
             # rows taken as frame ids although the file has stamps: say so when the stamps tell another story
             fids = np.fromiter(matched.rows, dtype=np.int64)

@@ -688,6 +688,14 @@ class PoseMatch:
         return len(self.poses)
 
 
+def stamp_ranges_text(trajectory: Trajectory, stamps_ns: ArrayLike) -> str:
+    """The file's and the frames' stamp ranges, for a message about stamps that do not meet."""
+    def span(values: NDArray[np.int64]) -> str:
+        return f"{values.min() / 1e9:.3f}..{values.max() / 1e9:.3f} s" if values.size else "none"
+    return (f"the file's stamps span {span(np.asarray(trajectory.stamps_ns, dtype=np.int64))}, the frames' "
+            f"{span(np.asarray(stamps_ns, dtype=np.int64))}")
+
+
 def match_trajectory(
     trajectory: Trajectory,
     frame_ids: ArrayLike,
