@@ -8,6 +8,7 @@ files the tests write themselves (an unreadable depth image, pose files)."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -384,3 +385,39 @@ def test_intrinsics_reach_the_sources_that_take_them(datasets_dir: Path, kitti_d
                           "--intrinsics", "525,525,319.5"], capture_output=True, text=True, timeout=300)
     assert bad.returncode == 1 and "depth.intrinsics" in bad.stderr and "3 numbers" in bad.stderr, bad.stderr
     assert not (tmp_path / "bad").exists()
+
+
+def test_source_options_choose_the_stream_and_resume_checks_them(tmp_path: Path) -> None:
+    """--sensor reads the synthetic log's LiDAR (build and convert); an option the format does not take is
+    refused naming the flag, before a store is made; a resume must read the same stream."""
+    import subprocess
+    import sys
+
+    from driftmap.sources.base import open_source
+    from driftmap.sources.synthetic import SyntheticLog, SyntheticLogConfig, generate_synthetic_log
+
+    log = generate_synthetic_log(tmp_path / "log", SyntheticLogConfig(n_frames=4, width=80, height=60, fx=65.6,
+                                                                      fy=65.6, cx=39.5, cy=29.5, lidar=True))
+
+    def cli(*args: object) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                              timeout=300, env={**os.environ, "COLUMNS": "250"})
+
+    out = cli("build", log, "--out", tmp_path / "s", "--sensor", "lidar", "--poses-from-source", "--no-loop-closure")
+    assert out.returncode == 0, out.stderr
+    lidar = SyntheticLog(log, sensor="lidar")
+    with FrameStore.open(tmp_path / "s") as store:
+        assert store.frame_info(0)["sensor_kind"] == "lidar"
+        assert store.frame(2).points_sensor.tobytes() == lidar.frame(2).points_sensor.tobytes()
+        np.testing.assert_allclose(store.poses(0), lidar.odometry().poses, atol=1e-12)
+    assert json.loads((tmp_path / "s" / BUILD_SOURCE_FILE).read_text())["source_options"] == {"sensor": "lidar"}
+    again = cli("build", log, "--out", tmp_path / "s", "--poses-from-source", "--no-loop-closure", "--resume")
+    assert again.returncode == 1 and "different source options" in again.stderr and "--sensor lidar" in again.stderr
+    bad = cli("build", log, "--out", tmp_path / "t", "--topic", "/points")
+    assert bad.returncode == 1 and "--topic: does not apply" in bad.stderr and "--sensor" in bad.stderr
+    assert not (tmp_path / "t").exists()
+    mcap = tmp_path / "lidar.mcap"
+    assert cli("convert", log, mcap, "--sensor", "lidar").returncode == 0
+    back = open_source(mcap)
+    assert [f.sensor_kind.value for f in back] == ["lidar"] * 4
+    assert back.frame(1).points_sensor.tobytes() == lidar.frame(1).points_sensor.tobytes()

@@ -72,6 +72,29 @@ def _check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> N
         raise ConfigError(f"{path}: {parent} is not writable ({flag})")
 
 
+_SENSOR_HELP = "Which sensor of a log with several (the synthetic log: depth | lidar)."
+_TOPIC_HELP = "ROS logs: the PointCloud2 or depth Image topic to read (default: the only one)."
+_POSE_TF_HELP = "ROS logs: frame poses from TF, 'PARENT,CHILD' (e.g. map,base_link) looked up at each frame's stamp."
+_POSE_ODOM_HELP = "ROS logs: frame poses from this nav_msgs/Odometry topic (interpolated at each frame's stamp)."
+_LENIENT_HELP = "Skip unreadable frames (each logged with its reason) instead of stopping at the first."
+
+
+def _source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Optional[str],
+                    pose_from_odometry: Optional[str], lenient: bool) -> dict:
+    """The source options of ``build`` / ``convert`` that were given (checked against the format later)."""
+    from driftmap.errors import ConfigError
+
+    tf = None
+    if pose_from_tf is not None:
+        parts = [p.strip() for p in pose_from_tf.split(",")]
+        if len(parts) != 2 or not all(parts):
+            raise ConfigError(f"--pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {pose_from_tf!r}")
+        tf = (parts[0], parts[1])
+    options = {"sensor": sensor, "topic": topic, "pose_from_tf": tf, "pose_from_odometry": pose_from_odometry,
+               "lenient": lenient or None}
+    return {k: v for k, v in options.items() if v is not None}
+
+
 def _refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
     """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
     from driftmap.errors import ConfigError
@@ -215,15 +238,23 @@ def convert(
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
     frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing OUT.mcap; without it an existing file is refused before anything is read.")] = False,
+    sensor: Annotated[Optional[str], typer.Option("--sensor", help=_SENSOR_HELP)] = None,
+    topic: Annotated[Optional[str], typer.Option("--topic", help=_TOPIC_HELP)] = None,
+    pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP)] = None,
+    pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP)] = None,
+    lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
+    from driftmap.pipeline.build import check_source_options
     from driftmap.sources.mcap_export import convert as convert_source
 
     format = _source_format(source, format)
     _check_output(out, "OUT.mcap")
     _refuse_existing(out, "OUT.mcap", overwrite)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
+    check_source_options(source, format, options)
     with console.status(f"converting {source}"):
-        summary = convert_source(source, out, format=format, frames=frames)
+        summary = convert_source(source, out, format=format, frames=frames, **options)
     extra = {k: v for k, v in summary.items()
              if k not in ("out", "source", "frames", "points", "bytes", "skipped") and not isinstance(v, (dict, list))}
     console.print(f"wrote {out} ({summary.get('bytes', 0) / 1e6:.1f} MB): {summary.get('frames')} frames, "
@@ -281,6 +312,11 @@ def build(
     config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [build] table (the build.* keys 'driftmap config' lists) and [depth] table, or a bare build config (the whole file); DRIFTMAP_DEPTH__* environment variables and --depth-scale override the [depth] table.")] = None,
     depth_scale: Annotated[Optional[float], typer.Option("--depth-scale", help="Depth-image units per metre (1000: millimetres, TUM 5000) for depth sources that take one (7-Scenes, TUM, Redwood / ICL-NUIM); default: the format's own (depth.depth_scale).")] = None,
     intrinsics: Annotated[Optional[str], typer.Option("--intrinsics", help="Depth camera intrinsics 'fx,fy,cx,cy[,width,height]', a TUM setup fr1|fr2|fr3, or an Open3D intrinsics JSON, for sources that take them (7-Scenes, TUM, Redwood / ICL-NUIM); default: the source's own (depth.intrinsics).")] = None,
+    sensor: Annotated[Optional[str], typer.Option("--sensor", help=_SENSOR_HELP)] = None,
+    topic: Annotated[Optional[str], typer.Option("--topic", help=_TOPIC_HELP)] = None,
+    pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP + " With --poses-from-source they become revision 0.")] = None,
+    pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP + " With --poses-from-source they become revision 0.")] = None,
+    lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
@@ -296,6 +332,7 @@ def build(
     from driftmap.pipeline.build import build as run_build
 
     format = _source_format(source, format)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
     problems = []  # every problem of the config file and the environment at once
     try:
         cfg = _load_build_config(config)
@@ -320,7 +357,7 @@ def build(
             result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,
                                loop_closure=not no_loop_closure, frames=frames, resume=resume, progress=tick,
                                kitti_frame=kitti_frame, calib_file=calib, poses_max_dt_ns=round(max_dt_ms * 1e6),
-                               depth=settings.depth)
+                               depth=settings.depth, source_options=options)
         except DepthScaleError as exc:
             raise _with_depth_scale_hint(exc, source, format) from exc
     table = Table(title=f"driftmap build: {source} -> {out}")

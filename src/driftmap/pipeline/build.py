@@ -141,13 +141,37 @@ def _detect_format(path: Path, format: str | None) -> str | None:
     return None
 
 
-def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool,
-          depth_options: dict[str, Any] | None = None) -> FrameSource:
-    path = Path(source)
-    options: dict[str, Any] = {"frames": frames}
+#: source options the command line offers (``build`` / ``convert``) and the flag that sets each
+SOURCE_OPTION_FLAGS = {"sensor": "--sensor", "topic": "--topic", "pose_from_tf": "--pose-from-tf",
+                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient"}
+
+
+def source_params(path: Path, format: str | None) -> tuple[str | None, frozenset[str]]:
+    """The format of ``path`` (given or detected) and the options its opener takes."""
     fmt = _detect_format(path, format)
     opener = registered_formats()[fmt].open if fmt in registered_formats() else None
-    params = accepted_options(opener) if opener is not None else frozenset()
+    return fmt, accepted_options(opener) if opener is not None else frozenset()
+
+
+def check_source_options(path: Path, format: str | None, options: dict[str, Any]) -> None:
+    """Refuse source options (``SOURCE_OPTION_FLAGS``) the format of ``path`` does not take, naming the flags."""
+    fmt, params = source_params(path, format)
+    if fmt is None or not options:
+        return
+    refused = [k for k in options if k not in params]
+    if refused:
+        takes = [SOURCE_OPTION_FLAGS[k] for k in SOURCE_OPTION_FLAGS if k in params]
+        raise ConfigError(f"{', '.join(SOURCE_OPTION_FLAGS.get(k, k) for k in refused)}: does not apply to {path} "
+                          f"(format {fmt}" + (f", which takes {', '.join(takes)})" if takes else ", which takes none of "
+                          f"{', '.join(SOURCE_OPTION_FLAGS.values())})"))
+
+
+def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool,
+          depth_options: dict[str, Any] | None = None, source_options: dict[str, Any] | None = None) -> FrameSource:
+    path = Path(source)
+    options: dict[str, Any] = {"frames": frames}
+    fmt, params = source_params(path, format)
+    opener = registered_formats()[fmt].open if fmt in registered_formats() else None
     if depth_options and opener is not None:
         refused = [k for k in depth_options if k not in params]
         if refused:
@@ -157,6 +181,9 @@ def _open(source: str | Path, format: str | None, frames: str | None, config: Bu
                 + (f", which takes only {', '.join(takes)})" if takes else ", to which build passes no depth options)")
                 + "; remove it from the config file, the DRIFTMAP_DEPTH__* environment or the command line")
         options.update(depth_options)
+    if source_options:
+        check_source_options(path, fmt, source_options)
+        options.update(source_options)
     if poses_from_source and "poses_from_ground_truth" in params:
         options["poses_from_ground_truth"] = True  # data sets: their ground truth; logs carry their own poses
     if "pixel_stride" in params:
@@ -191,12 +218,15 @@ BUILD_SOURCE_FILE = "build_source.json"
 
 
 def _source_record(source: str | Path, src: FrameSource, poses: dict[str, Any] | None = None,
-                   depth: dict[str, Any] | None = None) -> dict[str, Any]:
+                   depth: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
     record = {"path": str(Path(source).resolve()), "format": src.format_name, "given": str(source)}
     if poses is not None:
         record["poses"] = poses
     if depth is not None:
         record["depth"] = {k: v for k, v in sorted(depth.items())}
+    if options:  # which sensor / topic / pose stream of the log: a resume must read the same
+        record["source_options"] = {k: list(v) if isinstance(v, tuple) else v for k, v in sorted(options.items())
+                                    if k != "lenient"}
     return record
 
 
@@ -268,6 +298,13 @@ def _check_resume_settings(store: FrameStore, src: FrameSource, recorded: dict[s
                 f"{out}: cannot --resume with different poses: the stored frames' revision-0 poses are "
                 f"'{stored.value}', this build asks for {_describe_poses(given)}; their poses would be in different "
                 f"coordinate frames. Resume with the same pose option or build into another --out")
+    if recorded is not None and recorded.get("source_options", {}) != record.get("source_options", {}):
+        def show_options(options: dict[str, Any]) -> str:
+            return ", ".join(f"{SOURCE_OPTION_FLAGS.get(k, k)} {v}" for k, v in options.items()) or "none"
+        raise ConfigError(
+            f"{out}: cannot --resume with different source options: the stored frames were read with "
+            f"{show_options(recorded.get('source_options', {}))} (recorded in {file}), this build with "
+            f"{show_options(record.get('source_options', {}))}; resume with the same options or build into another --out")
     if recorded is not None and "depth" in recorded and recorded["depth"] != record["depth"]:
         def show(options: dict[str, Any]) -> str:
             return ", ".join(f"{_DEPTH_OPTION_SETTINGS.get(k, k).split(' ')[0]}={v}" for k, v in options.items()) or "the source's defaults"
@@ -396,9 +433,13 @@ def build(
     calib_file: str | Path | None = None,
     poses_max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS,
     depth: DepthConfig | None = None,
+    source_options: dict[str, Any] | None = None,
 ) -> BuildResult:
     """Build (or ``resume``) a store from a source. See the module docstring for the stages.
 
+    ``source_options``: which stream of the source to read (``sensor``, ``topic``, ``pose_from_tf``,
+    ``pose_from_odometry``, ``lenient``: the command line's ``SOURCE_OPTION_FLAGS``); one the format does not take
+    is a :class:`ConfigError` naming the flag; they are recorded, and ``--resume`` must give the same.
     ``depth``: how a depth-image source reads its images (:class:`driftmap.config.DepthConfig`; None or unset
     fields: the source's own defaults). A set option the format does not take is a :class:`ConfigError`.
     ``--resume`` refuses a different source, pose mode (odometry / ``poses_file`` / ``poses_from_source``, and
@@ -426,12 +467,13 @@ def build(
     if store_exists and not resume:
         raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
     depth_options = (depth or DepthConfig()).source_options()
-    src = _open(source, format, frames, config, poses_from_source, depth_options)
+    source_options = {k: v for k, v in (source_options or {}).items() if v is not None and v is not False}
+    src = _open(source, format, frames, config, poses_from_source, depth_options, source_options)
     if config.depth_scale_error != 1.0 or config.focal_length_error != 1.0:
         logger.warning("build: frames perturbed on purpose (depth scale x%g, focal length x%g); recorded in build_config.json",
                        config.depth_scale_error, config.focal_length_error)
     record = _source_record(source, src, _poses_record(poses_file, poses_from_source, kitti_frame, calib_file),
-                            depth_options)
+                            depth_options, source_options)
     # inputs are checked before a store is created or opened for appending: a pose file that cannot be read
     # leaves nothing behind
     pose_of = _pose_file_lookup(poses_file, src, kitti_frame, calib_file, poses_max_dt_ns) if poses_file is not None else None

@@ -555,17 +555,19 @@ def write_depth_image_mcap(
 
 
 def convert(
-    src_path: str | Path, out_path: str | Path, *, format: str | None = None, frames: str | slice | None = None
+    src_path: str | Path, out_path: str | Path, *, format: str | None = None, frames: str | slice | None = None,
+    **options: Any,
 ) -> dict[str, Any]:
     """``driftmap convert SOURCE OUT.mcap [--format F] [--frames START:STOP[:STEP]]``: open any registered
     source and export its frames (and its ground truth, if it has one, on a separate topic) to MCAP.
+    ``options`` go to the source's opener (e.g. ``sensor="lidar"``, ``topic=``).
 
     Returns the :func:`export_mcap` summary plus ``source``, ``source_format`` and ``skipped``.
     """
     src_path, out_path = Path(src_path), Path(out_path)
     if out_path.exists() and src_path.exists() and out_path.resolve() == src_path.resolve():
         raise ExportError(f"{out_path}: output would overwrite the source")
-    source = open_source(src_path, format=format, frames=frames)
+    source = open_source(src_path, format=format, frames=frames, **options)
     ground_truth = source.ground_truth()
     summary = export_mcap(source, out_path, ground_truth=ground_truth)
     summary.update(source=str(src_path), source_format=source.format_name, skipped=len(source.skipped))
