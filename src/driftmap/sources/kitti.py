@@ -306,7 +306,7 @@ class KittiOdometry(FrameSource):
                 logger.warning("%s; the scans are read without ground truth", exc)
                 self.poses_file, self._gt, self.T_cam0_velo = None, {}, None
         elif poses_from_ground_truth:
-            raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) but poses_from_ground_truth=True")
+            raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) to place the scans with (poses_from_ground_truth=True, build --poses-from-source)")
         elif (self.path / "calib.txt").is_file():
             self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
 

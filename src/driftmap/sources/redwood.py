@@ -294,7 +294,7 @@ class RedwoodRgbd(FrameSource):
                 logger.warning("%s: %d of %d frames have no ground-truth pose (first: frame %d)",
                                self.trajectory_file, len(missing), len(ids), missing[0])
         elif poses_from_ground_truth:
-            raise SourceError(f"{self.trajectory_file}: ground truth not found (poses_from_ground_truth=True)")
+            raise SourceError(f"{self.trajectory_file}: ground truth not found (poses_from_ground_truth=True, build --poses-from-source)")
         self.odometry_file = self.path / odometry
         self._odometry: dict[int, NDArray[np.float64]] | None = None
         if self.odometry_file.is_file():

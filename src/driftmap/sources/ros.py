@@ -332,7 +332,7 @@ class _McapBackend(_Backend):
                 f"{self._size} ({type(exc).__name__}: {exc}); {n} messages before it are readable"
             )
             if not self.lenient:
-                raise SourceError(message + " (open with lenient=True to read them)") from exc
+                raise SourceError(message + " (open with lenient=True, CLI --lenient, to read them)") from exc
             logger.warning("%s; reading those (lenient)", message)
             self.damage = message
         else:

@@ -182,7 +182,7 @@ class TumRgbd(FrameSource):
                     self.gt_tolerance_ns / 1e6, first, listed[first][0],
                 )
         elif poses_from_ground_truth:
-            raise SourceError(f"{self.groundtruth_file}: ground truth not found (poses_from_ground_truth=True)")
+            raise SourceError(f"{self.groundtruth_file}: ground truth not found (poses_from_ground_truth=True, build --poses-from-source)")
         else:
             self.frames_without_ground_truth = [e[0] for e in self._entries]
 
