@@ -174,14 +174,20 @@ def test_other_kitti_files_are_velodyne_poses_unless_told_cam0(store_copy: Path,
     velo_file, cam0_file = tmp_path / "lidar_odometry.txt", tmp_path / "cam0_rewritten.txt"
     write_kitti(velo_file, Trajectory(ids, velo_rows, ids))
     write_kitti(cam0_file, Trajectory(ids, cam0, ids))  # same poses, other bytes: not recognised as the data set's
-    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
+    with caplog.at_level(logging.INFO, logger="driftmap.sources.kitti"):
         _correct(store_copy, velo_file)
-    assert any(r.levelno == logging.WARNING and "taken as Velodyne poses" in r.getMessage() for r in caplog.records)
+    # Velodyne rows (they move along x): an info line, no warning to learn to ignore
+    assert any(r.levelno == logging.INFO and "taken as Velodyne poses" in r.getMessage() for r in caplog.records)
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING and r.name == "driftmap.sources.kitti"]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):  # cam0 rows read in auto: a warning
+        _correct(store_copy, cam0_file, "--kitti-frame", "auto")
+    assert any("they look like cam0 poses" in r.getMessage() for r in caplog.records)
     _correct(store_copy, cam0_file, "--kitti-frame", "cam0")
     with FrameStore.open(store_copy) as store:
         stored = [int(i) for i in store.frame_ids]
         np.testing.assert_allclose(store.poses(1)[:, :3, 3], velo_rows[stored][:, :3, 3], rtol=0, atol=1e-8)
-        np.testing.assert_allclose(store.poses(2), store.poses(0), rtol=0, atol=1e-7)  # 9-decimal rewrite
+        np.testing.assert_allclose(store.poses(3), store.poses(0), rtol=0, atol=1e-7)  # 9-decimal rewrite
 
 
 def test_build_uses_the_same_rule(kitti_dir: Path, velo_rows: np.ndarray, tmp_path: Path) -> None:

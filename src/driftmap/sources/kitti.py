@@ -230,9 +230,38 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
         logger.info("%s is the data set's cam0 ground truth: rows converted to the Velodyne frame with %s Tr",
                     poses_file, calib)
         return velo_poses_from_cam0(rows, read_calib_tr(calib))
-    logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo; a cam0 ground-truth file must be converted "
-                   "(inv(Tr) @ T_cam0 @ Tr): use --kitti-frame cam0 (or --poses-from-source for build)", poses_file)
+    share = camera_like_motion(rows)
+    if share is not None and share >= CAMERA_LIKE_SHARE:
+        logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo, but they move along their own z axis "
+                       "(a camera's forward axis; a Velodyne's is x) in %.0f %% of the steps: they look like cam0 poses, "
+                       "which must be converted (inv(Tr) @ T_cam0 @ Tr): use --kitti-frame cam0 (or --poses-from-source "
+                       "for build)", poses_file, 100 * share)
+    else:
+        logger.info("%s: KITTI rows taken as Velodyne poses T_world_velo (KITTI frame auto; their motion is not a "
+                    "camera's); --kitti-frame cam0 converts cam0 poses", poses_file)
     return rows
+
+
+CAMERA_LIKE_SHARE = 0.6
+"""Rows whose steps mostly run along their own z axis look like camera poses (optical axis z forward)."""
+
+
+def camera_like_motion(T_world_x: NDArray[np.float64], min_step_m: float = 0.05) -> float | None:
+    """The share of the steps (of at least ``min_step_m``) between consecutive poses that run mostly along the
+    pose's own z axis (|z| > 0.8 of the step, in the earlier pose's frame); ``None`` without such steps.
+
+    A car-mounted camera moves along its optical axis (z); a Velodyne along its x axis: a KITTI file whose rows
+    move along z on a store of Velodyne scans is, most likely, cam0 poses that were not converted."""
+    T = np.asarray(T_world_x, dtype=np.float64).reshape(-1, 4, 4)
+    if len(T) < 2:
+        return None
+    rel = geometry.invert(T[:-1]) @ T[1:]
+    t = rel[:, :3, 3]
+    norm = np.linalg.norm(t, axis=1)
+    moving = norm >= min_step_m
+    if not moving.any():
+        return None
+    return float(np.mean(np.abs(t[moving, 2]) > 0.8 * norm[moving]))
 
 
 class KittiOdometry(FrameSource):
