@@ -635,3 +635,15 @@ def test_an_index_match_of_a_stamped_file_whose_stamps_disagree_is_warned_about(
             store.import_poses(other, match="index")
         warned = [r.getMessage() for r in caplog.records if "stamps differ" in r.getMessage()]
         assert len(warned) == 1 and "other.tum" in warned[0] and "3600.000 s" in warned[0]
+        # a file of another place: the correction is kept (it is what the file says), with a warning
+        far = tmp_path / "far.tum"
+        moved = poses.copy()
+        moved[:, :3, 3] += [40.0, 0.0, 0.0]
+        write_tum(far, Trajectory(stamps, moved))
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="driftmap.store.frame_store"):
+            store.import_poses(own)  # back to the frames' own poses: no warning
+            assert not [r for r in caplog.records if "is the file for these frames" in r.getMessage()]
+            rev, _ = store.import_poses(far)
+        warned = [r.getMessage() for r in caplog.records if "is the file for these frames" in r.getMessage()]
+        assert len(warned) == 1 and "far.tum" in warned[0] and f"--to {rev.parent_id}" in warned[0]

@@ -886,7 +886,19 @@ class FrameStore:
                            "propagated from the matched frames" if propagate else "they keep their poses")
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
         self._warn_if_unchanged(revision, str(file))
+        self._warn_if_implausible(revision, str(file))
         return revision, matched
+
+    def _warn_if_implausible(self, revision: Revision, what: str) -> None:
+        """A correction that moves frames farther than half the trajectory spans (at least 1 m) is kept -- it is
+        what the file says -- but most likely the file is for other frames: say so (``rollback`` undoes it)."""
+        before = self.poses(revision.parent_id)[:, :3, 3]
+        span = float(np.linalg.norm(before.max(axis=0) - before.min(axis=0))) if len(before) else 0.0
+        moved = self.diff(revision.parent_id, revision.revision_id).max_translation_m
+        if moved > max(1.0, 0.5 * span):
+            logger.warning("%s: revision %d moves frames by up to %.2f m, while revision %d's trajectory spans %.2f m: "
+                           "is the file for these frames? (driftmap rollback STORE --to %d undoes it)", what,
+                           revision.revision_id, moved, revision.parent_id, span, revision.parent_id)
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,
                           format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:
