@@ -657,7 +657,7 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     if headless is None:
         headless = not has_display
     elif not headless and not has_display:
-        raise ConfigError("no display (DISPLAY / WAYLAND_DISPLAY are unset): render headless PNG views instead")
+        raise ConfigError("no display (DISPLAY / WAYLAND_DISPLAY are unset): render headless PNG views instead (headless=True; CLI: --headless, or leave --no-headless out)")
     if backend == "auto":
         backend = "open3d" if headless else "window"
     if backend == "window" and headless:
