@@ -486,15 +486,12 @@ def export(
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
     for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")):
         _check_output(path, flag)
-    if not overwrite:  # every output checked before anything is written
-        from driftmap.sources.mcap_export import ExportError
-
-        outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")]
-        if map_path is not None and voxel_size_m is not None:
-            outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
-        for path, flag in outputs:
-            if path is not None and path.is_file():
-                raise ExportError(f"{path}: already exists ({flag}); pass --overwrite to replace it")
+    outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")]
+    if map_path is not None and voxel_size_m is not None:
+        outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
+    for path, flag in outputs:  # every output checked before anything is written
+        if path is not None:
+            _refuse_existing(path, flag, overwrite)
     with _open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)

@@ -82,6 +82,15 @@ def rigid_stack_problems(poses: ArrayLike, *, tolerance: float = RIGID_TOLERANCE
     return bad, reason
 
 
+def require_rigid_stack(poses: ArrayLike, frame_ids: ArrayLike, what: str) -> None:
+    """:class:`TransformError` naming ``what`` and the frame of the first non-rigid row (see
+    :func:`rigid_stack_problems`), and how many rows are bad."""
+    bad, reason = rigid_stack_problems(poses)
+    if bad.size:
+        frame = int(np.asarray(frame_ids).reshape(-1)[bad[0]])
+        raise TransformError(f"{what}: pose of frame {frame} {reason} ({bad.size} bad pose(s) in all)")
+
+
 def invert(T: NDArray[np.float64]) -> NDArray[np.float64]:
     """Inverse of a rigid transform or a (..., 4, 4) stack of them (uses ``R^T``, not a general matrix inverse)."""
     T = np.asarray(T, dtype=np.float64)

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, StoreError, TransformError
+from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame
 from driftmap.map._kernels import (
     INF_KEY,
@@ -168,13 +168,6 @@ def _vec3(method: str, name: str, value: Sequence[float]) -> NDArray[np.float64]
     if np.isnan(out).any():
         raise ConfigError(f"{method}: {name} has a NaN coordinate: {out.tolist()}")
     return out
-
-
-def _check_poses(method: str, poses: NDArray[np.float64], frame_ids: Sequence[int] | NDArray[np.int64]) -> None:
-    """Refuse a pose stack with a non-rigid row (a scaled or NaN matrix would silently warp the map)."""
-    bad, reason = geometry.rigid_stack_problems(poses)
-    if bad.size:
-        raise TransformError(f"{method}: pose of frame {int(frame_ids[bad[0]])} {reason} ({bad.size} bad pose(s) in all)")
 
 
 def _z_range(method: str, z_range_m: tuple[float, float]) -> tuple[float, float]:
@@ -354,7 +347,7 @@ class MapView:
                 raise StoreError(f"from_frames: no pose for frame(s) {missing[:10]} in `poses` ({len(missing)} missing)")
         placed = np.array([f.T_world_sensor if poses is None else poses[f.frame_id] for f in frames],
                           dtype=np.float64).reshape(-1, 4, 4)
-        _check_poses("from_frames", placed, ids)
+        geometry.require_rigid_stack(placed, ids, "from_frames")
         view._add(
             ids,
             [f.stamp_ns for f in frames],
@@ -536,7 +529,7 @@ class MapView:
             target = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
             if len(target) != len(self.frame_ids):
                 raise StoreError(f"apply: {len(target)} poses for {len(self.frame_ids)} frames")
-            _check_poses("apply", target, self.frame_ids)
+            geometry.require_rigid_stack(target, self.frame_ids, "apply")
         moved = np.flatnonzero(~np.all(np.abs(target - self._T) <= POSE_EPSILON, axis=(1, 2)))  # NaN: stale, redo
         before_boxes = self._boxes[moved].copy()
         before_voxels = [self._voxels(r, voxel_size_m) for r in moved] if voxel_size_m else None

@@ -171,8 +171,7 @@ def _open(source: str | Path, format: str | None, frames: str | None, config: Bu
     path = Path(source)
     options: dict[str, Any] = {"frames": frames}
     fmt, params = source_params(path, format)
-    opener = registered_formats()[fmt].open if fmt in registered_formats() else None
-    if depth_options and opener is not None:
+    if depth_options and fmt in registered_formats():
         refused = [k for k in depth_options if k not in params]
         if refused:
             takes = [_DEPTH_OPTION_SETTINGS[k] for k in _DEPTH_OPTION_SETTINGS if k in params]

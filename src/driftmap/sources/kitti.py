@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, SourceError, TransformError
+from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source
 from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
@@ -195,11 +195,7 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
     - ``cam0``: rows are converted with ``calib_file`` or else the origin's ``calib.txt``; neither ->
       :class:`ConfigError` naming ``poses_file``.
     """
-    try:
-        frame = KittiFrame(kitti_frame)
-    except ValueError:
-        raise ConfigError(f"{poses_file}: KITTI frame must be one of {[f.value for f in KittiFrame]}, "
-                          f"got {kitti_frame!r}") from None
+    frame = parse_enum(KittiFrame, kitti_frame, f"{poses_file}: KITTI frame")
     rows = np.asarray(T_world_x, dtype=np.float64)
     calib = Path(calib_file) if calib_file is not None else (origin.calib_file if origin is not None else None)
     if frame is KittiFrame.VELODYNE:

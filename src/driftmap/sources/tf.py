@@ -122,28 +122,21 @@ class TransformSeries:
         name = f"{self.parent_frame} -> {self.child_frame}"
         return f"{name} ({self.what})" if self.what else name
 
+    def first_uncovered(self, stamps_ns: NDArray[np.int64]) -> int | None:
+        """The first of ``stamps_ns`` outside the samples' range (any, without samples); ``None`` if all are in it."""
+        q = np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+        if len(self.stamps_ns) == 0:
+            return int(q[0]) if q.size else None
+        outside = np.flatnonzero((q < self.stamps_ns[0]) | (q > self.stamps_ns[-1]))
+        return int(q[outside[0]]) if outside.size else None
+
     def covers(self, stamp_ns: int) -> bool:
         return len(self.stamps_ns) > 0 and self.stamps_ns[0] <= stamp_ns <= self.stamps_ns[-1]
 
     def at(self, stamp_ns: int) -> NDArray[np.float64]:
         """``T_parent_child`` at ``stamp_ns``: the sample itself on an exact stamp, else SE(3) interpolation
         between the two neighbouring samples. Raises :class:`TfError` outside the sample range."""
-        stamp_ns = int(stamp_ns)
-        stamps = self.stamps_ns
-        if len(stamps) == 0:
-            raise TfError(f"{self._describe()}: no samples")
-        if not self.covers(stamp_ns):
-            first, last = self.time_range_ns
-            raise TfError(
-                f"{self._describe()}: no data at {_fmt_ns(stamp_ns)}; samples cover {_fmt_ns(first)} .. "
-                f"{_fmt_ns(last)} ({len(stamps)} samples; no extrapolation)"
-            )
-        i = int(np.searchsorted(stamps, stamp_ns, side="right")) - 1
-        if stamps[i] == stamp_ns:
-            return np.array(self.T_parent_child[i])
-        s0, s1 = int(stamps[i]), int(stamps[i + 1])
-        alpha = (stamp_ns - s0) / (s1 - s0)
-        return geometry.interpolate_se3(self.T_parent_child[i], self.T_parent_child[i + 1], alpha)
+        return self.at_many([int(stamp_ns)])[0]
 
     def at_many(self, stamps_ns: Sequence[int] | NDArray[np.integer]) -> NDArray[np.float64]:
         """(M, 4, 4) transforms at several stamps (each like :meth:`at`, computed in one batch)."""
@@ -151,9 +144,15 @@ class TransformSeries:
         if q.size == 0:
             return np.empty((0, 4, 4))
         stamps = self.stamps_ns
-        outside = np.flatnonzero((q < stamps[0]) | (q > stamps[-1])) if len(stamps) else np.arange(q.size)
-        if outside.size:
-            self.at(int(q[outside[0]]))  # raises the error that names the first stamp without data
+        if len(stamps) == 0:
+            raise TfError(f"{self._describe()}: no samples")
+        bad = self.first_uncovered(q)
+        if bad is not None:
+            first, last = self.time_range_ns
+            raise TfError(
+                f"{self._describe()}: no data at {_fmt_ns(bad)}; samples cover {_fmt_ns(first)} .. "
+                f"{_fmt_ns(last)} ({len(stamps)} samples; no extrapolation)"
+            )
         i = np.searchsorted(stamps, q, side="right") - 1
         exact = stamps[i] == q
         out = np.array(self.T_parent_child[i])
@@ -305,19 +304,6 @@ class TfBuffer:
             )
         return up_source[: up_source.index(common)], up_target[: up_target.index(common)]
 
-    def _edge_at(self, child: str, stamp_ns: int | None, target: str, source: str) -> NDArray[np.float64]:
-        """``T_parent_child`` of ``child``'s edge at ``stamp_ns``."""
-        if child in self._static:
-            return self._static[child][1]
-        edge = self._edge(child)
-        assert edge is not None
-        if stamp_ns is None:
-            return edge.T_parent_child[-1]
-        try:
-            return edge.at(stamp_ns)
-        except TfError as exc:
-            raise TfError(f"lookup {target} <- {source} at {_fmt_ns(stamp_ns)}: {exc}") from None
-
     def can_transform(self, target_frame: str, source_frame: str, stamp_ns: int | None = None) -> bool:
         try:
             self.lookup(target_frame, source_frame, stamp_ns)
@@ -363,18 +349,10 @@ class TfBuffer:
         target, source = normalize_frame(target_frame), normalize_frame(source_frame)
         if target == source:
             return np.eye(4)
-        up_source, up_target = self._path(target, source)
         if stamp_ns is None:
             time_range = self.time_range_ns(target, source)
-            stamp_ns = None if time_range is None else time_range[1]
-        # T_ancestor_source = T_anc_c1 @ ... @ T_ck_source, built from the source end upwards
-        T_anc_source = np.eye(4)
-        for child in up_source:
-            T_anc_source = self._edge_at(child, stamp_ns, target, source) @ T_anc_source
-        T_anc_target = np.eye(4)
-        for child in up_target:
-            T_anc_target = self._edge_at(child, stamp_ns, target, source) @ T_anc_target
-        return geometry.invert(T_anc_target) @ T_anc_source
+            stamp_ns = 0 if time_range is None else time_range[1]  # a static path holds at any time
+        return self.lookup_many(target, source, [int(stamp_ns)])[0]
 
     def lookup_many(self, target_frame: str, source_frame: str, stamps_ns: Iterable[int]) -> NDArray[np.float64]:
         """(M, 4, 4) lookups at several stamps (each like :meth:`lookup`, every edge interpolated in one batch)."""
@@ -394,7 +372,7 @@ class TfBuffer:
             try:
                 return edge.at_many(q)
             except TfError as exc:
-                raise TfError(f"lookup {target} <- {source}: {exc}") from None
+                raise TfError(f"lookup {target} <- {source} at {_fmt_ns(edge.first_uncovered(q))}: {exc}") from None
 
         T_anc_source = np.tile(np.eye(4), (q.size, 1, 1))
         for child in up_source:

@@ -813,15 +813,29 @@ class FrameStore:
         has those poses)."""
         self._writable()
         revision = self._persist(self.ledger.plan_rollback(to, note=note))
-        self._warn_if_unchanged(revision, f"{self.path}: rolling back to revision {to}")
+        self._warn_about(revision, f"{self.path}: rolling back to revision {to}")
         return revision
 
-    def _warn_if_unchanged(self, revision: Revision, what: str) -> None:
-        """A revision that moves no frame beyond text round-off is still recorded (the history says it was made),
-        but the user should know (the same rule ``driftmap revisions`` counts changes with)."""
-        if self.diff(revision.parent_id, revision.revision_id).n_changed == 0:
+    def _warn_about(self, revision: Revision, what: str, *, far: bool = False) -> None:
+        """Warnings about a new revision, which is recorded all the same (the history says it was made):
+
+        - it moves no frame beyond text round-off (the same rule ``driftmap revisions`` counts changes with);
+        - ``far``: it moves frames farther than half its parent's trajectory spans (at least 1 m), so the pose
+          file was most likely for other frames (``rollback`` undoes it).
+        """
+        diff = self.diff(revision.parent_id, revision.revision_id)
+        if diff.n_changed == 0:
             logger.warning("%s: every pose equals revision %d's within %g um / %g deg: the new revision changes no "
                            "pose", what, revision.parent_id, SAME_POSE_M * 1e6, SAME_POSE_DEG)
+            return
+        if not far:
+            return
+        before = self.poses(revision.parent_id)[:, :3, 3]
+        span = float(np.linalg.norm(before.max(axis=0) - before.min(axis=0))) if len(before) else 0.0
+        if diff.max_translation_m > max(1.0, 0.5 * span):
+            logger.warning("%s: revision %d moves frames by up to %.2f m, while revision %d's trajectory spans %.2f m: "
+                           "is the file for these frames? (driftmap rollback STORE --to %d undoes it)", what,
+                           revision.revision_id, diff.max_translation_m, revision.parent_id, span, revision.parent_id)
 
     def diff(self, a: int, b: int) -> PoseDiff:
         return self.ledger.diff(a, b)
@@ -885,20 +899,8 @@ class FrameStore:
             logger.warning("%s: %d stored frames had no row (%s)", file, len(matched.unmatched_frames),
                            "propagated from the matched frames" if propagate else "they keep their poses")
         revision = self.add_revision(matched.poses, source=source, propagate=propagate, note=f"imported from {Path(file).name}")
-        self._warn_if_unchanged(revision, str(file))
-        self._warn_if_implausible(revision, str(file))
+        self._warn_about(revision, str(file), far=True)
         return revision, matched
-
-    def _warn_if_implausible(self, revision: Revision, what: str) -> None:
-        """A correction that moves frames farther than half the trajectory spans (at least 1 m) is kept -- it is
-        what the file says -- but most likely the file is for other frames: say so (``rollback`` undoes it)."""
-        before = self.poses(revision.parent_id)[:, :3, 3]
-        span = float(np.linalg.norm(before.max(axis=0) - before.min(axis=0))) if len(before) else 0.0
-        moved = self.diff(revision.parent_id, revision.revision_id).max_translation_m
-        if moved > max(1.0, 0.5 * span):
-            logger.warning("%s: revision %d moves frames by up to %.2f m, while revision %d's trajectory spans %.2f m: "
-                           "is the file for these frames? (driftmap rollback STORE --to %d undoes it)", what,
-                           revision.revision_id, moved, revision.parent_id, span, revision.parent_id)
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,
                           format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:

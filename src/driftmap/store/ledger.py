@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from driftmap import geometry
-from driftmap.errors import StoreError, TransformError
+from driftmap.errors import StoreError, TransformError, parse_enum
 from driftmap.frame import PoseSource
 from driftmap.trajectory import Trajectory
 
@@ -67,26 +67,12 @@ def _as_int(value: Any, what: str) -> int:
 
 
 def _as_source(value: Any) -> PoseSource:
-    if isinstance(value, PoseSource):
-        return value
-    try:
-        return PoseSource(value)
-    except ValueError:
-        raise StoreError(
-            f"unknown pose source {value!r}; expected one of {[s.value for s in PoseSource]}"
-        ) from None
+    return parse_enum(PoseSource, value, "unknown pose source", StoreError)
 
 
 def _readonly(array: NDArray[Any]) -> NDArray[Any]:
     array.setflags(write=False)
     return array
-
-
-def _check_rigid_stack(poses: NDArray[np.float64], frame_ids: NDArray[np.int64], what: str) -> None:
-    """Vectorised rigidity check of stored poses (they are not modified): see :func:`geometry.rigid_stack_problems`."""
-    bad, reason = geometry.rigid_stack_problems(poses)
-    if bad.size:
-        raise TransformError(f"{what}: pose of frame {int(frame_ids[bad[0]])} {reason} ({bad.size} bad pose(s) in all)")
 
 
 def _pose_table(poses: Mapping[Any, ArrayLike], what: str) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
@@ -106,7 +92,7 @@ def _pose_table(poses: Mapping[Any, ArrayLike], what: str) -> tuple[NDArray[np.i
         raise TransformError(f"{what}: every pose must be a 4x4 matrix, got a stack of shape {stack.shape}")
     order = np.argsort(ids, kind="stable")
     ids, stack = ids[order], np.ascontiguousarray(stack[order])
-    _check_rigid_stack(stack, ids, what)
+    geometry.require_rigid_stack(stack, ids, what)
     return _readonly(ids), _readonly(stack)
 
 
@@ -712,11 +698,7 @@ def match_trajectory(
     one) if ``|dt| <= max_dt_ns``; a row is never given to two frames (the closer one keeps it, ties to the
     lower frame id; the other frame is unmatched rather than moved to its second-best row).
     """
-    try:
-        mode = PoseMatchMode(match)
-    except ValueError:
-        modes = [m.value for m in PoseMatchMode]
-        raise StoreError(f"unknown pose match mode {match!r}; expected one of {modes}") from None
+    mode = parse_enum(PoseMatchMode, match, "unknown pose match mode", StoreError)
     ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
     if len(np.unique(ids)) != len(ids):
         raise StoreError("match_trajectory: frame_ids contain duplicates")
