@@ -257,3 +257,36 @@ def test_kitti_frame_options_are_refused_where_they_mean_nothing(store_copy: Pat
     assert bad.exit_code == 1 and isinstance(bad.exception, ConfigError)
     with FrameStore.open(store_copy) as store:
         assert len(store.revisions) == 1
+
+
+def test_cam0_rows_on_scans_from_a_converted_mcap_are_warned_about(kitti_dir: Path, velo_rows: np.ndarray,
+                                                                    tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """Scans read back from an MCAP that ``convert`` wrote no longer say which KITTI sequence they come from, so
+    ``auto`` cannot recognise the data set's cam0 ``poses.txt``: its rows are taken as they are, with the
+    camera-motion warning (it was silent); ``--kitti-frame cam0 --calib`` converts them."""
+    from driftmap.sources.mcap_export import convert
+
+    mcap = tmp_path / "kitti.mcap"
+    convert(kitti_dir, mcap, frames=FRAMES)
+    store_path = tmp_path / "store"
+    build(mcap, store_path, loop_closure=False)
+    with FrameStore.open(store_path) as store:
+        assert kitti_origin_of_store(store) is None
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
+        _correct(store_path, kitti_dir / "poses.txt")
+    assert any("they look like cam0 poses" in r.getMessage() and "--calib" in r.getMessage() for r in caplog.records)
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):  # Velodyne rows: no warning
+        ids = np.arange(len(velo_rows), dtype=np.int64)
+        write_kitti(tmp_path / "velo.txt", Trajectory(ids, velo_rows, ids))
+        _correct(store_path, tmp_path / "velo.txt")
+        assert not [r for r in caplog.records if r.name == "driftmap.sources.kitti"]
+        gt = _diagnose(store_path, kitti_dir / "poses.txt", tmp_path / "d.json")  # ground truth: same rule, warned
+    assert [r.getMessage() for r in caplog.records if "they look like cam0 poses" in r.getMessage()] and gt
+    _correct(store_path, kitti_dir / "poses.txt", "--kitti-frame", "cam0", "--calib", str(kitti_dir / "calib.txt"))
+    with FrameStore.open(store_path) as store:
+        stored = [int(i) for i in store.frame_ids]
+        assert stored == list(range(0, 16, 3))
+        head = len(store.revisions) - 1
+        np.testing.assert_allclose(store.poses(head)[:, :3, 3], velo_rows[stored][:, :3, 3], rtol=0, atol=1e-9)
+        np.testing.assert_allclose(store.poses(head), store.poses(2), rtol=0, atol=1e-9)  # = the Velodyne rows

@@ -192,7 +192,7 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
     in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
     """
-    from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
+    from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
     from driftmap.store.ledger import PoseMatchMode, match_trajectory, stamp_ranges_text
 
     fmt = format.lower()
@@ -203,7 +203,7 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     traj: Trajectory = read_tum(path) if fmt == "tum" else read_kitti(path)
     if fmt == "kitti":
         rows = kitti_rows_as_velodyne(path, traj.poses, kitti_origin_of_store(store), kitti_frame=kitti_frame,
-                                      calib_file=calib_file)
+                                      calib_file=calib_file, lidar_frames=store_holds_lidar_scans(store))
         traj = Trajectory(traj.stamps_ns, rows, traj.frame_ids)
     mode = PoseMatchMode.STAMP if fmt == "tum" else PoseMatchMode.INDEX
     matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)

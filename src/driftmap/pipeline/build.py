@@ -23,7 +23,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from driftmap import geometry
 from driftmap.config import DepthConfig
 from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
-from driftmap.frame import Frame, PoseEstimate, PoseSource
+from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
 from driftmap.registration.loops import (
     CandidateKind,
@@ -411,8 +411,9 @@ def _kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: Fra
     with ``correct`` and ``diagnose``)."""
     from driftmap.sources.kitti import kitti_origin_of_source, kitti_rows_as_velodyne
 
+    lidar = len(source) > 0 and source.frame(0).sensor_kind is SensorKind.LIDAR
     return kitti_rows_as_velodyne(poses_file, poses, kitti_origin_of_source(source), kitti_frame=kitti_frame,
-                                  calib_file=calib_file)
+                                  calib_file=calib_file, lidar_frames=lidar)
 
 
 def build(

@@ -180,9 +180,15 @@ def kitti_origin_of_store(store: Any) -> KittiOrigin | None:
     return kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
 
 
+def store_holds_lidar_scans(store: Any) -> bool:
+    """Every frame of a :class:`~driftmap.store.frame_store.FrameStore` is a LiDAR scan (and there is one)."""
+    ids = store.frame_ids
+    return len(ids) > 0 and all(store.frame_info(int(f)).get("sensor_kind") == "lidar" for f in ids)
+
+
 def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64], origin: KittiOrigin | None, *,
                            kitti_frame: KittiFrame | str = KittiFrame.AUTO,
-                           calib_file: str | Path | None = None) -> NDArray[np.float64]:
+                           calib_file: str | Path | None = None, lidar_frames: bool = False) -> NDArray[np.float64]:
     """The rows of a KITTI pose file as ``T_world_velo`` for frames that are Velodyne scans of ``origin``.
 
     The one place that decides the frame of a KITTI file (``build --poses``, ``correct --format kitti`` and
@@ -190,7 +196,10 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
 
     - ``auto``: when ``origin`` is a KITTI sequence and ``poses_file`` is its own ground truth (cam0), the rows
       are converted, ``inv(Tr) @ T_cam0 @ Tr``, and an info line is logged; another file with a KITTI
-      ``origin`` is taken as Velodyne poses with a warning; without an ``origin`` rows are returned as they are.
+      ``origin`` is taken as Velodyne poses, with a warning when its rows move like a camera's
+      (:func:`camera_like_motion`); without an ``origin`` rows are returned as they are, with the same warning
+      when ``lidar_frames`` (the frames are LiDAR scans whose data set is not known, e.g. read from an MCAP that
+      ``driftmap convert`` wrote from a KITTI sequence).
     - ``velodyne``: rows are returned as they are.
     - ``cam0``: rows are converted with ``calib_file`` or else the origin's ``calib.txt``; neither ->
       :class:`ConfigError` naming ``poses_file``.
@@ -217,6 +226,9 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
         logger.warning("%s: calibration %s not used: the rows are taken as Velodyne poses (KITTI frame auto); "
                        "use --kitti-frame cam0 to convert them", poses_file, calib_file)
     if origin is None:
+        if lidar_frames:
+            _warn_if_camera_like(poses_file, rows, "--kitti-frame cam0 --calib CALIB (the frames do not say which KITTI "
+                                 "sequence they come from, so its calib.txt is not known)")
         return rows
     if own:
         if calib is None:
@@ -226,16 +238,21 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
         logger.info("%s is the data set's cam0 ground truth: rows converted to the Velodyne frame with %s Tr",
                     poses_file, calib)
         return velo_poses_from_cam0(rows, read_calib_tr(calib))
-    share = camera_like_motion(rows)
-    if share is not None and share >= CAMERA_LIKE_SHARE:
-        logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo, but they move along their own z axis "
-                       "(a camera's forward axis; a Velodyne's is x) in %.0f %% of the steps: they look like cam0 poses, "
-                       "which must be converted (inv(Tr) @ T_cam0 @ Tr): use --kitti-frame cam0 (or --poses-from-source "
-                       "for build)", poses_file, 100 * share)
-    else:
+    if not _warn_if_camera_like(poses_file, rows, "--kitti-frame cam0 (or --poses-from-source for build)"):
         logger.info("%s: KITTI rows taken as Velodyne poses T_world_velo (KITTI frame auto; their motion is not a "
                     "camera's); --kitti-frame cam0 converts cam0 poses", poses_file)
     return rows
+
+
+def _warn_if_camera_like(poses_file: str | Path, rows: NDArray[np.float64], advice: str) -> bool:
+    """Warn (and return True) when KITTI rows about to be taken as Velodyne poses move like a camera's."""
+    share = camera_like_motion(rows)
+    if share is None or share < CAMERA_LIKE_SHARE:
+        return False
+    logger.warning("%s: KITTI rows are taken as Velodyne poses T_world_velo, but they move along their own z axis "
+                   "(a camera's forward axis; a Velodyne's is x) in %.0f %% of the steps: they look like cam0 poses, "
+                   "which must be converted (inv(Tr) @ T_cam0 @ Tr): use %s", poses_file, 100 * share, advice)
+    return True
 
 
 CAMERA_LIKE_SHARE = 0.6

@@ -875,10 +875,10 @@ class FrameStore:
                 f"per stored frame. Use a TUM file matched by stamp (driftmap export --format tum writes one), or match "
                 f"by index explicitly if row i really is frame_id i")
         if fmt is TrajectoryFormat.KITTI:
-            from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne
+            from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
 
             rows = kitti_rows_as_velodyne(file, trajectory.poses, kitti_origin_of_store(self), kitti_frame=kitti_frame,
-                                          calib_file=calib_file)
+                                          calib_file=calib_file, lidar_frames=store_holds_lidar_scans(self))
             trajectory = Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
         matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
         if not matched.poses:
