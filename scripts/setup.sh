@@ -13,13 +13,22 @@ if ! "$PYTHON" -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else 1)
   exit 1
 fi
 
-# Open3D needs libusb-1.0 at import time.
-if ! ldconfig -p 2>/dev/null | grep -q 'libusb-1.0.so.0'; then
+# System libraries: Open3D needs libusb-1.0 at import time; its headless rendering (the viewer's PNG views,
+# docs/open3d-choice.md) needs Mesa's EGL and, for OffscreenRenderer, Vulkan with Mesa's software driver.
+missing=()
+have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+have_lib 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
+have_lib 'libEGL.so.1 ' || missing+=(libegl1)
+have_lib 'libGL.so.1 ' || missing+=(libgl1)
+have_lib 'libEGL_mesa.so.0' || missing+=(libegl-mesa0 libgl1-mesa-dri)
+have_lib 'libvulkan.so.1' || missing+=(libvulkan1)
+ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 || missing+=(mesa-vulkan-drivers)
+if [ ${#missing[@]} -gt 0 ]; then
   SUDO=""
   [ "$(id -u)" -ne 0 ] && SUDO="sudo"
-  echo "installing libusb-1.0-0 (needed by Open3D) with apt-get" >&2
+  echo "installing system libraries for Open3D with apt-get: ${missing[*]}" >&2
   $SUDO apt-get update -qq
-  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq libusb-1.0-0 >/dev/null
+  DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq --no-install-recommends "${missing[@]}" >/dev/null
 fi
 
 if [ ! -x .venv/bin/python ]; then
