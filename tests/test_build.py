@@ -178,16 +178,25 @@ def test_resume_after_a_killed_build(tmp_path: Path) -> None:
     log = embedded_log_path()
     proc = subprocess.Popen([sys.executable, "-m", "driftmap.cli", "build", str(log), "--out", str(out),
                              "--poses-from-source", "--no-loop-closure"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.time() + 120
+    timeout_s = 120
+    deadline = time.time() + timeout_s
+    n_seen = None
     while time.time() < deadline:
         if (out / "store.json").exists():
             try:
                 with FrameStore.open(out) as store:
-                    if len(store) >= 10:
+                    n_seen = len(store)
+                    if n_seen >= 10:
                         break
             except StoreError:
                 pass
         time.sleep(0.05)
+    else:
+        status = proc.poll()
+        proc.kill()
+        proc.wait()
+        pytest.fail(f"the child build did not store 10 frames within {timeout_s} s (frames seen in the store: {n_seen}; "
+                    f"child {'still running' if status is None else f'exited with code {status}'})", pytrace=False)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
     with FrameStore.open(out) as store:

@@ -179,13 +179,17 @@ def test_synthetic_step_is_found_measured_and_located(synthetic) -> None:
         detected = sum(s.n_detected for s in scores)
         assert affected >= 20
         assert detected / affected >= (0.6 if mag == 0.02 else 0.9)
-        ok = np.concatenate([s.within_tolerance() for s in scores])
-        assert ok.mean() >= 0.9
+        # separation error <= max(5 mm, 15 %) for every detected group: exact poses here (measured over sampling
+        # seeds 0/1: all of 544-615 groups, max error 3.2 mm, median 2.0 mm, the separation reading short)
+        ok = np.concatenate([s.within_tolerance(abs_m=0.005, rel=0.15) for s in scores])
+        assert ok.all(), f"{(~ok).sum()} of {ok.size} separations off by more than max(5 mm, 15 %)"
         cps = attribute(placed).change_points
         assert cps, "the step must show as a change point"
         best = max(cps, key=lambda c: c.z_score)
         assert abs(int(np.searchsorted(cloud.frame_ids, best.frame_id)) - k) <= 2
-        assert best.jump_m == pytest.approx(mag, rel=0.3)
+        # the split scan's step at the change point: measured 17.5 / 37.5 mm for 20 / 40 mm (seeds 0/1: 2.5 mm
+        # short at both sizes); 3.5 mm leaves ~40 % margin on that error
+        assert best.jump_m == pytest.approx(mag, abs=0.0035)
 
 
 # ---------------------------------------------------------------------------------------------- 7-Scenes
@@ -225,12 +229,17 @@ def test_kitchen_step_detection_separation_and_location(kitchen: FrameStore, kit
     detected = sum(s.n_detected for s in scores)
     assert affected >= 50
     assert detected / affected >= (0.6 if mag == 0.02 else 0.9)
-    within = np.concatenate([s.within_tolerance() for s in scores])
-    assert within.mean() >= 0.9
+    # the separation target per detected group; measured over sampling seeds 0-4: 98.9-100 % of groups within
+    # (one of 90 off by 12.9 mm at 4 cm, seed 1), median error 1.2 mm, max otherwise 3.8 mm. The reference poses
+    # are not everywhere consistent (see above), so a few groups may miss: at most 5 %.
+    within = np.concatenate([s.within_tolerance(abs_m=0.005, rel=0.15) for s in scores])
+    assert within.mean() >= 0.95, f"{(~within).sum()} of {within.size} separations off by more than max(5 mm, 15 %)"
     cps = attribute(placed).change_points
     near = [c for c in cps if abs(int(np.searchsorted(kitchen_cloud.frame_ids, c.frame_id)) - k) <= 2]
     assert near, f"no change point within 2 frames of {STEP_FRAME_ID}: {[(c.frame_id, c.jump_m) for c in cps]}"
-    assert near[0].jump_m == pytest.approx(mag, rel=0.3)
+    # jump_m is the split scan's step (not a region separation): measured 20.34-20.59 mm at 2 cm, 40.20-40.36 mm
+    # at 4 cm (seeds 0-4); 0.8 mm leaves ~35 % margin on the largest error (0.59 mm)
+    assert near[0].jump_m == pytest.approx(mag, abs=0.0008)
 
 
 @pytest.mark.slow
@@ -360,11 +369,16 @@ def test_kitchen_drift_rate_estimate_follows_the_injected_drift(kitchen: FrameSt
         a = attribute(kitchen_cloud.place(perturb.linear_drift(base, percent_per_m=p, direction=(0.6, 0.0, 0.8))))
         rates.append(a.drift.percent_per_m)
     assert floor.drift.percent_per_m < rates[0] < rates[1]
-    assert rates[0] == pytest.approx(1.0, rel=0.35) and rates[1] == pytest.approx(2.0, rel=0.35)
+    # The model is approximate (docs/diagnostics.md: the floor is not the same at every path length) and reads
+    # low. Measured over sampling seeds 0-4: 0.944-0.952 %/m for 1 %/m (<= 5.6 % low), 1.789-1.804 %/m for
+    # 2 %/m (<= 10.6 % low). Tolerances: ~40 % margin on the largest error.
+    assert rates[0] == pytest.approx(1.0, rel=0.08) and rates[1] == pytest.approx(2.0, rel=0.15)
     deg = [attribute(kitchen_cloud.place(perturb.linear_drift(base, deg_per_m=d, axis=(0.0, 1.0, 0.3)))).drift.deg_per_m
            for d in (0.2, 0.4)]
     assert floor.drift.deg_per_m < deg[0] < deg[1]
-    assert deg[1] == pytest.approx(0.4, rel=0.5)
+    # measured 0.170-0.200 deg/m for 0.2 deg/m (<= 15 % low; 0.200 at the default seed), 0.328-0.340 deg/m for
+    # 0.4 deg/m (<= 18 % low); ~40 % margin on the largest error
+    assert deg[0] == pytest.approx(0.2, rel=0.22) and deg[1] == pytest.approx(0.4, rel=0.25)
     # the first 20 frames travel less than a metre: nothing is revisited, and the result says drift is invisible
     first = kitchen_cloud.subset(np.arange(20))
     alone = attribute(first.place(base[:20]))

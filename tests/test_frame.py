@@ -309,8 +309,17 @@ def test_frame_rejects_a_raw_non_rigid_matrix_as_pose(kind: str) -> None:
 def test_rigid_pose_with_tiny_float_noise_is_accepted() -> None:
     T = a_rigid_transform(9)
     T[:3, :3] += 1e-7 * np.random.default_rng(0).normal(size=(3, 3))
+    assert np.abs(T[:3, :3].T @ T[:3, :3] - np.eye(3)).max() > 1e-12  # the noise is there (1.3e-7): not a no-op
     pose = PoseEstimate(T)
-    np.testing.assert_array_equal(pose.T_world_sensor[3], [0.0, 0.0, 0.0, 1.0])
+    P = pose.T_world_sensor
+    np.testing.assert_array_equal(P[3], [0.0, 0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(P[:3, 3], T[:3, 3])  # only the rotation block is projected
+    # accepted as given up to the noise: the projection moved it by 7.9e-8 (the noise has max |entry| ~2e-7)
+    np.testing.assert_allclose(P, T, rtol=0.0, atol=1e-6)
+    # ...and stored exactly rigid: as_rigid projects onto SO(3) whenever |R^T R - I| > 1e-12 (measured: 8.9e-16)
+    R = P[:3, :3]
+    assert np.abs(R.T @ R - np.eye(3)).max() <= 1e-12
+    assert np.linalg.det(R) == pytest.approx(1.0, abs=1e-12)
 
 
 def test_frame_rejects_bad_scalars() -> None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -436,7 +437,11 @@ def test_cli_info(kitchen_store: FrameStore) -> None:
     kitchen_store.close()
     out = _cli("info", path)
     assert out.returncode == 0, out.stderr
-    assert "frames" in out.stdout and "20" in out.stdout and "kinect" in out.stdout
+    # the table rows, whatever box characters rich draws: "│ frames │ 20 │" (not "frames flagged")
+    n = len(FRAME_IDS)
+    assert re.findall(r"^\W*frames\W+(\d+)\W*$", out.stdout, re.M) == [str(n)], out.stdout
+    assert re.search(rf"^\W*frame ids\W+{FRAME_IDS[0]} \.\. {FRAME_IDS[-1]}\W*$", out.stdout, re.M), out.stdout
+    assert re.search(rf"^\W*sensors\W+kinect \(depth_camera\): {n}\W*$", out.stdout, re.M), out.stdout
     assert "invalid-pixel fraction" in out.stdout and "MiB" in out.stdout
 
 
