@@ -304,6 +304,8 @@ def depth_frame(
     monitor: InvalidFractionMonitor | None = None,
     color_rgb: NDArray[np.uint8] | None = None,
     pixel_stride: int = 1,
+    base_frame: str = "base_link",
+    flags: tuple[str, ...] = (),
 ) -> Frame:
     """Validate and back-project one depth image into a :class:`Frame` (points in the sensor frame).
 
@@ -311,7 +313,8 @@ def depth_frame(
     ``color_rgb`` is an optional (height, width, 3) image registered to the depth image.
     ``pixel_stride`` > 1 keeps every ``pixel_stride``-th pixel in both directions (a cheap, exact
     pre-downsampling: the frame carries the matching subsampled intrinsics, and its quality counts refer
-    to the sampled pixels).
+    to the sampled pixels). ``flags`` (e.g. a source's notes on the message) follow the monitor's flag in the
+    frame's quality flags; ``base_frame`` names the frame ``T_base_sensor`` maps into.
     """
     if pixel_stride != 1:
         intrinsics.check_image_shape(np.shape(depth), f"frame {frame_id}")
@@ -322,10 +325,9 @@ def depth_frame(
     what = f"frame {frame_id}" + (f" ({provenance.source_uri})" if provenance else "")
     result = backproject(depth, intrinsics, depth_scale=depth_scale, min_depth_m=min_depth_m,
                          max_depth_m=max_depth_m, what=what)
-    flags: tuple[str, ...] = ()
     if monitor is not None:
         reason = monitor.update(result.invalid_fraction, what)
-        flags = (reason,) if reason else ()
+        flags = ((reason,) if reason else ()) + tuple(flags)
     attributes = PointAttributes()
     if color_rgb is not None:
         color = np.asarray(color_rgb)
@@ -343,9 +345,10 @@ def depth_frame(
         attributes=attributes,
         intrinsics=intrinsics,
         depth_scale=result.depth_scale,
-        quality=result.quality(flags),
+        quality=result.quality(tuple(flags)),
         provenance=provenance,
         sensor_frame=sensor_frame,
+        base_frame=base_frame,
     )
 
 

@@ -23,7 +23,6 @@ frame ids from its ``driftmap.export`` metadata record.
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import heapq
 import inspect
@@ -1118,6 +1117,7 @@ class RosLogSource(FrameSource):
         self._members: NDArray[np.int64] | None = None
         self._header_stamps: NDArray[np.int64] | None = None
         self._monitor = InvalidFractionMonitor()
+        self._no_pose_estimate: PoseEstimate | None = None
 
         first = self._first_message(self.topic)
         if first is None:
@@ -1431,6 +1431,13 @@ class RosLogSource(FrameSource):
             m, stamp_ns, raw.log_time_ns, sensor_frame, None, None, cloud, msg, intrinsics, flags, raw.size_bytes
         )
 
+    def _no_pose(self) -> PoseEstimate:
+        """The identity ``PoseSource.NONE`` estimate of frames without a pose input. Made (and validated) once
+        per source: a PoseEstimate is immutable (frozen, read-only matrix), so frames can share it."""
+        if self._no_pose_estimate is None:
+            self._no_pose_estimate = PoseEstimate(np.eye(4), source=PoseSource.NONE)
+        return self._no_pose_estimate
+
     def _pose(self, m: int, stamp_ns: int, sensor_frame: str) -> tuple[PoseEstimate, NDArray[np.float64]]:
         """The pose estimate ``T_world_sensor`` and ``T_base_sensor`` of message ``m``."""
         tf = self._tf
@@ -1447,9 +1454,9 @@ class RosLogSource(FrameSource):
         if self._export is not None:
             recorded = PoseSource(self._export["pose_sources"][m])
             if recorded is PoseSource.NONE:
-                return PoseEstimate(np.eye(4), source=PoseSource.NONE), T_base_sensor
+                return self._no_pose(), T_base_sensor
         if self._odometry is None and self.pose_from_tf is None:
-            return PoseEstimate(np.eye(4), source=PoseSource.NONE), T_base_sensor
+            return self._no_pose(), T_base_sensor
         body = self.pose_body_frame
         assert body is not None and self.world_frame is not None
         if self._odometry is not None:
@@ -1471,11 +1478,15 @@ class RosLogSource(FrameSource):
         )
         return pose, T_base_sensor
 
-    def _to_frame(self, raw: RawMeasurement) -> Frame:
+    def _to_frame(self, raw: RawMeasurement, uri: str | None = None) -> Frame:
+        """The :class:`Frame` of a measurement; ``uri`` is :func:`provenance_uri` of this source, when the
+        caller has it already (it resolves the path on the file system)."""
         m = raw.message_index
         frame_id = int(self._export["frame_ids"][m]) if self._export is not None else m
         pose, T_base_sensor = self._pose(m, raw.stamp_ns, raw.sensor_frame)
-        provenance = Provenance(provenance_uri(self.path, self.topic, self.stamp), m)
+        if uri is None:
+            uri = provenance_uri(self.path, self.topic, self.stamp)
+        provenance = Provenance(uri, m)
         sensor_name = (self._export or {}).get("sensor_name") or self.topic.strip("/")
         if raw.depth is not None:
             assert raw.intrinsics is not None
@@ -1494,13 +1505,10 @@ class RosLogSource(FrameSource):
                 provenance=provenance,
                 monitor=self._monitor,
                 pixel_stride=self.pixel_stride,
+                base_frame=self.base_frame,
+                flags=tuple(raw.flags),
             )
-            changes: dict[str, Any] = {"base_frame": self.base_frame}
-            if raw.flags:
-                q = frame.quality
-                assert q is not None
-                changes["quality"] = FrameQuality(q.n_measurements, q.n_valid, q.invalid_counts, q.flags + raw.flags)
-            return dataclasses.replace(frame, **changes)
+            return frame
         what = f"{self.path}: {self.topic} message {m}"
         cloud = pointcloud2_points(raw.cloud_msg, raw.stamp_ns, what=what, point_time=self.point_time)
         flags = list(raw.flags)
@@ -1547,6 +1555,7 @@ class RosLogSource(FrameSource):
             k = int(np.searchsorted(times, start_ns, side="left"))
         topics = [self.topic] + ([self.camera_info_topic] if self.camera_info_topic else [])
         pos = 0
+        uri = provenance_uri(self.path, self.topic, self.stamp) if build else None
         info_raw: _Raw | None = None
         info_cache: tuple[_Raw, tuple[str, PinholeIntrinsics, tuple[str, ...]]] | None = None
         previous: tuple[int, int] | None = None  # (message index, stamp) of the last frame given out
@@ -1574,7 +1583,7 @@ class RosLogSource(FrameSource):
                         f"{self.path}: topic {self.topic}: {kind} {self.stamp.value} stamps: message {k} has "
                         f"{measurement.stamp_ns} ns, message {previous[0]} before it has {previous[1]} ns"
                     )
-                item = self._to_frame(measurement) if build else measurement
+                item = self._to_frame(measurement, uri) if build else measurement
             except (SourceError, DepthError, GeometryError) as exc:
                 if not self.lenient or isinstance(exc, DepthScaleError):  # a wrong scale is wrong for every frame
                     raise
