@@ -200,3 +200,44 @@ def test_ground_truth_and_odometry_follow_the_sensor_and_the_frame_selection(tmp
     part = SyntheticLog(folder, sensor="lidar", frames="1:4:2")
     assert part.ground_truth().frame_ids.tolist() == [1, 3] == [f.frame_id for f in part]
     np.testing.assert_array_equal(part.ground_truth().poses, lidar.ground_truth().poses[[1, 3]])
+
+
+def test_lidar_odometry_defaults_scale_to_an_indoor_scene(tmp_path: Path, kitti_dir: Path) -> None:
+    """The LiDAR defaults are a 100 m outdoor sensor's (1 m voxels); in the synthetic 6 x 5 m room they left
+    the odometry 3.85 cm off. ``OdometryConfig.for_frame`` scales every KISS-ICP length to the first scan's
+    reach, so the default build of the indoor LiDAR tracks to millimetres, while a KITTI scan keeps the
+    outdoor settings exactly."""
+    from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+    from driftmap.pipeline.build import build
+    from driftmap.registration.odometry import OdometryConfig
+    from driftmap.sources.kitti import KittiOdometry
+    from driftmap.store.frame_store import FrameStore
+
+    folder = generate_synthetic_log(tmp_path / "log", replace(SyntheticLogConfig(), n_frames=30, lidar=True, width=80,
+                                                                 height=60, fx=65.6, fy=65.6, cx=39.5, cy=29.5))
+    log = SyntheticLog(folder, sensor="lidar")
+    cfg = OdometryConfig.for_frame(log.frame(0))
+    outdoor = OdometryConfig.for_sensor(SensorKind.LIDAR)
+    scale = cfg.voxel_size_m / outdoor.voxel_size_m
+    reach = np.percentile(np.linalg.norm(log.frame(0).points_sensor, axis=1), 99)
+    assert scale == pytest.approx(reach / 25.0, rel=1e-9) and 0.1 < scale < 0.3
+    for name in ("min_range_m", "max_range_m", "initial_threshold_m", "min_motion_m"):
+        assert getattr(cfg, name) == pytest.approx(getattr(outdoor, name) * scale, rel=1e-12), name
+    result = build(folder, tmp_path / "store", loop_closure=False, source_options={"sensor": "lidar"})
+    assert result.odometry_config is not None
+    assert result.odometry_config["voxel_size_m"] == pytest.approx(cfg.voxel_size_m)
+    with FrameStore.open(tmp_path / "store") as store:
+        estimate = store.poses(0)
+    errors = trajectory_errors(estimate, log.ground_truth().poses)
+    assert errors.ate_rmse_m < 0.01, errors  # measured 0.3-0.6 cm on such logs; the outdoor settings: 3-7 cm
+    outdoor_store = tmp_path / "outdoor"
+    from driftmap.pipeline.build import BuildConfig
+
+    build(folder, outdoor_store, loop_closure=False, source_options={"sensor": "lidar"},
+          config=BuildConfig(odometry=outdoor))
+    with FrameStore.open(outdoor_store) as store:
+        outdoor_errors = trajectory_errors(store.poses(0), log.ground_truth().poses)
+    assert outdoor_errors.ate_rmse_m > 3 * errors.ate_rmse_m, (outdoor_errors, errors)
+
+    scan = KittiOdometry(kitti_dir).frame(0)  # reaches ~57 m: the outdoor defaults, unchanged
+    assert OdometryConfig.for_frame(scan) == outdoor

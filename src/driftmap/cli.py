@@ -201,10 +201,14 @@ def config_cmd(
         from driftmap.frame import SensorKind
         from driftmap.registration.odometry import OdometryConfig
 
+        from driftmap.registration.odometry import KISS_LENGTHS
+
         depth, lidar = (OdometryConfig.for_sensor(k) for k in (SensorKind.DEPTH_CAMERA, SensorKind.LIDAR))
         for name, field in OdometryConfig.model_fields.items():
             a, b = (getattr(c, name) for c in (depth, lidar))
             a, b = (v.value if hasattr(v, "value") else v for v in (a, b))
+            if name in KISS_LENGTHS:
+                b = f"{b} (scaled down indoors)"
             table.add_row(f"build.odometry.{name}", f"depth: {a}, lidar: {b}" if a != b else str(a), field.description or "")
     console.print(table)
 

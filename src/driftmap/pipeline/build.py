@@ -55,7 +55,7 @@ class BuildConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     pixel_stride: int | None = Field(None, ge=1, description="depth images: keep every n-th pixel (None: 2 for images >= 640 px wide, else 1)")
-    odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind)")
+    odometry: OdometryConfig | None = Field(None, description="odometry settings (None: defaults for the sensor kind, LiDAR lengths scaled to the scene)")
     loop_closure: LoopClosureConfig = Field(default_factory=LoopClosureConfig)
     loop_kernel: RobustKernel = Field(RobustKernel.CAUCHY, description="robust kernel on loop edges")
     optimizer: Optimizer = Field(Optimizer.LM, description="pose-graph optimiser")
@@ -111,6 +111,8 @@ class BuildResult:
     information_scale: dict[str, float] = field(default_factory=dict)
     source: dict[str, Any] | None = None
     """What the store was built from (resolved path, format, the path as given); see ``build_source.json``."""
+    odometry_config: dict[str, Any] | None = None
+    """The odometry settings this run used (``[build.odometry]``, or the defaults for the sensor and scene)."""
 
     @property
     def frames_per_second(self) -> float:
@@ -521,6 +523,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     existing = {int(i) for i in store.frame_ids}
     pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
     odometry: KissOdometry | GicpMapOdometry | None = None
+    odometry_config: dict[str, Any] | None = None
     n_total = len(src)
     invalid: list[float] = []
     n_new = 0
@@ -552,8 +555,9 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             pose_source = frame.pose.source
         else:
             if odometry is None:
-                cfg = config.odometry or OdometryConfig.for_sensor(frame.sensor_kind)
+                cfg = config.odometry or OdometryConfig.for_frame(store.frame(min(existing)) if existing else frame)
                 odometry = make_odometry(cfg)
+                odometry_config = cfg.model_dump(mode="json")
                 if existing:
                     last = sorted(existing)[-config.resume_seed_frames:]
                     odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
@@ -575,6 +579,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,
         pose_source=pose_source.value if n_new else store.ledger.revision(0).source.value,
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
+        odometry_config=odometry_config,
     )
     if loop_closure and len(store) >= 2:
         _close_loops(store, config, result, tick, stages, inject_wrong_loop,
@@ -634,8 +639,7 @@ def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_
         return True
     if config.odometry_edges == "registration" or not own_odometry or len(store) == 0:
         return False
-    kind = store.frame(int(store.frame_ids[0])).sensor_kind
-    cfg = config.odometry or OdometryConfig.for_sensor(kind)
+    cfg = config.odometry or OdometryConfig.for_sensor(store.frame(int(store.frame_ids[0])).sensor_kind)
     return cfg.method is OdometryMethod.GICP_MAP and cfg.gicp_map_horizon_frames is None
 
 
@@ -659,7 +663,7 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     cache: dict[int, np.ndarray] = {}
     max_range_m = lc.max_range_m
     if max_range_m is None and ids and own_odometry:  # the range the odometry trusted; given poses: every point
-        max_range_m = (config.odometry or OdometryConfig.for_sensor(store.frame(ids[0]).sensor_kind)).max_range_m
+        max_range_m = (config.odometry or OdometryConfig.for_frame(store.frame(ids[0]), log=False)).max_range_m
 
     def points(row: int) -> np.ndarray:
         if row not in cache:
