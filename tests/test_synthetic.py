@@ -202,7 +202,15 @@ def test_ground_truth_and_odometry_follow_the_sensor_and_the_frame_selection(tmp
     np.testing.assert_array_equal(part.ground_truth().poses, lidar.ground_truth().poses[[1, 3]])
 
 
-def test_lidar_odometry_defaults_scale_to_an_indoor_scene(tmp_path: Path, kitti_dir: Path) -> None:
+@pytest.fixture(scope="module")
+def lidar_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 60-frame synthetic log with its LiDAR (the depth camera small: only the LiDAR is used)."""
+    return generate_synthetic_log(tmp_path_factory.mktemp("lidar") / "log",
+                                  replace(SyntheticLogConfig(), lidar=True, width=80, height=60, fx=65.6, fy=65.6,
+                                          cx=39.5, cy=29.5))
+
+
+def test_lidar_odometry_defaults_scale_to_an_indoor_scene(lidar_log: Path, tmp_path: Path, kitti_dir: Path) -> None:
     """The LiDAR defaults are a 100 m outdoor sensor's (1 m voxels); in the synthetic 6 x 5 m room they left
     the odometry 3.85 cm off. ``OdometryConfig.for_frame`` scales every KISS-ICP length to the first scan's
     reach, so the default build of the indoor LiDAR tracks to millimetres, while a KITTI scan keeps the
@@ -213,14 +221,13 @@ def test_lidar_odometry_defaults_scale_to_an_indoor_scene(tmp_path: Path, kitti_
     from driftmap.sources.kitti import KittiOdometry
     from driftmap.store.frame_store import FrameStore
 
-    folder = generate_synthetic_log(tmp_path / "log", replace(SyntheticLogConfig(), n_frames=30, lidar=True, width=80,
-                                                                 height=60, fx=65.6, fy=65.6, cx=39.5, cy=29.5))
+    folder = lidar_log
     log = SyntheticLog(folder, sensor="lidar")
     cfg = OdometryConfig.for_frame(log.frame(0))
     outdoor = OdometryConfig.for_sensor(SensorKind.LIDAR)
     scale = cfg.voxel_size_m / outdoor.voxel_size_m
     reach = np.percentile(np.linalg.norm(log.frame(0).points_sensor, axis=1), 99)
-    assert scale == pytest.approx(reach / 25.0, rel=1e-9) and 0.1 < scale < 0.3
+    assert scale == pytest.approx(reach / 25.0, rel=1e-6) and 0.1 < scale < 0.3  # float32 ranges here
     for name in ("min_range_m", "max_range_m", "initial_threshold_m", "min_motion_m"):
         assert getattr(cfg, name) == pytest.approx(getattr(outdoor, name) * scale, rel=1e-12), name
     result = build(folder, tmp_path / "store", loop_closure=False, source_options={"sensor": "lidar"})
@@ -241,3 +248,39 @@ def test_lidar_odometry_defaults_scale_to_an_indoor_scene(tmp_path: Path, kitti_
 
     scan = KittiOdometry(kitti_dir).frame(0)  # reaches ~57 m: the outdoor defaults, unchanged
     assert OdometryConfig.for_frame(scan) == outdoor
+
+
+def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path: Path, kitti_dir: Path) -> None:
+    """With the outdoor LiDAR settings (2 m voxels, 10 m of travel between visits) a LiDAR in a room saw
+    nothing revisited: smearing 0 for the drifting odometry and for the ground truth alike. Scans that reach
+    < 25 m are diagnosed with the indoor lengths: the drifting odometry's loop wall and its 3 cm step at frame
+    30 show, the ground-truth map is clean, and a KITTI store keeps the outdoor settings."""
+    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+    from driftmap.pipeline.build import build
+    from driftmap.store.frame_store import FrameStore
+    from driftmap.trajectory import write_tum
+
+    log = SyntheticLog(lidar_log, sensor="lidar")
+    write_tum(tmp_path / "gt.tum", log.ground_truth())
+    build(lidar_log, tmp_path / "gt", poses_file=tmp_path / "gt.tum", loop_closure=False, source_options={"sensor": "lidar"})
+    build(lidar_log, tmp_path / "odo", poses_from_source=True, loop_closure=False, source_options={"sensor": "lidar"})
+    outdoor = DiagnoseConfig.for_sensor(SensorKind.LIDAR)
+    result = {}
+    for name in ("gt", "odo"):
+        with FrameStore.open(tmp_path / name) as store:
+            config = DiagnoseConfig.for_store(store)
+            assert config.sampling == outdoor.sampling  # the LiDAR's sampling ...
+            assert config.double_wall == DiagnoseConfig().double_wall  # ... with the indoor lengths
+            result[name] = diagnose_store(store)
+    gt, odo = result["gt"], result["odo"]
+    assert gt.attribution.revisit_fraction > 0.8 and odo.attribution.revisit_fraction > 0.8
+    assert gt.double_walls.voxels_flagged <= 0.01 * gt.double_walls.voxels_evaluated
+    assert odo.double_walls.voxels_flagged > 0.05 * odo.double_walls.voxels_evaluated
+    assert odo.smearing_score_m > 5 * gt.smearing_score_m > 0
+    step = [c for c in odo.attribution.change_points if abs(c.frame_id - log.meta["config"]["step_frame"]) <= 2]
+    assert step and step[0].jump_m == pytest.approx(np.linalg.norm(log.meta["config"]["step_m"]), abs=0.01)
+
+    kitti_store = tmp_path / "kitti"  # KITTI scans reach ~57 m: the outdoor settings, unchanged
+    build(kitti_dir, kitti_store, poses_from_source=True, frames="0:3", loop_closure=False)
+    with FrameStore.open(kitti_store) as store:
+        assert DiagnoseConfig.for_store(store) == outdoor

@@ -594,7 +594,6 @@ def diagnose(
 
     from driftmap.diagnostics.double_wall import DiagnosticCloud
     from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth, write_report
-    from driftmap.frame import SensorKind
 
     gt_format = None if gt_format is None else _choice(gt_format, ("tum", "kitti"), "--gt-format")
     _check_output(json_path, "--json")  # before the diagnosis, not after it
@@ -602,8 +601,7 @@ def diagnose(
     with _open_store(store_path) as store:
         if len(store) == 0:
             raise DriftmapError(f"{store_path}: the store has no frames")
-        kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
-        cfg = DiagnoseConfig.for_sensor(kind)
+        cfg = DiagnoseConfig.for_store(store)
         if points_per_frame is not None:
             cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
         if gt is None and (kitti_frame != "auto" or calib is not None or gt_format is not None):

@@ -32,7 +32,6 @@ from driftmap.diagnostics.double_wall import DiagnosticCloud
 from driftmap.diagnostics.report import Diagnosis, DiagnoseConfig, diagnose_cloud, diagnose_store, write_report
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.diagnostics.walls import WallSpread, wall_spread
-from driftmap.frame import SensorKind
 from driftmap.map.foxglove_export import export_foxglove_mcap
 from driftmap.map.fusion import FusedCloud
 from driftmap.pipeline.build import BuildConfig, BuildResult, build
@@ -194,8 +193,7 @@ def run_demo(
     with FrameStore.open(store_dir) as store:
         gt_poses = gt_all[store.frame_ids]  # the log's frame ids are its row numbers
         gt = (store.frame_ids.copy(), gt_poses)
-        kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
-        dcfg = DiagnoseConfig.for_sensor(kind)
+        dcfg = DiagnoseConfig.for_store(store)
         cloud = stages.run("sample frames for diagnosis", lambda: DiagnosticCloud.from_store(store, dcfg.sampling))
 
         # 2. diagnose revision 0: the double walls of the drifting map

@@ -296,13 +296,13 @@ def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now:
     return np.linalg.norm(p_ref - p, axis=1), moved_frame[rows]
 
 
-def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32], kind: SensorKind,
+def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32],
                         points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult]:
     """|separation| of the finest flagged double-wall voxel containing each point (NaN: none)."""
     from driftmap.diagnostics.double_wall import DiagnosticCloud, detect_double_walls
     from driftmap.diagnostics.report import DiagnoseConfig
 
-    cfg = DiagnoseConfig.for_sensor(kind)
+    cfg = DiagnoseConfig.for_store(store)
     sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
     cloud = DiagnosticCloud.from_store(store, sampling)
     poses = store.poses(revision)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
@@ -373,7 +373,7 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 99)), 1e-6) if finite.size else 1e-3)
     else:
-        values, walls = _double_wall_values(store, rev, points, kind, double_wall_points_budget)
+        values, walls = _double_wall_values(store, rev, points, double_wall_points_budget)
         label = "double-wall separation (m)"
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 95)), 0.01) if finite.size else 0.05)

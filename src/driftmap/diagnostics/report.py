@@ -78,6 +78,23 @@ class DiagnoseConfig(BaseModel):
             )
         return cls()
 
+    @classmethod
+    def for_store(cls, store: FrameStore) -> DiagnoseConfig:
+        """:meth:`for_sensor` of the store's first frame; for a LiDAR that scans a room (99th range percentile
+        below 25 m, :func:`driftmap.registration.odometry.is_indoor_lidar`) the LiDAR's sampling with the indoor
+        lengths (voxel sizes, visit gap, attribution cells and thresholds, entropy radius): the outdoor ones
+        (2 m voxels, 10 m of travel between visits) see nothing revisited in a room."""
+        from driftmap.registration.odometry import is_indoor_lidar
+
+        first = store.frame(int(store.frame_ids[0]))
+        lidar = cls.for_sensor(first.sensor_kind)
+        if not is_indoor_lidar(first):
+            return lidar
+        logger.info("%s: LiDAR scans of a room (frame %d reaches < 25 m): diagnosing with the indoor voxel sizes "
+                    "and visit gap", store.path, first.frame_id)
+        return lidar.model_copy(update={"double_wall": DoubleWallConfig(), "attribution": AttributionConfig(),
+                                        "entropy": EntropyConfig()})
+
 
 @dataclass(frozen=True)
 class Diagnosis:
@@ -230,8 +247,7 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
     if len(store) == 0:
         raise StoreError(f"{store.path}: the store has no frames")
     if config is None:
-        kind = SensorKind(store.frame_info(int(store.frame_ids[0]))["sensor_kind"])
-        config = DiagnoseConfig.for_sensor(kind)
+        config = DiagnoseConfig.for_store(store)
     t = time.perf_counter()
     if cloud is None:
         cloud = DiagnosticCloud.from_store(store, config.sampling, noise)

@@ -85,13 +85,11 @@ class OdometryConfig(BaseModel):
         settings; half that scale (KISS-ICP's rule taking the sensor's reach as twice the p99) was finer but
         lost the first, prediction-free registration on 2 of the 9 logs tried (ATE 11 and 83 cm; docs/build.md)."""
         base = cls.for_sensor(frame.sensor_kind)
-        if frame.sensor_kind is not SensorKind.LIDAR or frame.n_points == 0:
+        if frame.sensor_kind is not SensorKind.LIDAR:
             return base
-        ranges = np.linalg.norm(np.asarray(frame.points_sensor, dtype=np.float64), axis=1)
-        ranges = ranges[np.isfinite(ranges) & (ranges > 0)]
-        if len(ranges) == 0:
+        p99_m = scan_reach_m(frame)
+        if p99_m is None:
             return base
-        p99_m = float(np.percentile(ranges, 99))
         scale = min(1.0, max(LIDAR_MIN_SCENE_SCALE, p99_m / LIDAR_OUTDOOR_P99_RANGE_M))
         if scale >= 1.0:
             return base
@@ -114,6 +112,23 @@ class OdometryConfig(BaseModel):
         cfg.adaptive_threshold.initial_threshold = self.initial_threshold_m
         cfg.adaptive_threshold.min_motion_th = self.min_motion_m
         return cfg
+
+
+def scan_reach_m(frame: Frame) -> float | None:
+    """How far a scan reaches: the 99th percentile of its points' ranges (``None`` without a finite point)."""
+    if frame.n_points == 0:
+        return None
+    ranges = np.linalg.norm(np.asarray(frame.points_sensor, dtype=np.float64), axis=1)
+    ranges = ranges[np.isfinite(ranges) & (ranges > 0)]
+    return float(np.percentile(ranges, 99)) if len(ranges) else None
+
+
+def is_indoor_lidar(frame: Frame) -> bool:
+    """A LiDAR scan that reaches less than :data:`LIDAR_OUTDOOR_P99_RANGE_M` (a room, a corridor)."""
+    if frame.sensor_kind is not SensorKind.LIDAR:
+        return False
+    reach = scan_reach_m(frame)
+    return reach is not None and reach < LIDAR_OUTDOOR_P99_RANGE_M
 
 
 LIDAR_OUTDOOR_P99_RANGE_M = 25.0
