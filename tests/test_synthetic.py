@@ -255,15 +255,30 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
     nothing revisited: smearing 0 for the drifting odometry and for the ground truth alike. Scans that reach
     < 25 m are diagnosed with the indoor lengths: the drifting odometry's loop wall and its 3 cm step at frame
     30 show, the ground-truth map is clean, and a KITTI store keeps the outdoor settings."""
-    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth
     from driftmap.pipeline.build import build
     from driftmap.store.frame_store import FrameStore
     from driftmap.trajectory import write_tum
 
     log = SyntheticLog(lidar_log, sensor="lidar")
-    write_tum(tmp_path / "gt.tum", log.ground_truth())
-    build(lidar_log, tmp_path / "gt", poses_file=tmp_path / "gt.tum", loop_closure=False, source_options={"sensor": "lidar"})
+    # the log's groundtruth.txt holds the depth camera's poses: build --poses converts them for the LiDAR (they
+    # were taken as LiDAR poses: 0.7-1.8 m "double walls" and 128 mm frame-to-frame smearing)
+    build(lidar_log, tmp_path / "gt", poses_file=lidar_log / "groundtruth.txt", loop_closure=False,
+          source_options={"sensor": "lidar"})
+    with FrameStore.open(tmp_path / "gt") as store:
+        np.testing.assert_allclose(store.poses(0), log.ground_truth().poses, rtol=0, atol=1e-6)  # TUM: 9 decimals
+    write_tum(tmp_path / "gt.tum", log.ground_truth())  # the LiDAR's own poses in a file: taken as they are
+    build(lidar_log, tmp_path / "gt2", poses_file=tmp_path / "gt.tum", loop_closure=False, source_options={"sensor": "lidar"})
+    with FrameStore.open(tmp_path / "gt2") as store:
+        np.testing.assert_allclose(store.poses(0), log.ground_truth().poses, rtol=0, atol=1e-6)
     build(lidar_log, tmp_path / "odo", poses_from_source=True, loop_closure=False, source_options={"sensor": "lidar"})
+    with FrameStore.open(tmp_path / "odo", "a") as store:  # correct / diagnose --gt convert the file as well
+        store.import_poses(lidar_log / "groundtruth.txt", format="tum")
+        np.testing.assert_allclose(store.poses(1), log.ground_truth().poses, rtol=0, atol=1e-6)
+        store.rollback(0)  # the head is the odometry again
+        ids, poses = read_ground_truth(store, lidar_log / "groundtruth.txt")
+        np.testing.assert_array_equal(ids, store.frame_ids)
+        np.testing.assert_allclose(poses, log.ground_truth().poses, rtol=0, atol=1e-6)
     outdoor = DiagnoseConfig.for_sensor(SensorKind.LIDAR)
     result = {}
     for name in ("gt", "odo"):

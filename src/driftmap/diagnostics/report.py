@@ -217,7 +217,12 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
         raise ConfigError(f"--gt-format must be tum or kitti, got {format!r}")
     if fmt == "tum" and (kitti_frame != "auto" or calib_file is not None):
         raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
-    traj: Trajectory = read_tum(path) if fmt == "tum" else read_kitti(path)
+    if fmt == "tum":
+        from driftmap.sources.base import pose_file_in_store_sensor_frame
+
+        traj: Trajectory = pose_file_in_store_sensor_frame(store.path, path, read_tum(path))
+    else:
+        traj = read_kitti(path)
     if fmt == "kitti":
         rows = kitti_rows_as_velodyne(path, traj.poses, kitti_origin_of_store(store), kitti_frame=kitti_frame,
                                       calib_file=calib_file, lidar_frames=store_holds_lidar_scans(store))

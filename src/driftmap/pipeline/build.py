@@ -36,7 +36,7 @@ from driftmap.registration.loops import (
 )
 from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, OdometryConfig, OdometryMethod, make_odometry
 from driftmap.registration.pairwise import register_prepared, relative_pose
-from driftmap.sources.base import FrameSource, accepted_options, open_source, registered_formats
+from driftmap.sources.base import BUILD_SOURCE_FILE, FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
 from driftmap.trajectory import read_trajectory
 
@@ -214,8 +214,6 @@ def _require_frames(src: FrameSource, path: Path, fmt: str | None, frames: str |
                       + (f", indices 0..{total - 1})" if total else ")"))
 
 
-#: beside the store: what it was built from, written when the store is created, checked by ``--resume``
-BUILD_SOURCE_FILE = "build_source.json"
 
 
 def _source_record(source: str | Path, src: FrameSource, poses: dict[str, Any] | None = None,
@@ -384,6 +382,8 @@ def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: 
                       max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS) -> Callable[[Frame], np.ndarray]:
     traj = read_trajectory(poses_file)
     is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
+    if not is_kitti:
+        traj = source.pose_file_in_sensor_frame(Path(poses_file), traj)
     if is_kitti:  # row i is the pose of frame_id i
         rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source, kitti_frame, calib_file)
 

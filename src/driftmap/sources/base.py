@@ -12,13 +12,14 @@ and contents (or ``format=``) and names every format it tried when none fits.
 
 from __future__ import annotations
 
+import json
 import logging
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from driftmap.errors import SourceError
+from driftmap.errors import DriftmapError, SourceError
 from driftmap.frame import Frame
 from driftmap.trajectory import Trajectory
 
@@ -119,6 +120,14 @@ class FrameSource:
         """Ground-truth ``T_world_sensor`` per frame (``frame_ids`` set), if the data set has it."""
         return None
 
+    def pose_file_in_sensor_frame(self, poses_file: Path, trajectory: Trajectory) -> Trajectory:
+        """The rows of a pose file given for this source's frames (``build --poses``) as ``T_world_sensor``.
+
+        As they are by default. A data set whose own pose files belong to another sensor converts them (the
+        synthetic log's depth-camera files for its LiDAR; KITTI's cam0 files have their own rule,
+        :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`)."""
+        return trajectory
+
     def describe(self) -> dict[str, Any]:
         n = self._count()
         return {"format": self.format_name, "uri": self.uri, "frames": None if n is None else len(self)}
@@ -133,6 +142,32 @@ class SourceFormat:
     detect: Callable[[Path], bool]
     open: Callable[..., FrameSource]
     description: str
+    converts_pose_files: bool = False
+    """Its sources override :meth:`FrameSource.pose_file_in_sensor_frame` (worth opening for a store's pose file)."""
+
+
+#: beside a store: what it was built from (path, format, options), written by ``build``
+BUILD_SOURCE_FILE = "build_source.json"
+
+
+def pose_file_in_store_sensor_frame(store_dir: str | Path, poses_file: str | Path, trajectory: Trajectory) -> Trajectory:
+    """:meth:`FrameSource.pose_file_in_sensor_frame` for a store's frames (``correct --poses``, ``diagnose
+    --gt``): asked of the source the store was built from (its ``build_source.json``), when its format
+    converts pose files and it can still be opened; otherwise the rows as they are."""
+    try:
+        record = json.loads((Path(store_dir) / BUILD_SOURCE_FILE).read_text())
+        fmt = registered_formats().get(str(record.get("format")))
+    except (OSError, ValueError, AttributeError):
+        return trajectory  # a store without a (readable) record: nothing to ask
+    if fmt is None or not fmt.converts_pose_files:
+        return trajectory
+    try:
+        source = fmt.open(Path(record["path"]), **(record.get("source_options") or {}))
+    except (OSError, KeyError, TypeError, DriftmapError) as exc:
+        logger.warning("%s: rows taken as they are; the store's source %s (%s) could not be opened to check whether "
+                       "the file holds another of its sensors' poses (%s)", poses_file, record.get("path"), fmt.name, exc)
+        return trajectory
+    return source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
 
 
 _REGISTRY: dict[str, SourceFormat] = {}
@@ -150,9 +185,11 @@ def accepted_options(opener: Callable[..., FrameSource]) -> frozenset[str]:
                      if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD))
 
 
-def register_source(name: str, detect: Callable[[Path], bool], opener: Callable[..., FrameSource], description: str) -> None:
-    """Register a format: ``detect(path)`` must be cheap and never raise; ``opener(path, **options)``."""
-    _REGISTRY[name] = SourceFormat(name, detect, opener, description)
+def register_source(name: str, detect: Callable[[Path], bool], opener: Callable[..., FrameSource], description: str,
+                    *, converts_pose_files: bool = False) -> None:
+    """Register a format: ``detect(path)`` must be cheap and never raise; ``opener(path, **options)``;
+    ``converts_pose_files``: its sources override :meth:`FrameSource.pose_file_in_sensor_frame`."""
+    _REGISTRY[name] = SourceFormat(name, detect, opener, description, converts_pose_files)
 
 
 def registered_formats() -> dict[str, SourceFormat]:

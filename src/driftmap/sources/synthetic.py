@@ -429,6 +429,20 @@ class SyntheticLog(FrameSource):
             poses = poses @ geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
         return Trajectory(trajectory.stamps_ns[idx], poses, ids)
 
+    def pose_file_in_sensor_frame(self, poses_file: Path, trajectory: Trajectory) -> Trajectory:
+        """The log's own ``groundtruth.txt`` / ``odometry.txt`` (or byte-identical copies) hold the depth camera's
+        poses: for the LiDAR they are converted (``T_world_cam @ inv(T_base_cam) @ T_base_lidar``), with an info
+        line. Any other file is taken as it is."""
+        if self.sensor != "lidar":
+            return trajectory
+        own = [self.path / self.meta[key] for key in ("ground_truth", "odometry")]
+        if not any(_same_file(poses_file, f) for f in own):
+            return trajectory
+        logger.info("%s is the synthetic log's depth-camera pose file: rows converted to the LiDAR frame "
+                    "(T_base_lidar of %s)", poses_file, self.path / METADATA_FILE)
+        T_cam_lidar = geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
+        return Trajectory(trajectory.stamps_ns, trajectory.poses @ T_cam_lidar, trajectory.frame_ids)
+
     def odometry(self) -> Trajectory:
         """The drifting odometry as ``T_world_sensor`` of the selected frames (the frames' own pose estimates)."""
         return self._of_selected_sensor(self._odometry)
@@ -439,8 +453,18 @@ class SyntheticLog(FrameSource):
         return self._of_selected_sensor(read_tum(self.path / self.meta["ground_truth"]))
 
 
+def _same_file(a: str | Path, b: Path) -> bool:
+    """The same file (paths resolved) or a byte-identical copy."""
+    try:
+        a = Path(a)
+        return a.resolve() == b.resolve() or (a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes())
+    except OSError:
+        return False
+
+
 def _detect(path: Path) -> bool:
     return (path / METADATA_FILE).is_file()
 
 
-register_source("synthetic", _detect, SyntheticLog, "driftmap's synthetic drifting-robot log (synthetic.json + depth/)")
+register_source("synthetic", _detect, SyntheticLog, "driftmap's synthetic drifting-robot log (synthetic.json + depth/)",
+                converts_pose_files=True)

@@ -853,7 +853,10 @@ class FrameStore:
 
         KITTI rows on a store of KITTI Velodyne scans: ``kitti_frame`` (``auto`` | ``velodyne`` | ``cam0``) and
         ``calib_file`` as in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (``auto`` converts the data
-        set's own cam0 ``poses.txt`` to the Velodyne frame).
+        set's own cam0 ``poses.txt`` to the Velodyne frame). A TUM file that belongs to another sensor of the data
+        set the store was built from is converted by that source
+        (:func:`driftmap.sources.base.pose_file_in_store_sensor_frame`: the synthetic log's camera files on a
+        store of its LiDAR).
         """
         fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
         source = parse_enum(PoseSource, source, f"{file}: source")
@@ -863,7 +866,12 @@ class FrameStore:
             raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
         if fmt is TrajectoryFormat.KITTI and mode is PoseMatchMode.STAMP:
             raise ConfigError(f"{file}: KITTI pose files have no stamps (row i is frame_id i): match by index")
-        trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
+        if fmt is TrajectoryFormat.TUM:
+            from driftmap.sources.base import pose_file_in_store_sensor_frame
+
+            trajectory = pose_file_in_store_sensor_frame(self.path, file, read_tum(file))
+        else:
+            trajectory = read_kitti(file)
         ids = self.ledger.frame_ids
         if (match is None and mode is PoseMatchMode.INDEX and len(trajectory) == len(ids) and len(ids) > 1
                 and not np.array_equal(ids, np.arange(len(ids)))):
