@@ -259,34 +259,42 @@ def test_kitti_frame_options_are_refused_where_they_mean_nothing(store_copy: Pat
         assert len(store.revisions) == 1
 
 
-def test_cam0_rows_on_scans_from_a_converted_mcap_are_warned_about(kitti_dir: Path, velo_rows: np.ndarray,
-                                                                    tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
-    """Scans read back from an MCAP that ``convert`` wrote no longer say which KITTI sequence they come from, so
-    ``auto`` cannot recognise the data set's cam0 ``poses.txt``: its rows are taken as they are, with the
-    camera-motion warning (it was silent); ``--kitti-frame cam0 --calib`` converts them."""
+def test_scans_from_a_converted_mcap_keep_their_kitti_sequence(kitti_dir: Path, velo_rows: np.ndarray, tmp_path: Path,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
+    """``convert`` records the sequence an MCAP was read from (its ``origin``): a store built from the MCAP
+    converts the data set's cam0 ``poses.txt`` in ``auto`` as a store built from the folder does (build,
+    correct, diagnose). When the sequence folder is gone, the rows are taken as they are with the camera-motion
+    warning (it was silent), and ``--kitti-frame cam0 --calib`` still converts them."""
     from driftmap.sources.mcap_export import convert
 
+    seq = tmp_path / "seq"
+    (seq / "velodyne").mkdir(parents=True)
+    for i in range(0, 16, 3):
+        shutil.copyfile(kitti_dir / "velodyne" / f"{i:06d}.bin", seq / "velodyne" / f"{i:06d}.bin")
+    for name in ("calib.txt", "poses.txt", "times.txt"):
+        shutil.copyfile(kitti_dir / name, seq / name)
     mcap = tmp_path / "kitti.mcap"
-    convert(kitti_dir, mcap, frames=FRAMES)
+    convert(seq, mcap)
     store_path = tmp_path / "store"
-    build(mcap, store_path, loop_closure=False)
+    build(mcap, store_path, poses_file=seq / "poses.txt", loop_closure=False)  # the data set's cam0 file
     with FrameStore.open(store_path) as store:
-        assert kitti_origin_of_store(store) is None
-    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
-        _correct(store_path, kitti_dir / "poses.txt")
-    assert any("they look like cam0 poses" in r.getMessage() and "--calib" in r.getMessage() for r in caplog.records)
-    caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):  # Velodyne rows: no warning
-        ids = np.arange(len(velo_rows), dtype=np.int64)
-        write_kitti(tmp_path / "velo.txt", Trajectory(ids, velo_rows, ids))
-        _correct(store_path, tmp_path / "velo.txt")
-        assert not [r for r in caplog.records if r.name == "driftmap.sources.kitti"]
-        gt = _diagnose(store_path, kitti_dir / "poses.txt", tmp_path / "d.json")  # ground truth: same rule, warned
-    assert [r.getMessage() for r in caplog.records if "they look like cam0 poses" in r.getMessage()] and gt
-    _correct(store_path, kitti_dir / "poses.txt", "--kitti-frame", "cam0", "--calib", str(kitti_dir / "calib.txt"))
-    with FrameStore.open(store_path) as store:
+        origin = kitti_origin_of_store(store)
+        assert origin is not None and origin.sequence_dir == seq.resolve()
         stored = [int(i) for i in store.frame_ids]
         assert stored == list(range(0, 16, 3))
+        np.testing.assert_allclose(store.poses(0)[:, :3, 3], velo_rows[stored][:, :3, 3], rtol=0, atol=1e-9)
+    _correct(store_path, seq / "poses.txt")
+    with FrameStore.open(store_path) as store:
+        np.testing.assert_allclose(store.poses(1), store.poses(0), rtol=0, atol=1e-9)
+    assert _diagnose(store_path, seq / "poses.txt", tmp_path / "d.json")["ate_rmse_m"] < 1e-6
+
+    shutil.rmtree(seq)  # the data set has moved: the store no longer knows it
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):
+        _correct(store_path, kitti_dir / "poses.txt")
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("no longer there" in m for m in messages), messages
+    assert any("they look like cam0 poses" in m and "--calib" in m for m in messages), messages
+    _correct(store_path, kitti_dir / "poses.txt", "--kitti-frame", "cam0", "--calib", str(kitti_dir / "calib.txt"))
+    with FrameStore.open(store_path) as store:
         head = len(store.revisions) - 1
-        np.testing.assert_allclose(store.poses(head)[:, :3, 3], velo_rows[stored][:, :3, 3], rtol=0, atol=1e-9)
-        np.testing.assert_allclose(store.poses(head), store.poses(2), rtol=0, atol=1e-9)  # = the Velodyne rows
+        np.testing.assert_allclose(store.poses(head), store.poses(0), rtol=0, atol=1e-9)

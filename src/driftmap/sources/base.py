@@ -154,20 +154,28 @@ def pose_file_in_store_sensor_frame(store_dir: str | Path, poses_file: str | Pat
     """:meth:`FrameSource.pose_file_in_sensor_frame` for a store's frames (``correct --poses``, ``diagnose
     --gt``): asked of the source the store was built from (its ``build_source.json``), when its format
     converts pose files and it can still be opened; otherwise the rows as they are."""
+    source = open_store_source(store_dir, lambda fmt: fmt.converts_pose_files,
+                               f"{poses_file}: rows taken as they are; could not check whether the file holds another "
+                               "of its sensors' poses")
+    return trajectory if source is None else source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
+
+
+def open_store_source(store_dir: str | Path, wanted: Callable[[SourceFormat], bool], why: str) -> FrameSource | None:
+    """The source a store was built from (its ``build_source.json``: path, format, options), opened, when its
+    format is ``wanted``; ``None`` without a record or for another format. A wanted source that can no longer
+    be opened (moved, deleted) gives a warning starting with ``why``, and ``None``."""
     try:
         record = json.loads((Path(store_dir) / BUILD_SOURCE_FILE).read_text())
         fmt = registered_formats().get(str(record.get("format")))
     except (OSError, ValueError, AttributeError):
-        return trajectory  # a store without a (readable) record: nothing to ask
-    if fmt is None or not fmt.converts_pose_files:
-        return trajectory
+        return None  # a store without a (readable) record: nothing to ask
+    if fmt is None or not wanted(fmt):
+        return None
     try:
-        source = fmt.open(Path(record["path"]), **(record.get("source_options") or {}))
+        return fmt.open(Path(record["path"]), **(record.get("source_options") or {}))
     except (OSError, KeyError, TypeError, DriftmapError) as exc:
-        logger.warning("%s: rows taken as they are; the store's source %s (%s) could not be opened to check whether "
-                       "the file holds another of its sensors' poses (%s)", poses_file, record.get("path"), fmt.name, exc)
-        return trajectory
-    return source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
+        logger.warning("%s: the store's source %s (%s) could not be opened (%s)", why, record.get("path"), fmt.name, exc)
+        return None
 
 
 _REGISTRY: dict[str, SourceFormat] = {}

@@ -151,10 +151,22 @@ _SCAN_NAME = re.compile(r"^\d+\.bin$")
 
 
 def kitti_origin_of_source(source: object) -> KittiOrigin | None:
-    """The sequence a :class:`KittiOdometry` source reads (``None`` for any other source)."""
-    if not isinstance(source, KittiOdometry):
+    """The sequence a :class:`KittiOdometry` source reads, or that an MCAP ``driftmap convert`` wrote from one
+    was read from (its ``origin``, when the folder is still there); ``None`` for any other source."""
+    if isinstance(source, KittiOdometry):
+        return KittiOrigin(source.path, source.poses_file,
+                           source.path / "calib.txt" if (source.path / "calib.txt").is_file() else None)
+    export_origin = getattr(source, "export_origin", None)
+    origin = export_origin() if callable(export_origin) else None
+    if not origin or origin.get("format") != "kitti":
         return None
-    return KittiOrigin(source.path, source.poses_file, source.path / "calib.txt" if (source.path / "calib.txt").is_file() else None)
+    folder = Path(origin["path"])
+    if not (folder / "velodyne").is_dir():
+        logger.warning("%s was converted from the KITTI sequence %s, which is no longer there: its calib.txt and "
+                       "poses.txt cannot be recognised (--kitti-frame cam0 --calib FILE converts cam0 poses)",
+                       getattr(source, "uri", source), folder)
+        return None
+    return KittiOrigin.of_folder(folder)
 
 
 def kitti_origin_of_frame_infos(infos: list[dict[str, Any]]) -> KittiOrigin | None:
@@ -176,8 +188,21 @@ def kitti_origin_of_frame_infos(infos: list[dict[str, Any]]) -> KittiOrigin | No
 
 
 def kitti_origin_of_store(store: Any) -> KittiOrigin | None:
-    """The KITTI sequence a :class:`~driftmap.store.frame_store.FrameStore`'s frames come from, or ``None``."""
-    return kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
+    """The KITTI sequence a :class:`~driftmap.store.frame_store.FrameStore`'s frames come from (their
+    provenance), or that the MCAP it was built from was converted from (:func:`kitti_origin_of_source` of the
+    source in its ``build_source.json``), or ``None``."""
+    origin = kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
+    if origin is not None or not store_holds_lidar_scans(store):
+        return origin
+    from driftmap.sources.base import open_store_source
+
+    source = open_store_source(store.path, lambda fmt: fmt.name in ROS_LOG_FORMATS,
+                               f"{store.path}: the KITTI sequence of its frames is not known")
+    return None if source is None else kitti_origin_of_source(source)
+
+
+ROS_LOG_FORMATS = ("mcap",)
+"""Formats whose logs may say which data set they were converted from (``driftmap convert`` writes MCAP)."""
 
 
 def store_holds_lidar_scans(store: Any) -> bool:

@@ -25,7 +25,8 @@ Layout, per sensor (``<s>`` = the frame's ``sensor_name``):
   only when ``ground_truth`` is given. It is never the estimate.
 * a ``driftmap.export`` metadata record (JSON) with, per sensor: topics, names, frames, ``frame_ids``,
   per-frame pose sources, depth scale; :class:`RosLogSource` uses it to restore frame ids, the sensor name
-  and kind, and to default ``pose_from_tf``.
+  and kind, and to default ``pose_from_tf``; and, when written from a source, its ``origin`` (format and
+  resolved path: a KITTI store built from the MCAP still finds the sequence's ``calib.txt`` and ``poses.txt``).
 
 Log time = publish time = the frame's stamp. Stamps must be non-negative (ROS time).
 """
@@ -378,6 +379,7 @@ def export_mcap(
                     "version": EXPORT_FORMAT_VERSION,
                     "driftmap_version": __version__,
                     "sensors": json.dumps([_sensor_metadata(s) for s in sensors.values()]),
+                    **_origin_metadata(source_or_frames),
                 },
             )
             writer.finish()
@@ -458,6 +460,15 @@ def _check_consistent(state: _SensorState, frame: Frame, what: str) -> None:
         raise ExportError(
             f"{what}: stamp {frame.stamp_ns} ns is not after the previous frame's {state.last_stamp_ns} ns"
         )
+
+
+def _origin_metadata(source_or_frames: object) -> dict[str, str]:
+    """``origin``: the format and resolved path of the data set the frames were read from (``convert``), so
+    that what is known about it (a KITTI sequence's calibration and ground truth) is not lost with the file."""
+    if not isinstance(source_or_frames, FrameSource):
+        return {}
+    return {"origin": json.dumps({"format": source_or_frames.format_name,
+                                  "path": str(Path(source_or_frames.uri).resolve())})}
 
 
 def _sensor_metadata(s: _SensorState) -> dict[str, Any]:

@@ -1219,6 +1219,17 @@ class RosLogSource(FrameSource):
             self._first_decoded[topic] = self._backend.decode(raw)
         return self._first_decoded[topic]
 
+    def export_origin(self) -> dict[str, str] | None:
+        """The data set an MCAP written by ``driftmap convert`` was read from (``{"format", "path"}``), if
+        it says so (:mod:`driftmap.sources.mcap_export`)."""
+        record = self._backend.metadata().get(EXPORT_METADATA_NAME) or {}
+        try:
+            origin = json.loads(record.get("origin", "null"))
+        except json.JSONDecodeError:
+            return None
+        ok = isinstance(origin, dict) and isinstance(origin.get("format"), str) and isinstance(origin.get("path"), str)
+        return origin if ok else None
+
     def _export_entry(self) -> dict[str, Any] | None:
         record = self._backend.metadata().get(EXPORT_METADATA_NAME)
         if not record:
