@@ -16,7 +16,8 @@ fi
 # System libraries: Open3D needs libusb-1.0 at import time; its headless rendering (the viewer's PNG views,
 # docs/open3d-choice.md) needs Mesa's EGL and, for OffscreenRenderer, Vulkan with Mesa's software driver.
 missing=()
-have_lib() { ldconfig -p 2>/dev/null | grep -q "$1"; }
+libs=$(ldconfig -p 2>/dev/null || true)  # once: "ldconfig -p | grep -q" fails under pipefail when grep exits early
+have_lib() { grep -qF "$1" <<< "$libs"; }
 have_lib 'libusb-1.0.so.0' || missing+=(libusb-1.0-0)
 have_lib 'libEGL.so.1 ' || missing+=(libegl1)
 have_lib 'libGL.so.1 ' || missing+=(libgl1)
