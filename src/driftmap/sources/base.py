@@ -146,6 +146,16 @@ class SourceFormat:
     """Its sources override :meth:`FrameSource.pose_file_in_sensor_frame` (worth opening for a store's pose file)."""
 
 
+def same_file_or_copy(a: str | Path, b: str | Path) -> bool:
+    """``a`` is the file ``b`` (paths resolved) or a byte-identical copy of it (a data set's own pose file
+    passed from another place); ``False`` when either cannot be read."""
+    a, b = Path(a), Path(b)
+    try:
+        return a.resolve() == b.resolve() or (a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes())
+    except OSError:
+        return False
+
+
 #: beside a store: what it was built from (path, format, options), written by ``build``
 BUILD_SOURCE_FILE = "build_source.json"
 

@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 from driftmap import geometry
 from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
-from driftmap.sources.base import FrameSource, register_source
+from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
 from driftmap.trajectory import Trajectory, _stamp_s_to_ns, read_kitti
 
@@ -136,15 +136,7 @@ class KittiOrigin:
 
     def is_own_poses_file(self, file: str | Path) -> bool:
         """``file`` is this sequence's ground-truth file: the same file (paths resolved) or a byte-identical copy."""
-        if self.poses_file is None:
-            return False
-        a, b = Path(file), self.poses_file
-        try:
-            if a.resolve() == b.resolve():
-                return True
-            return a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes()
-        except OSError:
-            return False
+        return self.poses_file is not None and same_file_or_copy(file, self.poses_file)
 
 
 _SCAN_NAME = re.compile(r"^\d+\.bin$")

@@ -37,7 +37,7 @@ from driftmap import geometry
 from driftmap.errors import SourceError
 from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
-from driftmap.sources.base import FrameSource, register_source
+from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.trajectory import Trajectory, read_tum, write_tum
 
 logger = logging.getLogger(__name__)
@@ -436,7 +436,7 @@ class SyntheticLog(FrameSource):
         if self.sensor != "lidar":
             return trajectory
         own = [self.path / self.meta[key] for key in ("ground_truth", "odometry")]
-        if not any(_same_file(poses_file, f) for f in own):
+        if not any(same_file_or_copy(poses_file, f) for f in own):
             return trajectory
         logger.info("%s is the synthetic log's depth-camera pose file: rows converted to the LiDAR frame "
                     "(T_base_lidar of %s)", poses_file, self.path / METADATA_FILE)
@@ -451,15 +451,6 @@ class SyntheticLog(FrameSource):
         """Ground-truth ``T_world_sensor`` of the selected frames, for the sensor this source yields (the depth
         camera, or with ``sensor="lidar"`` the LiDAR); for evaluation only."""
         return self._of_selected_sensor(read_tum(self.path / self.meta["ground_truth"]))
-
-
-def _same_file(a: str | Path, b: Path) -> bool:
-    """The same file (paths resolved) or a byte-identical copy."""
-    try:
-        a = Path(a)
-        return a.resolve() == b.resolve() or (a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes())
-    except OSError:
-        return False
 
 
 def _detect(path: Path) -> bool:
