@@ -85,12 +85,7 @@ class OdometryConfig(BaseModel):
         settings; half that scale (KISS-ICP's rule taking the sensor's reach as twice the p99) was finer but
         lost the first, prediction-free registration on 2 of the 9 logs tried (ATE 11 and 83 cm; docs/build.md)."""
         base = cls.for_sensor(frame.sensor_kind)
-        if frame.sensor_kind is not SensorKind.LIDAR:
-            return base
-        p99_m = scan_reach_m(frame)
-        if p99_m is None:
-            return base
-        scale = min(1.0, max(LIDAR_MIN_SCENE_SCALE, p99_m / LIDAR_OUTDOOR_P99_RANGE_M))
+        scale, p99_m = lidar_scene_scale(frame)
         if scale >= 1.0:
             return base
         scaled = base.model_copy(update={name: getattr(base, name) * scale for name in KISS_LENGTHS})
@@ -123,12 +118,20 @@ def scan_reach_m(frame: Frame) -> float | None:
     return float(np.percentile(ranges, 99)) if len(ranges) else None
 
 
+def lidar_scene_scale(frame: Frame) -> tuple[float, float | None]:
+    """``(scale, reach)``: how much smaller than an outdoor scan a LiDAR scan is, ``min(1, max(0.05, p99 range /
+    25 m))``, and its reach (:func:`scan_reach_m`); ``(1.0, None)`` for other sensors and empty scans."""
+    if frame.sensor_kind is not SensorKind.LIDAR:
+        return 1.0, None
+    reach = scan_reach_m(frame)
+    if reach is None:
+        return 1.0, None
+    return min(1.0, max(LIDAR_MIN_SCENE_SCALE, reach / LIDAR_OUTDOOR_P99_RANGE_M)), reach
+
+
 def is_indoor_lidar(frame: Frame) -> bool:
     """A LiDAR scan that reaches less than :data:`LIDAR_OUTDOOR_P99_RANGE_M` (a room, a corridor)."""
-    if frame.sensor_kind is not SensorKind.LIDAR:
-        return False
-    reach = scan_reach_m(frame)
-    return reach is not None and reach < LIDAR_OUTDOOR_P99_RANGE_M
+    return lidar_scene_scale(frame)[0] < 1.0
 
 
 LIDAR_OUTDOOR_P99_RANGE_M = 25.0
