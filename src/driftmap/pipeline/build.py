@@ -214,8 +214,6 @@ def _require_frames(src: FrameSource, path: Path, fmt: str | None, frames: str |
                       + (f", indices 0..{total - 1})" if total else ")"))
 
 
-
-
 def _source_record(source: str | Path, src: FrameSource, poses: dict[str, Any] | None = None,
                    depth: dict[str, Any] | None = None, options: dict[str, Any] | None = None) -> dict[str, Any]:
     record = {"path": str(Path(source).resolve()), "format": src.format_name, "given": str(source)}
