@@ -266,6 +266,7 @@ def test_scans_from_a_converted_mcap_keep_their_kitti_sequence(kitti_dir: Path, 
     correct, diagnose). When the sequence folder is gone, the rows are taken as they are with the camera-motion
     warning (it was silent), and ``--kitti-frame cam0 --calib`` still converts them."""
     from driftmap.sources.mcap_export import convert
+    from driftmap.sources.ros import read_export_origin
 
     seq = tmp_path / "seq"
     (seq / "velodyne").mkdir(parents=True)
@@ -275,6 +276,10 @@ def test_scans_from_a_converted_mcap_keep_their_kitti_sequence(kitti_dir: Path, 
         shutil.copyfile(kitti_dir / name, seq / name)
     mcap = tmp_path / "kitti.mcap"
     convert(seq, mcap)
+    again = tmp_path / "again.mcap"  # an MCAP converted from the MCAP names the same data set
+    convert(mcap, again, frames="0:3")
+    assert read_export_origin(again) == read_export_origin(mcap) == {"format": "kitti", "path": str(seq.resolve()),
+                                                                     "options": {}}
     store_path = tmp_path / "store"
     build(mcap, store_path, poses_file=seq / "poses.txt", loop_closure=False)  # the data set's cam0 file
     with FrameStore.open(store_path) as store:
@@ -294,7 +299,10 @@ def test_scans_from_a_converted_mcap_keep_their_kitti_sequence(kitti_dir: Path, 
     messages = [r.getMessage() for r in caplog.records]
     assert any("no longer there" in m for m in messages), messages
     assert any("they look like cam0 poses" in m and "--calib" in m for m in messages), messages
-    _correct(store_path, kitti_dir / "poses.txt", "--kitti-frame", "cam0", "--calib", str(kitti_dir / "calib.txt"))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.kitti"):  # told the frame: the origin is not asked
+        _correct(store_path, kitti_dir / "poses.txt", "--kitti-frame", "cam0", "--calib", str(kitti_dir / "calib.txt"))
+    assert not [r for r in caplog.records if r.name == "driftmap.sources.kitti"], [r.getMessage() for r in caplog.records]
     with FrameStore.open(store_path) as store:
         head = len(store.revisions) - 1
         np.testing.assert_allclose(store.poses(head), store.poses(0), rtol=0, atol=1e-9)

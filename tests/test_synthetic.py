@@ -267,6 +267,13 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
           source_options={"sensor": "lidar"})
     with FrameStore.open(tmp_path / "gt") as store:
         np.testing.assert_allclose(store.poses(0), log.ground_truth().poses, rtol=0, atol=1e-6)  # TUM: 9 decimals
+    from driftmap.sources.mcap_export import convert
+
+    convert(lidar_log, tmp_path / "lidar.mcap", sensor="lidar")  # through an MCAP: the log is still known
+    build(tmp_path / "lidar.mcap", tmp_path / "via_mcap", loop_closure=False)
+    with FrameStore.open(tmp_path / "via_mcap", "a") as store:
+        store.import_poses(lidar_log / "groundtruth.txt", format="tum")
+        np.testing.assert_allclose(store.poses(1), log.ground_truth().poses, rtol=0, atol=1e-6)
     write_tum(tmp_path / "gt.tum", log.ground_truth())  # the LiDAR's own poses in a file: taken as they are
     build(lidar_log, tmp_path / "gt2", poses_file=tmp_path / "gt.tum", loop_closure=False, source_options={"sensor": "lidar"})
     with FrameStore.open(tmp_path / "gt2") as store:
@@ -299,3 +306,28 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
     build(kitti_dir, kitti_store, poses_from_source=True, frames="0:3", loop_closure=False)
     with FrameStore.open(kitti_store) as store:
         assert DiagnoseConfig.for_store(store) == outdoor
+
+
+def test_resume_keeps_the_odometry_settings_of_the_build(lidar_log: Path, tmp_path: Path) -> None:
+    """``--resume`` takes the odometry settings the earlier run recorded (``build_summary.json``), not the
+    defaults chosen again; a store from before they were recorded resumes with the sensor's plain defaults."""
+    import json
+
+    from driftmap.pipeline.build import build
+    from driftmap.registration.odometry import OdometryConfig
+
+    store = tmp_path / "store"
+    first = build(lidar_log, store, frames="0:20", loop_closure=False, source_options={"sensor": "lidar"})
+    summary_file = store / "build_summary.json"
+    summary = json.loads(summary_file.read_text())
+    tweaked = {**summary["odometry_config"], "voxel_size_m": 0.123}  # as if the scene rule had chosen otherwise
+    summary_file.write_text(json.dumps({**summary, "odometry_config": tweaked}))
+    resumed = build(lidar_log, store, frames="0:40", resume=True, loop_closure=False, source_options={"sensor": "lidar"})
+    assert resumed.n_frames_new == 20 and resumed.odometry_config["voxel_size_m"] == 0.123
+    assert first.odometry_config["voxel_size_m"] != 0.123
+    legacy = json.loads(summary_file.read_text())
+    del legacy["odometry_config"]
+    summary_file.write_text(json.dumps(legacy))
+    again = build(lidar_log, store, resume=True, loop_closure=False, source_options={"sensor": "lidar"})
+    assert again.n_frames_new == 20
+    assert again.odometry_config == OdometryConfig.for_sensor(SensorKind.LIDAR).model_dump(mode="json")

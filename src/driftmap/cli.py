@@ -199,9 +199,7 @@ def config_cmd(
     walk(build_cfg, "build.")
     if build_cfg.odometry is None:  # per sensor kind: show both defaults instead of "None"
         from driftmap.frame import SensorKind
-        from driftmap.registration.odometry import OdometryConfig
-
-        from driftmap.registration.odometry import KISS_LENGTHS
+        from driftmap.registration.odometry import KISS_LENGTHS, OdometryConfig
 
         depth, lidar = (OdometryConfig.for_sensor(k) for k in (SensorKind.DEPTH_CAMERA, SensorKind.LIDAR))
         for name, field in OdometryConfig.model_fields.items():

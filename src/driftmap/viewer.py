@@ -177,8 +177,16 @@ def store_sensor_kind(store: FrameStore) -> SensorKind:
 
 
 def default_voxel_size_m(store: FrameStore) -> float:
-    """2 cm for depth-camera maps, 20 cm for LiDAR maps."""
-    return DEFAULT_VOXEL_SIZE_M[store_sensor_kind(store)]
+    """2 cm for depth-camera maps and LiDAR maps of a room (the first scan reaches < 25 m), 20 cm for outdoor
+    LiDAR maps."""
+    kind = store_sensor_kind(store)
+    if kind is SensorKind.LIDAR:
+        from driftmap.registration.odometry import is_indoor_lidar
+
+        first = next(f for f in store.frame_ids if store.frame_info(int(f))["sensor_kind"] == kind.value)
+        if is_indoor_lidar(store.frame(int(first))):
+            return DEFAULT_VOXEL_SIZE_M[SensorKind.DEPTH_CAMERA]
+    return DEFAULT_VOXEL_SIZE_M[kind]
 
 
 def _check_color(color: str) -> str:

@@ -84,14 +84,18 @@ class DiagnoseConfig(BaseModel):
         below 25 m, :func:`driftmap.registration.odometry.is_indoor_lidar`) the LiDAR's sampling with the indoor
         lengths (voxel sizes, visit gap, attribution cells and thresholds, entropy radius): the outdoor ones
         (2 m voxels, 10 m of travel between visits) see nothing revisited in a room."""
-        from driftmap.registration.odometry import is_indoor_lidar
+        from driftmap.registration.odometry import LIDAR_OUTDOOR_P99_RANGE_M, lidar_scene_scale
 
+        if len(store) == 0:
+            raise StoreError(f"{store.path}: the store has no frames")
         first = store.frame(int(store.frame_ids[0]))
         lidar = cls.for_sensor(first.sensor_kind)
-        if not is_indoor_lidar(first):
+        scale, reach_m = lidar_scene_scale(first)
+        if scale >= 1.0:
             return lidar
-        logger.info("%s: LiDAR scans of a room (frame %d reaches < 25 m): diagnosing with the indoor voxel sizes "
-                    "and visit gap", store.path, first.frame_id)
+        logger.info("%s: LiDAR scans of a room (frame %d reaches %.1f m, under %.0f m at the 99th range percentile): "
+                    "diagnosing with the indoor voxel sizes and visit gap", store.path, first.frame_id, reach_m,
+                    LIDAR_OUTDOOR_P99_RANGE_M)
         return lidar.model_copy(update={"double_wall": DoubleWallConfig(), "attribution": AttributionConfig(),
                                         "entropy": EntropyConfig()})
 
@@ -209,7 +213,6 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
     in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
     """
-    from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
     from driftmap.store.ledger import PoseMatchMode, match_trajectory, stamp_ranges_text
 
     fmt = format.lower()
@@ -217,16 +220,8 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
         raise ConfigError(f"--gt-format must be tum or kitti, got {format!r}")
     if fmt == "tum" and (kitti_frame != "auto" or calib_file is not None):
         raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
-    if fmt == "tum":
-        from driftmap.sources.base import pose_file_in_store_sensor_frame
-
-        traj: Trajectory = pose_file_in_store_sensor_frame(store.path, path, read_tum(path))
-    else:
-        traj = read_kitti(path)
-    if fmt == "kitti":
-        rows = kitti_rows_as_velodyne(path, traj.poses, kitti_origin_of_store(store), kitti_frame=kitti_frame,
-                                      calib_file=calib_file, lidar_frames=store_holds_lidar_scans(store))
-        traj = Trajectory(traj.stamps_ns, rows, traj.frame_ids)
+    traj: Trajectory = read_tum(path) if fmt == "tum" else read_kitti(path)
+    traj = store.pose_rows_in_sensor_frame(path, traj, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
     mode = PoseMatchMode.STAMP if fmt == "tum" else PoseMatchMode.INDEX
     matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
     if not matched.poses:

@@ -412,7 +412,7 @@ def _kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: Fra
     from driftmap.sources.kitti import kitti_origin_of_source, kitti_rows_as_velodyne
 
     lidar = len(source) > 0 and source.frame(0).sensor_kind is SensorKind.LIDAR
-    return kitti_rows_as_velodyne(poses_file, poses, kitti_origin_of_source(source), kitti_frame=kitti_frame,
+    return kitti_rows_as_velodyne(poses_file, poses, lambda: kitti_origin_of_source(source), kitti_frame=kitti_frame,
                                   calib_file=calib_file, lidar_frames=lidar)
 
 
@@ -553,7 +553,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             pose_source = frame.pose.source
         else:
             if odometry is None:
-                cfg = config.odometry or OdometryConfig.for_frame(store.frame(min(existing)) if existing else frame)
+                cfg = (config.odometry or (_recorded_odometry(store) if existing else None)
+                       or OdometryConfig.for_frame(store.frame(min(existing)) if existing else frame))
                 odometry = make_odometry(cfg)
                 odometry_config = cfg.model_dump(mode="json")
                 if existing:
@@ -585,6 +586,20 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result
+
+
+def _recorded_odometry(store: FrameStore) -> OdometryConfig | None:
+    """The odometry settings an earlier build of ``store`` used (``build_summary.json``), for ``--resume``:
+    defaults chosen from the scene are not chosen again (a store built before they were is resumed with its
+    own settings)."""
+    try:
+        summary = json.loads((store.path / "build_summary.json").read_text())
+        if "odometry_config" not in summary:  # written before the settings were recorded: the sensor's defaults
+            return OdometryConfig.for_sensor(store.frame(int(store.frame_ids[0])).sensor_kind)
+        recorded = summary["odometry_config"]
+        return None if recorded is None else OdometryConfig.model_validate(recorded)
+    except (OSError, ValueError, AttributeError):
+        return None
 
 
 def _with_sensor_error(frame: Frame, config: BuildConfig) -> Frame:

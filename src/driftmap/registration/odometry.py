@@ -89,6 +89,11 @@ class OdometryConfig(BaseModel):
         if scale >= 1.0:
             return base
         scaled = base.model_copy(update={name: getattr(base, name) * scale for name in KISS_LENGTHS})
+        if log and (scale <= LIDAR_MIN_SCENE_SCALE or frame.n_points < 1000):
+            logger.warning("LiDAR odometry lengths are scaled by %.3f from frame %d alone, which has %d points reaching "
+                           "%.2f m (99th range percentile): if this scan is not typical of the log, set the "
+                           "[build.odometry] lengths (voxel_size_m, max_range_m, ...)", scale, frame.frame_id,
+                           frame.n_points, p99_m)
         if log:
             logger.info("LiDAR odometry scaled to the scene: frame %d reaches %.1f m (99th range percentile; outdoor "
                         "defaults from %.0f m), so every KISS-ICP length is scaled by %.3f: voxels %.3f m, ranges "

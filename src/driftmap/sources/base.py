@@ -144,6 +144,8 @@ class SourceFormat:
     description: str
     converts_pose_files: bool = False
     """Its sources override :meth:`FrameSource.pose_file_in_sensor_frame` (worth opening for a store's pose file)."""
+    origin_of: Callable[[Path], dict[str, Any] | None] | None = None
+    """For a log that may have been converted from another data set (MCAP): the origin it names, read cheaply."""
 
 
 def same_file_or_copy(a: str | Path, b: str | Path) -> bool:
@@ -160,32 +162,44 @@ def same_file_or_copy(a: str | Path, b: str | Path) -> bool:
 BUILD_SOURCE_FILE = "build_source.json"
 
 
-def pose_file_in_store_sensor_frame(store_dir: str | Path, poses_file: str | Path, trajectory: Trajectory) -> Trajectory:
-    """:meth:`FrameSource.pose_file_in_sensor_frame` for a store's frames (``correct --poses``, ``diagnose
-    --gt``): asked of the source the store was built from (its ``build_source.json``), when its format
-    converts pose files and it can still be opened; otherwise the rows as they are."""
-    source = open_store_source(store_dir, lambda fmt: fmt.converts_pose_files,
-                               f"{poses_file}: rows taken as they are; could not check whether the file holds another "
-                               "of its sensors' poses")
-    return trajectory if source is None else source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
-
-
-def open_store_source(store_dir: str | Path, wanted: Callable[[SourceFormat], bool], why: str) -> FrameSource | None:
-    """The source a store was built from (its ``build_source.json``: path, format, options), opened, when its
-    format is ``wanted``; ``None`` without a record or for another format. A wanted source that can no longer
-    be opened (moved, deleted) gives a warning starting with ``why``, and ``None``."""
+def store_origin(store_dir: str | Path) -> dict[str, Any] | None:
+    """The data set a store's frames come from, ``{"format", "path", "options"}``: the source in its
+    ``build_source.json``, or, when that is a log converted from another data set (an MCAP ``driftmap convert``
+    wrote), the data set it names. ``None`` without a (readable) record."""
     try:
         record = json.loads((Path(store_dir) / BUILD_SOURCE_FILE).read_text())
         fmt = registered_formats().get(str(record.get("format")))
-    except (OSError, ValueError, AttributeError):
-        return None  # a store without a (readable) record: nothing to ask
-    if fmt is None or not wanted(fmt):
+        path = Path(record["path"])
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
         return None
+    if fmt is not None and fmt.origin_of is not None:
+        named = fmt.origin_of(path)
+        if named is not None:
+            return named
+    return {"format": str(record.get("format")), "path": str(path), "options": record.get("source_options") or {}}
+
+
+def pose_file_in_store_sensor_frame(store_dir: str | Path, poses_file: str | Path, trajectory: Trajectory) -> Trajectory:
+    """:meth:`FrameSource.pose_file_in_sensor_frame` for a store's frames (``correct --poses``, ``diagnose
+    --gt``): asked of the data set the store's frames come from (:func:`store_origin`), when its format
+    converts pose files and it can still be opened; otherwise the rows as they are."""
+    origin = store_origin(store_dir)
+    fmt = registered_formats().get(origin["format"]) if origin else None
+    if origin is None or fmt is None or not fmt.converts_pose_files:
+        return trajectory
     try:
-        return fmt.open(Path(record["path"]), **(record.get("source_options") or {}))
+        source = fmt.open(Path(origin["path"]), **(origin.get("options") or {}))
     except (OSError, KeyError, TypeError, DriftmapError) as exc:
-        logger.warning("%s: the store's source %s (%s) could not be opened (%s)", why, record.get("path"), fmt.name, exc)
-        return None
+        logger.warning("%s: rows taken as they are; the data set %s (%s) that store %s comes from could not be opened "
+                       "to check whether the file holds another of its sensors' poses (%s)", poses_file,
+                       origin.get("path"), fmt.name, store_dir, exc)
+        return trajectory
+    try:
+        return source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
+    finally:
+        close = getattr(source, "close", None)
+        if callable(close):
+            close()
 
 
 _REGISTRY: dict[str, SourceFormat] = {}
@@ -204,10 +218,12 @@ def accepted_options(opener: Callable[..., FrameSource]) -> frozenset[str]:
 
 
 def register_source(name: str, detect: Callable[[Path], bool], opener: Callable[..., FrameSource], description: str,
-                    *, converts_pose_files: bool = False) -> None:
+                    *, converts_pose_files: bool = False,
+                    origin_of: Callable[[Path], dict[str, Any] | None] | None = None) -> None:
     """Register a format: ``detect(path)`` must be cheap and never raise; ``opener(path, **options)``;
-    ``converts_pose_files``: its sources override :meth:`FrameSource.pose_file_in_sensor_frame`."""
-    _REGISTRY[name] = SourceFormat(name, detect, opener, description, converts_pose_files)
+    ``converts_pose_files``: its sources override :meth:`FrameSource.pose_file_in_sensor_frame`; ``origin_of``:
+    see :attr:`SourceFormat.origin_of`."""
+    _REGISTRY[name] = SourceFormat(name, detect, opener, description, converts_pose_files, origin_of)
 
 
 def registered_formats() -> dict[str, SourceFormat]:

@@ -19,6 +19,7 @@ from __future__ import annotations
 import enum
 import logging
 import re
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -149,14 +150,17 @@ def kitti_origin_of_source(source: object) -> KittiOrigin | None:
         return KittiOrigin(source.path, source.poses_file,
                            source.path / "calib.txt" if (source.path / "calib.txt").is_file() else None)
     export_origin = getattr(source, "export_origin", None)
-    origin = export_origin() if callable(export_origin) else None
+    return _kitti_origin_named(export_origin() if callable(export_origin) else None, getattr(source, "uri", source))
+
+
+def _kitti_origin_named(origin: dict[str, Any] | None, what: object) -> KittiOrigin | None:
+    """The KITTI sequence an origin record (``{"format", "path", ...}``) names, if it is still there."""
     if not origin or origin.get("format") != "kitti":
         return None
     folder = Path(origin["path"])
     if not (folder / "velodyne").is_dir():
-        logger.warning("%s was converted from the KITTI sequence %s, which is no longer there: its calib.txt and "
-                       "poses.txt cannot be recognised (--kitti-frame cam0 --calib FILE converts cam0 poses)",
-                       getattr(source, "uri", source), folder)
+        logger.warning("%s comes from the KITTI sequence %s, which is no longer there: its calib.txt and poses.txt "
+                       "cannot be recognised (--kitti-frame cam0 --calib FILE converts cam0 poses)", what, folder)
         return None
     return KittiOrigin.of_folder(folder)
 
@@ -181,20 +185,14 @@ def kitti_origin_of_frame_infos(infos: list[dict[str, Any]]) -> KittiOrigin | No
 
 def kitti_origin_of_store(store: Any) -> KittiOrigin | None:
     """The KITTI sequence a :class:`~driftmap.store.frame_store.FrameStore`'s frames come from (their
-    provenance), or that the MCAP it was built from was converted from (:func:`kitti_origin_of_source` of the
-    source in its ``build_source.json``), or ``None``."""
+    provenance), or that the log it was built from was converted from
+    (:func:`driftmap.sources.base.store_origin`), or ``None``."""
     origin = kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
     if origin is not None or not store_holds_lidar_scans(store):
         return origin
-    from driftmap.sources.base import open_store_source
+    from driftmap.sources.base import store_origin
 
-    source = open_store_source(store.path, lambda fmt: fmt.name in ROS_LOG_FORMATS,
-                               f"{store.path}: the KITTI sequence of its frames is not known")
-    return None if source is None else kitti_origin_of_source(source)
-
-
-ROS_LOG_FORMATS = ("mcap",)
-"""Formats whose logs may say which data set they were converted from (``driftmap convert`` writes MCAP)."""
+    return _kitti_origin_named(store_origin(store.path), f"store {store.path}")
 
 
 def store_holds_lidar_scans(store: Any) -> bool:
@@ -203,7 +201,8 @@ def store_holds_lidar_scans(store: Any) -> bool:
     return len(ids) > 0 and all(store.frame_info(int(f)).get("sensor_kind") == "lidar" for f in ids)
 
 
-def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64], origin: KittiOrigin | None, *,
+def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64],
+                           origin: KittiOrigin | None | Callable[[], KittiOrigin | None], *,
                            kitti_frame: KittiFrame | str = KittiFrame.AUTO,
                            calib_file: str | Path | None = None, lidar_frames: bool = False) -> NDArray[np.float64]:
     """The rows of a KITTI pose file as ``T_world_velo`` for frames that are Velodyne scans of ``origin``.
@@ -223,6 +222,8 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
     """
     frame = parse_enum(KittiFrame, kitti_frame, f"{poses_file}: KITTI frame")
     rows = np.asarray(T_world_x, dtype=np.float64)
+    if callable(origin):  # looked up only when the rule needs it (not for velodyne, nor for cam0 with a calib)
+        origin = None if frame is KittiFrame.VELODYNE or (frame is KittiFrame.CAM0 and calib_file) else origin()
     calib = Path(calib_file) if calib_file is not None else (origin.calib_file if origin is not None else None)
     if frame is KittiFrame.VELODYNE:
         if calib_file is not None:
@@ -244,8 +245,8 @@ def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64
                        "use --kitti-frame cam0 to convert them", poses_file, calib_file)
     if origin is None:
         if lidar_frames:
-            _warn_if_camera_like(poses_file, rows, "--kitti-frame cam0 --calib CALIB (the frames do not say which KITTI "
-                                 "sequence they come from, so its calib.txt is not known)")
+            _warn_if_camera_like(poses_file, rows, "--kitti-frame cam0 --calib CALIB (the KITTI sequence of the frames, "
+                                 "and so its calib.txt, is not known)")
         return rows
     if own:
         if calib is None:

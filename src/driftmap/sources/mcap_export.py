@@ -265,8 +265,13 @@ def export_mcap(
     ground_truth: Trajectory | None = None,
     compression: str = "zstd",
     chunk_size: int = 1024 * 1024,
+    origin: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Write frames as ROS 2 messages to ``out_path`` (see the module docstring for the layout).
+
+    ``origin`` (``{"format", "path", "options"}``): the data set the frames were read from, recorded in the
+    ``driftmap.export`` metadata; by default that of ``source_or_frames`` when it is a source (an MCAP that
+    names an origin itself passes it on).
 
     ``ground_truth``: ``T_world_sensor`` poses (matched by ``frame_ids`` when it has them, else by stamp)
     written on ``/<sensor>/ground_truth``. ``compression``: ``"zstd"``, ``"lz4"`` or ``"none"``.
@@ -379,7 +384,7 @@ def export_mcap(
                     "version": EXPORT_FORMAT_VERSION,
                     "driftmap_version": __version__,
                     "sensors": json.dumps([_sensor_metadata(s) for s in sensors.values()]),
-                    **_origin_metadata(source_or_frames),
+                    **_origin_metadata(source_or_frames, origin),
                 },
             )
             writer.finish()
@@ -462,13 +467,25 @@ def _check_consistent(state: _SensorState, frame: Frame, what: str) -> None:
         )
 
 
-def _origin_metadata(source_or_frames: object) -> dict[str, str]:
-    """``origin``: the format and resolved path of the data set the frames were read from (``convert``), so
-    that what is known about it (a KITTI sequence's calibration and ground truth) is not lost with the file."""
-    if not isinstance(source_or_frames, FrameSource):
-        return {}
-    return {"origin": json.dumps({"format": source_or_frames.format_name,
-                                  "path": str(Path(source_or_frames.uri).resolve())})}
+def source_origin(source: FrameSource, options: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The data set ``source`` reads: ``{"format", "path" (resolved), "options"}`` (the opener's options that
+    choose the frames' sensor, e.g. ``sensor``, ``topic``; not ``frames`` / ``lenient``), or the ``origin`` an
+    MCAP written by :func:`export_mcap` names itself."""
+    export_origin = getattr(source, "export_origin", None)
+    passed_on = export_origin() if callable(export_origin) else None
+    if passed_on:
+        return passed_on
+    kept = {k: list(v) if isinstance(v, tuple) else v for k, v in (options or {}).items()
+            if k not in ("frames", "lenient") and v is not None}
+    return {"format": source.format_name, "path": str(Path(source.uri).resolve()), "options": kept}
+
+
+def _origin_metadata(source_or_frames: object, origin: dict[str, Any] | None) -> dict[str, str]:
+    """``origin``: the data set the frames were read from (:func:`source_origin`), so that what is known about it
+    (a KITTI sequence's calibration and ground truth, the synthetic log's sensor frames) is not lost."""
+    if origin is None and isinstance(source_or_frames, FrameSource):
+        origin = source_origin(source_or_frames)
+    return {} if origin is None else {"origin": json.dumps(origin)}
 
 
 def _sensor_metadata(s: _SensorState) -> dict[str, Any]:
@@ -580,7 +597,7 @@ def convert(
         raise ExportError(f"{out_path}: output would overwrite the source")
     source = open_source(src_path, format=format, frames=frames, **options)
     ground_truth = source.ground_truth()
-    summary = export_mcap(source, out_path, ground_truth=ground_truth)
+    summary = export_mcap(source, out_path, ground_truth=ground_truth, origin=source_origin(source, options))
     summary.update(source=str(src_path), source_format=source.format_name, skipped=len(source.skipped))
     close = getattr(source, "close", None)
     if callable(close):

@@ -1219,16 +1219,10 @@ class RosLogSource(FrameSource):
             self._first_decoded[topic] = self._backend.decode(raw)
         return self._first_decoded[topic]
 
-    def export_origin(self) -> dict[str, str] | None:
-        """The data set an MCAP written by ``driftmap convert`` was read from (``{"format", "path"}``), if
-        it says so (:mod:`driftmap.sources.mcap_export`)."""
-        record = self._backend.metadata().get(EXPORT_METADATA_NAME) or {}
-        try:
-            origin = json.loads(record.get("origin", "null"))
-        except json.JSONDecodeError:
-            return None
-        ok = isinstance(origin, dict) and isinstance(origin.get("format"), str) and isinstance(origin.get("path"), str)
-        return origin if ok else None
+    def export_origin(self) -> dict[str, Any] | None:
+        """The data set an MCAP written by ``driftmap convert`` was read from (``{"format", "path",
+        "options"}``), if it says so (:mod:`driftmap.sources.mcap_export`)."""
+        return _parse_origin(self._backend.metadata().get(EXPORT_METADATA_NAME) or {})
 
     def _export_entry(self) -> dict[str, Any] | None:
         record = self._backend.metadata().get(EXPORT_METADATA_NAME)
@@ -1674,11 +1668,39 @@ def _opener(format_name: str) -> Any:
     return open_log
 
 
+def _parse_origin(record: dict[str, str]) -> dict[str, Any] | None:
+    try:
+        origin = json.loads(record.get("origin", "null"))
+    except json.JSONDecodeError:
+        return None
+    ok = isinstance(origin, dict) and isinstance(origin.get("format"), str) and isinstance(origin.get("path"), str)
+    if ok and not isinstance(origin.get("options", {}), dict):
+        ok = False
+    return origin if ok else None
+
+
+def read_export_origin(path: str | Path) -> dict[str, Any] | None:
+    """:meth:`RosLogSource.export_origin` of an MCAP file without opening it as a source: only its metadata
+    records are read (milliseconds, whatever the length of the log). ``None`` when it names no origin or cannot
+    be read."""
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as fh:
+            for record in make_reader(fh).iter_metadata():
+                if record.name == EXPORT_METADATA_NAME:
+                    return _parse_origin(dict(record.metadata))
+    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file simply names no origin
+        logger.debug("%s: no export origin (%s)", path, exc)
+    return None
+
+
 register_source(
     FORMAT_MCAP,
     _detect_mcap,
     _opener(FORMAT_MCAP),
     "MCAP with ROS 2 messages (PointCloud2 or depth Image + CameraInfo, TF, Odometry)",
+    origin_of=read_export_origin,
 )
 register_source(FORMAT_ROSBAG1, _detect_rosbag1, _opener(FORMAT_ROSBAG1), "ROS 1 .bag (via rosbags)")
 register_source(

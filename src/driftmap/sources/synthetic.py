@@ -406,8 +406,8 @@ class SyntheticLog(FrameSource):
         if raw.size % 4:
             raise SourceError(f"{file}: size {raw.nbytes} bytes is not a multiple of 16 (x, y, z, intensity float32)")
         scan = raw.reshape(-1, 4)
-        T_base_lidar = np.asarray(self.meta["T_base_lidar"])
-        T_world_lidar = self._odometry.poses[index] @ geometry.invert(self.T_base_sensor) @ T_base_lidar
+        T_base_lidar = np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
+        T_world_lidar = self._odometry.poses[index] @ self._T_camera_lidar()
         return Frame(
             frame_id=int(entry["frame_id"]),
             stamp_ns=int(entry["stamp_ns"]),
@@ -420,13 +420,18 @@ class SyntheticLog(FrameSource):
             provenance=Provenance(str(file.resolve()), index),
         )
 
+    def _T_camera_lidar(self) -> NDArray[np.float64]:
+        """Where the LiDAR sits in the depth camera's frame: the log's pose files hold the camera's poses, and
+        ``T_world_camera @ T_camera_lidar`` is the LiDAR's."""
+        return geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
+
     def _of_selected_sensor(self, trajectory: Trajectory) -> Trajectory:
         """A depth-camera trajectory of the log as ``T_world_sensor`` of this source's sensor, selected frames only."""
         idx = np.asarray(self._indices(), dtype=np.int64)
         ids = np.array([int(f["frame_id"]) for f in self.meta["frames"]], dtype=np.int64)[idx]
         poses = trajectory.poses[idx]
         if self.sensor == "lidar":  # the files hold the depth camera's poses; the LiDAR sits elsewhere on the base
-            poses = poses @ geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
+            poses = poses @ self._T_camera_lidar()
         return Trajectory(trajectory.stamps_ns[idx], poses, ids)
 
     def pose_file_in_sensor_frame(self, poses_file: Path, trajectory: Trajectory) -> Trajectory:
@@ -440,8 +445,7 @@ class SyntheticLog(FrameSource):
             return trajectory
         logger.info("%s is the synthetic log's depth-camera pose file: rows converted to the LiDAR frame "
                     "(T_base_lidar of %s)", poses_file, self.path / METADATA_FILE)
-        T_cam_lidar = geometry.invert(self.T_base_sensor) @ np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
-        return Trajectory(trajectory.stamps_ns, trajectory.poses @ T_cam_lidar, trajectory.frame_ids)
+        return Trajectory(trajectory.stamps_ns, trajectory.poses @ self._T_camera_lidar(), trajectory.frame_ids)
 
     def odometry(self) -> Trajectory:
         """The drifting odometry as ``T_world_sensor`` of the selected frames (the frames' own pose estimates)."""

@@ -840,6 +840,23 @@ class FrameStore:
     def diff(self, a: int, b: int) -> PoseDiff:
         return self.ledger.diff(a, b)
 
+    def pose_rows_in_sensor_frame(self, file: str | Path, trajectory: Trajectory, format: str, *,
+                                  kitti_frame: str = "auto", calib_file: str | Path | None = None) -> Trajectory:
+        """The rows of a pose file read for this store's frames (``correct``, ``diagnose --gt``) as their
+        ``T_world_sensor``: KITTI rows by :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (a KITTI data
+        set's cam0 ``poses.txt`` on its Velodyne scans), TUM rows by the data set the frames come from
+        (:func:`driftmap.sources.base.pose_file_in_store_sensor_frame`: the synthetic log's camera files on its
+        LiDAR scans); anything else as it is."""
+        if parse_enum(TrajectoryFormat, format, f"{file}: format") is TrajectoryFormat.TUM:
+            from driftmap.sources.base import pose_file_in_store_sensor_frame
+
+            return pose_file_in_store_sensor_frame(self.path, file, trajectory)
+        from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
+
+        rows = kitti_rows_as_velodyne(file, trajectory.poses, lambda: kitti_origin_of_store(self), kitti_frame=kitti_frame,
+                                      calib_file=calib_file, lidar_frames=store_holds_lidar_scans(self))
+        return Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
+
     def import_poses(self, file: str | Path, *, format: TrajectoryFormat | str = TrajectoryFormat.TUM,
                      match: PoseMatchMode | str | None = None, max_dt_ns: int = 10_000_000,
                      source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True,
@@ -866,12 +883,7 @@ class FrameStore:
             raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
         if fmt is TrajectoryFormat.KITTI and mode is PoseMatchMode.STAMP:
             raise ConfigError(f"{file}: KITTI pose files have no stamps (row i is frame_id i): match by index")
-        if fmt is TrajectoryFormat.TUM:
-            from driftmap.sources.base import pose_file_in_store_sensor_frame
-
-            trajectory = pose_file_in_store_sensor_frame(self.path, file, read_tum(file))
-        else:
-            trajectory = read_kitti(file)
+        trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
         ids = self.ledger.frame_ids
         if (match is None and mode is PoseMatchMode.INDEX and len(trajectory) == len(ids) and len(ids) > 1
                 and not np.array_equal(ids, np.arange(len(ids)))):
@@ -882,12 +894,8 @@ class FrameStore:
                 f"as frame_id i and the stored ids are {_id_sample(ids)}, not 0..{len(ids) - 1}: the rows look like one "
                 f"per stored frame. Use a TUM file matched by stamp (driftmap export --format tum writes one), or match "
                 f"by index explicitly if row i really is frame_id i")
-        if fmt is TrajectoryFormat.KITTI:
-            from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
-
-            rows = kitti_rows_as_velodyne(file, trajectory.poses, kitti_origin_of_store(self), kitti_frame=kitti_frame,
-                                          calib_file=calib_file, lidar_frames=store_holds_lidar_scans(self))
-            trajectory = Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
+        trajectory = self.pose_rows_in_sensor_frame(file, trajectory, fmt.value, kitti_frame=kitti_frame,
+                                                    calib_file=calib_file)
         matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
         if not matched.poses:
             why = f" ({stamp_ranges_text(trajectory, self.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
