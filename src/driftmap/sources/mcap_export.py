@@ -485,7 +485,7 @@ def _origin_metadata(source_or_frames: object, origin: dict[str, Any] | None) ->
     (a KITTI sequence's calibration and ground truth, the synthetic log's sensor frames) is not lost."""
     if origin is None and isinstance(source_or_frames, FrameSource):
         origin = source_origin(source_or_frames)
-    return {} if origin is None else {"origin": json.dumps(origin)}
+    return {} if origin is None else {"origin": json.dumps(origin, default=str)}  # e.g. a Path option
 
 
 def _sensor_metadata(s: _SensorState) -> dict[str, Any]:
