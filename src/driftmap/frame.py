@@ -197,6 +197,16 @@ class Provenance:
 _OWNED: weakref.WeakValueDictionary[int, np.ndarray] = weakref.WeakValueDictionary()
 
 
+def adopt_readonly(array: NDArray[Any]) -> NDArray[Any]:
+    """Hand an array its maker holds the only reference to over to a :class:`Frame` without a copy: it is made
+    read-only and registered as frozen by this module. Arrays that do not own their data (views) are returned
+    as they are (the frame then copies them). The caller must not keep a writable reference."""
+    if array.base is None and array.flags.owndata and array.flags.c_contiguous:
+        array.setflags(write=False)
+        _OWNED[id(array)] = array
+    return array
+
+
 def _readonly(array: Any, dtype: Any, shape_tail: tuple[int, ...], name: str, n: int | None) -> NDArray[Any]:
     arr = np.asarray(array)
     if _OWNED.get(id(arr)) is not arr or arr.dtype != dtype or arr.flags.writeable:

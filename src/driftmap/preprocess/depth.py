@@ -34,6 +34,7 @@ from driftmap.frame import (
     PoseEstimate,
     Provenance,
     SensorKind,
+    adopt_readonly,
 )
 
 logger = logging.getLogger(__name__)
@@ -244,8 +245,10 @@ def backproject(
             InvalidReason.BELOW_MIN.value: int(n_below),
             InvalidReason.BEYOND_MAX.value: int(n_beyond),
         }
-        points = scratch[:n_valid]
-        result = BackprojectionResult(points, valid, counts, n_pixels, float(depth_scale))
+        # shrink the buffer to the valid points in place (realloc: no copy of the points), so that the result
+        # owns exactly its points and a Frame can take them without copying (frame.adopt_readonly)
+        scratch.resize((int(n_valid), 3), refcheck=False)
+        result = BackprojectionResult(scratch, valid, counts, n_pixels, float(depth_scale))
         logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
         return result
     elif depth.dtype in (np.float32, np.float64):
@@ -339,7 +342,7 @@ def depth_frame(
         stamp_ns=stamp_ns,
         sensor_name=sensor_name,
         sensor_kind=SensorKind.DEPTH_CAMERA,
-        points_sensor=result.points,
+        points_sensor=adopt_readonly(result.points),  # made here, held by no one else: shared, not copied
         pose=pose,
         T_base_sensor=np.eye(4) if T_base_sensor is None else T_base_sensor,
         attributes=attributes,
