@@ -71,6 +71,33 @@ def test_points_are_readonly_float32_nx3(dtype: type) -> None:
     np.testing.assert_array_equal(pts, src.astype(np.float32))
 
 
+def test_adopted_points_are_shared_read_only_and_views_are_still_copied() -> None:
+    """``adopt_readonly`` (depth_frame's hand-over of the points it made) shares an array that owns its data,
+    made read-only; a view (its base could still be written through) is left alone and the frame copies it."""
+    from driftmap.frame import adopt_readonly
+    from driftmap.preprocess.depth import depth_frame
+
+    own = np.random.default_rng(1).normal(size=(50, 3)).astype(np.float32)
+    frame = make_frame(adopt_readonly(own))
+    assert frame.points_sensor is own and not own.flags.writeable
+    base = np.zeros((60, 3), np.float32)
+    view = adopt_readonly(base[:50])
+    assert view.flags.writeable
+    frame = make_frame(view)
+    assert not np.shares_memory(frame.points_sensor, base)
+    base[0, 0] = 5.0
+    assert frame.points_sensor[0, 0] == 0.0
+
+    depth = np.full((48, 64), 1500, np.uint16)
+    depth[::3, ::5] = 0  # invalid pixels: the buffer is shrunk to the valid points
+    K = PinholeIntrinsics(fx=50.0, fy=50.0, cx=31.5, cy=23.5, width=64, height=48)
+    reference = backproject(depth, K)
+    made = depth_frame(depth, K, frame_id=0, stamp_ns=0, pose=PoseEstimate(np.eye(4), source=PoseSource.NONE))
+    assert reference.points.flags.owndata and reference.points.base is None
+    np.testing.assert_array_equal(made.points_sensor, reference.points)
+    assert made.points_sensor.flags.owndata and not made.points_sensor.flags.writeable
+
+
 def _writable_float32(src: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return src, src
 
