@@ -351,7 +351,7 @@ def test_indoor_lidar_loop_closure_removes_the_double_walls(lidar_log: Path, tmp
         ate_before = trajectory_errors(store.poses(0), gt).ate_rmse_m
         ate_after = trajectory_errors(store.poses(result.loop_revision), gt).ate_rmse_m
     dw0, dw1 = before.double_walls, after.double_walls
-    assert dw0.voxels_flagged > 0.05 * dw0.voxels_evaluated  # measured 11 %
-    assert dw1.voxels_flagged <= 0.01 * dw1.voxels_evaluated  # measured 0
-    assert before.smearing_score_m > 5 * after.smearing_score_m  # measured 9.0 -> 0.5 mm
+    assert dw0.voxels_flagged > 0.05 * dw0.voxels_evaluated  # measured 12 %
+    assert dw1.voxels_flagged <= 0.01 * dw1.voxels_evaluated  # measured 1 of 5556 (a false flag at a corner, docs/diagnostics.md)
+    assert before.smearing_score_m > 5 * after.smearing_score_m  # measured 10.2 -> 0.5 mm
     assert ate_after < 0.01 and ate_after < 0.5 * ate_before, (ate_before, ate_after)

@@ -11,7 +11,8 @@ Method (see ``docs/diagnostics.md`` for the reasoning and the measured numbers):
    many revisions (and the perturbation experiments).
 2. **Per voxel, per scale** (:func:`detect_double_walls`): the dominant normal of the voxel's own-frame
    normals (a second one for the points that disagree with it), points within ``normal_max_angle_deg``
-   of it, split by which side the sensor was on. Offsets along the normal are referred to a *lateral cell
+   of it, split by which side the sensor was on; the two halves of a surface that a voxel face cuts along its
+   normal are joined (else each half holds a truncated noise band and separations read short). Offsets along the normal are referred to a *lateral cell
    reference* (the mean offset of all frames in a small cell of the surface), which removes real relief
    (a door recess, a curb) seen by every frame; what is left between frames is pose disagreement.
 3. Per frame, the mean residual offset; a two-layer split of the frames (1-D 2-means, per-frame mean
@@ -322,13 +323,19 @@ def _dense_ids(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.i
     return inverse.astype(np.int64), uniq
 
 
-def _grid_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
+def _grid_coords(points: NDArray[np.float64], size_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Integer voxel coordinates (shifted to start at 0), the shift ``lo`` and the grid's span per axis."""
     k = np.floor(points / size_m).astype(np.int64)
     lo = np.array([k[:, i].min() for i in range(3)])  # column by column: ~15x faster than min(axis=0)
     k -= lo
     span = np.array([k[:, i].max() for i in range(3)]) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise ConfigError(f"voxel grid too large to index at {size_m} m")
+    return k, lo, span
+
+
+def _grid_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
+    k, _, span = _grid_coords(points, size_m)
     return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
 
 
@@ -596,12 +603,23 @@ class SurfaceGroups:
 
 
 def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: float = 20.0, second_surface: bool = True,
-                   min_points: int = 40, cell_fraction: float = 0.25, max_cell_m: float | None = None) -> SurfaceGroups:
+                   min_points: int = 40, cell_fraction: float = 0.25, max_cell_m: float | None = None,
+                   join_faces: bool = True) -> SurfaceGroups:
     """Group the samples by voxel, by the voxel's dominant own-frame normal (and a second one) and by the side
-    the sensor was on; cut every group into lateral cells of ``cell_fraction * size_m``."""
+    the sensor was on; cut every group into lateral cells of ``cell_fraction * size_m``.
+
+    With ``join_faces`` a surface that lies close to a voxel face along its normal (both groups' centroids within
+    0.35 voxel of it) is one group across that face: otherwise the face cuts the noise band of the surface (and of
+    the layers of a double wall) along the normal, the layer means are truncated towards each other and the
+    separation reads short (or the two layers land in two groups and are not seen at all)."""
     P, Nw = cloud.points_world, cloud.normals_world
     cos_max = math.cos(math.radians(normal_max_angle_deg))
-    vox, _ = _dense_ids(_grid_keys(P, size_m)) if len(P) else (np.zeros(0, np.int64), None)
+    if len(P):
+        kc, lo, span = _grid_coords(P, size_m)
+        vox, vox_keys = _dense_ids((kc[:, 0] * span[1] + kc[:, 1]) * span[2] + kc[:, 2])
+    else:
+        kc, lo, span = np.zeros((0, 3), np.int64), np.zeros(3, np.int64), np.ones(3, np.int64)
+        vox, vox_keys = np.zeros(0, np.int64), np.zeros(0, np.int64)
     n_vox = int(vox.max()) + 1 if len(vox) else 0
     axis1 = _dominant_axis(vox, n_vox, Nw)
     c1 = np.einsum("ij,ij->i", Nw, axis1[vox])
@@ -616,8 +634,10 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
         surface[idx[ok2]] = 1
         side[idx] = np.where(ok2, c2 > 0, side[idx])
     use = np.flatnonzero(surface >= 0)
-    g, _ = _dense_ids(vox[use] * 4 + surface[use] * 2 + side[use])
+    g, g_keys = _dense_ids(vox[use] * 4 + surface[use] * 2 + side[use])
     G = int(g.max()) + 1 if len(g) else 0
+    if join_faces and G:
+        g, G = _join_across_faces(g, G, g_keys, P[use], Nw[use], kc[use], lo, span, vox_keys, size_m, cos_max)
     big = _sums(g, G) >= min_points
     keep = big[g]
     use = use[keep]
@@ -631,7 +651,7 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     rel = p - center[g]
     o = np.einsum("ij,ij->i", rel, normal[g])
     cell_m = size_m * cell_fraction if max_cell_m is None else min(size_m * cell_fraction, max_cell_m)
-    K = int(math.ceil(2.0 * math.sqrt(3.0) * size_m / cell_m)) + 2
+    K = int(math.ceil(2.0 * math.sqrt(6.0) * size_m / cell_m)) + 2  # a group joined across a face spans 1 x 1 x 2 voxels
     u, v = _tangent_basis(normal) if G else (np.zeros((0, 3)), np.zeros((0, 3)))
     cu = np.clip(np.floor(np.einsum("ij,ij->i", rel, u[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
     cv = np.clip(np.floor(np.einsum("ij,ij->i", rel, v[g]) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
@@ -640,6 +660,50 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     cell_group = np.zeros(C, np.int64)
     cell_group[c] = g
     return SurfaceGroups(size_m, use, g, c, o, G, C, normal, center, cnt, cell_group)
+
+
+def _join_across_faces(g: NDArray[np.int64], G: int, g_keys: NDArray[np.int64], p: NDArray[np.float64], nw: NDArray[np.float64],
+                       kc: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.int64], vox_keys: NDArray[np.int64],
+                       size_m: float, cos_max: float, margin: float = 0.35, max_tilt_deg: float = 10.0) -> tuple[NDArray[np.int64], int]:
+    """Join the group pairs that are one surface cut by a voxel face along its normal.
+
+    Groups ``g`` (keys ``vox * 4 + surface * 2 + side``) in voxels adjacent along the grid axis ``a`` closest to
+    their normal are joined when their normals agree within the grouping angle, both centroids lie within
+    ``margin`` voxels of the shared face and ``a`` is the closest axis of both. A centroid is near one face at
+    most (``margin < 0.5``), so the joined groups are pairs (never chains). Returns the new labels and count."""
+    cnt = _sums(g, G)
+    normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    center = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1) / np.maximum(cnt, 1)[:, None]
+    vk = np.zeros((G, 3), np.int64)
+    vk[g] = kc
+    axis = np.argmax(np.abs(normal), axis=1)
+    rows = np.arange(G)
+    frac = center[rows, axis] / size_m - (vk[rows, axis] + lo[axis])  # 0 .. 1 inside the voxel along the axis
+    aligned = np.abs(normal[rows, axis]) >= math.cos(math.radians(max_tilt_deg))  # the face cuts along the normal
+    near_hi, near_lo = aligned & (frac >= 1.0 - margin), aligned & (frac <= margin)
+    src = np.flatnonzero(near_hi & (vk[rows, axis] + 1 < span[axis]))
+    if not len(src):
+        return g, G
+    nb = vk[src].copy()
+    nb[np.arange(len(src)), axis[src]] += 1
+    nb_vox = np.searchsorted(vox_keys, (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2])
+    nb_vox_ok = (nb_vox < len(vox_keys)) & (vox_keys[np.minimum(nb_vox, len(vox_keys) - 1)] ==
+                                             (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2])
+    best, best_dot = np.full(len(src), -1, np.int64), np.full(len(src), -np.inf)
+    for sub in range(4):  # surface 0/1 x side 0/1 in the neighbouring voxel
+        key = nb_vox * 4 + sub
+        h = np.minimum(np.searchsorted(g_keys, key), G - 1)
+        dot = np.einsum("ij,ij->i", normal[src], normal[h])
+        ok = nb_vox_ok & (g_keys[h] == key) & near_lo[h] & (axis[h] == axis[src]) & (dot >= cos_max) & (dot > best_dot)
+        best = np.where(ok, h, best)
+        best_dot = np.where(ok, dot, best_dot)
+    pair = best >= 0
+    if not pair.any():
+        return g, G
+    A = coo_matrix((np.ones(int(pair.sum())), (src[pair], best[pair])), shape=(G, G))
+    n_lab, labels = connected_components(A, directed=False)
+    return labels[g].astype(np.int64), int(n_lab)
 
 
 def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) -> ScaleResult:
