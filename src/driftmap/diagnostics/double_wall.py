@@ -670,7 +670,8 @@ def _join_across_faces(g: NDArray[np.int64], G: int, g_keys: NDArray[np.int64], 
     Groups ``g`` (keys ``vox * 4 + surface * 2 + side``) in voxels adjacent along the grid axis ``a`` closest to
     their normal are joined when their normals agree within the grouping angle, both centroids lie within
     ``margin`` voxels of the shared face and ``a`` is the closest axis of both. A centroid is near one face at
-    most (``margin < 0.5``), so the joined groups are pairs (never chains). Returns the new labels and count."""
+    most (``margin < 0.5``), so a joined group spans two voxels at most (usually a pair of groups; the first and
+    second surface of one voxel may both join the same neighbour). Returns the new labels and count."""
     cnt = _sums(g, G)
     normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
