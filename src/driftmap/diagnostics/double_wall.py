@@ -323,20 +323,16 @@ def _dense_ids(keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.i
     return inverse.astype(np.int64), uniq
 
 
-def _grid_coords(points: NDArray[np.float64], size_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
-    """Integer voxel coordinates (shifted to start at 0), the shift ``lo`` and the grid's span per axis."""
+def _grid_keys(points: NDArray[np.float64], size_m: float) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Voxel key per point (``(k0 * span1 + k1) * span2 + k2`` of the integer coordinates shifted to start at 0),
+    the shift ``lo`` and the grid's span per axis."""
     k = np.floor(points / size_m).astype(np.int64)
     lo = np.array([k[:, i].min() for i in range(3)])  # column by column: ~15x faster than min(axis=0)
     k -= lo
     span = np.array([k[:, i].max() for i in range(3)]) + 1
     if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
         raise ConfigError(f"voxel grid too large to index at {size_m} m")
-    return k, lo, span
-
-
-def _grid_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
-    k, _, span = _grid_coords(points, size_m)
-    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2]
+    return (k[:, 0] * span[1] + k[:, 1]) * span[2] + k[:, 2], lo, span
 
 
 def _sums(ids: NDArray[np.int64], n: int, weights: NDArray | None = None) -> NDArray[np.float64]:
@@ -614,12 +610,8 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     separation reads short (or the two layers land in two groups and are not seen at all)."""
     P, Nw = cloud.points_world, cloud.normals_world
     cos_max = math.cos(math.radians(normal_max_angle_deg))
-    if len(P):
-        kc, lo, span = _grid_coords(P, size_m)
-        vox, vox_keys = _dense_ids((kc[:, 0] * span[1] + kc[:, 1]) * span[2] + kc[:, 2])
-    else:
-        kc, lo, span = np.zeros((0, 3), np.int64), np.zeros(3, np.int64), np.ones(3, np.int64)
-        vox, vox_keys = np.zeros(0, np.int64), np.zeros(0, np.int64)
+    keys, lo, span = _grid_keys(P, size_m) if len(P) else (np.zeros(0, np.int64), np.zeros(3, np.int64), np.ones(3, np.int64))
+    vox, vox_keys = _dense_ids(keys)
     n_vox = int(vox.max()) + 1 if len(vox) else 0
     axis1 = _dominant_axis(vox, n_vox, Nw)
     c1 = np.einsum("ij,ij->i", Nw, axis1[vox])
@@ -636,18 +628,28 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     use = np.flatnonzero(surface >= 0)
     g, g_keys = _dense_ids(vox[use] * 4 + surface[use] * 2 + side[use])
     G = int(g.max()) + 1 if len(g) else 0
+    p, nw = P[use], Nw[use]
+    # per group: point count, sum of normals, sum of positions (summed again per label when groups are joined)
+    cnt = _sums(g, G)
+    n_sum = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
+    p_sum = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1)
     if join_faces and G:
-        g, G = _join_across_faces(g, G, g_keys, P[use], Nw[use], kc[use], lo, span, vox_keys, size_m, cos_max)
-    big = _sums(g, G) >= min_points
+        label, n_lab = _join_across_faces(cnt, n_sum, p_sum, g_keys, vox_keys, lo, span, size_m, cos_max)
+        if n_lab < G:
+            g, G = label[g], n_lab
+            cnt = _sums(label, G, cnt)
+            n_sum = np.stack([_sums(label, G, n_sum[:, k]) for k in range(3)], axis=1)
+            p_sum = np.stack([_sums(label, G, p_sum[:, k]) for k in range(3)], axis=1)
+    big = cnt >= min_points
     keep = big[g]
     use = use[keep]
+    p, nw = p[keep], nw[keep]
     g = (np.cumsum(big) - 1)[g[keep]]
     G = int(big.sum())
-    p, nw = P[use], Nw[use]
-    cnt = _sums(g, G)
-    normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
+    cnt = cnt[big]
+    normal = n_sum[big]
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    center = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1) / np.maximum(cnt, 1)[:, None]
+    center = p_sum[big] / np.maximum(cnt, 1)[:, None]
     rel = p - center[g]
     o = np.einsum("ij,ij->i", rel, normal[g])
     cell_m = size_m * cell_fraction if max_cell_m is None else min(size_m * cell_fraction, max_cell_m)
@@ -662,49 +664,50 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     return SurfaceGroups(size_m, use, g, c, o, G, C, normal, center, cnt, cell_group)
 
 
-def _join_across_faces(g: NDArray[np.int64], G: int, g_keys: NDArray[np.int64], p: NDArray[np.float64], nw: NDArray[np.float64],
-                       kc: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.int64], vox_keys: NDArray[np.int64],
+def _join_across_faces(cnt: NDArray[np.float64], n_sum: NDArray[np.float64], p_sum: NDArray[np.float64],
+                       g_keys: NDArray[np.int64], vox_keys: NDArray[np.int64], lo: NDArray[np.int64], span: NDArray[np.int64],
                        size_m: float, cos_max: float, margin: float = 0.35, max_tilt_deg: float = 10.0) -> tuple[NDArray[np.int64], int]:
     """Join the group pairs that are one surface cut by a voxel face along its normal.
 
-    Groups ``g`` (keys ``vox * 4 + surface * 2 + side``) in voxels adjacent along the grid axis ``a`` closest to
-    their normal are joined when their normals agree within the grouping angle, both centroids lie within
-    ``margin`` voxels of the shared face and ``a`` is the closest axis of both. A centroid is near one face at
-    most (``margin < 0.5``), so a joined group spans two voxels at most (usually a pair of groups; the first and
-    second surface of one voxel may both join the same neighbour). Returns the new labels and count."""
-    cnt = _sums(g, G)
-    normal = np.stack([_sums(g, G, nw[:, k]) for k in range(3)], axis=1)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    center = np.stack([_sums(g, G, p[:, k]) for k in range(3)], axis=1) / np.maximum(cnt, 1)[:, None]
-    vk = np.zeros((G, 3), np.int64)
-    vk[g] = kc
+    Groups (keys ``g_keys`` = ``vox * 4 + surface * 2 + side``, per-group point counts and sums of normals and
+    positions) in voxels adjacent along the grid axis ``a`` closest to their normal are joined when their normals
+    agree within the grouping angle, both centroids lie within ``margin`` voxels of the shared face and ``a`` is the
+    closest axis of both. A centroid is near one face at most (``margin < 0.5``), so a joined group spans two
+    voxels at most (usually a pair of groups; the first and second surface of one voxel may both join the same
+    neighbour). Returns a label per group and the number of labels."""
+    G = len(g_keys)
+    normal = n_sum / np.maximum(np.linalg.norm(n_sum, axis=1, keepdims=True), 1e-12)
+    center = p_sum / np.maximum(cnt, 1)[:, None]
+    key = vox_keys[g_keys // 4]  # the group's voxel, decoded to its (shifted) grid coordinates
+    vk = np.stack([key // (span[1] * span[2]), (key // span[2]) % span[1], key % span[2]], axis=1)
     axis = np.argmax(np.abs(normal), axis=1)
     rows = np.arange(G)
     frac = center[rows, axis] / size_m - (vk[rows, axis] + lo[axis])  # 0 .. 1 inside the voxel along the axis
     aligned = np.abs(normal[rows, axis]) >= math.cos(math.radians(max_tilt_deg))  # the face cuts along the normal
     near_hi, near_lo = aligned & (frac >= 1.0 - margin), aligned & (frac <= margin)
     src = np.flatnonzero(near_hi & (vk[rows, axis] + 1 < span[axis]))
+    identity = (np.arange(G, dtype=np.int64), G)
     if not len(src):
-        return g, G
+        return identity
     nb = vk[src].copy()
     nb[np.arange(len(src)), axis[src]] += 1
-    nb_vox = np.searchsorted(vox_keys, (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2])
-    nb_vox_ok = (nb_vox < len(vox_keys)) & (vox_keys[np.minimum(nb_vox, len(vox_keys) - 1)] ==
-                                             (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2])
+    nb_key = (nb[:, 0] * span[1] + nb[:, 1]) * span[2] + nb[:, 2]
+    nb_vox = np.searchsorted(vox_keys, nb_key)
+    nb_vox_ok = (nb_vox < len(vox_keys)) & (vox_keys[np.minimum(nb_vox, len(vox_keys) - 1)] == nb_key)
     best, best_dot = np.full(len(src), -1, np.int64), np.full(len(src), -np.inf)
     for sub in range(4):  # surface 0/1 x side 0/1 in the neighbouring voxel
-        key = nb_vox * 4 + sub
-        h = np.minimum(np.searchsorted(g_keys, key), G - 1)
+        sub_key = nb_vox * 4 + sub
+        h = np.minimum(np.searchsorted(g_keys, sub_key), G - 1)
         dot = np.einsum("ij,ij->i", normal[src], normal[h])
-        ok = nb_vox_ok & (g_keys[h] == key) & near_lo[h] & (axis[h] == axis[src]) & (dot >= cos_max) & (dot > best_dot)
+        ok = nb_vox_ok & (g_keys[h] == sub_key) & near_lo[h] & (axis[h] == axis[src]) & (dot >= cos_max) & (dot > best_dot)
         best = np.where(ok, h, best)
         best_dot = np.where(ok, dot, best_dot)
     pair = best >= 0
     if not pair.any():
-        return g, G
+        return identity
     A = coo_matrix((np.ones(int(pair.sum())), (src[pair], best[pair])), shape=(G, G))
     n_lab, labels = connected_components(A, directed=False)
-    return labels[g].astype(np.int64), int(n_lab)
+    return labels.astype(np.int64), int(n_lab)
 
 
 def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) -> ScaleResult:
