@@ -327,6 +327,7 @@ def build(
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
     max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", min=0.0, help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
+    threads: Annotated[Optional[int], typer.Option("--threads", min=1, help="Registration threads of the odometry and the loop closure (build.num_threads; default: the config's, 2). With 1 the same input gives the same poses, every revision, to the bit; with more, the threads' partial sums arrive in varying order and builds differ by millimetres.")] = None,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""
     from driftmap.config import DriftmapConfig
@@ -347,6 +348,8 @@ def build(
         problems.append(str(exc))
     if problems:
         raise ConfigError("\n".join(dict.fromkeys(problems)))
+    if threads is not None:
+        cfg = cfg.model_copy(update={"num_threads": threads})
     with _progress() as progress:
         tasks: dict[str, int] = {}
 

@@ -69,6 +69,7 @@ class BuildConfig(BaseModel):
                             "or auto (trajectory for frame-to-map odometry that keeps its whole map, else registration)")
     depth_scale_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: scale every frame's ranges by this factor before odometry and storing (1 = none)")
     focal_length_error: float = Field(1.0, gt=0.0, description="diagnostics experiment: depth cameras as if back-projected with this times the true focal length (1 = none)")
+    num_threads: int | None = Field(None, ge=1, description="registration threads of the odometry and the loop closure (overrides odometry.num_threads and loop_closure.num_threads); 1: the same input gives the same poses, every revision, to the bit")
     information_calibration_iterations: int = Field(10, ge=0, description="pose graph: at most this many variance-component re-weighting rounds (they stop once no group's scale changes by more than 5 %)")
 
     @classmethod
@@ -555,6 +556,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             if odometry is None:
                 cfg = (config.odometry or (_recorded_odometry(store) if existing else None)
                        or OdometryConfig.for_frame(store.frame(min(existing)) if existing else frame))
+                if config.num_threads is not None:
+                    cfg = cfg.model_copy(update={"num_threads": config.num_threads})
                 odometry = make_odometry(cfg)
                 odometry_config = cfg.model_dump(mode="json")
                 if existing:
@@ -659,6 +662,8 @@ def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_
 def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
                  stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, own_odometry: bool) -> None:
     lc = config.loop_closure
+    if config.num_threads is not None:
+        lc = lc.model_copy(update={"num_threads": config.num_threads})
     t0 = time.perf_counter()
     ids = [int(i) for i in store.frame_ids]
     poses = store.poses(0)

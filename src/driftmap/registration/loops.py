@@ -51,6 +51,7 @@ class LoopClosureConfig(BaseModel):
     max_rmse_m: float = Field(0.035, gt=0.0, description="maximum inlier RMSE after alignment (m)")
     max_correction_m: float = Field(0.5, gt=0.0, description="proximity loops: max disagreement with odometry (m)")
     max_correction_deg: float = Field(15.0, gt=0.0, description="... and in rotation (deg)")
+    num_threads: int = Field(2, ge=1, description="threads of the keyframe registrations (small_gicp, Open3D RANSAC); 1: repeatable to the bit")
 
 
 @dataclass(frozen=True)
@@ -168,17 +169,30 @@ def _fpfh(points_m: NDArray[np.float64], voxel_m: float) -> tuple[o3d.geometry.P
     return pcd, feat
 
 
-def global_initial_guess(target_m: NDArray[np.float64], source_m: NDArray[np.float64], voxel_m: float) -> NDArray[np.float64]:
-    """Open3D FPFH + RANSAC alignment (no pose prior), used for descriptor candidates."""
+def global_initial_guess(target_m: NDArray[np.float64], source_m: NDArray[np.float64], voxel_m: float, *,
+                         seed: int = 0, num_threads: int | None = None) -> NDArray[np.float64]:
+    """Open3D FPFH + RANSAC alignment (no pose prior), used for descriptor candidates.
+
+    RANSAC draws from Open3D's global random engine, which is seeded with ``seed`` first (this re-seeds it for
+    everything else in the process too). Its worker threads share that engine, so only with ``num_threads=1``
+    (Open3D's thread limit, restored afterwards) is the result the same in every run."""
     coarse = 2.5 * voxel_m
     t, ft = _fpfh(downsample(target_m, coarse), coarse)
     s, fs = _fpfh(downsample(source_m, coarse), coarse)
     reg = o3d.pipelines.registration
-    result = reg.registration_ransac_based_on_feature_matching(
-        s, t, fs, ft, True, 1.5 * coarse, reg.TransformationEstimationPointToPoint(False), 3,
-        [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * coarse)],
-        reg.RANSACConvergenceCriteria(100000, 0.999),
-    )
+    previous = o3d.utility.get_max_threads()
+    try:
+        if num_threads is not None:
+            o3d.utility.set_max_threads(num_threads)
+        o3d.utility.random.seed(seed)
+        result = reg.registration_ransac_based_on_feature_matching(
+            s, t, fs, ft, True, 1.5 * coarse, reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(1.5 * coarse)],
+            reg.RANSACConvergenceCriteria(100000, 0.999),
+        )
+    finally:
+        if num_threads is not None:
+            o3d.utility.set_max_threads(previous)
     return np.asarray(result.transformation)
 
 
@@ -187,7 +201,9 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
     """Register keyframe b to keyframe a and apply the gates."""
     odom = relative_pose(a.T_world_sensor, b.T_world_sensor)
     if init_T_a_b is None:
-        init_T_a_b = odom if kind is CandidateKind.PROXIMITY else global_initial_guess(a.points_m, b.points_m, config.registration_voxel_m)
+        init_T_a_b = odom if kind is CandidateKind.PROXIMITY else global_initial_guess(
+            a.points_m, b.points_m, config.registration_voxel_m, seed=(a.frame_id * 1_000_003 + b.frame_id) & 0x7FFFFFFF,
+            num_threads=config.num_threads)
     v = config.registration_voxel_m
     coarse = register_prepared(a.cloud, b.cloud, init_T_a_b, voxel_size_m=2 * v, max_correspondence_m=8 * v)
     result = register_prepared(a.cloud, b.cloud, coarse.T_target_source, voxel_size_m=v, max_correspondence_m=2.5 * v)
@@ -214,7 +230,7 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
 def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64], points_m: NDArray[np.floating],
                   config: LoopClosureConfig) -> Keyframe:
     pts = downsample(points_m, config.registration_voxel_m / 2)
-    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts))
+    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts, config.num_threads))
 
 
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,

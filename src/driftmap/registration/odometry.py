@@ -62,6 +62,7 @@ class OdometryConfig(BaseModel):
     initial_threshold_m: float = Field(0.3, gt=0.0, description="kiss: initial correspondence threshold (m)")
     min_motion_m: float = Field(0.01, ge=0.0, description="kiss: motion below which the adaptive threshold is not updated (m)")
     max_points_per_voxel: int = Field(20, ge=1, description="kiss: points kept per map voxel")
+    num_threads: int = Field(2, ge=1, description="threads of the registration (small_gicp / KISS-ICP); 1: the same frames give the same poses to the bit")
 
     @classmethod
     def for_sensor(cls, kind: SensorKind) -> OdometryConfig:
@@ -111,6 +112,7 @@ class OdometryConfig(BaseModel):
         cfg.mapping.max_points_per_voxel = self.max_points_per_voxel
         cfg.adaptive_threshold.initial_threshold = self.initial_threshold_m
         cfg.adaptive_threshold.min_motion_th = self.min_motion_m
+        cfg.registration.max_num_threads = self.num_threads
         return cfg
 
 
@@ -209,14 +211,15 @@ class GicpMapOdometry:
         pts, _ = _strided_points(frame, c.max_points)
         r = np.linalg.norm(pts, axis=1)
         pts = pts[(r >= c.min_range_m) & (r <= c.max_range_m)]
-        fine, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_downsample_m, num_neighbors=10, num_threads=2)
+        fine, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_downsample_m, num_neighbors=10,
+                                               num_threads=c.num_threads)
         coarse, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_coarse_downsample_m, num_neighbors=10,
-                                                 num_threads=2)
+                                                 num_threads=c.num_threads)
         return fine, coarse, len(pts)
 
     def _align(self, target: small_gicp.GaussianVoxelMap, source: small_gicp.PointCloud, init: NDArray[np.float64],
                max_correspondence_m: float) -> tuple[NDArray[np.float64], float, bool]:
-        res = small_gicp.align(target, source, init, max_correspondence_distance=max_correspondence_m, num_threads=2,
+        res = small_gicp.align(target, source, init, max_correspondence_distance=max_correspondence_m, num_threads=self.config.num_threads,
                                max_iterations=self.config.gicp_max_iterations)
         T = np.array(res.T_target_source)
         if not np.all(np.isfinite(T)):

@@ -15,6 +15,7 @@ import small_gicp
 from numpy.typing import NDArray
 
 from driftmap import geometry
+from driftmap.errors import ConfigError
 from driftmap.posegraph import TangentOrder, reorder_6x6
 
 logger = logging.getLogger(__name__)
@@ -49,17 +50,20 @@ def downsample(points: NDArray[np.floating], voxel_size_m: float) -> NDArray[np.
 
 class PreparedCloud:
     """A cloud with its small_gicp preprocessing (downsampling, covariances, KD-tree) cached per voxel
-    size, so a keyframe registered against many others is prepared once."""
+    size, so a keyframe registered against many others is prepared once. ``num_threads`` serves the
+    preprocessing and, by default, the registrations of this cloud (1: repeatable to the bit)."""
 
     def __init__(self, points_m: NDArray[np.floating], num_threads: int = 2):
+        if num_threads < 1:
+            raise ConfigError(f"num_threads must be >= 1, got {num_threads}")
         self.points_m = np.asarray(points_m, dtype=np.float64)
-        self._num_threads = num_threads
+        self.num_threads = int(num_threads)
         self._levels: dict[float, tuple[small_gicp.PointCloud, small_gicp.KdTree]] = {}
 
     def level(self, voxel_size_m: float) -> tuple[small_gicp.PointCloud, small_gicp.KdTree]:
         if voxel_size_m not in self._levels:
             self._levels[voxel_size_m] = small_gicp.preprocess_points(
-                self.points_m, downsampling_resolution=voxel_size_m, num_neighbors=10, num_threads=self._num_threads)
+                self.points_m, downsampling_resolution=voxel_size_m, num_neighbors=10, num_threads=self.num_threads)
         return self._levels[voxel_size_m]
 
 
@@ -73,9 +77,11 @@ def register_prepared(
     inlier_distance_m: float | None = None,
     max_iterations: int = 30,
     correlation_factor: float = 10.0,
-    num_threads: int = 2,
+    num_threads: int | None = None,
 ) -> RegistrationResult:
-    """GICP of prepared clouds; see :func:`register`."""
+    """GICP of prepared clouds; see :func:`register`. ``num_threads``: the fewer of the two clouds' by default."""
+    if num_threads is None:
+        num_threads = min(target.num_threads, source.num_threads)
     tgt, tree = target.level(voxel_size_m)
     src, _ = source.level(voxel_size_m)
     result = small_gicp.align(tgt, src, tree, np.asarray(init_T_target_source, dtype=np.float64), registration_type="GICP",
@@ -117,7 +123,8 @@ def register(
     :func:`register_prepared` (``voxel_size_m``, ``max_correspondence_m``, ``inlier_distance_m``,
     ``max_iterations``, ``correlation_factor``, ``num_threads``).
     """
-    return register_prepared(PreparedCloud(target_m), PreparedCloud(source_m), init_T_target_source, **options)
+    threads = int(options.get("num_threads") or 2)
+    return register_prepared(PreparedCloud(target_m, threads), PreparedCloud(source_m, threads), init_T_target_source, **options)
 
 
 def relative_pose(T_world_a: NDArray[np.float64], T_world_b: NDArray[np.float64]) -> NDArray[np.float64]:
