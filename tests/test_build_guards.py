@@ -240,9 +240,10 @@ def test_a_run_too_short_for_loop_closure_says_so(sevenscenes_dir: Path, tmp_pat
     assert result.loop_revision is None
     skipped = [r.getMessage() for r in caplog.records if "loop closure skipped" in r.getMessage()]
     assert len(skipped) == 1
-    # the summary counts the keyframes the warning names (it said 0 before), and the gap is in source frames
+    # the summary counts the keyframes the warning names (it said 0 before), and the gap is in seconds
     assert result.n_keyframes >= 1 and f"the {result.n_keyframes} keyframes (of 3 stored frames" in skipped[0]
-    assert "source frames 0..2" in skipped[0] and "min_gap_frames = 60" in skipped[0]
+    assert "source frames 0..2)" in skipped[0] and "span source frames 0..0 (0.00 s)" in skipped[0]
+    assert "min_gap_s = 2 s" in skipped[0]
     assert json.loads((tmp_path / "s" / "build_summary.json").read_text())["n_keyframes"] == result.n_keyframes
 
 

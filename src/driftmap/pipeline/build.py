@@ -26,11 +26,13 @@ from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
 from driftmap.registration.loops import (
+    GAP_TOLERANCE_S,
     CandidateKind,
     Keyframe,
     LoopCandidate,
     LoopClosureConfig,
     find_loops,
+    loop_gap,
     make_keyframe,
     select_keyframes,
 )
@@ -669,13 +671,17 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     poses = store.poses(0)
     key_rows = select_keyframes(poses, lc)
     result.n_keyframes = len(key_rows)
-    span = ids[key_rows[-1]] - ids[key_rows[0]]  # in the source's frame numbers, like min_gap_frames
-    if inject_wrong_loop is None and (len(key_rows) < 2 or span < lc.min_gap_frames):
+    stamps_ns = store.ledger.stamps_ns
+    unit, gap = loop_gap(lc)
+    if unit == "frames":  # in the source's frame numbers
+        span, what = ids[key_rows[-1]] - ids[key_rows[0]], f"loop_closure.min_gap_frames = {lc.min_gap_frames} source frames"
+    else:
+        span, what = 1e-9 * float(stamps_ns[key_rows[-1]] - stamps_ns[key_rows[0]]), f"loop_closure.min_gap_s = {lc.min_gap_s:g} s"
+    if inject_wrong_loop is None and (len(key_rows) < 2 or span < gap - (GAP_TOLERANCE_S if unit == "s" else 0.0)):
         logger.warning("loop closure skipped: the %d keyframes (of %d stored frames, source frames %d..%d) span "
-                       "source frames %d..%d, fewer than loop_closure.min_gap_frames = %d apart (loop candidates "
-                       "are at least that far apart in the source's frame numbering); store a longer stretch of "
-                       "the source, or lower min_gap_frames", len(key_rows), len(ids), ids[0], ids[-1],
-                       ids[key_rows[0]], ids[key_rows[-1]], lc.min_gap_frames)
+                       "source frames %d..%d (%.2f s), less than %s (loop candidates are at least that far apart); "
+                       "store a longer stretch of the source, or lower it", len(key_rows), len(ids), ids[0], ids[-1],
+                       ids[key_rows[0]], ids[key_rows[-1]], 1e-9 * float(stamps_ns[key_rows[-1]] - stamps_ns[key_rows[0]]), what)
         return
     keyframes: list[Keyframe] = []
     cache: dict[int, np.ndarray] = {}
@@ -695,7 +701,7 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
         rows = range(max(0, row - lc.submap_radius_frames), min(len(ids), row + lc.submap_radius_frames + 1))
         inv = geometry.invert(poses[row])
         cloud = np.concatenate([geometry.transform_points(inv @ poses[r], points(r)) for r in rows])
-        keyframes.append(make_keyframe(ids[row], row, poses[row], cloud, lc))
+        keyframes.append(make_keyframe(ids[row], row, poses[row], cloud, lc, stamp_ns=int(stamps_ns[row])))
         for r in [r for r in cache if r < row - lc.submap_radius_frames]:
             del cache[r]
         tick("keyframes", n + 1, len(key_rows))

@@ -38,7 +38,8 @@ class LoopClosureConfig(BaseModel):
     keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m)")
     keyframe_angle_deg: float = Field(10.0, gt=0.0, description="... or this much rotation (deg)")
     keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many stored frames (counted in the --frames selection)")
-    min_gap_frames: int = Field(60, ge=1, description="candidates must be at least this many frames apart in the source's frame numbering (frame_id), whatever the --frames step")
+    min_gap_s: float = Field(2.0, gt=0.0, description="candidates must be at least this long apart (frame stamps; 7-Scenes' nominal 30 Hz: 60 frames), whatever the --frames step and the sensor rate")
+    min_gap_frames: int | None = Field(None, ge=1, description="if set: candidates must instead be at least this many frames apart in the source's frame numbering (frame_id)")
     proximity_radius_m: float = Field(1.0, gt=0.0, description="odometry positions closer than this are candidates (m)")
     proximity_max_angle_deg: float = Field(45.0, gt=0.0, description="... if their viewing directions differ by less (deg)")
     max_candidates_per_keyframe: int = Field(15, ge=1, description="nearest proximity candidates kept per keyframe")
@@ -66,6 +67,8 @@ class Keyframe:
     descriptor: NDArray[np.float64]
     cloud: PreparedCloud
     """The same points with their GICP preprocessing, cached per voxel size."""
+    stamp_ns: int
+    """The frame's stamp: ``min_gap_s`` is measured in these."""
 
 
 class CandidateKind(enum.Enum):
@@ -119,6 +122,33 @@ def select_keyframes(poses: NDArray[np.float64], config: LoopClosureConfig) -> l
     return keys
 
 
+def loop_gap(config: LoopClosureConfig) -> tuple[str, float]:
+    """``(unit, gap)``: how far apart loop candidates must be -- ``("frames", min_gap_frames)`` in the source's
+    frame numbers when that is set, else ``("s", min_gap_s)`` in time."""
+    if config.min_gap_frames is not None:
+        return "frames", float(config.min_gap_frames)
+    return "s", config.min_gap_s
+
+
+GAP_TOLERANCE_S = 1e-3
+"""Stamps a loop gap apart within this count as far enough apart (a nominal 30 Hz period of 33 333 333 ns puts
+60 frames 20 ns short of 2 s)."""
+
+
+def _gap_positions(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> NDArray[np.float64]:
+    """Each keyframe's position on the axis :func:`loop_gap` measures along (frame number or seconds)."""
+    unit, _ = loop_gap(config)
+    if unit == "frames":
+        return np.array([k.frame_id for k in keyframes], dtype=np.float64)
+    return np.array([k.stamp_ns for k in keyframes], dtype=np.float64) * 1e-9
+
+
+def _older(at: NDArray[np.float64], j: int, config: LoopClosureConfig) -> NDArray[np.intp]:
+    """Positions of the keyframes at least the loop gap before keyframe ``j``."""
+    unit, gap = loop_gap(config)
+    return np.flatnonzero(at <= at[j] - gap + (GAP_TOLERANCE_S if unit == "s" else 0.0))
+
+
 def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
     za, zb = T_a[:3, 2], T_b[:3, 2]
     return float(np.degrees(np.arccos(np.clip(za @ zb, -1.0, 1.0))))
@@ -126,12 +156,12 @@ def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> fl
 
 def proximity_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> list[tuple[int, int]]:
     """Pairs (older, newer) of keyframe list positions that odometry places close together, at least
-    ``min_gap_frames`` apart in frame numbers (``frame_id``)."""
+    ``min_gap_s`` apart in time (or ``min_gap_frames`` in frame numbers, when set)."""
     pos = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
-    ids = np.array([k.frame_id for k in keyframes])
+    at = _gap_positions(keyframes, config)
     pairs = []
     for j in range(len(keyframes)):
-        older = np.flatnonzero(ids <= ids[j] - config.min_gap_frames)
+        older = _older(at, j, config)
         if older.size == 0:
             continue
         d = np.linalg.norm(pos[older] - pos[j], axis=1)
@@ -148,10 +178,10 @@ def descriptor_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConf
     if config.descriptor_candidates == 0 or len(keyframes) < 2:
         return []
     desc = np.array([k.descriptor for k in keyframes])
-    ids = np.array([k.frame_id for k in keyframes])
+    at = _gap_positions(keyframes, config)
     pairs = []
     for j in range(len(keyframes)):
-        older = np.flatnonzero(ids <= ids[j] - config.min_gap_frames)
+        older = _older(at, j, config)
         if older.size == 0:
             continue
         dist = np.abs(desc[older] - desc[j]).sum(axis=1)
@@ -228,9 +258,10 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
 
 
 def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64], points_m: NDArray[np.floating],
-                  config: LoopClosureConfig) -> Keyframe:
+                  config: LoopClosureConfig, *, stamp_ns: int) -> Keyframe:
     pts = downsample(points_m, config.registration_voxel_m / 2)
-    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts, config.num_threads))
+    return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts, config.num_threads),
+                    int(stamp_ns))
 
 
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,

@@ -282,10 +282,26 @@ class GicpMapOdometry:
         return self.n_frames / self.seconds if self.seconds > 0 else float("nan")
 
 
+_kiss_threads_of_process: int | None = None
+"""The thread limit of the first KISS-ICP odometry made in this process (see :class:`KissOdometry`)."""
+
+
 class KissOdometry:
-    """Register frames one after the other with KISS-ICP; poses start at ``T_world_first`` (identity by default)."""
+    """Register frames one after the other with KISS-ICP; poses start at ``T_world_first`` (identity by default).
+
+    KISS-ICP (1.3.0) sets TBB's thread limit for the whole process when its first registration object is made,
+    and keeps it: ``num_threads`` takes effect for the first KISS-ICP odometry of a process only (a later one that
+    asks for another number says so in a warning). A one-thread, repeatable KISS-ICP run needs a process whose
+    first KISS-ICP odometry has ``num_threads=1`` (``driftmap build --threads 1`` is one)."""
 
     def __init__(self, config: OdometryConfig, T_world_first: NDArray[np.float64] | None = None):
+        global _kiss_threads_of_process
+        if _kiss_threads_of_process is None:
+            _kiss_threads_of_process = config.num_threads
+        elif config.num_threads != _kiss_threads_of_process:
+            logger.warning("KISS-ICP odometry with num_threads=%d: KISS-ICP's thread limit is process-wide and was set "
+                           "to %d by the first KISS-ICP odometry of this process, so it stays %d (start a new process "
+                           "for another limit)", config.num_threads, _kiss_threads_of_process, _kiss_threads_of_process)
         self.config = config
         self._kiss = KissICP(config.to_kiss())
         self._T_world_odom = np.eye(4) if T_world_first is None else np.array(geometry.as_rigid(T_world_first))
