@@ -185,14 +185,18 @@ def config_cmd(
     for col in ("setting", "value", "meaning"):
         table.add_column(col, overflow="fold")
 
+    from driftmap.registration.loops import LIDAR_LOOP_DEFAULTS
+
     def walk(model: BaseModel, prefix: str) -> None:
         for name, field in type(model).model_fields.items():
             value = getattr(model, name)
             if isinstance(value, BaseModel):
                 walk(value, f"{prefix}{name}.")
             else:
-                shown = value.value if hasattr(value, "value") else value
-                table.add_row(prefix + name, str(shown), field.description or "")
+                shown = str(value.value if hasattr(value, "value") else value)
+                if prefix == "build.loop_closure." and name in LIDAR_LOOP_DEFAULTS and name not in model.model_fields_set:
+                    shown = f"depth: {shown}, lidar: {LIDAR_LOOP_DEFAULTS[name]}"
+                table.add_row(prefix + name, shown, field.description or "")
 
     walk(DriftmapConfig.load(file), "")
     build_cfg = BuildConfig() if file is None else BuildConfig.load(file)

@@ -116,6 +116,9 @@ class BuildResult:
     """What the store was built from (resolved path, format, the path as given); see ``build_source.json``."""
     odometry_config: dict[str, Any] | None = None
     """The odometry settings this run used (``[build.odometry]``, or the defaults for the sensor and scene)."""
+    loop_closure_config: dict[str, Any] | None = None
+    """The loop-closure settings this run used: ``[build.loop_closure]``'s explicit ones over the defaults for the
+    sensor (LiDAR: :meth:`LoopClosureConfig.for_lidar`); None without loop closure."""
 
     @property
     def frames_per_second(self) -> float:
@@ -663,11 +666,17 @@ def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_
 
 def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
                  stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, own_odometry: bool) -> None:
-    lc = config.loop_closure
-    if config.num_threads is not None:
-        lc = lc.model_copy(update={"num_threads": config.num_threads})
     t0 = time.perf_counter()
     ids = [int(i) for i in store.frame_ids]
+    first = store.frame(ids[0]) if ids else None
+    odometry_cfg = config.odometry or (OdometryConfig.for_frame(first, log=False) if first is not None else OdometryConfig())
+    lc = config.loop_closure
+    if first is not None and first.sensor_kind is SensorKind.LIDAR:
+        odometry_voxel_m = odometry_cfg.voxel_size_m if odometry_cfg.method is OdometryMethod.KISS else odometry_cfg.gicp_map_voxel_m
+        lc = lc.over(LoopClosureConfig.for_lidar(odometry_voxel_m))
+    if config.num_threads is not None:
+        lc = lc.model_copy(update={"num_threads": config.num_threads})
+    result.loop_closure_config = lc.model_dump(mode="json")
     poses = store.poses(0)
     key_rows = select_keyframes(poses, lc)
     result.n_keyframes = len(key_rows)
@@ -687,7 +696,7 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     cache: dict[int, np.ndarray] = {}
     max_range_m = lc.max_range_m
     if max_range_m is None and ids and own_odometry:  # the range the odometry trusted; given poses: every point
-        max_range_m = (config.odometry or OdometryConfig.for_frame(store.frame(ids[0]), log=False)).max_range_m
+        max_range_m = odometry_cfg.max_range_m
 
     def points(row: int) -> np.ndarray:
         if row not in cache:
