@@ -666,15 +666,16 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     center = p_sum[big] / np.maximum(cnt, 1)[:, None]
     p = P.take(use, axis=1)
-    # offsets along the normal and in the tangent plane from the group centroid: p . n - c . n (the same for u, v)
-    o = _dot_gathered(p, normal, g) - np.einsum("ij,ij->i", center, normal).take(g)
+    def from_center(axes: NDArray[np.float64]) -> NDArray[np.float64]:
+        """Each point's offset from its group's centroid along the group's axis: ``p . a - c . a``."""
+        return _dot_gathered(p, axes, g) - np.einsum("ij,ij->i", center, axes).take(g)
+
+    o = from_center(normal)  # along the normal; in the tangent plane below
     cell_m = size_m * cell_fraction if max_cell_m is None else min(size_m * cell_fraction, max_cell_m)
     K = int(math.ceil(2.0 * math.sqrt(6.0) * size_m / cell_m)) + 2  # a group joined across a face spans 1 x 1 x 2 voxels
     u, v = _tangent_basis(normal) if G else (np.zeros((0, 3)), np.zeros((0, 3)))
-    a_u = _dot_gathered(p, u, g) - np.einsum("ij,ij->i", center, u).take(g)
-    a_v = _dot_gathered(p, v, g) - np.einsum("ij,ij->i", center, v).take(g)
-    cu = np.clip(np.floor(a_u / cell_m).astype(np.int64) + K // 2, 0, K - 1)
-    cv = np.clip(np.floor(a_v / cell_m).astype(np.int64) + K // 2, 0, K - 1)
+    cu = np.clip(np.floor(from_center(u) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
+    cv = np.clip(np.floor(from_center(v) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
     c, _ = _dense_ids((g * K + cu) * K + cv)
     C = int(c.max()) + 1 if len(c) else 0
     cell_group = np.zeros(C, np.int64)

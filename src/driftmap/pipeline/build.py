@@ -26,12 +26,12 @@ from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
 from driftmap.registration.loops import (
-    GAP_TOLERANCE_S,
     CandidateKind,
     Keyframe,
     LoopCandidate,
     LoopClosureConfig,
     find_loops,
+    gap_threshold,
     loop_gap,
     make_keyframe,
     select_keyframes,
@@ -681,16 +681,16 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     key_rows = select_keyframes(poses, lc)
     result.n_keyframes = len(key_rows)
     stamps_ns = store.ledger.stamps_ns
-    unit, gap = loop_gap(lc)
-    if unit == "frames":  # in the source's frame numbers
+    span_s = 1e-9 * float(stamps_ns[key_rows[-1]] - stamps_ns[key_rows[0]])
+    if loop_gap(lc)[0] == "frames":  # in the source's frame numbers
         span, what = ids[key_rows[-1]] - ids[key_rows[0]], f"loop_closure.min_gap_frames = {lc.min_gap_frames} source frames"
     else:
-        span, what = 1e-9 * float(stamps_ns[key_rows[-1]] - stamps_ns[key_rows[0]]), f"loop_closure.min_gap_s = {lc.min_gap_s:g} s"
-    if inject_wrong_loop is None and (len(key_rows) < 2 or span < gap - (GAP_TOLERANCE_S if unit == "s" else 0.0)):
+        span, what = span_s, f"loop_closure.min_gap_s = {lc.min_gap_s:g} s"
+    if inject_wrong_loop is None and (len(key_rows) < 2 or span < gap_threshold(lc)):
         logger.warning("loop closure skipped: the %d keyframes (of %d stored frames, source frames %d..%d) span "
                        "source frames %d..%d (%.2f s), less than %s (loop candidates are at least that far apart); "
                        "store a longer stretch of the source, or lower it", len(key_rows), len(ids), ids[0], ids[-1],
-                       ids[key_rows[0]], ids[key_rows[-1]], 1e-9 * float(stamps_ns[key_rows[-1]] - stamps_ns[key_rows[0]]), what)
+                       ids[key_rows[0]], ids[key_rows[-1]], span_s, what)
         return
     keyframes: list[Keyframe] = []
     cache: dict[int, np.ndarray] = {}

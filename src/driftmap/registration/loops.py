@@ -31,8 +31,12 @@ from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, do
 logger = logging.getLogger(__name__)
 
 
-LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": "3", "registration_voxel_m": "half the odometry voxel",
-                       "max_rmse_m": "0.875 x registration_voxel_m"}
+LIDAR_SUBMAP_RADIUS_FRAMES = 3
+LIDAR_VOXEL_PER_ODOMETRY_VOXEL = 0.5
+RMSE_GATE_PER_VOXEL = 0.875  # the depth camera's 3.5 cm per 4 cm
+LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": str(LIDAR_SUBMAP_RADIUS_FRAMES),
+                       "registration_voxel_m": f"{LIDAR_VOXEL_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
+                       "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m"}
 """The fields :meth:`LoopClosureConfig.for_lidar` sets, as ``driftmap config`` describes them."""
 
 
@@ -65,8 +69,9 @@ class LoopClosureConfig(BaseModel):
         are: keyframe clouds of 7 scans (``submap_radius_frames`` 3: one ring scan is too sparse for GICP at a
         depth camera's 4 cm, whose keyframe-to-keyframe edges then pull a good odometry off), registered at half the
         odometry voxel, with the RMSE gate scaled alike (3.5 cm per 4 cm). The other fields keep their defaults."""
-        voxel = 0.5 * odometry_voxel_m
-        return cls(submap_radius_frames=3, registration_voxel_m=voxel, max_rmse_m=0.875 * voxel)
+        voxel = LIDAR_VOXEL_PER_ODOMETRY_VOXEL * odometry_voxel_m
+        return cls(submap_radius_frames=LIDAR_SUBMAP_RADIUS_FRAMES, registration_voxel_m=voxel,
+                   max_rmse_m=RMSE_GATE_PER_VOXEL * voxel)
 
     def over(self, defaults: LoopClosureConfig) -> LoopClosureConfig:
         """``defaults`` with the fields set explicitly in this config (``model_fields_set``) taken from it."""
@@ -153,6 +158,13 @@ GAP_TOLERANCE_S = 1e-3
 60 frames 20 ns short of 2 s)."""
 
 
+def gap_threshold(config: LoopClosureConfig) -> float:
+    """The least separation (in :func:`loop_gap`'s unit) that counts as a loop gap: the gap itself in frame
+    numbers, ``GAP_TOLERANCE_S`` less in seconds."""
+    unit, gap = loop_gap(config)
+    return gap - GAP_TOLERANCE_S if unit == "s" else gap
+
+
 def _gap_positions(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> NDArray[np.float64]:
     """Each keyframe's position on the axis :func:`loop_gap` measures along (frame number or seconds)."""
     unit, _ = loop_gap(config)
@@ -163,8 +175,7 @@ def _gap_positions(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> 
 
 def _older(at: NDArray[np.float64], j: int, config: LoopClosureConfig) -> NDArray[np.intp]:
     """Positions of the keyframes at least the loop gap before keyframe ``j``."""
-    unit, gap = loop_gap(config)
-    return np.flatnonzero(at <= at[j] - gap + (GAP_TOLERANCE_S if unit == "s" else 0.0))
+    return np.flatnonzero(at <= at[j] - gap_threshold(config))
 
 
 def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> float:
