@@ -551,6 +551,7 @@ class PoseGraph:
         isam2_relinearize_threshold: float = 0.01,
         initialization: Initialization = Initialization.GIVEN,
         callback: ProgressCallback | None = None,
+        warn: bool = True,
     ) -> PoseGraphResult:
         """Optimise the graph and diagnose its loop edges.
 
@@ -560,7 +561,9 @@ class PoseGraph:
         ISAM2 relinearises on every update). ``initialization`` picks the start of LM / GNC
         (:attr:`Initialization.CHORDAL` is not available for ISAM2, which chains odometry as it goes).
         ``callback(progress)`` is called after every LM iteration / ISAM2
-        update and once after GNC; returning ``True`` stops the optimisation.
+        update and once after GNC; returning ``True`` stops the optimisation. ``warn=False`` logs loops that fail
+        the chi2 gate and a failure to converge at INFO instead of WARNING (for intermediate rounds of a caller
+        that re-optimises, e.g. an information calibration); the result carries them either way.
         Raises :class:`PoseGraphError` for an empty graph or when GTSAM fails.
         """
         if not isinstance(method, Optimizer):
@@ -624,14 +627,15 @@ class PoseGraph:
             len(result.rejected_loops), len(loop_residuals), elapsed_s,
         )
         rejected = result.rejected_loops
+        report = logger.warning if warn else logger.info
         if rejected:
-            logger.warning(
+            report(
                 "%d of %d loop edges fail the chi2 gate %.4g after optimisation, e.g. %s",
                 len(rejected), len(loop_residuals), chi2_threshold,
                 ", ".join(f"{r.key_from}->{r.key_to} (chi2 {r.chi2:.3g}, weight {r.weight:.3g})" for r in rejected[:5]),
             )
         if not converged:
-            logger.warning("pose graph %s did not converge (%s)", method.name, "; ".join(warnings) or "see result")
+            report("pose graph %s did not converge (%s)", method.name, "; ".join(warnings) or "see result")
         return result
 
     def _run_lm(

@@ -819,7 +819,8 @@ def _optimize_calibrated(keyframes: list[Keyframe], edges: list[tuple[_EdgeGroup
     # the first round is plain least squares: with uncalibrated (over-confident) information a robust kernel
     # would switch every loop off, and the median chi2 is robust to a few wrong loops by itself
     graph = make_graph(RobustKernel.NONE if config.information_calibration_iterations else config.loop_kernel)
-    opt = graph.optimize(config.optimizer)
+    # the rounds before the last are quiet: their rejected loops and convergence say nothing about the result
+    opt = graph.optimize(config.optimizer, warn=not config.information_calibration_iterations)
     for _ in range(config.information_calibration_iterations):
         changed = False
         for group in calibrate:
@@ -830,9 +831,12 @@ def _optimize_calibrated(keyframes: list[Keyframe], edges: list[tuple[_EdgeGroup
             scale[group] *= factor
             changed |= abs(factor - 1.0) > 0.05
         graph = make_graph()
-        opt = graph.optimize(config.optimizer)
+        opt = graph.optimize(config.optimizer, warn=False)
         if not changed:
             break
+    if not opt.converged:
+        logger.warning("pose graph %s did not converge after the information calibration (%s)", opt.method.name,
+                       "; ".join(opt.warnings) or "see the pose graph's log")
     result.information_scale = {g.value: s for g, s in scale.items() if g is not _EdgeGroup.FALLBACK}
     logger.info("information calibration: odometry x%.3g, loops x%.3g", scale[_EdgeGroup.ODOMETRY], scale[_EdgeGroup.LOOP])
     return opt
