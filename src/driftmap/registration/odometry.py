@@ -28,6 +28,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
 from driftmap.frame import Frame, SensorKind
+from driftmap.registration.pairwise import register
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +63,7 @@ class OdometryConfig(BaseModel):
     initial_threshold_m: float = Field(0.3, gt=0.0, description="kiss: initial correspondence threshold (m)")
     min_motion_m: float = Field(0.01, ge=0.0, description="kiss: motion below which the adaptive threshold is not updated (m)")
     max_points_per_voxel: int = Field(20, ge=1, description="kiss: points kept per map voxel")
+    kiss_prime_motion: bool = Field(True, description="kiss: estimate the first motion by GICP of the first two scans and start KISS-ICP's constant-velocity model with it when it is at least half a voxel (KISS-ICP starts at zero velocity: a LiDAR already moving lands short)")
     num_threads: int = Field(2, ge=1, description="threads of the registration (small_gicp / KISS-ICP); 1: the same frames give the same poses to the bit")
 
     @classmethod
@@ -307,6 +309,11 @@ class KissOdometry:
         self._T_world_odom = np.eye(4) if T_world_first is None else np.array(geometry.as_rigid(T_world_first))
         self.n_frames = 0
         self.seconds = 0.0
+        self._first_scan: NDArray[np.float64] | None = None
+        """The first scan's points until the second scan primes the motion model (``kiss_prime_motion``)."""
+        self._primed = not config.kiss_prime_motion
+        self.primed_motion: NDArray[np.float64] | None = None
+        """The first motion that started KISS-ICP's constant-velocity model (None: KISS-ICP's own zero start)."""
 
     def _points(self, frame: Frame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         pts, step = _strided_points(frame, self.config.max_points)
@@ -319,9 +326,42 @@ class KissOdometry:
             stamps = (t - t.min()) / max(float(np.ptp(t)), 1.0)
         return pts, stamps
 
+    def _prime(self, first: NDArray[np.float64], second: NDArray[np.float64], frame_id: int) -> None:
+        """Start KISS-ICP's constant-velocity model with the motion between the first two scans.
+
+        KISS-ICP predicts each scan's pose from the last motion, which is zero for the second scan. A LiDAR that is
+        already moving (a car at 10 m/s, 1 m per scan) then starts from 1 m off, and with a local map of one scan,
+        whose rings repeat in the next scan wherever the sensor is, its ICP stops short: 0.44 m of 1.0 m on the
+        synthetic street log, an error every later pose keeps. A two-stage GICP of the two scans (the odometry
+        voxel, then half of it) measures the motion instead; it is used when it converged, overlaps (fitness
+        >= 0.3) and is at least half a voxel (a slower start is within what KISS-ICP's own ICP recovers, and is
+        left to it)."""
+        v = self.config.voxel_size_m
+        threads = self.config.num_threads
+        first, second = (p[(np.einsum("ij,ij->i", p, p) >= self.config.min_range_m**2)
+                           & (np.einsum("ij,ij->i", p, p) <= self.config.max_range_m**2)] for p in (first, second))
+        coarse = register(first, second, np.eye(4), voxel_size_m=v, max_correspondence_m=5 * v, num_threads=threads)
+        fine = register(first, second, coarse.T_target_source, voxel_size_m=0.5 * v, max_correspondence_m=1.25 * v,
+                        num_threads=threads)
+        moved_m = float(np.linalg.norm(fine.T_target_source[:3, 3]))
+        if fine.converged and fine.fitness >= 0.3 and moved_m >= 0.5 * v:
+            self._kiss.last_delta = fine.T_target_source
+            self.primed_motion = fine.T_target_source
+            logger.info("KISS-ICP motion model started from GICP of the first two scans: %.2f m to frame %d "
+                        "(fitness %.2f)", moved_m, frame_id, fine.fitness)
+        else:
+            logger.debug("KISS-ICP motion model starts at zero (first motion %.3f m, fitness %.2f, converged %s)",
+                         moved_m, fine.fitness, fine.converged)
+
     def register(self, frame: Frame) -> OdometryStep:
         t0 = time.perf_counter()
         pts, stamps = self._points(frame)
+        if not self._primed:
+            if self._first_scan is None:
+                self._first_scan = pts
+            else:
+                self._prime(self._first_scan, pts, frame.frame_id)
+                self._primed, self._first_scan = True, None
         self._kiss.register_frame(pts, stamps)
         dt = time.perf_counter() - t0
         self.n_frames += 1
@@ -337,6 +377,7 @@ class KissOdometry:
         items = list(frames_with_poses)
         if not items:
             return
+        self._primed, self._first_scan = True, None  # the stored poses give the motion model
         T0 = items[0][1]
         self._T_world_odom = T0.copy()
         kiss = self._kiss
