@@ -218,18 +218,25 @@ def config_cmd(
 @app.command("synth")
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to.")],
-    frames: Annotated[int, typer.Option("--frames", min=2, help="Number of frames.")] = 60,
+    frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Number of frames (default: 60 in the room, 245 on the street).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 7,
     lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR.")] = False,
-    yaw_drift_deg_per_m: Annotated[float, typer.Option("--yaw-drift-deg-per-m", help="Odometry yaw drift.")] = 0.6,
-    scale_drift_percent: Annotated[float, typer.Option("--scale-drift-percent", help="Odometry scale drift.")] = 1.0,
+    yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street).")] = None,
+    scale_drift_percent: Annotated[Optional[float], typer.Option("--scale-drift-percent", help="Odometry scale drift (default: 1.0).")] = None,
+    scene: Annotated[str, typer.Option("--scene", help="room (a furnished room, a depth camera and with --lidar a 16-beam LiDAR) | street (a city block loop, a 32-beam car LiDAR; defaults: 245 frames, 0.02 deg/m yaw drift, 1 % scale drift).")] = "room",
 ) -> None:
     """Generate a synthetic drifting-robot log (deterministic for a given seed)."""
     from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 
-    cfg = SyntheticLogConfig(seed=seed, n_frames=frames, lidar=lidar, yaw_drift_deg_per_m=yaw_drift_deg_per_m,
-                             scale_drift_percent=scale_drift_percent)
-    with console.status("ray-casting the synthetic room"):
+    scene = _choice(scene, ("room", "street"), "--scene")
+    given = {"seed": seed, "n_frames": frames, "yaw_drift_deg_per_m": yaw_drift_deg_per_m,
+             "scale_drift_percent": scale_drift_percent}
+    if scene == "street":
+        cfg = SyntheticLogConfig.street(**{k: v for k, v in given.items() if v is not None})
+    else:
+        defaults = SyntheticLogConfig()
+        cfg = SyntheticLogConfig(lidar=lidar, **{k: getattr(defaults, k) if v is None else v for k, v in given.items()})
+    with console.status(f"ray-casting the synthetic {scene}"):
         path = generate_synthetic_log(out, cfg)
     console.print(_bold("synthetic log: ", path.resolve()))
 

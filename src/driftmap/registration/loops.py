@@ -34,9 +34,13 @@ logger = logging.getLogger(__name__)
 LIDAR_SUBMAP_RADIUS_FRAMES = 3
 LIDAR_VOXEL_PER_ODOMETRY_VOXEL = 0.5
 RMSE_GATE_PER_VOXEL = 0.875  # the depth camera's 3.5 cm per 4 cm
+LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL = 10.0
+LIDAR_CORRECTION_PER_ODOMETRY_VOXEL = 2.5
 LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": str(LIDAR_SUBMAP_RADIUS_FRAMES),
                        "registration_voxel_m": f"{LIDAR_VOXEL_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
-                       "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m"}
+                       "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m",
+                       "proximity_radius_m": f"{LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
+                       "max_correction_m": f"{LIDAR_CORRECTION_PER_ODOMETRY_VOXEL:g} x the odometry voxel"}
 """The fields :meth:`LoopClosureConfig.for_lidar` sets, as ``driftmap config`` describes them."""
 
 
@@ -44,7 +48,7 @@ class LoopClosureConfig(BaseModel):
     """Keyframe selection, candidate search and verification gates (metres, degrees)."""
 
     model_config = ConfigDict(extra="forbid")
-    keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m)")
+    keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m), and never closer than 2 submap_radius_frames + 1 stored frames to the last (keyframe clouds share no frame)")
     keyframe_angle_deg: float = Field(10.0, gt=0.0, description="... or this much rotation (deg)")
     keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many stored frames (counted in the --frames selection)")
     min_gap_s: float = Field(2.0, gt=0.0, description="candidates must be at least this long apart (frame stamps; 7-Scenes' nominal 30 Hz: 60 frames), whatever the --frames step and the sensor rate")
@@ -65,13 +69,18 @@ class LoopClosureConfig(BaseModel):
 
     @classmethod
     def for_lidar(cls, odometry_voxel_m: float) -> LoopClosureConfig:
-        """Defaults for LiDAR scans, whose odometry voxel (KISS-ICP's, scaled to the scene) says how coarse they
-        are: keyframe clouds of 7 scans (``submap_radius_frames`` 3: one ring scan is too sparse for GICP at a
-        depth camera's 4 cm, whose keyframe-to-keyframe edges then pull a good odometry off), registered at half the
-        odometry voxel, with the RMSE gate scaled alike (3.5 cm per 4 cm). The other fields keep their defaults."""
+        """Defaults for LiDAR scans, whose odometry voxel (KISS-ICP's, scaled to the scene: 1 m outdoors) says how
+        coarse and how large their scene is: keyframe clouds of 7 scans (``submap_radius_frames`` 3: one ring scan is
+        too sparse for GICP at a depth camera's 4 cm, whose keyframe-to-keyframe edges then pull a good odometry off;
+        keyframes are then at least 7 frames apart, :func:`keyframe_min_frames`), registered at half the odometry
+        voxel, with the RMSE gate scaled alike (3.5 cm per 4 cm); proximity candidates within 10 odometry voxels and
+        corrections up to 2.5 voxels (plus 5 % of the path) accepted: outdoors 10 m and 2.5 m, where keyframes
+        7 scans apart are metres apart and a street's drift is metres. The other fields keep their defaults."""
         voxel = LIDAR_VOXEL_PER_ODOMETRY_VOXEL * odometry_voxel_m
         return cls(submap_radius_frames=LIDAR_SUBMAP_RADIUS_FRAMES, registration_voxel_m=voxel,
-                   max_rmse_m=RMSE_GATE_PER_VOXEL * voxel)
+                   max_rmse_m=RMSE_GATE_PER_VOXEL * voxel,
+                   proximity_radius_m=LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL * odometry_voxel_m,
+                   max_correction_m=LIDAR_CORRECTION_PER_ODOMETRY_VOXEL * odometry_voxel_m)
 
     def over(self, defaults: LoopClosureConfig) -> LoopClosureConfig:
         """``defaults`` with the fields set explicitly in this config (``model_fields_set``) taken from it."""
@@ -133,11 +142,23 @@ def shape_descriptor(points_m: NDArray[np.floating], *, n_pairs: int = 4000, bin
     return np.concatenate([h1 / max(h1.sum(), 1), h2 / max(h2.sum(), 1)])
 
 
+def keyframe_min_frames(config: LoopClosureConfig) -> int:
+    """The fewest stored frames between two keyframes: ``2 submap_radius_frames + 1``, so that no two keyframe
+    clouds share a frame. Two clouds that share frames place them with the odometry's relative poses, and a
+    registration of the two then copies part of the odometry instead of measuring it (synthetic street log, 7-scan
+    clouds one scan apart: a quarter of the odometry's 1 % scale error came back in the odometry edges)."""
+    return 2 * config.submap_radius_frames + 1
+
+
 def select_keyframes(poses: NDArray[np.float64], config: LoopClosureConfig) -> list[int]:
-    """Indices of keyframes along a trajectory (the first frame always is one)."""
+    """Indices of keyframes along a trajectory (the first frame always is one), at least
+    :func:`keyframe_min_frames` apart."""
     keys = [0]
+    spacing = keyframe_min_frames(config)
     for i in range(1, len(poses)):
         last = poses[keys[-1]]
+        if i - keys[-1] < spacing:
+            continue
         if (geometry.translation_distance_m(last, poses[i]) >= config.keyframe_distance_m
                 or geometry.rotation_angle_deg(last, poses[i]) >= config.keyframe_angle_deg
                 or i - keys[-1] >= config.keyframe_max_gap_frames):

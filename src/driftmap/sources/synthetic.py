@@ -80,6 +80,25 @@ class SyntheticLogConfig:
     lidar_beams: int = 16
     lidar_azimuth_steps: int = 720
     lidar_range_sigma_m: float = 0.01
+    lidar_elevation_deg: tuple[float, float] = (-15.0, 15.0)
+    """Lowest and highest beam elevation (deg)."""
+    lidar_max_range_m: float = 30.0
+    scene: str = "room"
+    """``room`` (the furnished room, a circle of ``circle_radius_m``) or ``street`` (a city block: see
+    :meth:`street`)."""
+
+    @classmethod
+    def street(cls, **overrides: object) -> SyntheticLogConfig:
+        """An outdoor log: a car-height 32-beam LiDAR drives 1.1 times round a city block (a rounded rectangle of
+        70 x 50 m, ~1 m between scans at 10 Hz) between building facades, poles and parked cars; the odometry drifts
+        by 1 % in scale and 0.02 deg/m in yaw (a few metres at the revisit). The depth camera renders 80 x 60."""
+        base = dict(scene="street", n_frames=245, frame_period_ns=100_000_000, lidar=True, lidar_beams=32,
+                    lidar_azimuth_steps=1024, lidar_elevation_deg=(-25.0, 3.0), lidar_max_range_m=80.0,
+                    lidar_range_sigma_m=0.02, yaw_drift_deg_per_m=0.02, scale_drift_percent=1.0, step_frame=-1,
+                    step_m=(0.0, 0.0, 0.0), odometry_noise_m=0.002, odometry_noise_deg=0.02,
+                    width=80, height=60, fx=65.625, fy=65.625, cx=39.5, cy=29.5)
+        base.update(overrides)
+        return cls(**base)  # type: ignore[arg-type]
 
 
 @dataclass(frozen=True)
@@ -144,10 +163,74 @@ def scene_boxes() -> list[SceneBox]:
     return boxes
 
 
-def _build_scene() -> tuple[o3d.t.geometry.RaycastingScene, set[int]]:
+STREET_HALF_SIZE_M = (35.0, 25.0)
+"""Half the size of the street loop's rounded rectangle (x, y), centreline of the road."""
+STREET_CORNER_RADIUS_M = 10.0
+STREET_FACADE_OFFSET_M = 7.0
+"""Building facades stand this far from the road's centreline (+- 1 m per building)."""
+
+
+def street_boxes(seed: int) -> list[SceneBox]:
+    """The city block of ``scene="street"`` (world frame, z up, ground at z = 0): buildings of random width, depth
+    and height inside and outside the road loop, with gaps between them, poles on both sides and parked cars,
+    all drawn from ``seed`` (so the same seed gives the same town)."""
+    rng = np.random.default_rng([seed, 20261123])
+    a, b = STREET_HALF_SIZE_M
+    d = STREET_FACADE_OFFSET_M
+    boxes = [SceneBox("ground", (-a - 60, -b - 60, -0.2), (a + 60, b + 60, 0.0))]
+
+    def along(side: str, t0: float, t1: float, off0: float, off1: float, z1: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """A box spanning ``t0..t1`` along a side of the loop and ``off0..off1`` outwards from its centreline."""
+        lo, hi = min(off0, off1), max(off0, off1)
+        if side == "-y":
+            return (t0, -b - hi, 0.0), (t1, -b - lo, z1)
+        if side == "+y":
+            return (t0, b + lo, 0.0), (t1, b + hi, z1)
+        if side == "-x":
+            return (-a - hi, t0, 0.0), (-a - lo, t1, z1)
+        return (a + lo, t0, 0.0), (a + hi, t1, z1)
+
+    for side, half in (("-y", a), ("+y", a), ("-x", b), ("+x", b)):
+        # outside the loop: a row of buildings past the corners; inside: a row up to the block's inner corners
+        for where, t_lo, t_hi, sign in (("out", -half - 15.0, half + 15.0, 1.0), ("in", -half + d, half - d, -1.0)):
+            t = t_lo + rng.uniform(0.0, 4.0)
+            n = 0
+            while t < t_hi - 3.0:
+                width = min(rng.uniform(6.0, 16.0), t_hi - t)
+                facade = d + rng.uniform(-1.0, 1.0)
+                depth = rng.uniform(8.0, 12.0)
+                lo, hi = along(side, t, t + width, sign * facade, sign * (facade + depth), rng.uniform(5.0, 18.0))
+                boxes.append(SceneBox(f"building_{side}_{where}_{n}", lo, hi))
+                t += width + rng.uniform(1.5, 5.0)
+                n += 1
+        # poles on both sides of the road, parked cars on the outer side
+        for sign in (1.0, -1.0):
+            t = -half + rng.uniform(2.0, 8.0)
+            n = 0
+            while t < half - 2.0:
+                lo, hi = along(side, t, t + 0.3, sign * 4.5, sign * 4.8, rng.uniform(3.5, 6.0))
+                boxes.append(SceneBox(f"pole_{side}_{'out' if sign > 0 else 'in'}_{n}", lo, hi))
+                if sign > 0 and rng.random() < 0.5:
+                    lo, hi = along(side, t + 2.0, t + 6.3, 2.6, 4.4, rng.uniform(1.4, 1.8))
+                    boxes.append(SceneBox(f"car_{side}_{n}", lo, hi))
+                t += rng.uniform(8.0, 15.0)
+                n += 1
+    return boxes
+
+
+def boxes_of(config: SyntheticLogConfig) -> list[SceneBox]:
+    """The scene of a log: :func:`scene_boxes` (``room``) or :func:`street_boxes` (``street``)."""
+    if config.scene == "room":
+        return scene_boxes()
+    if config.scene == "street":
+        return street_boxes(config.seed)
+    raise SourceError(f"synthetic log: scene must be 'room' or 'street', got {config.scene!r}")
+
+
+def _build_scene(config: SyntheticLogConfig) -> tuple[o3d.t.geometry.RaycastingScene, set[int]]:
     scene = o3d.t.geometry.RaycastingScene()
     glass_ids: set[int] = set()
-    for box in scene_boxes():
+    for box in boxes_of(config):
         size = np.subtract(box.max_m, box.min_m)
         mesh = o3d.geometry.TriangleMesh.create_box(*size)
         mesh.translate(box.min_m)
@@ -165,12 +248,54 @@ def T_base_camera(config: SyntheticLogConfig) -> NDArray[np.float64]:
 
 
 def T_base_lidar(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    """LiDAR frame (x forward, z up) on the robot base."""
-    return geometry.make_transform(None, (0.0, 0.0, 1.3))
+    """LiDAR frame (x forward, z up) on the robot base: 1.3 m up in the room, 1.73 m (KITTI's) on the street."""
+    return geometry.make_transform(None, (0.0, 0.0, 1.73 if config.scene == "street" else 1.3))
+
+
+def street_path(s_m: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """``(xy, heading)`` at arc lengths ``s_m`` along the street loop: the rounded rectangle of
+    :data:`STREET_HALF_SIZE_M` and :data:`STREET_CORNER_RADIUS_M`, counter-clockwise from the middle of its
+    -y side (heading +x)."""
+    a, b = STREET_HALF_SIZE_M
+    r = STREET_CORNER_RADIUS_M
+    # (length, start xy, start heading, curvature) of the nine pieces
+    pieces = [(a - r, (0.0, -b), 0.0, 0.0), (math.pi * r / 2, (a - r, -b), 0.0, 1 / r),
+              (2 * (b - r), (a, -b + r), math.pi / 2, 0.0), (math.pi * r / 2, (a, b - r), math.pi / 2, 1 / r),
+              (2 * (a - r), (a - r, b), math.pi, 0.0), (math.pi * r / 2, (-a + r, b), math.pi, 1 / r),
+              (2 * (b - r), (-a, b - r), 1.5 * math.pi, 0.0), (math.pi * r / 2, (-a, -b + r), 1.5 * math.pi, 1 / r),
+              (a - r, (-a + r, -b), 0.0, 0.0)]
+    perimeter = sum(p[0] for p in pieces)
+    s = np.mod(np.asarray(s_m, dtype=np.float64), perimeter)
+    xy = np.zeros((len(s), 2))
+    heading = np.zeros(len(s))
+    start = 0.0
+    for length, (x0, y0), h0, kappa in pieces:
+        on = (s >= start) & (s <= start + length)
+        u = s[on] - start
+        if kappa == 0.0:
+            xy[on] = np.stack([x0 + u * math.cos(h0), y0 + u * math.sin(h0)], axis=1)
+            heading[on] = h0
+        else:  # a left turn of radius 1 / kappa
+            h = h0 + u * kappa
+            xy[on] = np.stack([x0 + (np.sin(h) - math.sin(h0)) / kappa, y0 - (np.cos(h) - math.cos(h0)) / kappa], axis=1)
+            heading[on] = h
+        start += length
+    return xy, heading
+
+
+STREET_PERIMETER_M = float(4 * (STREET_HALF_SIZE_M[0] - STREET_CORNER_RADIUS_M)
+                           + 4 * (STREET_HALF_SIZE_M[1] - STREET_CORNER_RADIUS_M) + 2 * math.pi * STREET_CORNER_RADIUS_M)
 
 
 def ground_truth_base_poses(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    """``T_world_base`` along a counter-clockwise circle, heading along the tangent."""
+    """``T_world_base`` along a counter-clockwise circle (the room) or the street loop, heading along the
+    tangent."""
+    if config.scene == "street":
+        xy, heading = street_path(np.linspace(0.0, STREET_PERIMETER_M * config.loop_turns, config.n_frames))
+        poses = np.tile(np.eye(4), (config.n_frames, 1, 1))
+        poses[:, :3, :3] = Rotation.from_euler("z", heading[:, None]).as_matrix()
+        poses[:, :2, 3] = xy
+        return poses
     angles = np.linspace(0.0, 2.0 * math.pi * config.loop_turns, config.n_frames)
     poses = np.tile(np.eye(4), (config.n_frames, 1, 1))
     for k, a in enumerate(angles):
@@ -230,7 +355,7 @@ def render_lidar(
     rng: np.random.Generator,
 ) -> NDArray[np.float32]:
     """One spinning-LiDAR scan in the LiDAR frame: (N, 4) float32 x, y, z, intensity."""
-    elev = np.radians(np.linspace(-15.0, 15.0, config.lidar_beams))
+    elev = np.radians(np.linspace(*config.lidar_elevation_deg, config.lidar_beams))
     azim = np.linspace(0.0, 2 * math.pi, config.lidar_azimuth_steps, endpoint=False)
     ee, aa = np.meshgrid(elev, azim, indexing="ij")
     dirs_l = np.stack([np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1).reshape(-1, 3)
@@ -238,7 +363,7 @@ def render_lidar(
     origins = np.broadcast_to(T_world_lidar[:3, 3], dirs_w.shape)
     ans = scene.cast_rays(o3d.core.Tensor(np.hstack([origins, dirs_w]).astype(np.float32)))
     r = ans["t_hit"].numpy().astype(np.float64)
-    ok = np.isfinite(r) & (r < 30.0)
+    ok = np.isfinite(r) & (r < config.lidar_max_range_m)
     normals = ans["primitive_normals"].numpy()
     r_noisy = r + rng.normal(0.0, config.lidar_range_sigma_m, r.shape)
     pts = dirs_l[ok] * r_noisy[ok, None]
@@ -275,7 +400,7 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
     _clear_earlier_log(out)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(config.seed)
-    scene, glass_ids = _build_scene()
+    scene, glass_ids = _build_scene(config)
     T_bc = T_base_camera(config)
     gt_base = ground_truth_base_poses(config)
     odom_base = drifting_base_poses(config, gt_base, rng)
@@ -308,7 +433,7 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
         "T_base_lidar": T_base_lidar(config).tolist(),
         "ground_truth": "groundtruth.txt",
         "odometry": "odometry.txt",
-        "scene": [asdict(b) for b in scene_boxes()],
+        "scene": [asdict(b) for b in boxes_of(config)],
         "frames": frames_meta,
     }
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=1))
@@ -347,7 +472,8 @@ class SyntheticLog(FrameSource):
         self.intrinsics = PinholeIntrinsics(**self.meta["intrinsics"])
         self.depth_scale = float(self.meta["depth_scale"])
         self.T_base_sensor = np.asarray(self.meta["T_base_sensor"], dtype=np.float64)
-        self.config = SyntheticLogConfig(**{**self.meta["config"], "step_m": tuple(self.meta["config"]["step_m"])})
+        self.config = SyntheticLogConfig(**{**self.meta["config"], **{k: tuple(v) for k, v in self.meta["config"].items()
+                                                                      if isinstance(v, list)}})
         self._odometry = read_tum(self.path / self.meta["odometry"])
         if len(self._odometry) != len(self.meta["frames"]):
             raise SourceError(
