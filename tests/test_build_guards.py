@@ -189,6 +189,20 @@ def test_a_failure_before_the_first_frame_removes_only_what_the_build_created(se
     assert result.n_frames == 2
 
 
+def test_a_lidar_place_descriptor_on_depth_frames_is_refused_before_anything_is_stored(sevenscenes_dir: Path,
+                                                                                        tmp_path: Path) -> None:
+    """Scan Context needs a z-up LiDAR frame; asked for on a depth camera's frames it is a ConfigError at the
+    first frame, naming the setting and the sensor, and no store is left behind."""
+    from driftmap.registration.loops import LoopClosureConfig
+
+    out = tmp_path / "x"
+    config = BuildConfig(loop_closure=LoopClosureConfig(place_descriptor="scan_context"))
+    with pytest.raises(ConfigError, match=r"place_descriptor = 'scan_context' needs LiDAR scans.*frame 0 .*depth"):
+        build(sevenscenes_dir, out, config=config, frames="0:3")
+    assert not out.exists()
+    build(sevenscenes_dir, out, config=config, frames="0:3", loop_closure=False)  # without loop closure it is unused
+
+
 def test_a_store_with_frames_or_a_resumed_store_is_never_deleted(sevenscenes_dir: Path, tmp_path: Path) -> None:
     folder = _linked_7scenes(sevenscenes_dir, tmp_path / "broken", [0, 1, 2], unreadable=2)
     config = BuildConfig(pixel_stride=4)

@@ -546,6 +546,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         if frame.quality is not None:
             invalid.append(frame.quality.invalid_fraction)
         frame = _with_sensor_error(frame, config)
+        if done == 1 and loop_closure and frame.sensor_kind is not SensorKind.LIDAR:
+            _check_place_descriptor(config.loop_closure, frame)  # before anything is stored
         if frame.frame_id in existing:
             tick("frames", done, n_total)
             continue
@@ -664,6 +666,13 @@ def _odometry_edges_from_trajectory(config: BuildConfig, store: FrameStore, own_
     return cfg.method is OdometryMethod.GICP_MAP and cfg.gicp_map_horizon_frames is None
 
 
+def _check_place_descriptor(lc: LoopClosureConfig, frame: Frame) -> None:
+    """A Scan Context needs a z-up LiDAR frame: refuse it for a depth camera's frames."""
+    if lc.place_descriptor == "scan_context" and frame.sensor_kind is not SensorKind.LIDAR:
+        raise ConfigError(f"loop_closure.place_descriptor = 'scan_context' needs LiDAR scans (a z-up sensor frame); "
+                          f"frame {frame.frame_id} is from {frame.sensor_name!r}, a {frame.sensor_kind.value}: use 'shape'")
+
+
 def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tick: ProgressCallback,
                  stages: dict[str, float], inject_wrong_loop: tuple[int, int, np.ndarray] | None, *, own_odometry: bool) -> None:
     t0 = time.perf_counter()
@@ -674,6 +683,8 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     if first is not None and first.sensor_kind is SensorKind.LIDAR:
         odometry_voxel_m = odometry_cfg.voxel_size_m if odometry_cfg.method is OdometryMethod.KISS else odometry_cfg.gicp_map_voxel_m
         lc = lc.over(LoopClosureConfig.for_lidar(odometry_voxel_m))
+    elif first is not None:
+        _check_place_descriptor(lc, first)
     if config.num_threads is not None:
         lc = lc.model_copy(update={"num_threads": config.num_threads})
     result.loop_closure_config = lc.model_dump(mode="json")

@@ -3,10 +3,12 @@
 Candidates come from two independent cues:
 
 * **pose proximity** -- keyframes far apart in time whose odometry poses are close and look the same way;
-* **a place descriptor** that ignores the (drifted) poses -- a rotation- and translation-invariant shape
-  distribution of the keyframe's points (histogram of distances between random point pairs, plus the
-  range histogram); its nearest neighbours in descriptor space are candidates even when the odometry
-  puts them metres apart. Those are first aligned globally (Open3D FPFH + RANSAC).
+* **a place descriptor** that ignores the (drifted) poses, so that its nearest neighbours are candidates even
+  when the odometry puts them metres apart: for depth cameras (``place_descriptor = "shape"``) a rotation- and
+  translation-invariant shape distribution of the keyframe's points (histogram of distances between random point
+  pairs, plus the range histogram), aligned globally first (Open3D FPFH + RANSAC); for LiDAR
+  (``"scan_context"``, :mod:`driftmap.registration.place`) the Scan Context of the keyframe cloud, whose best
+  column shift gives the yaw that starts the registration.
 
 Every candidate is verified with GICP (small_gicp) and gated on convergence, overlap (fitness), residual
 RMSE and, for proximity candidates, on how far the result is from what the odometry says. Accepted and
@@ -19,6 +21,7 @@ import enum
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 import open3d as o3d
@@ -27,6 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
 from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, downsample, register_prepared, relative_pose
+from driftmap.registration.place import ScanContext, scan_context, scan_context_distance, yaw_guess
 
 logger = logging.getLogger(__name__)
 
@@ -36,11 +40,14 @@ LIDAR_VOXEL_PER_ODOMETRY_VOXEL = 0.5
 RMSE_GATE_PER_VOXEL = 0.875  # the depth camera's 3.5 cm per 4 cm
 LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL = 10.0
 LIDAR_CORRECTION_PER_ODOMETRY_VOXEL = 2.5
+LIDAR_SCAN_CONTEXT_RADIUS_PER_ODOMETRY_VOXEL = 80.0
 LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": str(LIDAR_SUBMAP_RADIUS_FRAMES),
                        "registration_voxel_m": f"{LIDAR_VOXEL_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
                        "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m",
                        "proximity_radius_m": f"{LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
-                       "max_correction_m": f"{LIDAR_CORRECTION_PER_ODOMETRY_VOXEL:g} x the odometry voxel"}
+                       "max_correction_m": f"{LIDAR_CORRECTION_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
+                       "place_descriptor": "scan_context",
+                       "scan_context_max_radius_m": f"{LIDAR_SCAN_CONTEXT_RADIUS_PER_ODOMETRY_VOXEL:g} x the odometry voxel"}
 """The fields :meth:`LoopClosureConfig.for_lidar` sets, as ``driftmap config`` describes them."""
 
 
@@ -57,7 +64,11 @@ class LoopClosureConfig(BaseModel):
     proximity_max_angle_deg: float = Field(45.0, gt=0.0, description="... if their viewing directions differ by less (deg)")
     max_candidates_per_keyframe: int = Field(15, ge=1, description="nearest proximity candidates kept per keyframe")
     descriptor_candidates: int = Field(1, ge=0, description="descriptor nearest neighbours tried per keyframe")
-    descriptor_max_distance: float = Field(0.15, gt=0.0, description="descriptor distance (L1 of histograms) gate")
+    descriptor_max_distance: float = Field(0.15, gt=0.0, description="shape descriptor distance (L1 of histograms) gate")
+    place_descriptor: Literal["shape", "scan_context"] = Field("shape", description="shape: D2 shape histograms aligned by FPFH + RANSAC (depth cameras); scan_context: Scan Context of the keyframe cloud, its best column shift starting the registration (LiDAR, z up; the LiDAR default)")
+    scan_context_max_distance: float = Field(0.3, gt=0.0, le=1.0, description="scan_context: distance gate (1 - mean cosine similarity of the sector columns)")
+    scan_context_max_radius_m: float = Field(80.0, gt=0.0, description="scan_context: radius of the polar grid (m)")
+    scan_context_ring_candidates: int = Field(10, ge=1, description="scan_context: older keyframes nearest in ring key compared in full")
     registration_voxel_m: float = Field(0.04, gt=0.0, description="GICP voxel size (m)")
     submap_radius_frames: int = Field(0, ge=0, description="a keyframe's cloud also holds this many frames on each side, placed by odometry")
     max_range_m: float | None = Field(None, gt=0.0, description="keyframe clouds keep points within this range (m); None: the odometry's max_range_m, or every point with given poses")
@@ -65,6 +76,7 @@ class LoopClosureConfig(BaseModel):
     max_rmse_m: float = Field(0.035, gt=0.0, description="maximum inlier RMSE after alignment (m)")
     max_correction_m: float = Field(0.5, gt=0.0, description="proximity loops: max disagreement with odometry (m)")
     max_correction_deg: float = Field(15.0, gt=0.0, description="... and in rotation (deg)")
+    descriptor_max_drift_fraction: float = Field(0.25, gt=0.0, description="descriptor loops: max disagreement with odometry, as a share of the path travelled between the two keyframes (plus max_correction_m): an odometry drifts, but not by a quarter of its path, and look-alike places far apart (parallel streets) are refused")
     num_threads: int = Field(2, ge=1, description="threads of the keyframe registrations (small_gicp, Open3D RANSAC); 1: repeatable to the bit")
 
     @classmethod
@@ -75,12 +87,16 @@ class LoopClosureConfig(BaseModel):
         keyframes are then at least 7 frames apart, :func:`keyframe_min_frames`), registered at half the odometry
         voxel, with the RMSE gate scaled alike (3.5 cm per 4 cm); proximity candidates within 10 odometry voxels and
         corrections up to 2.5 voxels (plus 5 % of the path) accepted: outdoors 10 m and 2.5 m, where keyframes
-        7 scans apart are metres apart and a street's drift is metres. The other fields keep their defaults."""
+        7 scans apart are metres apart and a street's drift is metres; places recognised by their Scan Context
+        (``place_descriptor``) on a polar grid of 80 odometry voxels (80 m outdoors), whatever the drift. The other
+        fields keep their defaults."""
         voxel = LIDAR_VOXEL_PER_ODOMETRY_VOXEL * odometry_voxel_m
         return cls(submap_radius_frames=LIDAR_SUBMAP_RADIUS_FRAMES, registration_voxel_m=voxel,
                    max_rmse_m=RMSE_GATE_PER_VOXEL * voxel,
                    proximity_radius_m=LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL * odometry_voxel_m,
-                   max_correction_m=LIDAR_CORRECTION_PER_ODOMETRY_VOXEL * odometry_voxel_m)
+                   max_correction_m=LIDAR_CORRECTION_PER_ODOMETRY_VOXEL * odometry_voxel_m,
+                   place_descriptor="scan_context",
+                   scan_context_max_radius_m=LIDAR_SCAN_CONTEXT_RADIUS_PER_ODOMETRY_VOXEL * odometry_voxel_m)
 
     def over(self, defaults: LoopClosureConfig) -> LoopClosureConfig:
         """``defaults`` with the fields set explicitly in this config (``model_fields_set``) taken from it."""
@@ -101,11 +117,14 @@ class Keyframe:
     """The same points with their GICP preprocessing, cached per voxel size."""
     stamp_ns: int
     """The frame's stamp: ``min_gap_s`` is measured in these."""
+    scan_context: ScanContext | None = None
+    """The keyframe cloud's Scan Context (``place_descriptor = "scan_context"``)."""
 
 
 class CandidateKind(enum.Enum):
     PROXIMITY = "proximity"
     DESCRIPTOR = "descriptor"
+    SCAN_CONTEXT = "scan_context"
     INJECTED = "injected"
 
 
@@ -242,6 +261,37 @@ def descriptor_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConf
     return pairs
 
 
+def scan_context_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig,
+                            exclude: set[tuple[int, int]]) -> list[tuple[int, int, NDArray[np.float64]]]:
+    """``(older, newer, T_a_b guess)`` for keyframe pairs whose Scan Contexts match, whatever the odometry says:
+    per keyframe, the ``scan_context_ring_candidates`` older keyframes nearest in ring key are compared in full
+    and the best ``descriptor_candidates`` within ``scan_context_max_distance`` kept (pairs in ``exclude``, the
+    proximity candidates, are not proposed twice); the guess is the yaw of the best column shift."""
+    if config.descriptor_candidates == 0 or len(keyframes) < 2:
+        return []
+    missing = [k.frame_id for k in keyframes if k.scan_context is None]
+    if missing:
+        raise ValueError(f"scan_context_candidates: keyframes without a Scan Context (frames {missing[:5]}); "
+                         "make them with place_descriptor = 'scan_context'")
+    contexts = [k.scan_context for k in keyframes]
+    ring_keys = np.array([c.ring_key for c in contexts])
+    at = _gap_positions(keyframes, config)
+    pairs = []
+    for j in range(len(keyframes)):
+        older = _older(at, j, config)
+        if older.size == 0 or contexts[j].is_empty:
+            continue
+        near = older[np.argsort(np.linalg.norm(ring_keys[older] - ring_keys[j], axis=1), kind="stable")]
+        scored = sorted((scan_context_distance(contexts[i], contexts[j]) + (int(i),)
+                         for i in near[: config.scan_context_ring_candidates]), key=lambda x: (x[0], x[2]))
+        for distance, yaw, i in scored[: config.descriptor_candidates]:
+            if distance <= config.scan_context_max_distance and (i, j) not in exclude:
+                logger.debug("scan context %d<->%d: distance %.3f, yaw %.1f deg", keyframes[i].frame_id,
+                             keyframes[j].frame_id, distance, np.degrees(yaw))
+                pairs.append((i, j, yaw_guess(yaw)))
+    return pairs
+
+
 def _fpfh(points_m: NDArray[np.float64], voxel_m: float) -> tuple[o3d.geometry.PointCloud, o3d.pipelines.registration.Feature]:
     pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points_m))
     pcd.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=2 * voxel_m, max_nn=30))
@@ -300,6 +350,12 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
         allowed = config.max_correction_m + 0.05 * path_length_m
         if dt > allowed or dr > config.max_correction_deg:
             reasons.append(f"disagrees with odometry by {dt:.2f} m / {dr:.1f} deg")
+    elif kind in (CandidateKind.DESCRIPTOR, CandidateKind.SCAN_CONTEXT):
+        dt = geometry.translation_distance_m(odom, result.T_target_source)
+        allowed = config.max_correction_m + config.descriptor_max_drift_fraction * path_length_m
+        if dt > allowed:
+            reasons.append(f"disagrees with odometry by {dt:.2f} m, more than {allowed:.2f} m "
+                           f"({100 * config.descriptor_max_drift_fraction:g} % of the {path_length_m:.2f} m travelled)")
     accepted = not reasons
     cand = LoopCandidate(a.frame_id, b.frame_id, kind, accepted, "; ".join(reasons) or "passed all gates", result,
                          result.T_target_source)
@@ -310,8 +366,10 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
 def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64], points_m: NDArray[np.floating],
                   config: LoopClosureConfig, *, stamp_ns: int) -> Keyframe:
     pts = downsample(points_m, config.registration_voxel_m / 2)
+    context = (scan_context(pts, max_radius_m=config.scan_context_max_radius_m)
+               if config.place_descriptor == "scan_context" else None)
     return Keyframe(frame_id, index, T_world_sensor, pts, shape_descriptor(pts), PreparedCloud(pts, config.num_threads),
-                    int(stamp_ns))
+                    int(stamp_ns), context)
 
 
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
@@ -320,11 +378,16 @@ def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
     positions = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))]) if len(keyframes) else np.zeros(0)
     prox = proximity_candidates(keyframes, config)
-    desc = descriptor_candidates(keyframes, config, set(prox))
-    todo = [(i, j, CandidateKind.PROXIMITY) for i, j in prox] + [(i, j, CandidateKind.DESCRIPTOR) for i, j in desc]
+    todo: list[tuple[int, int, CandidateKind, NDArray[np.float64] | None]] = [
+        (i, j, CandidateKind.PROXIMITY, None) for i, j in prox]
+    if config.place_descriptor == "scan_context":
+        todo += [(i, j, CandidateKind.SCAN_CONTEXT, T) for i, j, T in scan_context_candidates(keyframes, config, set(prox))]
+    else:
+        todo += [(i, j, CandidateKind.DESCRIPTOR, None) for i, j in descriptor_candidates(keyframes, config, set(prox))]
     out = []
-    for n, (i, j, kind) in enumerate(todo):
-        out.append(verify(keyframes[i], keyframes[j], kind, config, path_length_m=float(path[j] - path[i])))
+    for n, (i, j, kind, guess) in enumerate(todo):
+        out.append(verify(keyframes[i], keyframes[j], kind, config, path_length_m=float(path[j] - path[i]),
+                          init_T_a_b=guess))
         if progress:
             progress(n + 1, len(todo))
     return out
