@@ -178,6 +178,10 @@ def test_one_thread_builds_are_repeatable_to_the_bit(sevenscenes_dir: Path, tmp_
     loops = [s["loops"] for s in summaries]
     assert loops[0] == loops[1]
     assert any(x["accepted"] for x in loops[0]) and any(x["kind"] == "descriptor" for x in loops[0])
+    by_cue = {kind: sum(x["accepted"] and x["kind"] == kind for x in loops[1]) for kind in ("descriptor", "proximity")}
+    table = " ".join(result.stdout.split())
+    assert "loops accepted by cue" in table and f"proximity {by_cue['proximity']}" in table, table
+    assert (f"descriptor {by_cue['descriptor']}" in table) == (by_cue["descriptor"] > 0)
     with FrameStore.open(tmp_path / "lib") as a, FrameStore.open(tmp_path / "cli") as b:
         assert a.head == b.head >= 1
         for revision in range(a.head + 1):

@@ -317,6 +317,15 @@ def _with_depth_scale_hint(exc: Exception, source: Path, format: Optional[str]) 
                            depth_scale_used=exc.depth_scale_used, depth_scale_suggested=exc.depth_scale_suggested)
 
 
+def _loops_by_cue(loops: list[dict]) -> str:
+    """``proximity 5, scan_context 2``: accepted loops per candidate kind (``-`` for none)."""
+    counts: dict[str, int] = {}
+    for loop in loops:
+        if loop["accepted"]:
+            counts[loop["kind"]] = counts.get(loop["kind"], 0) + 1
+    return ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())) or "-"
+
+
 @app.command()
 def build(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],
@@ -386,6 +395,7 @@ def build(
         ("odometry fps", "-" if result.odometry_fps is None else f"{result.odometry_fps:.1f}"),
         ("keyframes", str(result.n_keyframes)),
         ("loops tried / accepted / rejected by graph", f"{result.loops_tried} / {result.loops_accepted} / {result.loops_rejected_by_graph}"),
+        ("loops accepted by cue", _loops_by_cue(result.loops)),
         ("graph error before / after", "-" if result.graph_error_before is None else f"{result.graph_error_before:.4g} / {result.graph_error_after:.4g}"),
         ("loop-closure revision", "-" if result.loop_revision is None else str(result.loop_revision)),
         ("max correction", "-" if result.max_correction_m is None else f"{result.max_correction_m:.3f} m / {result.max_correction_deg:.2f} deg"),
