@@ -208,6 +208,13 @@ def test_kitchen_ground_truth_map_flags_little_and_finds_the_known_pose_jump(kit
     result = detect_double_walls(placed)
     assert result.voxels_evaluated > 2000
     assert result.fraction_flagged <= 0.015
+    # most flags are the reference's own errors in frames 60-170, where pairwise ICP of consecutive stored frames
+    # corrects it by up to 4.3 cm / 1.66 deg (0.1-0.4 cm elsewhere; docs/diagnostics.md); the flags whose smaller
+    # layer lies elsewhere: measured 0.43 % of the evaluated voxels (0.32 / 0.25 % at sampling seeds 1 / 2)
+    def smaller(r):
+        return r.frames_a if len(r.frames_a) < len(r.frames_b) else r.frames_b
+    elsewhere = sum(r.n_voxels for r in result.regions if not 60 <= np.median(smaller(r)) <= 170)
+    assert elsewhere / result.voxels_evaluated <= 0.005
     # the known jump: a doubled region with frames up to 120 on one side and from 125 on the other
     jump = [r for r in result.regions if r.frames_a.max() <= 120 and r.frames_b.min() >= GT_JUMP_FRAME_ID]
     assert jump and 0.03 <= max(r.separation_m for r in jump) <= 0.07
