@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from driftmap.errors import ConfigError
 from driftmap.registration.place import scan_context, scan_context_distance, yaw_guess
 from driftmap.sources.kitti import KittiOdometry
 
@@ -57,7 +58,7 @@ def test_too_few_points_match_nothing() -> None:
     assert empty.is_empty and not empty.ring_key.any()
     full = scan_context(np.random.default_rng(0).uniform(-20, 20, (2000, 3)))
     assert scan_context_distance(empty, full) == (1.0, 0.0)
-    with pytest.raises(ValueError, match="shapes"):
+    with pytest.raises(ConfigError, match="shapes"):
         scan_context_distance(full, scan_context(np.zeros((5, 3)), n_sectors=30))
-    with pytest.raises(ValueError, match="positive"):
+    with pytest.raises(ConfigError, match="positive"):
         scan_context(np.zeros((5, 3)), max_radius_m=0.0)

@@ -11,7 +11,9 @@ Candidates come from two independent cues:
   column shift gives the yaw that starts the registration.
 
 Every candidate is verified with GICP (small_gicp) and gated on convergence, overlap (fitness), residual
-RMSE and, for proximity candidates, on how far the result is from what the odometry says. Accepted and
+RMSE and on how far the result is from what the odometry says (proximity candidates: ``max_correction_m`` plus 5 %
+of the path between the two keyframes; descriptor candidates: plus ``descriptor_max_drift_fraction`` of it, which
+refuses look-alike places far apart, while overlap and RMSE alone do not tell them from a revisit). Accepted and
 rejected candidates are logged with their numbers and returned.
 """
 
@@ -29,6 +31,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
+from driftmap.errors import ConfigError
 from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, downsample, register_prepared, relative_pose
 from driftmap.registration.place import ScanContext, scan_context, scan_context_distance, yaw_guess
 
@@ -271,7 +274,7 @@ def scan_context_candidates(keyframes: Sequence[Keyframe], config: LoopClosureCo
         return []
     missing = [k.frame_id for k in keyframes if k.scan_context is None]
     if missing:
-        raise ValueError(f"scan_context_candidates: keyframes without a Scan Context (frames {missing[:5]}); "
+        raise ConfigError(f"scan_context_candidates: keyframes without a Scan Context (frames {missing[:5]}); "
                          "make them with place_descriptor = 'scan_context'")
     contexts = [k.scan_context for k in keyframes]
     ring_keys = np.array([c.ring_key for c in contexts])

@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
+from driftmap.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -55,7 +56,7 @@ def scan_context(points_m: NDArray[np.floating], *, n_rings: int = 20, n_sectors
     """The Scan Context of a cloud given in a z-up sensor frame (a LiDAR's). Points beyond ``max_radius_m`` (in
     the horizontal plane) are ignored; fewer than 10 points give an empty descriptor, which matches nothing."""
     if n_rings < 1 or n_sectors < 1 or not max_radius_m > 0.0:
-        raise ValueError(f"scan_context: n_rings, n_sectors and max_radius_m must be positive, got "
+        raise ConfigError(f"scan_context: n_rings, n_sectors and max_radius_m must be positive, got "
                          f"{n_rings}, {n_sectors}, {max_radius_m}")
     pts = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
     matrix = np.zeros((n_rings, n_sectors))
@@ -77,7 +78,7 @@ def scan_context_distance(a: ScanContext, b: ScanContext) -> tuple[float, float]
     columns that both descriptors saw (0: identical, 1: nothing in common or nothing seen), and the yaw of ``b``'s
     sensor relative to ``a``'s at that shift (a multiple of the sector width)."""
     if a.matrix.shape != b.matrix.shape:
-        raise ValueError(f"scan_context_distance: descriptors of shapes {a.matrix.shape} and {b.matrix.shape}")
+        raise ConfigError(f"scan_context_distance: descriptors of shapes {a.matrix.shape} and {b.matrix.shape}")
     n = a.n_sectors
     shifts = np.arange(n)
     # rolled[k][:, c] = b[:, (c - k) mod n]: b turned by +k sectors
