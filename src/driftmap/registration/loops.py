@@ -44,6 +44,8 @@ RMSE_GATE_PER_VOXEL = 0.875  # the depth camera's 3.5 cm per 4 cm
 LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL = 10.0
 LIDAR_CORRECTION_PER_ODOMETRY_VOXEL = 2.5
 LIDAR_SCAN_CONTEXT_RADIUS_PER_ODOMETRY_VOXEL = 80.0
+PROXIMITY_DRIFT_FRACTION = 0.05
+"""Proximity loops may disagree with odometry by ``max_correction_m`` plus this share of the path between them."""
 LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": str(LIDAR_SUBMAP_RADIUS_FRAMES),
                        "registration_voxel_m": f"{LIDAR_VOXEL_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
                        "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m",
@@ -347,18 +349,17 @@ def verify(a: Keyframe, b: Keyframe, kind: CandidateKind, config: LoopClosureCon
         reasons.append(f"fitness {result.fitness:.2f} < {config.min_fitness}")
     if result.rmse_m > config.max_rmse_m:
         reasons.append(f"rmse {result.rmse_m * 100:.1f} cm > {config.max_rmse_m * 100:.1f} cm")
-    if kind is CandidateKind.PROXIMITY:
-        dt = geometry.translation_distance_m(odom, result.T_target_source)
-        dr = geometry.rotation_angle_deg(odom, result.T_target_source)
-        allowed = config.max_correction_m + 0.05 * path_length_m
-        if dt > allowed or dr > config.max_correction_deg:
-            reasons.append(f"disagrees with odometry by {dt:.2f} m / {dr:.1f} deg")
-    elif kind in (CandidateKind.DESCRIPTOR, CandidateKind.SCAN_CONTEXT):
-        dt = geometry.translation_distance_m(odom, result.T_target_source)
-        allowed = config.max_correction_m + config.descriptor_max_drift_fraction * path_length_m
-        if dt > allowed:
-            reasons.append(f"disagrees with odometry by {dt:.2f} m, more than {allowed:.2f} m "
-                           f"({100 * config.descriptor_max_drift_fraction:g} % of the {path_length_m:.2f} m travelled)")
+    # the drift an odometry may have gathered between the two: 5 % of the path for the candidates it proposed
+    # itself (and a rotation bound), a quarter of it for a descriptor's (the odometry did not see that loop)
+    proximity = kind is CandidateKind.PROXIMITY
+    fraction = PROXIMITY_DRIFT_FRACTION if proximity else config.descriptor_max_drift_fraction
+    dt = geometry.translation_distance_m(odom, result.T_target_source)
+    dr = geometry.rotation_angle_deg(odom, result.T_target_source)
+    allowed = config.max_correction_m + fraction * path_length_m
+    if dt > allowed or (proximity and dr > config.max_correction_deg):
+        reasons.append(f"disagrees with odometry by {dt:.2f} m / {dr:.1f} deg (allowed {allowed:.2f} m: "
+                       f"{config.max_correction_m:g} m + {100 * fraction:g} % of the {path_length_m:.2f} m travelled"
+                       + (f", {config.max_correction_deg:g} deg)" if proximity else ")"))
     accepted = not reasons
     cand = LoopCandidate(a.frame_id, b.frame_id, kind, accepted, "; ".join(reasons) or "passed all gates", result,
                          result.T_target_source)
