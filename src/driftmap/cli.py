@@ -326,6 +326,14 @@ def _loops_by_cue(loops: list[dict]) -> str:
     return ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())) or "-"
 
 
+def _tracking_counts(tracking: dict) -> str:
+    """``78 / 1 / 0`` frames whose odometry registration was ok / recovered / flagged (``-`` without records)."""
+    if not tracking.get("frames"):
+        return "-"
+    by = tracking["by_status"]
+    return f"{by.get('ok', 0) + by.get('first', 0)} / {by.get('recovered', 0)} / {len(tracking['flagged'])}"
+
+
 @app.command()
 def build(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],
@@ -393,6 +401,7 @@ def build(
         ("mean invalid-pixel fraction", "-" if result.mean_invalid_fraction is None else f"{result.mean_invalid_fraction:.3f}"),
         ("poses", result.pose_source),
         ("odometry fps", "-" if result.odometry_fps is None else f"{result.odometry_fps:.1f}"),
+        ("tracking ok / recovered / flagged", _tracking_counts(result.tracking)),
         ("keyframes", str(result.n_keyframes)),
         ("loops tried / accepted / rejected by graph", f"{result.loops_tried} / {result.loops_accepted} / {result.loops_rejected_by_graph}"),
         ("loops accepted by cue", _loops_by_cue(result.loops)),
@@ -405,6 +414,9 @@ def build(
     for k, v in rows:
         table.add_row(k, v)
     console.print(table)
+    for f in result.tracking.get("flagged", [])[:10]:
+        err_console.print(Text.assemble(("flagged:", "yellow"), f" frame {f['frame_id']} ({f['status']}): {f['reason']}"),
+                          highlight=False)
     console.print(_bold("store: ", Path(result.store).resolve(), " (build_config.json and build_summary.json saved in it)"))
 
 

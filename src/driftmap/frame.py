@@ -185,6 +185,69 @@ class FrameQuality:
         return bool(self.flags)
 
 
+class TrackingStatus(enum.Enum):
+    """How far a frame's odometry registration can be trusted (:class:`TrackingHealth`)."""
+
+    FIRST = "first"
+    """the first frame of a trajectory: nothing to register against"""
+    OK = "ok"
+    """registered from the motion model's prediction, and it fits the map"""
+    RECOVERED = "recovered"
+    """the prediction's registration did not fit; another initial guess did (a fast turn, a stop)"""
+    LOST = "lost"
+    """no initial guess gave a registration that fits the map: the pose is bridged (flagged, not trusted)"""
+    REINITIALISED = "reinitialised"
+    """tracking restarted after lost frames: a new local map starts at the bridged pose (flagged)"""
+
+
+@dataclass(frozen=True, slots=True)
+class TrackingHealth:
+    """How well a frame's odometry registration went (stored with the frame, summarised by ``build``).
+
+    ``fitness``: share of the registered points with a map point within ``fitness_radius_m``; ``rmse_m``: RMS
+    distance of those points; ``degeneracy``: ``sqrt(lambda_min / lambda_max)`` of the translational block of the
+    point-to-plane information of the registered points (1: constrained equally in every direction, near 0: a
+    corridor or a single plane leaves one direction free); ``deviation_m`` / ``deviation_deg``: the registration
+    against the motion model's prediction; ``hypothesis``: the initial guess that was kept (``constant_velocity``,
+    ``zero_motion``, ``half_velocity``, ``yaw+30``, ...). ``reason`` says why a frame is not ``ok``."""
+
+    status: TrackingStatus
+    fitness: float | None = None
+    rmse_m: float | None = None
+    degeneracy: float | None = None
+    deviation_m: float | None = None
+    deviation_deg: float | None = None
+    hypothesis: str = "constant_velocity"
+    n_points: int = 0
+    fitness_radius_m: float | None = None
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.status, TrackingStatus):
+            object.__setattr__(self, "status", parse_enum(TrackingStatus, self.status, "TrackingHealth.status", GeometryError))
+        for name in ("fitness", "rmse_m", "degeneracy", "deviation_m", "deviation_deg", "fitness_radius_m"):
+            value = getattr(self, name)
+            if value is not None:
+                if not math.isfinite(float(value)):
+                    raise GeometryError(f"TrackingHealth.{name} must be finite, got {value!r}")
+                object.__setattr__(self, name, float(value))
+
+    @property
+    def flagged(self) -> bool:
+        """The registration is not trustworthy (lost, or the restart after lost frames)."""
+        return self.status in (TrackingStatus.LOST, TrackingStatus.REINITIALISED)
+
+    def to_dict(self) -> dict[str, object]:
+        return {"status": self.status.value, "fitness": self.fitness, "rmse_m": self.rmse_m,
+                "degeneracy": self.degeneracy, "deviation_m": self.deviation_m, "deviation_deg": self.deviation_deg,
+                "hypothesis": self.hypothesis, "n_points": self.n_points, "fitness_radius_m": self.fitness_radius_m,
+                "reason": self.reason}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, object]) -> TrackingHealth:
+        return cls(**{k: d[k] for k in d if k in cls.__dataclass_fields__})  # type: ignore[arg-type]
+
+
 @dataclass(frozen=True, slots=True)
 class Provenance:
     """Where a frame came from: a URI (file, log + topic) and the index inside it."""
@@ -272,6 +335,8 @@ class Frame:
     provenance: Provenance | None = None
     sensor_frame: str = "sensor"
     base_frame: str = "base_link"
+    tracking: TrackingHealth | None = None
+    """How the odometry registration of this frame went (frames whose poses odometry produced)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "frame_id", _int64(self.frame_id, "Frame.frame_id", "an integer"))

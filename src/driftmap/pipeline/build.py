@@ -7,6 +7,7 @@ Library code: progress goes to a callback, numbers into :class:`BuildResult`; th
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import json
 import logging
@@ -25,6 +26,7 @@ from driftmap.config import DepthConfig
 from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.posegraph import Optimizer, PoseGraph, PoseGraphResult, RobustKernel
+from driftmap.preprocess.scene import lidar_frames, sample_positions, scene_reach
 from driftmap.registration.loops import (
     CandidateKind,
     Keyframe,
@@ -116,6 +118,13 @@ class BuildResult:
     """What the store was built from (resolved path, format, the path as given); see ``build_source.json``."""
     odometry_config: dict[str, Any] | None = None
     """The odometry settings this run used (``[build.odometry]``, or the defaults for the sensor and scene)."""
+    scene_reach: dict[str, Any] | None = None
+    """How far the LiDAR scene reaches (:class:`driftmap.preprocess.scene.SceneReach`: the median over frames spread
+    across the log of their 99th range percentile, which scaled the odometry's default lengths); None when the
+    lengths were not chosen from the scene (depth cameras, a config, a resumed build)."""
+    tracking: dict[str, Any] = field(default_factory=lambda: tracking_summary(None))
+    """How the odometry's registrations went (:func:`tracking_summary`): counts per status, the flagged and the
+    recovered frames with their reasons, fitness and degeneracy, and one record per frame."""
     loop_closure_config: dict[str, Any] | None = None
     """The loop-closure settings this run used: ``[build.loop_closure]``'s explicit ones over the defaults for the
     sensor (LiDAR: :meth:`LoopClosureConfig.for_lidar`); None without loop closure."""
@@ -528,6 +537,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     pose_source = PoseSource.EXTERNAL_FILE if pose_of else PoseSource.ODOMETRY
     odometry: KissOdometry | GicpMapOdometry | None = None
     odometry_config: dict[str, Any] | None = None
+    scene: dict[str, Any] | None = None
     n_total = len(src)
     invalid: list[float] = []
     n_new = 0
@@ -552,6 +562,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             tick("frames", done, n_total)
             continue
         t_b = time.perf_counter()
+        health = None
         if pose_of is not None:
             T = pose_of(frame)
         elif poses_from_source:
@@ -561,8 +572,12 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             pose_source = frame.pose.source
         else:
             if odometry is None:
-                cfg = (config.odometry or (_recorded_odometry(store) if existing else None)
-                       or OdometryConfig.for_frame(store.frame(min(existing)) if existing else frame))
+                cfg = config.odometry or (_recorded_odometry(store) if existing else None)
+                if cfg is None:
+                    sample = _scene_sample(src, store, frame, config)
+                    reach = scene_reach(lidar_frames(sample))
+                    scene = None if reach is None else reach.to_json()
+                    cfg = OdometryConfig.for_frames(sample)
                 if config.num_threads is not None:
                     cfg = cfg.model_copy(update={"num_threads": config.num_threads})
                 odometry = make_odometry(cfg)
@@ -570,9 +585,11 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
                 if existing:
                     last = sorted(existing)[-config.resume_seed_frames:]
                     odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
-            T = odometry.register(frame).T_world_sensor
+            step = odometry.register(frame)
+            T, health = step.T_world_sensor, step.health
         t_c = time.perf_counter()
-        store.append(frame.with_pose(PoseEstimate(T, revision=0, source=pose_source, world_frame=frame.pose.world_frame)))
+        stored = frame.with_pose(PoseEstimate(T, revision=0, source=pose_source, world_frame=frame.pose.world_frame))
+        store.append(stored if health is None else dataclasses.replace(stored, tracking=health))
         t_store += time.perf_counter() - t_c
         t_odom += t_c - t_b
         n_new += 1
@@ -588,14 +605,77 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,
         pose_source=pose_source.value if n_new else store.ledger.revision(0).source.value,
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
-        odometry_config=odometry_config,
+        odometry_config=odometry_config, tracking=tracking_summary(store), scene_reach=scene,
     )
+    if result.tracking["flagged"]:
+        logger.warning("odometry: %d of %d frames flagged (tracking lost, poses bridged): %s; loop closure does not "
+                       "trust the trajectory across them", len(result.tracking["flagged"]), result.tracking["frames"],
+                       ", ".join(f"{f['frame_id']} ({f['status']})" for f in result.tracking["flagged"][:10]))
     if loop_closure and len(store) >= 2:
         _close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)
     (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result
+
+
+def tracking_summary(store: FrameStore | None) -> dict[str, Any]:
+    """The tracking-health records of a store's frames (:class:`driftmap.frame.TrackingHealth`, kept with each frame
+    its odometry registered): ``frames`` (with a record), ``by_status`` counts, ``flagged`` (lost / reinitialised)
+    and ``recovered`` frames with their reasons, the median fitness, the smallest degeneracy and ``per_frame``."""
+    per_frame = []
+    for fid in (store.frame_ids if store is not None else []):
+        record = store.frame_info(int(fid)).get("tracking")
+        if record is not None:
+            per_frame.append({"frame_id": int(fid), **record})
+    by_status: dict[str, int] = {}
+    for r in per_frame:
+        by_status[r["status"]] = by_status.get(r["status"], 0) + 1
+    fitness = [r["fitness"] for r in per_frame if r["fitness"] is not None]
+    degeneracy = [r["degeneracy"] for r in per_frame if r["degeneracy"] is not None]
+
+    def brief(r: dict[str, Any]) -> dict[str, Any]:
+        return {k: r[k] for k in ("frame_id", "status", "hypothesis", "fitness", "reason")}
+    return {
+        "frames": len(per_frame), "by_status": by_status,
+        "flagged": [brief(r) for r in per_frame if r["status"] in ("lost", "reinitialised")],
+        "recovered": [brief(r) for r in per_frame if r["status"] == "recovered"],
+        "median_fitness": float(np.median(fitness)) if fitness else None,
+        "min_degeneracy": float(np.min(degeneracy)) if degeneracy else None,
+        "per_frame": per_frame,
+    }
+
+
+def flagged_rows(store: FrameStore) -> dict[int, int]:
+    """``{position in the store's frame order: frame id}`` of the frames whose odometry is flagged (lost or
+    reinitialised): loop closure does not trust the trajectory across them."""
+    out = {}
+    for row, fid in enumerate(store.frame_ids):
+        record = store.frame_info(int(fid)).get("tracking")
+        if record is not None and record["status"] in ("lost", "reinitialised"):
+            out[row] = int(fid)
+    return out
+
+
+def _scene_sample(src: FrameSource, store: FrameStore, first: Frame, config: BuildConfig) -> list[Frame]:
+    """Frames spread over the log whose reach sets the odometry's lengths (LiDAR; :mod:`driftmap.preprocess.scene`):
+    the stored ones and the source's, ``first`` (the frame being registered) among them. A source whose length is
+    unknown gives only ``first`` (and the stored frames)."""
+    if first.sensor_kind is not SensorKind.LIDAR:
+        return [first]
+    sample = [store.frame(int(store.frame_ids[k])) for k in sample_positions(len(store))]
+    try:
+        n = len(src)
+    except SourceError:
+        n = 0
+        logger.warning("%s: the number of frames is unknown, so the LiDAR odometry's lengths come from frame %d%s",
+                       src.uri, first.frame_id, " and the stored frames" if sample else " alone")
+    for k in sample_positions(n):
+        try:
+            sample.append(_with_sensor_error(src.frame(k), config))
+        except SourceError as exc:  # an unreadable frame is skipped (or fails) when the build reaches it
+            logger.info("scene reach: frame index %d not sampled (%s)", k, exc)
+    return sample or [first]
 
 
 def _recorded_odometry(store: FrameStore) -> OdometryConfig | None:
@@ -728,7 +808,8 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     result.n_keyframes = len(keyframes)
     stages["keyframes"] = time.perf_counter() - t0
     t1 = time.perf_counter()
-    candidates: list[LoopCandidate] = find_loops(keyframes, lc, progress=lambda d, t: tick("loop candidates", d, t))
+    candidates: list[LoopCandidate] = find_loops(keyframes, lc, progress=lambda d, t: tick("loop candidates", d, t),
+                                                 flagged=flagged_rows(store))
     injected_info = None
     if inject_wrong_loop is not None:
         fa, fb, T_wrong = inject_wrong_loop

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -376,9 +376,20 @@ def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64]
                     int(stamp_ns), context)
 
 
+def untrusted_between(a: Keyframe, b: Keyframe, flagged: Mapping[int, int], config: LoopClosureConfig) -> list[int]:
+    """Frame ids of the ``flagged`` frames (``{position: frame id}``, tracking lost) in the odometry stretch that a
+    candidate between keyframes ``a`` and ``b`` leans on: from ``a``'s cloud to ``b``'s (``submap_radius_frames``
+    on each side)."""
+    lo, hi = a.index - config.submap_radius_frames, b.index + config.submap_radius_frames
+    return [fid for row, fid in sorted(flagged.items()) if lo <= row <= hi]
+
+
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
-               progress: Callable[[int, int], None] | None = None) -> list[LoopCandidate]:
-    """Propose candidates from both cues and verify each one."""
+               progress: Callable[[int, int], None] | None = None,
+               flagged: Mapping[int, int] | None = None) -> list[LoopCandidate]:
+    """Propose candidates from both cues and verify each one. A candidate across a stretch whose odometry is
+    ``flagged`` (``{position: frame id}`` of frames whose tracking was lost) is refused unverified: its
+    keyframe clouds and its agreement gate would both stand on a trajectory that is not trusted."""
     positions = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
     path = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(positions, axis=0), axis=1))]) if len(keyframes) else np.zeros(0)
     prox = proximity_candidates(keyframes, config)
@@ -390,8 +401,16 @@ def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
         todo += [(i, j, CandidateKind.DESCRIPTOR, None) for i, j in descriptor_candidates(keyframes, config, set(prox))]
     out = []
     for n, (i, j, kind, guess) in enumerate(todo):
-        out.append(verify(keyframes[i], keyframes[j], kind, config, path_length_m=float(path[j] - path[i]),
-                          init_T_a_b=guess))
+        lost = untrusted_between(keyframes[i], keyframes[j], flagged or {}, config)
+        if lost:
+            cand = LoopCandidate(keyframes[i].frame_id, keyframes[j].frame_id, kind, False,
+                                 f"the odometry between them is flagged (tracking lost at frame(s) "
+                                 f"{', '.join(map(str, lost[:5]))}{' ...' if len(lost) > 5 else ''})", None, None)
+            logger.info("loop candidate %s", cand.describe())
+            out.append(cand)
+        else:
+            out.append(verify(keyframes[i], keyframes[j], kind, config, path_length_m=float(path[j] - path[i]),
+                              init_T_a_b=guess))
         if progress:
             progress(n + 1, len(todo))
     return out

@@ -16,7 +16,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -27,7 +27,16 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.frame import Frame, SensorKind
+from driftmap.frame import Frame, SensorKind, TrackingHealth, TrackingStatus
+from driftmap.preprocess.scene import (
+    LIDAR_MIN_SCENE_SCALE,
+    LIDAR_OUTDOOR_P99_RANGE_M,
+    lidar_frames,
+    lidar_odometry_scale,
+    scan_reach_m,
+    scene_reach,
+)
+from driftmap.registration import tracking
 from driftmap.registration.pairwise import register
 
 logger = logging.getLogger(__name__)
@@ -65,6 +74,13 @@ class OdometryConfig(BaseModel):
     max_points_per_voxel: int = Field(20, ge=1, description="kiss: points kept per map voxel")
     kiss_prime_motion: bool = Field(True, description="kiss: estimate the first motion by GICP of the first two scans and start KISS-ICP's constant-velocity model with it when it is at least half a voxel (KISS-ICP starts at zero velocity: a LiDAR already moving lands short)")
     num_threads: int = Field(2, ge=1, description="threads of the registration (small_gicp / KISS-ICP); 1: the same frames give the same poses to the bit")
+    tracking_retry: bool = Field(True, description="kiss: when a registration fits the map clearly worse than the frames before it, retry from other initial guesses (zero motion, half velocity, turned +-yaw) and keep the best fit (registration/tracking.py)")
+    tracking_fitness_radius_voxels: float = Field(0.5, gt=0.0, description="kiss: a registered point fits the map when a map point is within this many voxels")
+    tracking_min_fitness: float = Field(0.5, ge=0.0, le=1.0, description="kiss: a frame whose best registration fits less than this share of its points is lost (flagged, its pose bridged)")
+    tracking_retry_fitness_ratio: float = Field(0.9, ge=0.0, le=1.0, description="kiss: retry when the fitness is below this share of the median of the last 10 frames")
+    tracking_min_gain: float = Field(0.02, ge=0.0, le=1.0, description="kiss: another initial guess replaces the prediction's registration only when its fitness is higher by this")
+    tracking_yaw_hypotheses_deg: tuple[float, ...] = Field((15.0, 30.0, 45.0), description="kiss: the retry also starts from the prediction turned by +- each of these about the sensor's z axis (deg)")
+    tracking_max_lost_frames: int = Field(2, ge=0, description="kiss: after this many lost frames in a row the local map restarts at the bridged pose (flagged as reinitialised)")
 
     @classmethod
     def for_sensor(cls, kind: SensorKind) -> OdometryConfig:
@@ -77,32 +93,46 @@ class OdometryConfig(BaseModel):
 
     @classmethod
     def for_frame(cls, frame: Frame, *, log: bool = True) -> OdometryConfig:
-        """Defaults for the sensor of ``frame`` (a build's first frame), LiDAR ones scaled to the scene.
+        """:meth:`for_frames` of one frame (prefer many: one scan may face a wall)."""
+        return cls.for_frames([frame], log=log)
+
+    @classmethod
+    def for_frames(cls, frames: Sequence[Frame], *, log: bool = True) -> OdometryConfig:
+        """Defaults for the sensor of ``frames`` (a build's first frame and others spread over the log), LiDAR ones
+        scaled to the scene.
 
         KISS-ICP ties every length to the sensor's range (voxel = max range / 100); :meth:`for_sensor`'s LiDAR
         settings are those of a 100 m outdoor sensor (KITTI scans reach 56-59 m at their 99th range percentile).
-        A scan whose 99th range percentile is below 25 m (indoors) gets every KISS-ICP length scaled by
-        ``max(0.05, p99 range / 25 m)``; outdoor scans keep :meth:`for_sensor`'s settings unchanged. On the
-        synthetic log's indoor LiDAR (p99 4.6 m: 0.185 m voxels, 18.5 m range) the odometry ATE over 15 logs
-        (seeds 1-7; 20, 30 and 60 frames per loop) is 0.32-0.64 cm, against 3.4-6.6 cm with the outdoor
-        settings; half that scale (KISS-ICP's rule taking the sensor's reach as twice the p99) was finer but
-        lost the first, prediction-free registration on 2 of the 9 logs tried (ATE 11 and 83 cm; docs/build.md)."""
-        base = cls.for_sensor(frame.sensor_kind)
-        scale, p99_m = lidar_scene_scale(frame)
+        The scene's reach is the median over ``frames`` of each scan's 99th range percentile
+        (:func:`driftmap.preprocess.scene.scene_reach`); every KISS-ICP length is scaled by
+        ``min(1, max(0.05, reach / 25 m))`` (:func:`~driftmap.preprocess.scene.lidar_odometry_scale`): a scene
+        reaching 25 m or more keeps :meth:`for_sensor`'s settings. On the synthetic log's indoor LiDAR (p99 4.6 m:
+        0.185 m voxels, 18.5 m range) the odometry ATE over 15 logs (seeds 1-7; 20, 30 and 60 frames per loop) is
+        0.32-0.64 cm, against 3.4-6.6 cm with the outdoor settings; half that scale (KISS-ICP's rule taking the
+        sensor's reach as twice the p99) was finer but lost the first, prediction-free registration on 2 of the 9
+        logs tried (ATE 11 and 83 cm; docs/build.md)."""
+        if not frames:
+            raise ValueError("OdometryConfig.for_frames needs at least one frame")
+        base = cls.for_sensor(frames[0].sensor_kind)
+        if frames[0].sensor_kind is not SensorKind.LIDAR:
+            return base
+        reach = scene_reach(lidar_frames(frames))
+        if reach is None:
+            return base
+        scale = lidar_odometry_scale(reach.reach_m)
         if scale >= 1.0:
             return base
         scaled = base.model_copy(update={name: getattr(base, name) * scale for name in KISS_LENGTHS})
-        if log and (scale <= LIDAR_MIN_SCENE_SCALE or frame.n_points < 1000):
-            logger.warning("LiDAR odometry lengths are scaled by %.3f from frame %d alone, which has %d points reaching "
-                           "%.2f m (99th range percentile): if this scan is not typical of the log, set the "
-                           "[build.odometry] lengths (voxel_size_m, max_range_m, ...)", scale, frame.frame_id,
-                           frame.n_points, p99_m)
+        if log and (scale <= LIDAR_MIN_SCENE_SCALE or reach.n_frames < 3):
+            logger.warning("LiDAR odometry lengths are scaled by %.3f from %d frame(s) reaching %s: if these scans are "
+                           "not typical of the log, set the [build.odometry] lengths (voxel_size_m, max_range_m, ...)",
+                           scale, reach.n_frames, reach.describe())
         if log:
-            logger.info("LiDAR odometry scaled to the scene: frame %d reaches %.1f m (99th range percentile; outdoor "
-                        "defaults from %.0f m), so every KISS-ICP length is scaled by %.3f: voxels %.3f m, ranges "
-                        "%.3f .. %.1f m, initial threshold %.3f m, minimum motion %.4f m (set [build.odometry] to "
-                        "override)", frame.frame_id, p99_m, LIDAR_OUTDOOR_P99_RANGE_M, scale, scaled.voxel_size_m,
-                        scaled.min_range_m, scaled.max_range_m, scaled.initial_threshold_m, scaled.min_motion_m)
+            logger.info("LiDAR odometry scaled to the scene: it reaches %s (outdoor defaults from %.0f m), so every "
+                        "KISS-ICP length is scaled by %.3f: voxels %.3f m, ranges %.3f .. %.1f m, initial threshold "
+                        "%.3f m, minimum motion %.4f m (set [build.odometry] to override)", reach.describe(),
+                        LIDAR_OUTDOOR_P99_RANGE_M, scale, scaled.voxel_size_m, scaled.min_range_m,
+                        scaled.max_range_m, scaled.initial_threshold_m, scaled.min_motion_m)
         return scaled
 
     def to_kiss(self) -> KISSConfig:
@@ -118,24 +148,15 @@ class OdometryConfig(BaseModel):
         return cfg
 
 
-def scan_reach_m(frame: Frame) -> float | None:
-    """How far a scan reaches: the 99th percentile of its points' ranges (``None`` without a finite point)."""
-    if frame.n_points == 0:
-        return None
-    ranges = np.linalg.norm(np.asarray(frame.points_sensor, dtype=np.float64), axis=1)
-    ranges = ranges[np.isfinite(ranges) & (ranges > 0)]
-    return float(np.percentile(ranges, 99)) if len(ranges) else None
-
-
 def lidar_scene_scale(frame: Frame) -> tuple[float, float | None]:
-    """``(scale, reach)``: how much smaller than an outdoor scan a LiDAR scan is, ``min(1, max(0.05, p99 range /
-    25 m))``, and its reach (:func:`scan_reach_m`); ``(1.0, None)`` for other sensors and empty scans."""
+    """``(scale, reach)`` of one LiDAR scan (:func:`driftmap.preprocess.scene.lidar_odometry_scale` of its
+    :func:`~driftmap.preprocess.scene.scan_reach_m`); ``(1.0, None)`` for other sensors and empty scans."""
     if frame.sensor_kind is not SensorKind.LIDAR:
         return 1.0, None
     reach = scan_reach_m(frame)
     if reach is None:
         return 1.0, None
-    return min(1.0, max(LIDAR_MIN_SCENE_SCALE, reach / LIDAR_OUTDOOR_P99_RANGE_M)), reach
+    return lidar_odometry_scale(reach), reach
 
 
 def is_indoor_lidar(frame: Frame) -> bool:
@@ -143,10 +164,6 @@ def is_indoor_lidar(frame: Frame) -> bool:
     return lidar_scene_scale(frame)[0] < 1.0
 
 
-LIDAR_OUTDOOR_P99_RANGE_M = 25.0
-"""Scans reaching this far (99th range percentile) keep the outdoor LiDAR defaults; shorter ones scale them."""
-LIDAR_MIN_SCENE_SCALE = 0.05
-"""The smallest scale :meth:`OdometryConfig.for_frame` applies to the LiDAR defaults (5 cm voxels)."""
 KISS_LENGTHS = ("voxel_size_m", "min_range_m", "max_range_m", "initial_threshold_m", "min_motion_m")
 """The LiDAR defaults :meth:`OdometryConfig.for_frame` scales to the scene."""
 
@@ -157,6 +174,8 @@ class OdometryStep:
     T_world_sensor: NDArray[np.float64]
     n_points: int
     seconds: float
+    health: TrackingHealth | None = None
+    """How the registration went (:mod:`driftmap.registration.tracking`); None where it is not measured."""
 
 
 def make_odometry(config: OdometryConfig, T_world_first: NDArray[np.float64] | None = None) -> KissOdometry | GicpMapOdometry:
@@ -206,6 +225,7 @@ class GicpMapOdometry:
         self.n_frames = 0
         self.seconds = 0.0
         self.n_coarse = 0
+        self._last_hessian = np.zeros((6, 6))
         self._n_tracked = 0  # frames with a known motion model (a resumed build starts warm)
 
     def _clouds(self, frame: Frame) -> tuple[small_gicp.PointCloud, small_gicp.PointCloud, int]:
@@ -226,36 +246,51 @@ class GicpMapOdometry:
         T = np.array(res.T_target_source)
         if not np.all(np.isfinite(T)):
             return init, 0.0, False
+        self._last_hessian = np.asarray(res.H, dtype=np.float64)
         return _nearest_rigid(T), res.num_inliers / max(source.size(), 1), bool(res.converged)
 
     def register(self, frame: Frame) -> OdometryStep:
         t0 = time.perf_counter()
         fine, coarse, n_points = self._clouds(frame)
         c = self.config
+        radius = c.gicp_max_correspondence_m
         if self._last is None:
             T = self._T_world_first.copy()
+            health = TrackingHealth(TrackingStatus.FIRST, n_points=fine.size(), fitness_radius_m=radius, hypothesis="start")
         elif fine.size() < 10:
-            logger.warning("frame %d: %d points within %.2f..%.2f m; pose predicted", frame.frame_id, fine.size(),
-                           c.min_range_m, c.max_range_m)
+            reason = f"{fine.size()} points within {c.min_range_m:.2f}..{c.max_range_m:.2f} m: pose predicted"
+            logger.warning("frame %d: %s", frame.frame_id, reason)
             T = _nearest_rigid(self._last @ self._delta)
+            health = TrackingHealth(TrackingStatus.LOST, n_points=fine.size(), fitness_radius_m=radius,
+                                    hypothesis="constant_velocity", reason=reason)
         else:
             pred = _nearest_rigid(self._last @ self._delta)
             T, inliers, _ = self._align(self._fine, fine, pred, c.gicp_max_correspondence_m)
+            hessian, hypothesis = self._last_hessian, "constant_velocity"
             if inliers < c.gicp_min_inlier_fraction or self._n_tracked < 3:
                 T_coarse, _, _ = self._align(self._coarse, coarse, pred, c.gicp_coarse_max_correspondence_m)
                 T2, inliers2, _ = self._align(self._fine, fine, T_coarse, c.gicp_max_correspondence_m)
                 if inliers2 > inliers:
                     T, inliers = T2, inliers2
+                    hessian, hypothesis = self._last_hessian, "coarse_map"
                     self.n_coarse += 1
+            status, reason = TrackingStatus.OK, ""
             if inliers < c.gicp_min_inlier_fraction:
-                logger.warning("frame %d: only %.0f %% of the points match the map", frame.frame_id, 100 * inliers)
+                status, reason = TrackingStatus.LOST, f"only {100 * inliers:.0f} % of the points match the map"
+                logger.warning("frame %d: %s", frame.frame_id, reason)
+            elif hypothesis != "constant_velocity" and self._n_tracked >= 3:
+                status, reason = TrackingStatus.RECOVERED, "the coarse map's registration matches more points"
+            dev_m, dev_deg = tracking.deviation(pred, T)
+            health = TrackingHealth(status, fitness=inliers, degeneracy=tracking.hessian_degeneracy(hessian),
+                                    deviation_m=dev_m, deviation_deg=dev_deg, hypothesis=hypothesis,
+                                    n_points=fine.size(), fitness_radius_m=radius, reason=reason)
             self._delta = geometry.invert(self._last) @ T
         self._insert(fine, coarse, T)
         self._n_tracked += 1
         dt = time.perf_counter() - t0
         self.n_frames += 1
         self.seconds += dt
-        return OdometryStep(frame.frame_id, T, n_points, dt)
+        return OdometryStep(frame.frame_id, T, n_points, dt, health)
 
     def _insert(self, fine: small_gicp.PointCloud, coarse: small_gicp.PointCloud, T: NDArray[np.float64]) -> None:
         self._fine.insert(fine, T)
@@ -314,6 +349,8 @@ class KissOdometry:
         self._primed = not config.kiss_prime_motion
         self.primed_motion: NDArray[np.float64] | None = None
         """The first motion that started KISS-ICP's constant-velocity model (None: KISS-ICP's own zero start)."""
+        self._recent_fitness: list[float] = []
+        self._lost_in_a_row = 0
 
     def _points(self, frame: Frame) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         pts, step = _strided_points(frame, self.config.max_points)
@@ -353,7 +390,17 @@ class KissOdometry:
             logger.debug("KISS-ICP motion model starts at zero (first motion %.3f m, fitness %.2f, converged %s)",
                          moved_m, fine.fitness, fine.converged)
 
+    def _policy(self) -> tracking.RetryPolicy:
+        c = self.config
+        return tracking.RetryPolicy(
+            min_fitness=c.tracking_min_fitness, retry_fitness_ratio=c.tracking_retry_fitness_ratio,
+            min_gain=c.tracking_min_gain,
+            yaw_deg=tuple(c.tracking_yaw_hypotheses_deg), up_axis=tracking.UP_AXIS_LIDAR, retry=c.tracking_retry)
+
     def register(self, frame: Frame) -> OdometryStep:
+        """Register one scan to KISS-ICP's local map (KISS-ICP's own steps: deskew with the last motion, voxelise,
+        ICP from the constant-velocity prediction with the adaptive threshold, map update) with the health check
+        and retry of :mod:`driftmap.registration.tracking` around the ICP."""
         t0 = time.perf_counter()
         pts, stamps = self._points(frame)
         if not self._primed:
@@ -362,12 +409,69 @@ class KissOdometry:
             else:
                 self._prime(self._first_scan, pts, frame.frame_id)
                 self._primed, self._first_scan = True, None
-        self._kiss.register_frame(pts, stamps)
+        kiss, c = self._kiss, self.config
+        scan = kiss.preprocessor.preprocess(pts, stamps, kiss.last_delta)
+        source, scan_down = kiss.voxelize(scan)
+        radius = c.tracking_fitness_radius_voxels * c.voxel_size_m
+        if kiss.local_map.empty():
+            T = kiss.last_pose
+            health = TrackingHealth(TrackingStatus.FIRST, n_points=len(source), fitness_radius_m=radius,
+                                    hypothesis="start")
+            self._insert(scan_down, T, T)
+        else:
+            health, T = self._track(frame, source, scan_down, radius)
         dt = time.perf_counter() - t0
         self.n_frames += 1
         self.seconds += dt
-        T = self._T_world_odom @ self._kiss.last_pose
-        return OdometryStep(frame.frame_id, T, len(pts), dt)
+        return OdometryStep(frame.frame_id, self._T_world_odom @ T, len(pts), dt, health)
+
+    def _track(self, frame: Frame, source: NDArray[np.float64], scan_down: NDArray[np.float64],
+               radius: float) -> tuple[TrackingHealth, NDArray[np.float64]]:
+        kiss, c = self._kiss, self.config
+        sigma = kiss.adaptive_threshold.get_threshold()
+        map_points = kiss.local_map.point_cloud()
+        tree = small_gicp.KdTree(map_points, num_threads=c.num_threads)
+
+        def align(guess: NDArray[np.float64]) -> NDArray[np.float64]:
+            return kiss.registration.align_points_to_map(points=source, voxel_map=kiss.local_map, initial_guess=guess,
+                                                         max_correspondance_distance=3 * sigma, kernel=sigma)
+
+        def evaluate(T: NDArray[np.float64], with_degeneracy: bool = False) -> tracking.MapFit:
+            return tracking.fit_to_map(geometry.transform_points(T, source).astype(np.float64), map_points, tree,
+                                       radius, with_degeneracy=with_degeneracy, num_threads=c.num_threads)
+
+        attempt, status, reason, dev_m, dev_deg = tracking.register_robustly(
+            align, evaluate, kiss.last_pose, kiss.last_delta, self._recent_fitness, self._policy(), frame_id=frame.frame_id)
+        T = attempt.T_world_sensor
+        degeneracy = evaluate(T, with_degeneracy=True).degeneracy
+        if status is TrackingStatus.LOST:
+            self._lost_in_a_row += 1
+            if self._lost_in_a_row > c.tracking_max_lost_frames:
+                status = TrackingStatus.REINITIALISED
+                reason = (f"{self._lost_in_a_row} frames in a row lost: the local map restarts here at the bridged "
+                          f"pose ({reason})")
+                logger.warning("frame %d: %s", frame.frame_id, reason)
+                kiss.local_map.clear()
+                self._recent_fitness.clear()
+                self._lost_in_a_row = 0
+                self._insert(scan_down, attempt.T_init, T)
+            else:  # bridged: the pose of the best guess, the scan kept out of the map
+                kiss.last_delta = geometry.invert(kiss.last_pose) @ T
+                kiss.last_pose = T
+        else:
+            self._lost_in_a_row = 0
+            self._recent_fitness = [*self._recent_fitness[-9:], attempt.fit.fitness]
+            self._insert(scan_down, attempt.T_init, T)
+        return tracking.health(attempt, status, reason, dev_m, dev_deg, len(source), radius, degeneracy), T
+
+    def _insert(self, scan_down: NDArray[np.float64], T_init: NDArray[np.float64], T: NDArray[np.float64]) -> None:
+        """KISS-ICP's update step: the adaptive threshold learns the registration's deviation from the guess it
+        started from, the scan joins the local map, the motion model takes the last motion."""
+        kiss = self._kiss
+        kiss.adaptive_threshold.update_model_deviation(geometry.invert(T_init) @ T)
+        kiss.local_map.update(scan_down, T)
+        kiss.last_delta = geometry.invert(kiss.last_pose) @ T
+        kiss.last_pose = T
 
     def seed(self, frames_with_poses: Iterable[tuple[Frame, NDArray[np.float64]]]) -> None:
         """Rebuild the local map and motion model from frames already registered (for ``--resume``).

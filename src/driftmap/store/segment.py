@@ -59,6 +59,7 @@ from driftmap.frame import (
     PoseSource,
     Provenance,
     SensorKind,
+    TrackingHealth,
 )
 
 logger = logging.getLogger(__name__)
@@ -179,6 +180,7 @@ def frame_info(frame: Frame, stride: int, fields: list[dict[str, Any]], payload_
         else {"n_measurements": q.n_measurements, "n_valid": q.n_valid, "invalid_counts": dict(q.invalid_counts), "flags": list(q.flags)},
         "provenance": None if frame.provenance is None else {"source_uri": frame.provenance.source_uri, "index": frame.provenance.index},
         "points": {"n_points": frame.n_points, "point_stride": stride, "fields": fields, "crc32": payload_crc32},
+        "tracking": None if frame.tracking is None else frame.tracking.to_dict(),
     }
 
 
@@ -210,6 +212,7 @@ def frame_from_info(info: dict[str, Any], points: NDArray[np.float32], attribute
         provenance=None if prov is None else Provenance(prov["source_uri"], prov["index"]),
         sensor_frame=info["sensor_frame"],
         base_frame=info["base_frame"],
+        tracking=None if info.get("tracking") is None else TrackingHealth.from_dict(info["tracking"]),
     )
 
 
