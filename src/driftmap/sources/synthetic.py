@@ -613,7 +613,8 @@ class SyntheticLog(FrameSource):
             try:
                 offsets_ns = np.fromfile(time_file, dtype="<i8").astype(np.int64)
             except OSError as exc:
-                raise SourceError(f"{time_file}: cannot read the point times of frame {entry['frame_id']} ({exc})") from exc
+                raise SourceError(f"{time_file}: cannot read the point times of frame {entry['frame_id']} "
+                                  f"({exc})") from exc
             if len(offsets_ns) != len(scan):
                 raise SourceError(f"{time_file}: {len(offsets_ns)} point times for the {len(scan)} points of {file}")
             attributes = PointAttributes(time_offset_ns=offsets_ns)

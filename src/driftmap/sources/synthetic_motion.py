@@ -241,8 +241,8 @@ def base_poses_at(config: SyntheticLogConfig, stamps_ns: NDArray[np.int64],
     period = np.int64(config.frame_period_ns)
     k = rel // period
     if np.any(k < 0) or np.any(k >= config.n_frames):
-        raise ConfigError(f"stamps_ns: outside the log's {config.n_frames} scans "
-                          f"({config.start_stamp_ns} to {config.start_stamp_ns + config.n_frames * config.frame_period_ns} ns)")
+        end_ns = config.start_stamp_ns + config.n_frames * config.frame_period_ns
+        raise ConfigError(f"stamps_ns: outside the log's {config.n_frames} scans ({config.start_stamp_ns} to {end_ns} ns)")
     tau = (rel - k * period).astype(np.float64) / float(period)
     index = schedule.path_index[k] + tau * (schedule.path_index[k + 1] - schedule.path_index[k])
     yaw = schedule.yaw_rad[k] + tau * (schedule.yaw_rad[k + 1] - schedule.yaw_rad[k])
