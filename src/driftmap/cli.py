@@ -218,27 +218,60 @@ def config_cmd(
 @app.command("synth")
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to.")],
-    frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Number of frames (default: 60 in the room, 245 on the street).")] = None,
+    frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Number of frames (default: 60 in the room, 245 on the street; with --period-s, --stationary-start, --stops or turns: what the scene's speed needs).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 7,
-    lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR.")] = False,
+    lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR (implied by --lidar-pattern rosette and --point-times).")] = False,
     yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street).")] = None,
     scale_drift_percent: Annotated[Optional[float], typer.Option("--scale-drift-percent", help="Odometry scale drift (default: 1.0).")] = None,
     scene: Annotated[str, typer.Option("--scene", help="room (a furnished room, a depth camera and with --lidar a 16-beam LiDAR) | street (a city block loop, a 32-beam car LiDAR; defaults: 245 frames, 0.02 deg/m yaw drift, 1 % scale drift).")] = "room",
+    period_s: Annotated[Optional[float], typer.Option("--period-s", min=0.001, help="Time between frames/scans in seconds (default: 0.2 in the room, 0.1 on the street; 0.5-0.05 for 2-20 Hz). The speed stays the scene's unless --frames or --speed-m-per-s is given: at 2 Hz a scan moves 5 times as far as at 10 Hz.")] = None,
+    speed_m_per_s: Annotated[Optional[float], typer.Option("--speed-m-per-s", min=0.001, help="Speed along the path while moving (default: the scene's, 0.59 m/s in the room, 10 m/s on the street); the frame count follows from it (not with --frames).")] = None,
+    stationary_start: Annotated[int, typer.Option("--stationary-start", min=0, metavar="N", help="The first N scans stand at the start pose (each a new noise draw); motion starts at frame N.")] = 0,
+    stops: Annotated[int, typer.Option("--stops", min=0, metavar="K", help="K stops at evenly spaced places of the path (fractions j / (K + 1)); give --stop-frames.")] = 0,
+    stop_frames: Annotated[int, typer.Option("--stop-frames", min=0, metavar="M", help="Scans each stop lasts.")] = 0,
+    turn_deg_per_frame: Annotated[float, typer.Option("--turn-deg-per-frame", metavar="DEG", help="Yaw per scan of the in-place turns (e.g. 45 or 50; + counter-clockwise; |DEG| < 180).")] = 0.0,
+    turn_frames: Annotated[int, typer.Option("--turn-frames", min=0, metavar="F", help="Scans each in-place turn lasts at --turn-deg-per-frame (8 x 45 = one full turn); if they make no whole turn, the robot turns back as many scans.")] = 0,
+    turns: Annotated[int, typer.Option("--turns", min=0, metavar="K", help="K in-place turns at evenly spaced places of the path (fractions j / (K + 1)).")] = 0,
+    turn_at: Annotated[Optional[list[float]], typer.Option("--turn-at", metavar="FRACTION", help="An in-place turn at this fraction (0-1) of the path, instead of --turns; repeat for more.")] = None,
+    lidar_pattern: Annotated[str, typer.Option("--lidar-pattern", help="spinning (beams x azimuths) | rosette (a Livox-like non-repetitive scanner: 70 deg circular field of view along x, the pattern rotating from scan to scan).")] = "spinning",
+    points_per_scan: Annotated[Optional[int], typer.Option("--points-per-scan", min=1, help="Points per rosette scan (default: 24000).")] = None,
+    point_times: Annotated[bool, typer.Option("--point-times/--no-point-times", help="Per-point capture times: each LiDAR point is rendered from the moving sensor's pose at its time, stored in lidar/NNNNNN.time.bin (int64 ns after the scan's start stamp).")] = False,
 ) -> None:
     """Generate a synthetic drifting-robot log (deterministic for a given seed)."""
     from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 
     scene = _choice(scene, ("room", "street"), "--scene")
+    pattern = _choice(lidar_pattern, ("spinning", "rosette"), "--lidar-pattern")
+    if frames is not None and speed_m_per_s is not None:
+        raise typer.BadParameter("give the frame count or the speed, not both (the speed sets the frame count)",
+                                 param_hint="--speed-m-per-s")
     given = {"seed": seed, "n_frames": frames, "yaw_drift_deg_per_m": yaw_drift_deg_per_m,
              "scale_drift_percent": scale_drift_percent}
+    motion = {"stationary_start_frames": stationary_start, "stops": stops, "stop_frames": stop_frames,
+              "turn_in_place_deg_per_frame": turn_deg_per_frame, "turn_in_place_frames": turn_frames,
+              "turns_in_place": turns, "turn_in_place_at": tuple(turn_at or ()),
+              "lidar_pattern": pattern, "lidar_point_times": point_times}
+    if period_s is not None:
+        motion["frame_period_ns"] = int(round(period_s * 1e9))
+    if points_per_scan is not None:
+        motion["lidar_points_per_scan"] = points_per_scan
     if scene == "street":
-        cfg = SyntheticLogConfig.street(**{k: v for k, v in given.items() if v is not None})
+        cfg = SyntheticLogConfig.street(**{k: v for k, v in given.items() if v is not None}, **motion)
     else:
         defaults = SyntheticLogConfig()
-        cfg = SyntheticLogConfig(lidar=lidar, **{k: getattr(defaults, k) if v is None else v for k, v in given.items()})
+        cfg = SyntheticLogConfig(lidar=lidar or pattern == "rosette" or point_times,
+                                 **{k: getattr(defaults, k) if v is None else v for k, v in given.items()}, **motion)
+    # without --frames the log keeps the scene's speed: stationary, stop and turn scans are added, a period changes
+    # the frame count (not the speed)
+    changes_frames = period_s is not None or stationary_start or stops or turns or turn_at
+    if speed_m_per_s is not None or (frames is None and changes_frames):
+        from dataclasses import replace
+
+        cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
     with console.status(f"ray-casting the synthetic {scene}"):
         path = generate_synthetic_log(out, cfg)
     console.print(_bold("synthetic log: ", path.resolve()))
+    console.print(f"{cfg.n_frames} frames, {cfg.frame_period_ns / 1e9:g} s apart")
 
 
 # ------------------------------------------------------------------------------------------ sources / build

@@ -17,6 +17,10 @@ On-disk layout (a folder)::
     groundtruth.txt       TUM, T_world_sensor of the depth camera (ground truth)
     odometry.txt          TUM, T_world_sensor of the depth camera from the drifting odometry
     lidar/NNNNNN.bin      optional, KITTI layout float32 x y z intensity in the LiDAR frame
+    lidar/NNNNNN.time.bin with lidar_point_times: int64 ns per point after the frame's stamp (the scan's start)
+
+A LiDAR may spin (beams x azimuths) or draw a rosette (:mod:`driftmap.sources.synthetic_lidar`); the robot may
+stand, stop and turn in place on its way (:mod:`driftmap.sources.synthetic_motion`).
 """
 
 from __future__ import annotations
@@ -34,10 +38,26 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
-from driftmap.errors import SourceError
-from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, PoseSource, Provenance, SensorKind
+from driftmap.errors import ConfigError, SourceError, parse_enum
+from driftmap.frame import Frame, PinholeIntrinsics, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
+from driftmap.sources.synthetic_lidar import LidarPattern, cast_lidar, lidar_rays
+from driftmap.sources.synthetic_motion import (
+    STREET_CORNER_RADIUS_M,
+    STREET_HALF_SIZE_M,
+    STREET_PERIMETER_M,
+    MotionSchedule,
+    ScanMotion,
+    base_poses_at,
+    frame_base_poses,
+    frames_for_speed,
+    motion_schedule,
+    moving_scans,
+    non_moving_scans,
+    path_length_m,
+    street_path,
+)
 from driftmap.trajectory import Trajectory, read_tum, write_tum
 
 logger = logging.getLogger(__name__)
@@ -45,6 +65,13 @@ logger = logging.getLogger(__name__)
 FORMAT_NAME = "driftmap-synthetic"
 FORMAT_VERSION = 1
 METADATA_FILE = "synthetic.json"
+LIDAR_TIME_CONVENTION = {
+    "file": "lidar/NNNNNN.time.bin: one little-endian int64 per point of lidar/NNNNNN.bin, in its order",
+    "unit": "ns",
+    "relative_to": "the frame's stamp_ns, the scan's start: the point at offset t was measured from "
+                   "T_world_lidar(stamp_ns + t); offsets lie in [0, frame_period_ns)",
+}
+"""What a log with per-point LiDAR times records about them (``synthetic.json``'s ``lidar_time``)."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +113,74 @@ class SyntheticLogConfig:
     scene: str = "room"
     """``room`` (the furnished room, a circle of ``circle_radius_m``) or ``street`` (a city block: see
     :meth:`street`)."""
+    # --- motion (docs/synthetic-log.md, driftmap.sources.synthetic_motion); the defaults: driving all the time
+    speed_m_per_s: float | None = None
+    """Speed along the path while moving. None: the path is spread evenly over the moving scans of ``n_frames``
+    (the default logs: 0.59 m/s in the room, 10 m/s on the street). Set: ``n_frames`` is derived, so that the
+    robot drives the whole path at this speed, plus the stationary, stop and turn scans (a given ``n_frames`` is
+    replaced): at 2 Hz a scan moves 5 times as far as at 10 Hz."""
+    stationary_start_frames: int = 0
+    """The first scans (this many) are captured standing at the start pose; motion starts at the stamp of frame
+    ``stationary_start_frames`` (frames 0 to ``stationary_start_frames`` have the start pose)."""
+    stops: int = 0
+    """Stops on the way, at the fractions ``j / (stops + 1)`` of the moving path."""
+    stop_frames: int = 0
+    """Scans each stop lasts (standing)."""
+    turn_in_place_deg_per_frame: float = 0.0
+    """Yaw per scan of the in-place turns (deg, + counter-clockwise; |value| < 180), at a fixed position."""
+    turn_in_place_frames: int = 0
+    """Scans one in-place turn lasts at that rate. If they do not add up to whole turns (8 x 45 deg do), the robot
+    turns back as many scans at the opposite rate, so it heads along the path again afterwards."""
+    turns_in_place: int = 0
+    """In-place turns at the fractions ``j / (turns_in_place + 1)`` of the moving path ..."""
+    turn_in_place_at: tuple[float, ...] = ()
+    """... or at these fractions (0 = where the path starts, 1 = its end) instead."""
+    # --- LiDAR pattern and point times (driftmap.sources.synthetic_lidar)
+    lidar_pattern: LidarPattern = LidarPattern.SPINNING
+    """``spinning`` (beams x azimuth steps) or ``rosette`` (a non-repetitive Livox-like scanner)."""
+    lidar_points_per_scan: int = 24_000
+    """Rays per rosette scan (a Livox Avia measures 240k points/s: 24k per 0.1 s)."""
+    lidar_fov_deg: float = 70.0
+    """Full angle of the rosette's circular field of view, round the LiDAR's x axis."""
+    lidar_rosette_k: float = 9.618034
+    """``k`` of the rosette curve ``rho = (fov / 2) cos(k theta)``; not a whole number, so scans differ."""
+    lidar_point_times: bool = False
+    """Render each point from the pose at its capture time (the sensor moves during the scan) and store the times
+    (``lidar/NNNNNN.time.bin``, int64 ns after the scan's stamp: the scan's start)."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "lidar_pattern", parse_enum(LidarPattern, self.lidar_pattern, "lidar_pattern"))
+        object.__setattr__(self, "turn_in_place_at", tuple(float(f) for f in self.turn_in_place_at))
+        for name in ("stationary_start_frames", "stops", "stop_frames", "turn_in_place_frames", "turns_in_place"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
+        if self.frame_period_ns <= 0:
+            raise ConfigError(f"frame_period_ns: must be > 0, got {self.frame_period_ns}")
+        if self.stops and self.stop_frames < 1:
+            raise ConfigError(f"stop_frames: {self.stops} stops need stop_frames >= 1")
+        turning = bool(self.turns_in_place or self.turn_in_place_at)
+        if self.turns_in_place and self.turn_in_place_at:
+            raise ConfigError("turn_in_place_at: give the turns' places or their number (turns_in_place), not both")
+        if any(not 0.0 <= f <= 1.0 for f in self.turn_in_place_at):
+            raise ConfigError(f"turn_in_place_at: fractions of the path must be in [0, 1], got {self.turn_in_place_at}")
+        if turning and not 0.0 < abs(self.turn_in_place_deg_per_frame) < 180.0:
+            raise ConfigError("turn_in_place_deg_per_frame: in-place turns need 0 < |deg per scan| < 180, got "
+                              f"{self.turn_in_place_deg_per_frame}")
+        if turning and self.turn_in_place_frames < 1:
+            raise ConfigError("turn_in_place_frames: in-place turns need turn_in_place_frames >= 1")
+        if self.lidar_points_per_scan < 1:
+            raise ConfigError(f"lidar_points_per_scan: must be >= 1, got {self.lidar_points_per_scan}")
+        if not 0.0 < self.lidar_fov_deg < 180.0:
+            raise ConfigError(f"lidar_fov_deg: must be in (0, 180), got {self.lidar_fov_deg}")
+        if not self.lidar and (self.lidar_point_times or self.lidar_pattern != LidarPattern.SPINNING):
+            raise ConfigError("lidar: lidar_pattern='rosette' and lidar_point_times need lidar=True")
+        if self.speed_m_per_s is not None:
+            if not self.speed_m_per_s > 0.0:
+                raise ConfigError(f"speed_m_per_s: must be > 0, got {self.speed_m_per_s}")
+            object.__setattr__(self, "n_frames", frames_for_speed(self, self.speed_m_per_s))
+        elif moving_scans(self) < 1:
+            raise ConfigError(f"n_frames: {self.n_frames} frames leave no moving scan after the "
+                              f"{non_moving_scans(self)} stationary, stop and turn scans (give more, or speed_m_per_s)")
 
     @classmethod
     def street(cls, **overrides: object) -> SyntheticLogConfig:
@@ -99,6 +194,12 @@ class SyntheticLogConfig:
                     width=80, height=60, fx=65.625, fy=65.625, cx=39.5, cy=29.5)
         base.update(overrides)
         return cls(**base)  # type: ignore[arg-type]
+
+    def default_speed_m_per_s(self) -> float:
+        """The speed of the scene's default log (0.59 m/s in the room, 10 m/s on the street): what ``driftmap
+        synth`` keeps when the period or the stationary, stop and turn scans change and ``--frames`` is not given."""
+        default = SyntheticLogConfig.street() if self.scene == "street" else SyntheticLogConfig()
+        return path_length_m(default) / ((default.n_frames - 1) * default.frame_period_ns * 1e-9)
 
 
 @dataclass(frozen=True)
@@ -163,9 +264,6 @@ def scene_boxes() -> list[SceneBox]:
     return boxes
 
 
-STREET_HALF_SIZE_M = (35.0, 25.0)
-"""Half the size of the street loop's rounded rectangle (x, y), centreline of the road."""
-STREET_CORNER_RADIUS_M = 10.0
 STREET_FACADE_OFFSET_M = 7.0
 """Building facades stand this far from the road's centreline (+- 1 m per building)."""
 
@@ -252,56 +350,19 @@ def T_base_lidar(config: SyntheticLogConfig) -> NDArray[np.float64]:
     return geometry.make_transform(None, (0.0, 0.0, 1.73 if config.scene == "street" else 1.3))
 
 
-def street_path(s_m: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """``(xy, heading)`` at arc lengths ``s_m`` along the street loop: the rounded rectangle of
-    :data:`STREET_HALF_SIZE_M` and :data:`STREET_CORNER_RADIUS_M`, counter-clockwise from the middle of its
-    -y side (heading +x)."""
-    a, b = STREET_HALF_SIZE_M
-    r = STREET_CORNER_RADIUS_M
-    # (length, start xy, start heading, curvature) of the nine pieces
-    pieces = [(a - r, (0.0, -b), 0.0, 0.0), (math.pi * r / 2, (a - r, -b), 0.0, 1 / r),
-              (2 * (b - r), (a, -b + r), math.pi / 2, 0.0), (math.pi * r / 2, (a, b - r), math.pi / 2, 1 / r),
-              (2 * (a - r), (a - r, b), math.pi, 0.0), (math.pi * r / 2, (-a + r, b), math.pi, 1 / r),
-              (2 * (b - r), (-a, b - r), 1.5 * math.pi, 0.0), (math.pi * r / 2, (-a, -b + r), 1.5 * math.pi, 1 / r),
-              (a - r, (-a + r, -b), 0.0, 0.0)]
-    perimeter = sum(p[0] for p in pieces)
-    s = np.mod(np.asarray(s_m, dtype=np.float64), perimeter)
-    xy = np.zeros((len(s), 2))
-    heading = np.zeros(len(s))
-    start = 0.0
-    for length, (x0, y0), h0, kappa in pieces:
-        on = (s >= start) & (s <= start + length)
-        u = s[on] - start
-        if kappa == 0.0:
-            xy[on] = np.stack([x0 + u * math.cos(h0), y0 + u * math.sin(h0)], axis=1)
-            heading[on] = h0
-        else:  # a left turn of radius 1 / kappa
-            h = h0 + u * kappa
-            xy[on] = np.stack([x0 + (np.sin(h) - math.sin(h0)) / kappa, y0 - (np.cos(h) - math.cos(h0)) / kappa], axis=1)
-            heading[on] = h
-        start += length
-    return xy, heading
-
-
-STREET_PERIMETER_M = float(4 * (STREET_HALF_SIZE_M[0] - STREET_CORNER_RADIUS_M)
-                           + 4 * (STREET_HALF_SIZE_M[1] - STREET_CORNER_RADIUS_M) + 2 * math.pi * STREET_CORNER_RADIUS_M)
-
-
 def ground_truth_base_poses(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    """``T_world_base`` along a counter-clockwise circle (the room) or the street loop, heading along the
-    tangent."""
-    if config.scene == "street":
-        xy, heading = street_path(np.linspace(0.0, STREET_PERIMETER_M * config.loop_turns, config.n_frames))
-        poses = np.tile(np.eye(4), (config.n_frames, 1, 1))
-        poses[:, :3, :3] = Rotation.from_euler("z", heading[:, None]).as_matrix()
-        poses[:, :2, 3] = xy
-        return poses
-    angles = np.linspace(0.0, 2.0 * math.pi * config.loop_turns, config.n_frames)
-    poses = np.tile(np.eye(4), (config.n_frames, 1, 1))
-    for k, a in enumerate(angles):
-        poses[k, :3, :3] = Rotation.from_euler("z", a + math.pi / 2).as_matrix()
-        poses[k, :3, 3] = (config.circle_radius_m * math.cos(a), config.circle_radius_m * math.sin(a), 0.0)
-    return poses
+    """``T_world_base`` at the frame stamps along a counter-clockwise circle (the room) or the street loop, heading
+    along the tangent (plus any in-place turn); the stationary start, stops and turns of the config included
+    (:mod:`driftmap.sources.synthetic_motion`)."""
+    return frame_base_poses(config)
+
+
+def ground_truth_base_poses_at(config: SyntheticLogConfig, stamps_ns: NDArray[np.int64]) -> NDArray[np.float64]:
+    """Ground-truth ``T_world_base`` at any ``stamps_ns`` of the log (from its first stamp to one period after the
+    last): the continuous trajectory the per-point LiDAR times were rendered with. The LiDAR point at offset ``t``
+    of the scan stamped ``stamp_ns`` was measured from ``ground_truth_base_poses_at(config, stamp_ns + t) @
+    T_base_lidar(config)``."""
+    return base_poses_at(config, stamps_ns)
 
 
 def drifting_base_poses(config: SyntheticLogConfig, gt: NDArray[np.float64], rng: np.random.Generator) -> NDArray[np.float64]:
@@ -353,22 +414,27 @@ def render_lidar(
     T_world_lidar: NDArray[np.float64],
     config: SyntheticLogConfig,
     rng: np.random.Generator,
+    *,
+    scan_index: int = 0,
 ) -> NDArray[np.float32]:
-    """One spinning-LiDAR scan in the LiDAR frame: (N, 4) float32 x, y, z, intensity."""
-    elev = np.radians(np.linspace(*config.lidar_elevation_deg, config.lidar_beams))
-    azim = np.linspace(0.0, 2 * math.pi, config.lidar_azimuth_steps, endpoint=False)
-    ee, aa = np.meshgrid(elev, azim, indexing="ij")
-    dirs_l = np.stack([np.cos(ee) * np.cos(aa), np.cos(ee) * np.sin(aa), np.sin(ee)], axis=-1).reshape(-1, 3)
-    dirs_w = dirs_l @ T_world_lidar[:3, :3].T
-    origins = np.broadcast_to(T_world_lidar[:3, 3], dirs_w.shape)
-    ans = scene.cast_rays(o3d.core.Tensor(np.hstack([origins, dirs_w]).astype(np.float32)))
-    r = ans["t_hit"].numpy().astype(np.float64)
-    ok = np.isfinite(r) & (r < config.lidar_max_range_m)
-    normals = ans["primitive_normals"].numpy()
-    r_noisy = r + rng.normal(0.0, config.lidar_range_sigma_m, r.shape)
-    pts = dirs_l[ok] * r_noisy[ok, None]
-    intensity = np.abs(np.einsum("ij,ij->i", normals[ok], dirs_w[ok]))
-    return np.hstack([pts, intensity[:, None]]).astype(np.float32)
+    """One LiDAR scan in the LiDAR frame: (N, 4) float32 x, y, z, intensity, of ``config.lidar_pattern`` (the
+    rosette's part of the pattern depends on ``scan_index``), seen from one pose ``T_world_lidar`` (4, 4) or from
+    one pose per ray of :func:`~driftmap.sources.synthetic_lidar.lidar_rays` (N, 4, 4)."""
+    dirs_l, _ = lidar_rays(config, scan_index)
+    return cast_lidar(scene, T_world_lidar, dirs_l, config, rng)[0]
+
+
+def _render_scan(scene: o3d.t.geometry.RaycastingScene, config: SyntheticLogConfig, schedule: MotionSchedule,
+                 T_world_lidar: NDArray[np.float64], k: int, stamp_ns: int,
+                 rng: np.random.Generator) -> tuple[NDArray[np.float32], NDArray[np.int64] | None]:
+    """Scan ``k``: its points and, with ``lidar_point_times``, their times after ``stamp_ns`` (each ray cast from
+    the ground-truth pose at its capture time)."""
+    dirs_l, offsets_ns = lidar_rays(config, k)
+    if not config.lidar_point_times:
+        return cast_lidar(scene, T_world_lidar, dirs_l, config, rng)[0], None
+    poses = base_poses_at(config, np.int64(stamp_ns) + offsets_ns, schedule) @ T_base_lidar(config)
+    scan, ok = cast_lidar(scene, poses, dirs_l, config, rng)
+    return scan, offsets_ns[ok]
 
 
 def _clear_earlier_log(out: Path) -> None:
@@ -402,7 +468,8 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
     rng = np.random.default_rng(config.seed)
     scene, glass_ids = _build_scene(config)
     T_bc = T_base_camera(config)
-    gt_base = ground_truth_base_poses(config)
+    schedule = motion_schedule(config)
+    gt_base = frame_base_poses(config, schedule)
     odom_base = drifting_base_poses(config, gt_base, rng)
     stamps = config.start_stamp_ns + config.frame_period_ns * np.arange(config.n_frames, dtype=np.int64)
     frames_meta = []
@@ -414,9 +481,13 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
         Image.fromarray(depth).save(out / name, optimize=True)
         entry = {"frame_id": k, "stamp_ns": int(stamps[k]), "depth": name}
         if config.lidar:
-            scan = render_lidar(scene, gt_base[k] @ T_base_lidar(config), config, rng)
+            scan, offsets_ns = _render_scan(scene, config, schedule, gt_base[k] @ T_base_lidar(config), k,
+                                            int(stamps[k]), rng)
             entry["lidar"] = f"lidar/{k:06d}.bin"
             scan.tofile(out / entry["lidar"])
+            if offsets_ns is not None:
+                entry["lidar_time"] = f"lidar/{k:06d}.time.bin"
+                offsets_ns.astype("<i8").tofile(out / entry["lidar_time"])
         frames_meta.append(entry)
     write_tum(out / "groundtruth.txt", Trajectory(stamps, gt_base @ T_bc))
     write_tum(out / "odometry.txt", Trajectory(stamps, odom_base @ T_bc))
@@ -436,6 +507,10 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
         "scene": [asdict(b) for b in boxes_of(config)],
         "frames": frames_meta,
     }
+    if config.lidar and config.lidar_point_times:
+        meta["lidar_time"] = LIDAR_TIME_CONVENTION
+    if schedule.kinds.count(ScanMotion.MOVE) != len(schedule.kinds):  # only logs that stand or turn somewhere
+        meta["scan_motion"] = [m.value for m in schedule.kinds[: config.n_frames]]
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=1))
     logger.info("wrote synthetic log with %d frames to %s", config.n_frames, out)
     return out
@@ -532,6 +607,17 @@ class SyntheticLog(FrameSource):
         if raw.size % 4:
             raise SourceError(f"{file}: size {raw.nbytes} bytes is not a multiple of 16 (x, y, z, intensity float32)")
         scan = raw.reshape(-1, 4)
+        attributes = PointAttributes()
+        if "lidar_time" in entry:  # logs generated with lidar_point_times
+            time_file = self.path / entry["lidar_time"]
+            try:
+                offsets_ns = np.fromfile(time_file, dtype="<i8").astype(np.int64)
+            except OSError as exc:
+                raise SourceError(f"{time_file}: cannot read the point times of frame {entry['frame_id']} "
+                                  f"({exc})") from exc
+            if len(offsets_ns) != len(scan):
+                raise SourceError(f"{time_file}: {len(offsets_ns)} point times for the {len(scan)} points of {file}")
+            attributes = PointAttributes(time_offset_ns=offsets_ns)
         T_base_lidar = np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
         T_world_lidar = self._odometry.poses[index] @ self._T_camera_lidar()
         return Frame(
@@ -543,6 +629,7 @@ class SyntheticLog(FrameSource):
             pose=PoseEstimate(T_world_lidar, revision=0, source=PoseSource.ODOMETRY),
             T_base_sensor=T_base_lidar,
             sensor_frame="lidar",
+            attributes=attributes,
             provenance=Provenance(str(file.resolve()), index),
         )
 
