@@ -653,6 +653,7 @@ def diagnose(
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=_KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=_CALIB_HELP)] = None,
     verify: Annotated[bool, typer.Option("--verify", help="Re-measure every double-wall region from the stored full-resolution frames with Open3D (adds \"verification\" per region and double_wall.verified).")] = False,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [diagnose] table (or the whole file without one) sets diagnose's own lengths over the scene's defaults: [diagnose.double_wall] voxel_sizes_m, visit_gap_m, ..., [diagnose.attribution], [diagnose.sampling], [diagnose.entropy] (the JSON's \"config\" lists every field); a build config's other tables are ignored.")] = None,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
@@ -669,6 +670,8 @@ def diagnose(
         if len(store) == 0:
             raise DriftmapError(f"{store_path}: the store has no frames")
         cfg = DiagnoseConfig.for_store(store)
+        if config is not None:
+            cfg = DiagnoseConfig.load(config, cfg)
         if points_per_frame is not None:
             cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
         if gt is None and (kitti_frame != "auto" or calib is not None or gt_format is not None):
@@ -708,7 +711,7 @@ def diagnose(
     table.add_column("value", justify="right")
     rows = [
         ("smearing score", f"{1000 * dw.smearing_score_m:.2f} mm ("
-                           + ", ".join(f"{k:g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"
+                           + ", ".join(f"{k:.3g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"
          if dw.voxels_revisited else
          f"{1000 * dw.smearing_score_m:.2f} mm: no surface was seen on two visits "
          f"({dw.config.visit_gap_m:g} m of travel apart), so drift cannot show"),
@@ -716,7 +719,9 @@ def diagnose(
         ("surface voxels doubled", f"{dw.voxels_flagged} / {dw.voxels_evaluated} ({100 * dw.fraction_flagged:.2f} %)"),
         ("median separation", "-" if dw.median_separation_m is None else f"{100 * dw.median_separation_m:.1f} cm"),
         ("double-wall regions", str(len(dw.regions))),
-        ("change points (frame: jump)", ", ".join(f"{c.frame_id}: {100 * c.jump_m:.1f} cm" for c in result.attribution.change_points) or "-"),
+        ("change points (frame: jump)", ", ".join(
+            f"{c.frame_id}: {100 * c.jump_m:.1f} cm" + (f" / {np.linalg.norm(c.step_deg):.1f} deg" if c.step_deg and np.any(c.step_deg) else "")
+            for c in result.attribution.change_points) or "-"),
         ("revisited", f"{100 * result.attribution.revisit_fraction:.0f} %"),
         ("drift rate", "-" if result.attribution.drift.percent_per_m is None else
          f"{result.attribution.drift.percent_per_m:.2f} %/m, {result.attribution.drift.deg_per_m:.3f} deg/m"
@@ -736,9 +741,21 @@ def diagnose(
                                                    f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed, "
                                                    f"{ver['regions_local']} regions local"))
         rows.append(("flagged, confirmed pose errors", f"{100 * ver['fraction_pose']:.2f} % of evaluated voxels"))
+    cov = result.coverage
+    if cov is not None:
+        why = ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f} %" for k, v in cov.not_evaluated_fractions().items() if v >= 0.005)
+        rows.insert(3, ("surface voxels inconsistent", f"{100 * cov.fraction_inconsistent:.2f} % (doubled or smeared)"))
+        rows.insert(0, ("coverage", f"{100 * cov.fraction_evaluated:.0f} % of the samples in evaluated voxels"
+                                    + (f" (not: {why})" if why else "")))
+        labels = {"smearing score": "smearing_score", "surface voxels doubled": "fraction_flagged",
+                  "surface voxels inconsistent": "fraction_inconsistent", "drift rate": "drift_rate"}
+        rows = [(k, v if k not in labels or cov.measures[labels[k]]["valid"] else f"cannot judge ({v})") for k, v in rows]
     for k, v in rows:
         table.add_row(k, v)
     console.print(table)
+    if cov is not None and not cov.valid:
+        for reason in cov.reasons:
+            console.print(Text(f"cannot judge: {reason}", style="yellow"))
     for k, region in enumerate(dw.regions[:5]):
         console.print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm at "
                       f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "

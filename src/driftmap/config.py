@@ -150,6 +150,8 @@ class DriftmapConfig(BaseSettings):
 
 
 BUILD_TABLE = "build"
+DIAGNOSE_TABLE = "diagnose"
+"""``driftmap diagnose --config``'s table (:meth:`driftmap.diagnostics.report.DiagnoseConfig.load`); build ignores it."""
 """The table of a config file that holds ``driftmap build``'s settings."""
 
 GENERAL_TABLES = tuple(DriftmapConfig.model_fields)
@@ -181,7 +183,7 @@ def split_config_file(path: str | Path) -> tuple[dict[str, Any], dict[str, Any],
     is refused, naming the file); a file with none of them is a bare build config (the whole file, prefix ``()``;
     else ``("build",)``)."""
     data = read_config_file(path)
-    tables = {BUILD_TABLE, *GENERAL_TABLES, *_REMOVED_TABLES}
+    tables = {BUILD_TABLE, DIAGNOSE_TABLE, *GENERAL_TABLES, *_REMOVED_TABLES}
     if not tables & set(data):
         return {}, data, ()
     for name, why in _REMOVED_TABLES.items():
@@ -190,7 +192,7 @@ def split_config_file(path: str | Path) -> tuple[dict[str, Any], dict[str, Any],
     unknown = sorted(set(data) - tables)
     if unknown:
         raise ConfigError(f"{path}: unknown top-level settings {unknown} next to the [{BUILD_TABLE}] / "
-                          f"[{'] / ['.join(GENERAL_TABLES)}] tables (build settings go into the [{BUILD_TABLE}] table)")
+                          f"[{DIAGNOSE_TABLE}] / [{'] / ['.join(GENERAL_TABLES)}] tables (build settings go into the [{BUILD_TABLE}] table)")
     for name in (BUILD_TABLE, *GENERAL_TABLES):
         if name in data and not isinstance(data[name], dict):
             raise ConfigError(f"{path}: '{name}' must be a table of settings, not {type(data[name]).__name__}")

@@ -111,11 +111,14 @@ class ChangePoint:
     f_statistic: float = float("nan")
     step_m: list[float] | None = None
     """World-frame step of the frames from this one on relative to the frames before."""
+    step_deg: list[float] | None = None
+    """World-frame rotation vector of the step (deg) when the split scan's rigid fit explains it better than a
+    translation (then ``step_m`` is at this frame's sensor origin), else zeros."""
 
     def to_json(self) -> dict:
         return {"frame_id": int(self.frame_id), "jump_m": float(self.jump_m), "jump_deg": float(self.jump_deg),
                 "stamp_ns": int(self.stamp_ns), "z_score": float(self.z_score), "f_statistic": float(self.f_statistic),
-                "step_m": self.step_m}
+                "step_m": self.step_m, "step_deg": self.step_deg}
 
 
 @dataclass(frozen=True)
@@ -315,35 +318,81 @@ def _all_steps(cloud: PlacedCloud, cfg: AttributionConfig) -> _Steps:
 
 @dataclass(frozen=True)
 class SplitScan:
-    """The change-point scan: per frame row ``j``, the translation step between the ``split_window`` frames
-    before ``j`` and the ``split_window`` frames from ``j`` on (row 0 has none)."""
+    """The change-point scan: per frame row ``j``, the step between the ``split_window`` frames before ``j`` and
+    the ``split_window`` frames from ``j`` on (row 0 has none), fitted twice: as a translation, and as a rigid
+    step (translation at frame ``j``'s sensor origin and a rotation about it, the error an odometry makes when it
+    misjudges one relative pose). ``f_statistic`` is the larger of the two fits' F."""
 
     step_m: NDArray[np.float64]
-    """(M, 3) world-frame step of the frames from ``j`` on relative to the frames before (observable part)."""
+    """(M, 3) world-frame step of the frames from ``j`` on relative to the frames before (observable part; of the
+    rigid fit where its F is the larger, at the sensor origin of frame ``j``)."""
     f_statistic: NDArray[np.float64]
     """(M,) explained over residual variance per degree of freedom; 0 where fewer than ``min_split_cells`` cells."""
     n_cells: NDArray[np.int64]
     """Lateral cells seen on both sides of the split."""
     n_observable: NDArray[np.int64]
-    """Directions (of 3) the cells constrain."""
+    """Directions (of 3, or 6 where the rigid fit is kept) the cells constrain."""
+    rotation_deg: NDArray[np.float64] | None = None
+    """(M, 3) world-frame rotation vector of the rigid fit (deg) where it is kept, else 0."""
+    f_translation: NDArray[np.float64] | None = None
+    f_rigid: NDArray[np.float64] | None = None
+    displacement_m: NDArray[np.float64] | None = None
+    """(M,) how far the kept step moves the split's surfaces (RMS over its cells; ``|step_m|`` for a translation)."""
 
     @property
     def step_norm_m(self) -> NDArray[np.float64]:
-        return np.linalg.norm(self.step_m, axis=1)
+        """How far the step moves the surfaces (``displacement_m``; ``|step_m|`` for a translation)."""
+        return np.linalg.norm(self.step_m, axis=1) if self.displacement_m is None else self.displacement_m
+
+    @property
+    def rotation_norm_deg(self) -> NDArray[np.float64]:
+        return np.zeros(len(self.step_m)) if self.rotation_deg is None else np.linalg.norm(self.rotation_deg, axis=1)
+
+
+def _robust_fit_per_split(J: NDArray[np.float64], d: NDArray[np.float64], w0: NDArray[np.float64],
+                          j: NDArray[np.int64], M: int, cfg: AttributionConfig) -> tuple[NDArray, NDArray, NDArray]:
+    """Per split ``j``: Huber-reweighted least squares of ``d = J x`` on the directions the rows constrain.
+    Returns ``x`` (M, k), the F statistic (M,) and the rank (M,)."""
+    k = J.shape[1]
+    x = np.zeros((M, k))
+    N = np.bincount(j, minlength=M)
+    for _ in range(3):
+        r = d - np.einsum("pi,pi->p", J, x[j])
+        w = w0 * np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
+        H = np.zeros((M, k, k))
+        b = np.zeros((M, k))
+        for a in range(k):
+            b[:, a] = np.bincount(j, weights=w * d * J[:, a], minlength=M)
+            for c in range(a, k):
+                H[:, a, c] = H[:, c, a] = np.bincount(j, weights=w * J[:, a] * J[:, c], minlength=M)
+        lam, V = np.linalg.eigh(H)
+        good = lam > cfg.min_relative_information * np.maximum(lam[:, -1:], 1e-30)
+        inv = np.where(good, 1.0 / np.where(good, lam, 1.0), 0.0)
+        x = np.einsum("mij,mj,mkj,mk->mi", V, inv, V, b)
+    rank = good.sum(axis=1)
+    G = np.einsum("mi,mi->m", b, x)
+    Q = np.bincount(j, weights=w * (d - np.einsum("pi,pi->p", J, x[j])) ** 2, minlength=M)
+    enough = (N >= cfg.min_split_cells) & (rank > 0)
+    F = np.where(enough, (G / np.maximum(rank, 1)) / np.maximum(Q / np.maximum(N - rank, 1), 1e-300), 0.0)
+    x[~enough] = 0.0
+    return x, F, np.where(enough, rank, 0)
 
 
 def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig | None = None) -> SplitScan:
-    """Fit a translation step at every split of the frame sequence from the surface cells both sides saw.
+    """Fit a step at every split of the frame sequence from the surface cells both sides saw.
 
     For split ``j`` and every lateral cell seen by frames ``[j - W, j)`` (A) and ``[j, j + W)`` (B), the
     difference of the two sides' mean offsets along the cell's normal ``d = mean_B - mean_A`` (relief every
-    frame sees cancels) is a point-to-plane observation of the step ``t``: ``d = n . t``, weighted
-    ``nA nB / (nA + nB) / sigma^2``. A few Huber-reweighted least-squares rounds give ``t`` on the directions
-    the cells constrain; ``F = (b . t / rank) / (Q / (N - rank))`` compares what the step explains with what it
-    leaves (Q) over N cells. A pose jump at frame k gives the largest F at ``j = k``: every window around it
-    sees both sides, and one frame later the windows already mix. Both sides use surfaces of several
-    frames, so a direction one frame alone cannot observe is still seen. Vectorised over all splits: every
-    (cell, frame) entry takes part in the ``2 W`` splits whose windows hold it."""
+    frame sees cancels) is a point-to-plane observation of the step: ``d = n . t`` for a translation, ``d = n . t
+    + ((p - o_j) x n) . w`` for a rigid step about frame ``j``'s sensor origin ``o_j`` (``p`` the cell's centre),
+    weighted ``nA nB / (nA + nB) / sigma^2``. A few Huber-reweighted least-squares rounds give the step on the
+    directions the cells constrain; ``F = (b . x / rank) / (Q / (N - rank))`` compares what the step explains
+    with what it leaves (Q) over N cells. A pose jump at frame k gives the largest F at ``j = k``: every window
+    around it sees both sides, and one frame later the windows already mix. A rotation error moves far surfaces
+    more than near ones, which no single translation explains: a LiDAR's 3 deg yaw step is a 50 cm shift at
+    10 m and 5 cm at 1 m. Both sides use surfaces of several frames, so a direction one frame alone cannot
+    observe is still seen. Vectorised over all splits: every (cell, frame) entry takes part in the ``2 W``
+    splits whose windows hold it."""
     cfg = config or AttributionConfig()
     M, W = cloud.samples.n_frames, cfg.split_window
     empty = SplitScan(np.zeros((M, 3)), np.zeros(M), np.zeros(M, np.int64), np.zeros(M, np.int64))
@@ -374,32 +423,29 @@ def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig 
     both = (nA > 0) & (nB > 0)
     nA, nB, sA, sB, vv, pkeys = nA[both], nB[both], sA[both], sB[both], vv[both], pkeys[both]
     j = pkeys % M
-    n = sg.normals[sg.cell_group[pkeys // M]]
+    cell = pkeys // M
+    n = sg.normals[sg.cell_group[cell]]
     d = sB / nB - sA / nA
     # noise of d: the two sides' sensor noise plus pose jitter between frames (which more points do not average out)
     w0 = 1.0 / (vv / (nA + nB) * (1.0 / nA + 1.0 / nB) + cfg.split_jitter_m**2)
-    N = np.bincount(j, minlength=M)
-    x = np.zeros((M, 3))
-    for _ in range(3):
-        r = d - np.einsum("pi,pi->p", n, x[j])
-        w = w0 * np.minimum(1.0, cfg.huber_m / np.maximum(np.abs(r), 1e-12))
-        H = np.zeros((M, 3, 3))
-        b = np.zeros((M, 3))
-        for a in range(3):
-            b[:, a] = np.bincount(j, weights=w * d * n[:, a], minlength=M)
-            for c in range(a, 3):
-                H[:, a, c] = H[:, c, a] = np.bincount(j, weights=w * n[:, a] * n[:, c], minlength=M)
-        lam, V = np.linalg.eigh(H)
-        good = lam > cfg.min_relative_information * np.maximum(lam[:, -1:], 1e-30)
-        inv = np.where(good, 1.0 / np.where(good, lam, 1.0), 0.0)
-        x = np.einsum("mij,mj,mkj,mk->mi", V, inv, V, b)
-    rank = good.sum(axis=1)
-    G = np.einsum("mi,mi->m", b, x)
-    Q = np.bincount(j, weights=w * (d - np.einsum("pi,pi->p", n, x[j])) ** 2, minlength=M)
-    enough = (N >= cfg.min_split_cells) & (rank > 0)
-    F = np.where(enough, (G / np.maximum(rank, 1)) / np.maximum(Q / np.maximum(N - rank, 1), 1e-300), 0.0)
-    x[~enough] = 0.0
-    return SplitScan(x, F, N.astype(np.int64), np.where(enough, rank, 0).astype(np.int64))
+    x3, F3, rank3 = _robust_fit_per_split(n, d, w0, j, M, cfg)
+    # the rigid step: cell centres relative to the split frame's sensor origin (rotation scaled to metres at lever_m)
+    pts = cloud.points_world[sg.point_index]
+    c_n = np.maximum(np.bincount(sg.cell, minlength=sg.n_cells), 1)
+    centre = np.stack([np.bincount(sg.cell, weights=pts[:, k], minlength=sg.n_cells) for k in range(3)], axis=1) / c_n[:, None]
+    arm = centre[cell] - cloud.origins_world[j]
+    L = cfg.lever_m
+    x6, F6, rank6 = _robust_fit_per_split(np.concatenate([n, np.cross(arm, n) / L], axis=1), d, w0, j, M, cfg)
+    rigid = F6 > F3
+    step = np.where(rigid[:, None], x6[:, :3], x3)
+    rotation = np.where(rigid[:, None], np.degrees(x6[:, 3:] / L), 0.0)
+    # how far the step moves the surfaces: RMS over the split's cells of |t + w x arm| (|t| for a translation)
+    moved = step[j] + np.cross(np.radians(rotation[j]), arm)
+    N = np.maximum(np.bincount(j, minlength=M), 1)
+    displacement = np.where(rigid, np.sqrt(np.bincount(j, weights=np.einsum("pi,pi->p", moved, moved), minlength=M) / N),
+                            np.linalg.norm(x3, axis=1))
+    return SplitScan(step, np.maximum(F3, F6), np.bincount(j, minlength=M).astype(np.int64),
+                     np.where(rigid, rank6, rank3).astype(np.int64), rotation, F3, F6, displacement)
 
 
 def change_points(cloud: PlacedCloud, scan: SplitScan, jumps: FrameAlignment | None = None,
@@ -420,8 +466,10 @@ def change_points(cloud: PlacedCloud, scan: SplitScan, jumps: FrameAlignment | N
     med = np.median(logF)
     mad = 1.4826 * np.median(np.abs(logF - med)) + 1e-9
     rot = jumps.rotation_norm_deg if jumps is not None else np.zeros(len(F))
+    step_deg = scan.rotation_deg if scan.rotation_deg is not None else np.zeros((len(F), 3))
     return [ChangePoint(int(cloud.frame_ids[k]), int(cloud.stamps_ns[k]), float(t[k]), float(rot[k]),
-                        float((np.log(F[k]) - med) / mad), float(F[k]), [float(v) for v in scan.step_m[k]])
+                        float((np.log(F[k]) - med) / mad), float(F[k]), [float(v) for v in scan.step_m[k]],
+                        [float(v) for v in step_deg[k]])
             for k in hits]
 
 

@@ -61,6 +61,8 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
+UNIT_NORMAL_TOLERANCE = 0.05
+"""A stored normal is used only when its length is within this of 1 (zero or NaN normal fields are not normals)."""
 _DENSE_SPAN_PER_KEY = 16
 _DENSE_SPAN_MIN = 1 << 22
 
@@ -158,6 +160,16 @@ class DiagnosticCloud:
     sensor_kinds: tuple[SensorKind, ...]
     n_points_source: NDArray[np.int64]
     """How many points each frame had before sampling."""
+    rejected_points_sensor: NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    """Drawn samples without a usable normal (thinned like the kept ones), frame row ``k``'s at
+    ``rejected_offsets[k]:rejected_offsets[k + 1]``, with their :class:`RejectReason`: where the map holds points
+    the measures cannot use (the coverage report)."""
+    rejected_offsets: NDArray[np.int64] | None = None
+    rejected_reason: NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, np.uint8))
+    sample_counts: NDArray[np.int64] | None = None
+    """(M, 3) per frame: samples drawn for normals, of them without a defined normal, of them not planar."""
+    stored_normals_refused: NDArray[np.bool_] | None = None
+    """(M,) frames whose stored normals were not unit vectors (estimated from the points instead)."""
 
     @property
     def n_frames(self) -> int:
@@ -208,7 +220,19 @@ class DiagnosticCloud:
             raise GeometryError("diagnostics: no frames to sample")
         rows.sort(key=lambda r: (r[1], r[0]))
         counts = np.array([len(r[3]) for r in rows], dtype=np.int64)
+        refused = np.array([r[10] for r in rows], dtype=bool)
+        if refused.any():
+            ids = [r[0] for r in rows if r[10]]
+            logger.warning("%d of %d frames carry stored normals that are mostly not unit vectors (zero, NaN or not "
+                           "normalised; frames %s): their normals are estimated from their points instead", len(ids),
+                           len(rows), ", ".join(map(str, ids[:5])) + (" ..." if len(ids) > 5 else ""))
+        rejected_counts = np.array([len(r[7]) for r in rows], dtype=np.int64)
         return cls(
+            rejected_points_sensor=np.concatenate([r[7] for r in rows]).astype(np.float32).reshape(-1, 3),
+            rejected_offsets=np.concatenate([[0], np.cumsum(rejected_counts)]).astype(np.int64),
+            rejected_reason=np.concatenate([r[8] for r in rows]).astype(np.uint8),
+            sample_counts=np.array([r[9] for r in rows], dtype=np.int64).reshape(-1, 3),
+            stored_normals_refused=refused,
             frame_ids=np.array([r[0] for r in rows], dtype=np.int64),
             stamps_ns=np.array([r[1] for r in rows], dtype=np.int64),
             offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
@@ -231,8 +255,19 @@ class DiagnosticCloud:
             offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             points_sensor=self.points_sensor[idx], normals_sensor=self.normals_sensor[idx],
             sigma_normal_m=self.sigma_normal_m[idx], sensor_kinds=tuple(self.sensor_kinds[r] for r in rows),
-            n_points_source=self.n_points_source[rows],
+            n_points_source=self.n_points_source[rows], **self._rejected_subset(rows),
         )
+
+    def _rejected_subset(self, rows: NDArray[np.int64]) -> dict:
+        if self.rejected_offsets is None:
+            return {}
+        counts = np.diff(self.rejected_offsets)[rows]
+        idx = np.concatenate([np.arange(self.rejected_offsets[r], self.rejected_offsets[r + 1]) for r in rows])
+        return {"rejected_points_sensor": self.rejected_points_sensor[idx],
+                "rejected_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                "rejected_reason": self.rejected_reason[idx],
+                "sample_counts": None if self.sample_counts is None else self.sample_counts[rows],
+                "stored_normals_refused": None if self.stored_normals_refused is None else self.stored_normals_refused[rows]}
 
     def place(self, poses: NDArray[np.float64]) -> PlacedCloud:
         """World positions and normals with ``poses[k] = T_world_sensor`` of frame row ``k``."""
@@ -252,8 +287,32 @@ class DiagnosticCloud:
         return PlacedCloud(self, T, pts, nrm, self.frame_index(), origins, path)
 
 
+class RejectReason(enum.IntEnum):
+    """Why a drawn sample has no usable own-frame normal (kept, without a normal, for the coverage report)."""
+
+    NO_NORMAL = 1
+    """too few neighbours in its frame, or an ill-defined normal (confidence below ``min_normal_confidence``)"""
+    NOT_PLANAR = 2
+    """its neighbourhood is not a surface (surface variation above ``max_curvature``: edges, clutter, foliage)"""
+
+
+def _usable_stored_normals(frame_id: int, normals: NDArray[np.float32] | None) -> NDArray[np.float32] | None:
+    """A frame's stored normals, or None when most of them are not unit vectors (zero, NaN, not normalised: a
+    normal field that is not normals, such as the all-zero ones of some PCD writers)."""
+    if normals is None or len(normals) == 0:
+        return normals
+    length = np.linalg.norm(np.asarray(normals, dtype=np.float64), axis=1)
+    unit = np.isfinite(length) & (np.abs(length - 1.0) <= UNIT_NORMAL_TOLERANCE)
+    if np.count_nonzero(unit) >= 0.5 * len(unit):
+        return normals
+    logger.debug("frame %d: %d of %d stored normals are not unit vectors", frame_id, len(unit) - int(unit.sum()), len(unit))
+    return None
+
+
 def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],
                   normals: NDArray[np.float32] | None, cfg: SamplingConfig, keep_n: int, noise: NoiseModel | None) -> tuple:
+    """``(frame_id, stamp_ns, kind, points, normals, sigma, n_source, rejected points, rejected reasons,
+    (drawn, no_normal, not_planar), stored normals refused)`` of one frame."""
     rng = np.random.default_rng([cfg.seed, frame_id & 0x7FFFFFFF])
     pts = np.asarray(points, dtype=np.float32)
     finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
@@ -261,21 +320,40 @@ def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArra
     n_norm = min(len(finite), int(keep_n * cfg.normals_oversample))
     pick = finite if n_norm == len(finite) else rng.choice(finite, n_norm, replace=False)
     sub = pts[pick]
-    if normals is not None:
-        nrm = np.asarray(normals, dtype=np.float32)[pick]
-        ok = np.all(np.isfinite(nrm), axis=1)
+    usable = _usable_stored_normals(frame_id, normals)
+    refused = normals is not None and usable is None
+    reason = np.zeros(len(sub), np.uint8)
+    if usable is not None:
+        nrm = np.asarray(usable, dtype=np.float32)[pick]
+        length = np.linalg.norm(nrm.astype(np.float64), axis=1)
+        ok = np.isfinite(length) & (np.abs(length - 1.0) <= UNIT_NORMAL_TOLERANCE)
+        reason[~ok] = RejectReason.NO_NORMAL
     elif len(sub) >= cfg.normals_k:
         res = estimate_normals(sub, k=cfg.normals_k)
         nrm = res.normals
-        ok = (res.confidence >= cfg.min_normal_confidence) & (res.curvature <= cfg.max_curvature) & np.all(np.isfinite(nrm), axis=1)
+        defined = (res.confidence >= cfg.min_normal_confidence) & np.all(np.isfinite(nrm), axis=1)
+        planar = res.curvature <= cfg.max_curvature
+        ok = defined & planar
+        reason[~defined] = RejectReason.NO_NORMAL
+        reason[defined & ~planar] = RejectReason.NOT_PLANAR
     else:
         nrm, ok = np.zeros_like(sub), np.zeros(len(sub), bool)
+        reason[:] = RejectReason.NO_NORMAL
     keep = np.flatnonzero(ok)
+    n_ok = len(keep)
     if len(keep) > keep_n:
         keep = np.sort(rng.choice(keep, keep_n, replace=False))
+    # the rejected samples, thinned as the usable ones were: both populations at the same density
+    bad = np.flatnonzero(~ok)
+    rate = len(keep) / n_ok if n_ok else min(1.0, keep_n / max(len(bad), 1))
+    n_bad = int(round(len(bad) * rate))
+    if n_bad < len(bad):
+        bad = np.sort(rng.choice(bad, n_bad, replace=False))
     model = noise or NoiseModel.for_sensor(kind)
     sigma = model.sigma_normal_m(sub[keep], nrm[keep]) if len(keep) else np.zeros(0)
-    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src)
+    counts = (len(sub), int(np.count_nonzero(reason == RejectReason.NO_NORMAL)),
+              int(np.count_nonzero(reason == RejectReason.NOT_PLANAR)))
+    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src, sub[bad], reason[bad], counts, refused)
 
 
 @dataclass(frozen=True)
@@ -303,6 +381,17 @@ class PlacedCloud:
     @property
     def sigma_normal_m(self) -> NDArray[np.float32]:
         return self.samples.sigma_normal_m
+
+    @cached_property
+    def rejected_world(self) -> NDArray[np.float64]:
+        """World positions of the samples without a usable normal (:attr:`DiagnosticCloud.rejected_points_sensor`)."""
+        s = self.samples
+        if s.rejected_offsets is None or len(s.rejected_points_sensor) == 0:
+            return np.zeros((0, 3))
+        rows = np.repeat(np.arange(s.n_frames), np.diff(s.rejected_offsets))
+        p = s.rejected_points_sensor.astype(np.float64)
+        R, t = self.poses[rows, :3, :3], self.poses[rows, :3, 3]
+        return np.einsum("nij,nj->ni", R, p) + t
 
     @cached_property
     def world_columns(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -434,6 +523,10 @@ class ScaleResult:
     gf_points: NDArray[np.int64]
     gf_mean_m: NDArray[np.float64]
     gf_layer: NDArray[np.int8]
+    grouped_point_index: NDArray[np.int32] | None = None
+    """Index into the placed cloud of every point in a surface group, and its group (for the coverage report)."""
+    grouped_point_group: NDArray[np.int32] | None = None
+    min_separation_m: float = 0.0
 
     @property
     def voxels_evaluated(self) -> int:
@@ -879,6 +972,8 @@ def _evaluate_scale(cloud: PlacedCloud, size_m: float, cfg: DoubleWallConfig) ->
         delta_bic=delta_bic, purity=purity, overlap=overlap, layer_fraction=layer_fraction, smear_m=smear, path_span_m=path_span,
         visit_smear_m=visit_smear, n_visits=n_visits,
         gf_group=e_group, gf_frame=e_frame, gf_points=e_n.astype(np.int64), gf_mean_m=e_mean, gf_layer=e_layer,
+        grouped_point_index=sg.point_index.astype(np.int32), grouped_point_group=g.astype(np.int32),
+        min_separation_m=cfg.min_separation_m,
     )
 
 

@@ -25,6 +25,7 @@ from numpy.typing import NDArray  # noqa: E402
 from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
 
 from driftmap.diagnostics.attribution import Attribution, AttributionConfig, attribute, ground_truth_errors  # noqa: E402
+from driftmap.diagnostics.coverage import Coverage, CoverageConfig, assess  # noqa: E402
 from driftmap.diagnostics.double_wall import (  # noqa: E402
     DiagnosticCloud,
     DoubleWallConfig,
@@ -39,6 +40,13 @@ from driftmap.diagnostics.double_wall import (  # noqa: E402
 from driftmap.diagnostics.verify import RegionCheck, verification_summary  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
+from driftmap.preprocess.scene import (  # noqa: E402
+    OUTDOOR_DIAGNOSTICS_SCALE,
+    diagnostics_scale,
+    lidar_frames,
+    sample_positions,
+    scene_reach,
+)
 from driftmap.trajectory import Trajectory, read_kitti, read_tum  # noqa: E402
 
 if TYPE_CHECKING:
@@ -65,6 +73,7 @@ class DiagnoseConfig(BaseModel):
     double_wall: DoubleWallConfig = Field(default_factory=DoubleWallConfig)
     attribution: AttributionConfig = Field(default_factory=AttributionConfig)
     entropy: EntropyConfig = Field(default_factory=EntropyConfig)
+    coverage: CoverageConfig = Field(default_factory=CoverageConfig)
 
     @classmethod
     def for_sensor(cls, kind: SensorKind) -> DiagnoseConfig:
@@ -79,25 +88,79 @@ class DiagnoseConfig(BaseModel):
         return cls()
 
     @classmethod
-    def for_store(cls, store: FrameStore) -> DiagnoseConfig:
-        """:meth:`for_sensor` of the store's first frame; for a LiDAR that scans a room (99th range percentile
-        below 25 m, :func:`driftmap.registration.odometry.is_indoor_lidar`) the LiDAR's sampling with the indoor
-        lengths (voxel sizes, visit gap, attribution cells and thresholds, entropy radius): the outdoor ones
-        (2 m voxels, 10 m of travel between visits) see nothing revisited in a room."""
-        from driftmap.registration.odometry import LIDAR_OUTDOOR_P99_RANGE_M, lidar_scene_scale
+    def for_scene(cls, kind: SensorKind, reach_m: float | None) -> DiagnoseConfig:
+        """Defaults for a sensor whose scene reaches ``reach_m`` (:mod:`driftmap.preprocess.scene`).
 
+        Depth cameras: the indoor lengths. LiDAR: its sampling, with every diagnostic length (voxel sizes, the
+        smallest separation, attribution cells and thresholds, entropy radius) the indoor one times
+        ``f = min(5, max(1, reach / 5 m))`` and the travel lengths (visit gap, revisit path) times ``f ** 1.43``
+        (1 at f = 1, 10 at f = 5): a room reaching 5 m or less is diagnosed as a depth camera's, a scene reaching
+        25 m or more with the outdoor lengths (2 m voxels, 10 m of travel between visits), and everything in
+        between continuously."""
+        if kind is not SensorKind.LIDAR:
+            return cls()
+        lidar = cls.for_sensor(kind)
+        f = diagnostics_scale(reach_m) if reach_m is not None else OUTDOOR_DIAGNOSTICS_SCALE
+        if f >= OUTDOOR_DIAGNOSTICS_SCALE:
+            return lidar
+        g = f ** (math.log(10.0) / math.log(OUTDOOR_DIAGNOSTICS_SCALE))
+        dw, at, en = DoubleWallConfig(), AttributionConfig(), EntropyConfig()
+        return lidar.model_copy(update={
+            "double_wall": dw.model_copy(update={"voxel_sizes_m": tuple(f * v for v in dw.voxel_sizes_m),
+                                                 "min_separation_m": f * dw.min_separation_m,
+                                                 "visit_gap_m": g * dw.visit_gap_m}),
+            "attribution": at.model_copy(update={"voxel_size_m": f * at.voxel_size_m, "huber_m": f * at.huber_m,
+                                                 "max_residual_m": f * at.max_residual_m,
+                                                 "min_jump_m": f * at.min_jump_m,
+                                                 "revisit_min_path_m": g * at.revisit_min_path_m}),
+            "entropy": en.model_copy(update={"radius_m": f * en.radius_m}),
+        })
+
+    @classmethod
+    def for_store(cls, store: FrameStore) -> DiagnoseConfig:
+        """:meth:`for_scene` of the store's sensor and of the reach of 15 of its frames spread over the log (the
+        median of their 99th range percentiles)."""
         if len(store) == 0:
             raise StoreError(f"{store.path}: the store has no frames")
-        first = store.frame(int(store.frame_ids[0]))
-        lidar = cls.for_sensor(first.sensor_kind)
-        scale, reach_m = lidar_scene_scale(first)
-        if scale >= 1.0:
-            return lidar
-        logger.info("%s: LiDAR scans of a room (frame %d reaches %.1f m, under %.0f m at the 99th range percentile): "
-                    "diagnosing with the indoor voxel sizes and visit gap", store.path, first.frame_id, reach_m,
-                    LIDAR_OUTDOOR_P99_RANGE_M)
-        return lidar.model_copy(update={"double_wall": DoubleWallConfig(), "attribution": AttributionConfig(),
-                                        "entropy": EntropyConfig()})
+        ids = store.frame_ids
+        first = store.frame(int(ids[0]))
+        if first.sensor_kind is not SensorKind.LIDAR:
+            return cls.for_sensor(first.sensor_kind)
+        reach = scene_reach(lidar_frames(store.frame(int(ids[k])) for k in sample_positions(len(ids))))
+        cfg = cls.for_scene(first.sensor_kind, None if reach is None else reach.reach_m)
+        if reach is not None:
+            logger.info("%s: the LiDAR scene reaches %s: diagnosing with %.2g x the indoor lengths (voxels %s m, "
+                        "visit gap %.3g m)", store.path, reach.describe(), diagnostics_scale(reach.reach_m),
+                        ", ".join(f"{v:.3g}" for v in cfg.double_wall.voxel_sizes_m), cfg.double_wall.visit_gap_m)
+        return cfg
+
+    @classmethod
+    def load(cls, path: str | Path, defaults: DiagnoseConfig) -> DiagnoseConfig:
+        """A diagnose config file (JSON or TOML): its ``[diagnose]`` table (or the whole file without one), each
+        field set there over ``defaults`` (the scene's, :meth:`for_store`); nested tables (``[diagnose.double_wall]``
+        ...) are merged field by field. Problems are :class:`ConfigError`, one line each, naming the file and key."""
+        from pydantic import ValidationError
+
+        from driftmap.config import BUILD_TABLE, DIAGNOSE_TABLE, GENERAL_TABLES, read_config_file, validation_problems
+
+        data = read_config_file(path)
+        prefix: tuple[str, ...] = ()
+        if DIAGNOSE_TABLE in data:
+            data, prefix = data[DIAGNOSE_TABLE], (DIAGNOSE_TABLE,)
+        elif {BUILD_TABLE, *GENERAL_TABLES} & set(data):  # a build config without a [diagnose] table: defaults
+            return defaults
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: [diagnose] must be a table of settings")
+        merged = defaults.model_dump(mode="json")
+        for key, value in data.items():
+            if isinstance(value, dict) and isinstance(merged.get(key), dict):
+                merged[key] = {**merged[key], **value}
+            else:
+                merged[key] = value
+        try:
+            return cls.model_validate(merged)
+        except ValidationError as exc:
+            raise ConfigError(validation_problems(exc, str(path), prefix=prefix)) from exc
 
 
 @dataclass(frozen=True)
@@ -114,6 +177,8 @@ class Diagnosis:
     seconds: dict[str, float] = field(default_factory=dict)
     verification: list[RegionCheck] | None = None
     """Per region (same order), the independent check of :func:`driftmap.diagnostics.verify.verify_regions`."""
+    coverage: Coverage | None = None
+    """How much of the map was judged, why the rest not, and which headline figures are a verdict."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -142,6 +207,10 @@ class Diagnosis:
                         "radius_m": self.entropy.radius_m, "min_neighbors": self.entropy.min_neighbors,
                         "max_neighbors": self.entropy.max_neighbors, "n_points_used": self.entropy.n_points_used,
                         "n_points_queried": self.entropy.n_points_queried},
+            "valid": None if self.coverage is None else self.coverage.valid,
+            "reasons": [] if self.coverage is None else self.coverage.reasons,
+            "fraction_inconsistent": None if self.coverage is None else self.coverage.fraction_inconsistent,
+            "coverage": None if self.coverage is None else self.coverage.to_json(),
             "n_frames": int(len(at.frame_ids)),
             "n_points_sampled": int(self.placed.samples.n_points),
             "config": self.config.model_dump(mode="json"),
@@ -190,6 +259,9 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     entropy = map_entropy(placed.points_world, radius_m=e.radius_m, min_neighbors=e.min_neighbors,
                           max_neighbors=e.max_neighbors, max_query_points=e.max_query_points)
     seconds["mme_mpv"] = time.perf_counter() - t
+    t = time.perf_counter()
+    coverage = assess(placed, walls, attribution.drift.n_frames, cfg.coverage)
+    seconds["coverage"] = time.perf_counter() - t
     trajectory = None
     if ground_truth is not None:
         rows = np.arange(cloud.n_frames) if ground_truth_rows is None else np.asarray(ground_truth_rows, dtype=np.int64)
@@ -200,7 +272,7 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
             raise ConfigError(f"ground truth matched only {len(rows)} frames; ATE needs at least {MIN_GT_FRAMES}")
         trajectory = ground_truth_errors(placed.poses[rows], gt)
         trajectory["n_frames_matched"] = int(len(rows))
-    return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds)
+    return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds, coverage=coverage)
 
 
 def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,

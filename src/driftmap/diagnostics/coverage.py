@@ -1,0 +1,224 @@
+"""How much of the map the diagnosis could judge, why the rest not, and whether its figures are a verdict.
+
+A consistency measure sees only what it evaluates. A map whose frames carry unusable normals, whose surfaces are
+too smeared to be surfaces, or which was never seen twice gives *small* numbers, not good ones: on the real Livox
+log the detector once evaluated 0 of 0 voxels and the report read "no part of the map was seen again". This module
+accounts for every occupied voxel of every scale (the diagnostic samples, with and without a usable normal):
+
+* ``evaluated``: it holds an evaluated surface group; of these ``flagged`` (a double wall), ``smeared`` (its
+  frames disagree along the normal by more than ``smeared_separations`` times the smallest separation the detector
+  reports, without forming two clean layers: a surface that drift thickened) or clean;
+* not evaluated, for the first reason that holds: ``too_few_frames`` (a surface group, seen by fewer than
+  ``min_frames`` frames: not revisited), ``not_a_surface`` (enough points with normals that agree on no plane:
+  clutter, foliage, edges -- or normals that a rotation error turned apart), ``too_sparse`` (fewer points with
+  normals than a group needs), ``no_normals`` (only samples without a usable normal).
+
+``fraction_inconsistent`` = (flagged + smeared) / evaluated voxels counts what a broken map has *instead* of clean
+surfaces, so a map too broken to show double walls still ranks worse than a good one. :func:`assess` turns the
+counts into a verdict per headline figure (``fraction_flagged``, ``smearing_score``, ``drift_rate``): valid, or
+the reasons it cannot judge.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from driftmap.diagnostics.double_wall import DoubleWallResult, PlacedCloud, ScaleResult
+
+logger = logging.getLogger(__name__)
+
+NOT_EVALUATED = ("too_few_frames", "not_a_surface", "too_sparse", "no_normals")
+"""Why an occupied voxel was not evaluated, in the order the reasons are tried."""
+
+
+class CoverageConfig(BaseModel):
+    """When the diagnosis has seen enough of the map to judge it."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    min_fraction_evaluated: float = Field(0.2, ge=0.0, le=1.0, description="the double-wall verdict needs at least this share of the samples (with and without normals) in evaluated voxels (all scales)")
+    min_groups_evaluated: int = Field(50, ge=1, description="... and at least this many surface groups evaluated")
+    min_groups_revisited: int = Field(10, ge=1, description="the smearing score needs at least this many surface groups seen on two visits or more")
+    min_drift_frames: int = Field(5, ge=1, description="the drift rate needs at least this many frames compared with earlier ones after the revisit path")
+    smeared_separations: float = Field(1.0, gt=0.0, description="an evaluated, unflagged group whose frames disagree by more than this many times double_wall.min_separation_m is smeared")
+
+
+_OFFSET = 1 << 20
+
+
+def _voxel_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
+    """One int64 per point: its voxel's integer coordinates (within +-2^20 voxels of the origin) packed."""
+    k = np.floor(np.asarray(points, dtype=np.float64) / size_m).astype(np.int64) + _OFFSET
+    k = np.clip(k, 0, 2 * _OFFSET - 1)
+    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
+
+
+@dataclass(frozen=True)
+class ScaleCoverage:
+    """Occupied voxels of one voxel size by state (see the module docstring)."""
+
+    voxel_size_m: float
+    occupied: int
+    evaluated: int
+    flagged: int
+    smeared: int
+    not_evaluated: dict[str, int]
+    groups_evaluated: int
+    groups_revisited: int
+    groups_smeared: int
+    points: int
+    """Samples (with and without a usable normal) in the occupied voxels, and in the evaluated ones."""
+    points_evaluated: int
+    points_not_evaluated: dict[str, int]
+
+    def to_json(self) -> dict:
+        return {"voxel_size_m": self.voxel_size_m, "voxels_occupied": self.occupied, "voxels_evaluated": self.evaluated,
+                "voxels_flagged": self.flagged, "voxels_smeared": self.smeared, "not_evaluated": dict(self.not_evaluated),
+                "groups_evaluated": self.groups_evaluated, "groups_revisited": self.groups_revisited,
+                "groups_smeared": self.groups_smeared, "points": self.points, "points_evaluated": self.points_evaluated,
+                "points_not_evaluated": dict(self.points_not_evaluated)}
+
+
+def smeared_groups(scale: ScaleResult, separations: float) -> NDArray[np.bool_]:
+    """Evaluated, unflagged groups whose frames disagree along the normal (beyond noise) by more than
+    ``separations`` times the smallest separation the detector reports."""
+    return scale.evaluated & ~scale.flagged & (scale.smear_m > separations * scale.min_separation_m)
+
+
+def scale_coverage(placed: PlacedCloud, scale: ScaleResult, min_points: int, separations: float) -> ScaleCoverage:
+    """Every occupied voxel of ``scale`` in one state (usable samples and samples without a normal)."""
+    size = scale.voxel_size_m
+    k_ok = _voxel_keys(placed.points_world, size)
+    k_bad = _voxel_keys(placed.rejected_world, size)
+    occupied = np.unique(np.concatenate([k_ok, k_bad]))
+    V = len(occupied)
+    v_ok = np.searchsorted(occupied, k_ok)
+    n_ok = np.bincount(v_ok, minlength=V)
+    smeared_g = smeared_groups(scale, separations)
+    state = np.zeros(V, np.int8)  # 0: no_normals .. raised below
+    state[n_ok > 0] = 1  # too_sparse
+    state[n_ok >= min_points] = 2  # not_a_surface (until a group is found)
+    if scale.grouped_point_index is not None and len(scale.grouped_point_index):
+        gi, g = scale.grouped_point_index.astype(np.int64), scale.grouped_point_group.astype(np.int64)
+        v = v_ok[gi]
+        for level, member in ((3, np.ones(len(g), bool)), (4, scale.evaluated[g]), (5, smeared_g[g]), (6, scale.flagged[g])):
+            hit = np.zeros(V, bool)
+            hit[v[member]] = True
+            state[hit] = np.maximum(state[hit], level)
+    counts = np.bincount(state, minlength=7)
+    n_pts = n_ok + np.bincount(np.searchsorted(occupied, k_bad), minlength=V)
+    points = np.bincount(state, weights=n_pts, minlength=7)
+    not_evaluated = {"too_few_frames": int(counts[3]), "not_a_surface": int(counts[2]), "too_sparse": int(counts[1]),
+                     "no_normals": int(counts[0])}
+    points_not = {"too_few_frames": int(points[3]), "not_a_surface": int(points[2]), "too_sparse": int(points[1]),
+                  "no_normals": int(points[0])}
+    return ScaleCoverage(size, V, int(counts[4:].sum()), int(counts[6]), int(counts[5]), not_evaluated,
+                         scale.voxels_evaluated, scale.groups_revisited, int(np.count_nonzero(smeared_g)),
+                         int(n_pts.sum()), int(points[4:].sum()), points_not)
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """The coverage of a diagnosis and its verdict (:func:`assess`)."""
+
+    scales: list[ScaleCoverage]
+    samples: dict[str, int]
+    frames_with_refused_normals: int
+    measures: dict[str, dict]
+    """Per headline figure (``fraction_flagged``, ``fraction_inconsistent``, ``smearing_score``, ``drift_rate``):
+    ``{"valid": bool, "reasons": [...]}``."""
+
+    @property
+    def occupied(self) -> int:
+        return sum(s.occupied for s in self.scales)
+
+    @property
+    def evaluated(self) -> int:
+        return sum(s.evaluated for s in self.scales)
+
+    @property
+    def fraction_evaluated(self) -> float:
+        """Share of the samples (with and without a usable normal; all scales) in evaluated voxels: how much of
+        the map the measures judged. Far, sparse voxels hold few samples and weigh little."""
+        total = sum(s.points for s in self.scales)
+        return sum(s.points_evaluated for s in self.scales) / total if total else 0.0
+
+    @property
+    def fraction_voxels_evaluated(self) -> float:
+        return self.evaluated / self.occupied if self.occupied else 0.0
+
+    @property
+    def fraction_inconsistent(self) -> float:
+        """(flagged + smeared) / evaluated voxels, all scales."""
+        return sum(s.flagged + s.smeared for s in self.scales) / self.evaluated if self.evaluated else 0.0
+
+    @property
+    def valid(self) -> bool:
+        return all(m["valid"] for m in self.measures.values())
+
+    @property
+    def reasons(self) -> list[str]:
+        return list(dict.fromkeys(r for m in self.measures.values() for r in m["reasons"]))
+
+    def not_evaluated_fractions(self) -> dict[str, float]:
+        """Per reason, the share of the samples in voxels not evaluated for it."""
+        total = max(sum(s.points for s in self.scales), 1)
+        return {k: sum(s.points_not_evaluated[k] for s in self.scales) / total for k in NOT_EVALUATED}
+
+    def to_json(self) -> dict:
+        return {
+            "valid": self.valid, "reasons": self.reasons, "measures": self.measures,
+            "voxels_occupied": self.occupied, "voxels_evaluated": self.evaluated,
+            "fraction_evaluated": self.fraction_evaluated, "fraction_voxels_evaluated": self.fraction_voxels_evaluated,
+            "fraction_inconsistent": self.fraction_inconsistent,
+            "not_evaluated": self.not_evaluated_fractions(), "samples": dict(self.samples),
+            "frames_with_refused_normals": self.frames_with_refused_normals,
+            "per_scale": [s.to_json() for s in self.scales],
+        }
+
+
+def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None) -> Coverage:
+    """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
+    ``drift_frames`` is the number of frames the drift rate was fitted on."""
+    cfg = config or CoverageConfig()
+    scales = [scale_coverage(placed, s, walls.config.min_points, cfg.smeared_separations) for s in walls.scales]
+    counts = placed.samples.sample_counts
+    drawn = int(counts[:, 0].sum()) if counts is not None else placed.samples.n_points
+    no_normal = int(counts[:, 1].sum()) if counts is not None else 0
+    not_planar = int(counts[:, 2].sum()) if counts is not None else 0
+    samples = {"drawn": drawn, "no_normal": no_normal, "not_planar": not_planar,
+               "with_normal": drawn - no_normal - not_planar, "kept": int(placed.samples.n_points)}
+    refused = placed.samples.stored_normals_refused
+    n_refused = int(refused.sum()) if refused is not None else 0
+    groups = sum(s.groups_evaluated for s in scales)
+    revisited = sum(s.groups_revisited for s in scales)
+    result = Coverage(scales, samples, n_refused, {})
+    frac = result.fraction_evaluated
+    surfaces: list[str] = []
+    if frac < cfg.min_fraction_evaluated:
+        why = result.not_evaluated_fractions()
+        main = ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f} %" for k, v in sorted(why.items(), key=lambda kv: -kv[1]) if v)
+        surfaces.append(f"only {100 * frac:.1f} % of the map's samples lie in voxels that could be evaluated (below "
+                        f"{100 * cfg.min_fraction_evaluated:g} %; the rest: {main or 'none'})")
+    if groups < cfg.min_groups_evaluated:
+        surfaces.append(f"only {groups} surface groups evaluated (at least {cfg.min_groups_evaluated} needed)")
+    if samples["drawn"] and samples["kept"] == 0:
+        surfaces.append("no sample has a usable normal")
+    smear = list(surfaces)
+    if revisited < cfg.min_groups_revisited:
+        smear.append(f"{revisited} surface groups were seen on two visits ({walls.config.visit_gap_m:g} m of travel "
+                     f"apart; at least {cfg.min_groups_revisited} needed): drift cannot show in the smearing score")
+    drift = [] if drift_frames >= cfg.min_drift_frames else [
+        f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
+        f"{cfg.min_drift_frames} needed): too little of the map was seen again"]
+    measures = {name: {"valid": not reasons, "reasons": reasons} for name, reasons in (
+        ("fraction_flagged", surfaces), ("fraction_inconsistent", surfaces), ("smearing_score", smear),
+        ("drift_rate", drift))}
+    result = Coverage(scales, samples, n_refused, measures)
+    if not result.valid:
+        logger.warning("diagnosis cannot judge everything: %s", "; ".join(result.reasons))
+    return result
