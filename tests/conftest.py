@@ -40,6 +40,11 @@ def kitti_dir(datasets_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def balm_dir(datasets_dir: Path) -> Path:
+    return _require(datasets_dir / "balm-lidar-0-79")
+
+
+@pytest.fixture(scope="session")
 def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> FrameStore:
     """7-Scenes redkitchen, 200 frames (every 5th of 1000, 160x120 pixels) with the data set's poses as
     revision 0; built once for the diagnostics and verification tests (read only)."""
