@@ -77,12 +77,22 @@ _TOPIC_HELP = "ROS logs: the PointCloud2 or depth Image topic to read (default: 
 _POSE_TF_HELP = "ROS logs: frame poses from TF, 'PARENT,CHILD' (e.g. map,base_link) looked up at each frame's stamp."
 _POSE_ODOM_HELP = "ROS logs: frame poses from this nav_msgs/Odometry topic (interpolated at each frame's stamp)."
 _LENIENT_HELP = "Skip unreadable frames (each logged with its reason) instead of stopping at the first."
+_PERIOD_HELP = ("Folders of PLY / PCD clouds without stamps of their own: the scan period in seconds, frame n is "
+                "stamped n * S (e.g. 0.5 for a 2 Hz scanner; without it such a folder is assumed 10 Hz, with a warning). "
+                "Refused for formats with stamps of their own and for folders that carry stamps (file names, "
+                "times.txt, a 4x4 pose file with stamps).")
 
 
 def _source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Optional[str],
-                    pose_from_odometry: Optional[str], lenient: bool) -> dict:
+                    pose_from_odometry: Optional[str], lenient: bool, period_s: Optional[float] = None) -> dict:
     """The source options of ``build`` / ``convert`` that were given (checked against the format later)."""
     from driftmap.errors import ConfigError
+
+    period_ns = None
+    if period_s is not None:
+        if not (np.isfinite(period_s) and period_s > 0 and round(period_s * 1e9) > 0):
+            raise ConfigError(f"--period-s: the scan period must be a positive number of seconds, got {period_s:g}")
+        period_ns = round(period_s * 1e9)
 
     tf = None
     if pose_from_tf is not None:
@@ -91,7 +101,7 @@ def _source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: O
             raise ConfigError(f"--pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {pose_from_tf!r}")
         tf = (parts[0], parts[1])
     options = {"sensor": sensor, "topic": topic, "pose_from_tf": tf, "pose_from_odometry": pose_from_odometry,
-               "lenient": lenient or None}
+               "lenient": lenient or None, "period_ns": period_ns}
     return {k: v for k, v in options.items() if v is not None}
 
 
@@ -256,6 +266,7 @@ def convert(
     pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP)] = None,
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP)] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
+    period_s: Annotated[Optional[float], typer.Option("--period-s", help=_PERIOD_HELP)] = None,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.pipeline.build import check_source_options
@@ -264,7 +275,7 @@ def convert(
     format = _source_format(source, format)
     _check_output(out, "OUT.mcap")
     _refuse_existing(out, "OUT.mcap", overwrite)
-    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
     check_source_options(source, format, options)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames, **options)
@@ -339,6 +350,7 @@ def build(
     pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP + " With --poses-from-source they become revision 0.")] = None,
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP + " With --poses-from-source they become revision 0.")] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
+    period_s: Annotated[Optional[float], typer.Option("--period-s", help=_PERIOD_HELP)] = None,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
@@ -355,7 +367,7 @@ def build(
     from driftmap.pipeline.build import build as run_build
 
     format = _source_format(source, format)
-    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
     problems = []  # every problem of the config file and the environment at once
     try:
         cfg = _load_build_config(config)

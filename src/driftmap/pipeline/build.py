@@ -151,7 +151,17 @@ def _detect_format(path: Path, format: str | None) -> str | None:
 
 #: source options the command line offers (``build`` / ``convert``) and the flag that sets each
 SOURCE_OPTION_FLAGS = {"sensor": "--sensor", "topic": "--topic", "pose_from_tf": "--pose-from-tf",
-                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient"}
+                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient", "period_ns": "--period-s"}
+#: why a format may not take a source option, added to the refusal
+_SOURCE_OPTION_REFUSALS = {"period_ns": "--period-s sets the stamps of a folder of PLY / PCD clouds (cloud_folder) that "
+                                        "has none; format {fmt} stamps its frames itself (docs/sources-datasets.md)"}
+
+
+def show_source_option(name: str, value: Any) -> str:
+    """A source option as the command line gives it (``--period-s 0.5`` for ``period_ns=500000000``)."""
+    if name == "period_ns":
+        return f"--period-s {int(value) / 1e9:g}"
+    return f"{SOURCE_OPTION_FLAGS.get(name, name)} {value}"
 
 
 def source_params(path: Path, format: str | None) -> tuple[str | None, frozenset[str]]:
@@ -169,9 +179,10 @@ def check_source_options(path: Path, format: str | None, options: dict[str, Any]
     refused = [k for k in options if k not in params]
     if refused:
         takes = [SOURCE_OPTION_FLAGS[k] for k in SOURCE_OPTION_FLAGS if k in params]
+        reasons = "".join(f"; {_SOURCE_OPTION_REFUSALS[k].format(fmt=fmt)}" for k in refused if k in _SOURCE_OPTION_REFUSALS)
         raise ConfigError(f"{', '.join(SOURCE_OPTION_FLAGS.get(k, k) for k in refused)}: does not apply to {path} "
                           f"(format {fmt}" + (f", which takes {', '.join(takes)})" if takes else ", which takes none of "
-                          f"{', '.join(SOURCE_OPTION_FLAGS.values())})"))
+                          f"{', '.join(SOURCE_OPTION_FLAGS.values())})") + reasons)
 
 
 def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool,
@@ -303,7 +314,7 @@ def _check_resume_settings(store: FrameStore, src: FrameSource, recorded: dict[s
                 f"coordinate frames. Resume with the same pose option or build into another --out")
     if recorded is not None and recorded.get("source_options", {}) != record.get("source_options", {}):
         def show_options(options: dict[str, Any]) -> str:
-            return ", ".join(f"{SOURCE_OPTION_FLAGS.get(k, k)} {v}" for k, v in options.items()) or "none"
+            return ", ".join(show_source_option(k, v) for k, v in options.items()) or "none"
         raise ConfigError(
             f"{out}: cannot --resume with different source options: the stored frames were read with "
             f"{show_options(recorded.get('source_options', {}))} (recorded in {file}), this build with "
