@@ -1,12 +1,15 @@
 """The readers through the command line: ``--period-s`` for folders of clouds (build, convert; refused where a
-format or a folder has stamps of its own)."""
+format or a folder has stamps of its own), and pose files of one 4x4 matrix per frame (BALM's alidarPose.csv) or
+Redwood ``.log`` blocks for ``build --poses``, ``diagnose --gt`` and ``correct --poses``."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -15,10 +18,13 @@ from typer.testing import CliRunner
 
 from cloud_files import write_pcd
 from driftmap.cli import app
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, StoreError
 from driftmap.sources.base import open_source
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import read_kitti
+from driftmap.trajectory import read_kitti, read_redwood_log
+
+BALM_FRAMES = "0:10"
+
 
 def _cli(*args: object) -> subprocess.CompletedProcess:
     env = {**os.environ, "COLUMNS": "200"}
@@ -46,6 +52,19 @@ def _write_4x4(path: Path, poses: np.ndarray, stamps_s: list[str] | None, separa
         blocks.append("".join(separator.join(r) + "\n" for r in rows))
     path.write_text("\n".join(blocks))
     return path
+
+
+def _balm_csv(balm_dir: Path) -> tuple[np.ndarray, list[str]]:
+    """The csv's matrices and stamp texts, read here without the library's reader."""
+    lines = [line.rstrip(",").split(",") for line in (balm_dir / "alidarPose.csv").read_text().splitlines() if line.strip()]
+    values = np.array([[float(v) for v in row] for row in lines]).reshape(-1, 4, 4)
+    stamps = [row[3] for row in lines[3::4]]
+    values[:, 3, 3] = 1.0
+    return values, stamps
+
+
+def _stamp_ns(text: str) -> int:
+    return int(Decimal(text) * 10**9)
 
 
 # ---- --period-s ----------------------------------------------------------------------------------------------------
@@ -115,3 +134,126 @@ def test_convert_period_s_stamps_the_exported_frames(cloud_folder: Path, tmp_pat
     assert [f.stamp_ns for f in slow] == [k * 500_000_000 for k in range(4)]
     assert [f.stamp_ns for f in nominal] == [k * 100_000_000 for k in range(4)]  # assumed 10 Hz
     assert [f.points_sensor.tobytes() for f in slow] == [f.points_sensor.tobytes() for f in nominal]
+
+
+# ---- 4x4 pose files: BALM's alidarPose.csv -------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def balm_store(balm_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """BALM scans 0-9 placed with alidarPose.csv (``build --poses``), no loop closure."""
+    out = tmp_path_factory.mktemp("balm") / "store"
+    _ok(["build", balm_dir, "--out", out, "--frames", BALM_FRAMES, "--poses", balm_dir / "alidarPose.csv",
+         "--no-loop-closure"])
+    return out
+
+
+def test_build_poses_4x4_csv_places_the_frames_with_its_matrices(balm_store: Path, balm_dir: Path) -> None:
+    matrices, stamps = _balm_csv(balm_dir)
+    with FrameStore.open(balm_store) as store:
+        assert store.frame_ids.tolist() == list(range(10))
+        assert store.ledger.stamps_ns.tolist() == [_stamp_ns(s) for s in stamps[:10]]  # the csv's stamps, to the ns
+        np.testing.assert_allclose(store.poses(0), matrices[:10], atol=1e-5)  # 6 decimals, projected onto SO(3)
+        assert store.ledger.revision(0).source.value == "external_file"
+
+
+def test_build_poses_4x4_without_stamps_matches_by_index(balm_dir: Path, tmp_path: Path) -> None:
+    matrices, _ = _balm_csv(balm_dir)
+    shifted = matrices.copy()
+    shifted[:, :3, 3] += (1.0, 2.0, 0.0)
+    plain = _write_4x4(tmp_path / "plain.txt", shifted[:12], None)
+    out = tmp_path / "store"
+    _ok(["build", balm_dir, "--out", out, "--frames", "4:8", "--poses", plain, "--no-loop-closure"])
+    with FrameStore.open(out) as store:
+        assert store.frame_ids.tolist() == [4, 5, 6, 7]
+        np.testing.assert_allclose(store.poses(0), shifted[4:8], atol=1e-5)  # block n = frame n
+
+
+def test_diagnose_gt_4x4_gives_zero_ate_for_its_own_poses(balm_store: Path, balm_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / "d.json"
+    _ok(["diagnose", balm_store, "--json", out, "--gt", balm_dir / "alidarPose.csv", "--gt-format", "4x4",
+         "--points-per-frame", "2000"])
+    trajectory = json.loads(out.read_text())["trajectory"]
+    assert trajectory["ate_rmse_m"] < 1e-5 and trajectory["rpe_trans_rmse_m"] < 1e-5
+    # a ground truth moved by 5 cm on every other frame shows up (so the ATE above could fail)
+    matrices, stamps = _balm_csv(balm_dir)
+    moved = matrices.copy()
+    moved[1::2, 0, 3] += 0.05
+    _ok(["diagnose", balm_store, "--json", out, "--gt", _write_4x4(tmp_path / "m.csv", moved, stamps, ","),
+         "--gt-format", "4x4", "--points-per-frame", "2000"])
+    assert json.loads(out.read_text())["trajectory"]["ate_rmse_m"] > 0.02
+
+
+def test_correct_4x4_matches_by_stamp_and_by_index(balm_store: Path, balm_dir: Path, tmp_path: Path) -> None:
+    store_path = Path(shutil.copytree(balm_store, tmp_path / "store"))
+    matrices, stamps = _balm_csv(balm_dir)
+    moved = matrices.copy()
+    moved[:, :3, 3] += (0.1, 0.0, 0.0)
+    # stamps shifted by 1 ms and rows reversed in time would be refused: keep the order, shift the stamps
+    shifted_stamps = [str(Decimal(s) + Decimal("0.001")) for s in stamps]
+    stamped = _write_4x4(tmp_path / "moved.csv", moved, shifted_stamps, ",")
+    output = _ok(["correct", store_path, "--poses", stamped, "--format", "4x4"])
+    assert "10 frames set from moved.csv" in output and "70 rows" in output
+    with FrameStore.open(store_path) as store:
+        np.testing.assert_allclose(store.poses(), moved[:10], atol=1e-5)
+    # by stamp the tolerance counts: 1 ms off is outside --max-dt-ms 0.5
+    exc = _refused(["correct", store_path, "--poses", stamped, "--format", "4x4", "--max-dt-ms", "0.5"])
+    assert isinstance(exc, StoreError) and "no row matched" in str(exc)
+    # --match index takes block i as frame i, whatever its stamp
+    back = matrices.copy()
+    back[:, :3, 3] -= (0.0, 0.2, 0.0)
+    _ok(["correct", store_path, "--poses", _write_4x4(tmp_path / "back.csv", back, [str(k) + ".5" for k in range(80)], ","),
+         "--format", "4x4", "--match", "index"])
+    with FrameStore.open(store_path) as store:
+        np.testing.assert_allclose(store.poses(), back[:10], atol=1e-5)
+    # a file without stamps matches by index; asking for stamps is refused
+    plain = _write_4x4(tmp_path / "plain.txt", matrices, None)
+    _ok(["correct", store_path, "--poses", plain, "--format", "4x4"])
+    with FrameStore.open(store_path) as store:
+        np.testing.assert_allclose(store.poses(), matrices[:10], atol=1e-5)
+    exc = _refused(["correct", store_path, "--poses", plain, "--format", "4x4", "--match", "stamp"])
+    assert isinstance(exc, ConfigError) and "has no stamps" in str(exc) and "match by index" in str(exc)
+
+
+# ---- Redwood .log -----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def icl_store(icl_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """ICL-NUIM's 5 frames placed with its trajectory.log (``build --poses``)."""
+    icl = icl_dir
+    out = tmp_path_factory.mktemp("icl") / "store"
+    _ok(["build", icl, "--out", out, "--poses", icl / "trajectory.log", "--no-loop-closure"])
+    return icl, out
+
+
+def test_redwood_log_for_build_diagnose_and_correct(icl_store: tuple[Path, Path], tmp_path: Path) -> None:
+    icl, built = icl_store
+    trajectory = read_redwood_log(icl / "trajectory.log")
+    with FrameStore.open(built) as store:
+        assert store.frame_ids.tolist() == [0, 1, 2, 3, 4]
+        np.testing.assert_allclose(store.poses(0), trajectory.poses, atol=1e-9)
+    out = tmp_path / "d.json"
+    _ok(["diagnose", built, "--json", out, "--gt", icl / "trajectory.log", "--gt-format", "redwood",
+         "--points-per-frame", "2000"])
+    assert json.loads(out.read_text())["trajectory"]["ate_rmse_m"] < 1e-9
+    store_path = Path(shutil.copytree(built, tmp_path / "store"))
+    _ok(["correct", store_path, "--poses", icl / "odometry.log", "--format", "redwood"])
+    with FrameStore.open(store_path) as store:
+        np.testing.assert_allclose(store.poses(), read_redwood_log(icl / "odometry.log").poses, atol=1e-9)
+    # the ids the file names are the frames it places: a .log of frames 2-4 only moves frames 2-4
+    text = (icl / "trajectory.log").read_text().splitlines()
+    blocks = [text[5 * k: 5 * k + 5] for k in range(5)]
+    moved = []
+    for block in blocks[2:]:
+        rows = [line.split() for line in block[1:]]
+        rows[0][3] = repr(float(rows[0][3]) + 0.25)
+        moved += [block[0]] + [" ".join(r) for r in rows]
+    (tmp_path / "part.log").write_text("\n".join(moved) + "\n")
+    _ok(["correct", store_path, "--poses", tmp_path / "part.log", "--format", "redwood", "--no-propagate"])
+    with FrameStore.open(store_path) as store:
+        before, after = store.poses(store.head - 1), store.poses()
+    np.testing.assert_allclose(after[2:, 0, 3] - trajectory.poses[2:, 0, 3], 0.25, atol=1e-9)
+    np.testing.assert_array_equal(after[:2], before[:2])  # frames 0 and 1 have no block: unchanged
+    exc = _refused(["correct", store_path, "--poses", tmp_path / "part.log", "--format", "redwood", "--match", "stamp"])
+    assert isinstance(exc, ConfigError) and "has no stamps" in str(exc)

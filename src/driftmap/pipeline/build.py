@@ -40,7 +40,7 @@ from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, Odomet
 from driftmap.registration.pairwise import register_prepared, relative_pose
 from driftmap.sources.base import BUILD_SOURCE_FILE, FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import read_trajectory
+from driftmap.trajectory import detect_trajectory_format, has_stamps, read_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -395,20 +395,32 @@ def _remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> Non
 def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: str = "auto",
                       calib_file: str | Path | None = None,
                       max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS) -> Callable[[Frame], np.ndarray]:
-    traj = read_trajectory(poses_file)
-    is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
-    if not is_kitti:
-        traj = source.pose_file_in_sensor_frame(Path(poses_file), traj)
-    if is_kitti:  # row i is the pose of frame_id i
+    fmt = detect_trajectory_format(poses_file)
+    traj = read_trajectory(poses_file, fmt)
+    if fmt != "kitti" and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError(f"{poses_file}: not a KITTI pose file (format {fmt}); --kitti-frame / --calib apply to KITTI "
+                          f"files only")
+    if fmt == "kitti":
         rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source, kitti_frame, calib_file)
+    else:
+        traj = source.pose_file_in_sensor_frame(Path(poses_file), traj)
+        rows = traj.poses
+    if fmt == "redwood":  # the file names its frames: the 'i' of each 'i j n' line
+        row_of = {int(f): k for k, f in enumerate(traj.frame_ids if traj.frame_ids is not None else [])}
+
+        def by_frame_id(frame: Frame) -> np.ndarray:
+            if frame.frame_id not in row_of:
+                raise SourceError(f"{poses_file}: no pose for frame {frame.frame_id} (the file has frames "
+                                  f"{min(row_of)}..{max(row_of)}, {len(row_of)} poses)")
+            return rows[row_of[frame.frame_id]]
+        return by_frame_id
+    if not has_stamps(traj, fmt):  # KITTI, 4x4 without stamps: row i is the pose of frame_id i
 
         def by_index(frame: Frame) -> np.ndarray:
             if frame.frame_id >= len(rows):
                 raise SourceError(f"{poses_file}: {len(rows)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
             return rows[frame.frame_id]
         return by_index
-    if kitti_frame != "auto" or calib_file is not None:
-        raise ConfigError(f"{poses_file}: not a KITTI pose file; --kitti-frame / --calib apply to KITTI files only")
     stamps = traj.stamps_ns
 
     def by_stamp(frame: Frame) -> np.ndarray:
