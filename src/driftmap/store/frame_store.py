@@ -63,7 +63,6 @@ from driftmap.store.ledger import (
     Revision,
     _preview,
     match_pose_rows,
-    match_trajectory,
     stamp_ranges_text,
 )
 from driftmap.store.segment import (
