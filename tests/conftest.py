@@ -40,6 +40,11 @@ def kitti_dir(datasets_dir: Path) -> Path:
 
 
 @pytest.fixture(scope="session")
+def icl_dir(datasets_dir: Path) -> Path:
+    return _require(datasets_dir / "icl-nuim-livingroom1-5frames")
+
+
+@pytest.fixture(scope="session")
 def balm_dir(datasets_dir: Path) -> Path:
     """80 real solid-state (Livox-like) LiDAR scans with their LIO poses (balm-lidar-0-79)."""
     return _require(datasets_dir / "balm-lidar-0-79")

@@ -8,6 +8,7 @@ import json
 import logging
 import os
 import shutil
+from decimal import Decimal
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,9 @@ from PIL import Image
 from scipy.spatial import cKDTree
 
 import driftmap
+from cloud_files import write_pcd, write_ply, xyz_columns
 from driftmap import DepthScaleError, PinholeIntrinsics, PoseSource, SensorKind, SourceError
+from driftmap.errors import ConfigError
 from driftmap.sources.base import open_source
 from driftmap.sources.cloud_folder import CloudFolder
 from driftmap.sources.kitti import KittiOdometry
@@ -568,6 +571,236 @@ def test_cloud_folder_bad_input(tmp_path: Path) -> None:
     with pytest.raises(SourceError, match=r"scan_2\.ply: no points could be read"):
         list(open_source(tmp_path))
     assert [f.frame_id for f in open_source(tmp_path, lenient=True)] == [1]
+
+
+# ---- cloud folders: normals, stamps and per-point times are checked against the data ---------------------------------
+
+
+def _balm_csv_stamps_ns(balm_dir: Path) -> list[int]:
+    """The last entry of every 4th line of alidarPose.csv, seconds as written -> ns (Decimal, not the reader)."""
+    lines = [line for line in (balm_dir / "alidarPose.csv").read_text().splitlines() if line.strip()]
+    return [int(Decimal(line.rstrip(",").split(",")[3]) * 10**9) for line in lines[3::4]]
+
+
+def test_balm_frames_are_stamped_from_alidarpose_csv_and_not_posed_by_it(balm_dir: Path) -> None:
+    src = open_source(balm_dir)
+    assert isinstance(src, CloudFolder) and src.describe()["stamps"] == "alidarPose.csv"
+    assert src.frame_ids() == list(range(80))  # full0 .. full79 by number, not by name (full10 after full9)
+    stamps = np.array(src.stamps_ns())
+    expected = np.array(_balm_csv_stamps_ns(balm_dir))
+    assert len(expected) == 80 and np.abs(stamps - expected).max() <= 1_000  # within 1 us (exact, in fact)
+    steps_s = np.diff(stamps) / 1e9
+    assert 0.45 < steps_s.min() and steps_s.max() < 0.55  # 2 Hz, not the 10 Hz assumed for folders without stamps
+    assert src.frame(0).pose.source is PoseSource.NONE  # the csv gives the stamps only: poses need poses= / --poses
+
+
+def test_balm_zero_normals_are_not_used(balm_dir: Path, caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.point_fields"):
+        frame = open_source(balm_dir, frames="3:4").frame(0)
+    assert frame.attributes.normal_sensor is None and frame.attributes.intensity is not None
+    cloud = o3d.t.io.read_point_cloud(str(balm_dir / "full3.pcd"))
+    n = len(cloud.point["positions"])
+    assert not cloud.point["normals"].numpy().any()  # the file really holds all-zero normals
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert f"full3.pcd (frame 3): normals not used ({n} of {n} are unusable: {n} zero, 0 NaN/inf, 0 not unit" in message
+
+
+def _unit_normals(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
+@pytest.mark.parametrize("suffix", [".pcd", ".ply"])
+@pytest.mark.parametrize("variant", ["unit", "nan", "not_unit", "zero"])
+def test_cloud_folder_normals_are_used_only_when_all_are_unit_vectors(
+    tmp_path: Path, suffix: str, variant: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    rng = np.random.default_rng(5)
+    n = 200
+    normals = _unit_normals(rng, n)
+    if variant == "nan":
+        normals[10] = np.nan
+    elif variant == "not_unit":
+        normals[:100] *= 0.5
+    elif variant == "zero":
+        normals[20:30] = 0.0
+    names = ("normal_x", "normal_y", "normal_z") if suffix == ".pcd" else ("nx", "ny", "nz")
+    columns = xyz_columns(rng, n) | {name: normals[:, k].copy() for k, name in enumerate(names)}
+    (write_pcd if suffix == ".pcd" else write_ply)(tmp_path / f"scan_0{suffix}", columns)
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.point_fields"):
+        frame = open_source(tmp_path, period_ns=100_000_000).frame(0)
+    if variant == "unit":
+        assert frame.attributes.normal_sensor.tobytes() == normals.tobytes()  # kept bit-exact
+        assert not caplog.records
+        return
+    assert frame.attributes.normal_sensor is None
+    counts = {"nan": "1 of 200 are unusable: 0 zero, 1 NaN/inf, 0 not unit",
+              "not_unit": "100 of 200 are unusable: 0 zero, 0 NaN/inf, 100 not unit",
+              "zero": "10 of 200 are unusable: 10 zero, 0 NaN/inf, 0 not unit"}[variant]
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert f"scan_0{suffix} (frame 0): normals not used ({counts}" in message
+
+
+def _scan(path: Path, rng: np.random.Generator, n: int = 50, **extra: np.ndarray) -> Path:
+    return write_pcd(path, xyz_columns(rng, n) | extra)
+
+
+@pytest.mark.parametrize(
+    ("names", "unit", "stamps_ns"),
+    [
+        (["1630577758.569490", "1630577759.068947", "1630577759.568717"], "s",
+         [1630577758_569490000, 1630577759_068947000, 1630577759_568717000]),
+        (["1630577758569", "1630577758669", "1630577758770"], "ms",
+         [1630577758_569000000, 1630577758_669000000, 1630577758_770000000]),
+        (["1630577758569490", "1630577758669490", "1630577758769491"], "us",
+         [1630577758_569490000, 1630577758_669490000, 1630577758_769491000]),
+        (["lidar_1630577758569490123", "lidar_1630577758669490123", "lidar_1630577758769490124"], "ns",
+         [1630577758_569490123, 1630577758_669490123, 1630577758_769490124]),
+    ],
+    ids=["s", "ms", "us", "ns"],
+)
+def test_cloud_file_names_that_are_stamps_stamp_the_frames(tmp_path: Path, names: list[str], unit: str,
+                                                           stamps_ns: list[int]) -> None:
+    rng = np.random.default_rng(1)
+    for name in reversed(names):
+        _scan(tmp_path / f"{name}.pcd", rng)
+    src = open_source(tmp_path)
+    assert src.describe()["stamps"] == f"file names ({unit})"
+    assert src.stamps_ns() == stamps_ns  # exact
+    assert src.frame_ids() == [0, 1, 2]  # the index in stamp order (the names are not frame numbers)
+    assert [Path(f.provenance.source_uri).stem for f in src] == names
+
+
+def test_cloud_file_names_that_are_not_stamps_are_frame_numbers(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(2)
+    for n in (123, 124, 126):  # frame numbers, far below any epoch time
+        _scan(tmp_path / f"{n:06d}.pcd", rng)
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.cloud_folder"):
+        src = open_source(tmp_path)
+    assert src.frame_ids() == [123, 124, 126] and src.describe()["stamps"] == "assumed 10 Hz"
+    assert src.stamps_ns() == [123 * 100_000_000, 124 * 100_000_000, 126 * 100_000_000]
+    (message,) = [r.getMessage() for r in caplog.records]
+    assert "no stamps in the folder; they are assumed" in message and "times.txt" in message and "--period-s" in message
+    # epoch-sized numbers 1 us apart are not the stamps of a sensor's frames (the period must be 1 ms .. 10 s)
+    other = tmp_path / "us"
+    other.mkdir()
+    for k in range(3):
+        _scan(other / f"{1630577758569490 + k}.pcd", rng)
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.stamps"):
+        assert open_source(other, period_ns=50_000_000).describe()["stamps"].startswith("period 0.05 s")
+    assert any("look like stamps in us, but their median step is 1e-06 s" in r.getMessage() for r in caplog.records)
+    # two names that are the same stamp are named, not silently merged
+    same = tmp_path / "same"
+    same.mkdir()
+    _scan(same / "1630577758.5.pcd", rng)
+    _scan(same / "1630577758.500.pcd", rng)
+    with pytest.raises(SourceError, match=r"1630577758\.5\.pcd and .*1630577758\.500\.pcd: both file names are the stamp"):
+        open_source(same)
+
+
+def test_cloud_folder_stamp_precedence(tmp_path: Path, kitti_dir: Path) -> None:
+    """(a) a pose file given with poses= that has stamps > (b) names > (c) times.txt > (d) a 4x4 pose file with stamps
+    in the folder > (e) period_ns > (f) the nominal 10 Hz; period_ns is refused when the folder has stamps."""
+    rng = np.random.default_rng(3)
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for n in range(4):
+        _scan(folder / f"scan_{n}.pcd", rng)
+    assert open_source(folder).describe()["stamps"] == "assumed 10 Hz"
+    src = open_source(folder, period_ns=500_000_000)
+    assert src.describe()["stamps"] == "period 0.5 s (period_ns / --period-s)"
+    assert src.stamps_ns() == [0, 500_000_000, 1_000_000_000, 1_500_000_000]
+    # (d): a BALM-style 4x4 file with stamps (comma-separated, trailing commas)
+    poses = read_kitti(kitti_dir / "poses.txt").poses[:4]
+    blocks = [f"{1630577700 + k}.25" for k in range(4)]
+    (folder / "lidarPose.csv").write_text("".join(
+        "".join(",".join(f"{v:.6f}" for v in T[i]) + ",\n" for i in range(3)) + f"0,0,0,{s},\n" for T, s in zip(poses, blocks)))
+    src = open_source(folder)
+    assert src.describe()["stamps"] == "lidarPose.csv" and src.frame(0).pose.source is PoseSource.NONE
+    assert src.stamps_ns() == [(1630577700 + k) * 10**9 + 250_000_000 for k in range(4)]
+    with pytest.raises(ConfigError, match=r"period_ns=500000000 \(--period-s 0\.5\): .* has stamps of its own \(lidarPose\.csv\)"):
+        open_source(folder, period_ns=500_000_000)
+    # (c) beats (d)
+    (folder / "times.txt").write_text("".join(f"{0.1 * k:.6e}\n" for k in range(4)))
+    src = open_source(folder)
+    assert src.describe()["stamps"] == "times.txt"
+    assert src.stamps_ns() == [0, 100_000_000, 200_000_000, 300_000_000]
+    # (a) beats them all
+    tum_stamps = np.array([5, 6, 7, 8], dtype=np.int64) * 1_000_000_000
+    write_tum(tmp_path / "p.tum", Trajectory(tum_stamps, poses))
+    src = open_source(folder, poses=tmp_path / "p.tum")
+    assert src.describe()["stamps"] == "p.tum" and src.stamps_ns() == tum_stamps.tolist()
+    # (b) beats (c) and (d)
+    for n in range(4):
+        (folder / f"scan_{n}.pcd").rename(folder / f"{1630577800 + n}.100.pcd")
+    assert open_source(folder).describe()["stamps"] == "file names (s)"
+
+
+def test_cloud_folder_stamp_file_must_fit_the_clouds(tmp_path: Path) -> None:
+    rng = np.random.default_rng(4)
+    for n in (2, 3, 4):
+        _scan(tmp_path / f"{n:06d}.pcd", rng)
+    times = tmp_path / "times.txt"
+    times.write_text("0.0\n0.1\n")
+    with pytest.raises(SourceError, match=r"times\.txt: 2 stamps for 3 clouds \(frames 2\.\.4\)"):
+        open_source(tmp_path)
+    times.write_text("".join(f"{0.1 * k:.1f}\n" for k in range(10)))  # the whole sequence: row n = frame n
+    src = open_source(tmp_path)
+    assert src.stamps_ns() == [200_000_000, 300_000_000, 400_000_000]
+    times.write_text("0\n100\n200\n")  # milliseconds, not seconds
+    with pytest.raises(SourceError, match=r"times\.txt: read as seconds, .* median step is 100 s, outside"):
+        open_source(tmp_path)
+    times.write_text("0.0\n0.2\n0.1\n")
+    with pytest.raises(SourceError, match=r"times\.txt .*stamp goes back in time: frame 4 .* frame 3"):
+        open_source(tmp_path)
+
+
+#: (field, values written, the offsets in ns they must become); the scan is stamped 1630577758.5 s
+_STAMP_S = "1630577758.5"
+_STAMP_NS = 1630577758_500_000_000
+_OFFSETS_NS = np.arange(0, 100, dtype=np.int64) * 1_953_125  # multiples of 2^-9 s: exact in float32 seconds
+TIME_FIELDS = {
+    "livox_offset_time": ("offset_time", _OFFSETS_NS.astype(np.uint32), _OFFSETS_NS),
+    "ouster_t": ("t", _OFFSETS_NS.astype(np.uint32), _OFFSETS_NS),
+    "velodyne_time": ("time", (-_OFFSETS_NS[::-1] / 1e9).astype(np.float32), -_OFFSETS_NS[::-1]),  # before the stamp
+    "hesai_timestamp": ("timestamp", (1630577758.5 + _OFFSETS_NS / 1e9).astype(np.float64), _OFFSETS_NS),  # absolute
+}
+
+
+@pytest.mark.parametrize("variant", sorted(TIME_FIELDS))
+def test_cloud_folder_per_point_times_become_time_offsets(tmp_path: Path, variant: str) -> None:
+    field, values, expected = TIME_FIELDS[variant]
+    rng = np.random.default_rng(6)
+    _scan(tmp_path / "scan_0.pcd", rng, n=len(values), **{field: values})
+    (tmp_path / "times.txt").write_text(_STAMP_S + "\n")
+    frame = open_source(tmp_path).frame(0)
+    assert frame.stamp_ns == _STAMP_NS
+    assert frame.attributes.time_offset_ns.dtype == np.int64
+    np.testing.assert_array_equal(frame.attributes.time_offset_ns, expected)  # exactly
+
+
+@pytest.mark.parametrize("variant", ["span", "nan", "absolute_without_stamps", "ply_uint"])
+def test_cloud_folder_implausible_time_field_is_not_used(tmp_path: Path, variant: str,
+                                                         caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(7)
+    n = 100
+    if variant == "span":  # 5 s of "offsets" in one scan
+        _scan(tmp_path / "scan_0.pcd", rng, n=n, time=np.linspace(0, 5, n).astype(np.float32))
+    elif variant == "nan":
+        t = np.linspace(0, 0.1, n).astype(np.float32)
+        t[3] = np.nan
+        _scan(tmp_path / "scan_0.pcd", rng, n=n, time=t)
+    elif variant == "absolute_without_stamps":  # epoch seconds, but the folder's stamps are only assumed
+        _scan(tmp_path / "scan_0.pcd", rng, n=n, timestamp=1630577758.5 + np.linspace(0, 0.1, n))
+    else:  # a PLY uint property Open3D's reader skips
+        write_ply(tmp_path / "scan_0.ply", xyz_columns(rng, n) | {"t": np.arange(n, dtype=np.uint32) * 1000})
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources"):
+        frame = open_source(tmp_path, period_ns=100_000_000).frame(0)
+    assert frame.attributes.time_offset_ns is None
+    field = {"span": "time", "nan": "time", "absolute_without_stamps": "timestamp", "ply_uint": "t"}[variant]
+    messages = [r.getMessage() for r in caplog.records if "per-point time" in r.getMessage()]
+    assert len(messages) == 1 and "scan_0" in messages[0] and "(frame 0)" in messages[0]
+    assert f"field {field!r} not used" in messages[0] or f"property {field!r} not used" in messages[0]
 
 
 # ---- trajectory readers ------------------------------------------------------------------------------------------

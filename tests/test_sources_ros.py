@@ -5,6 +5,7 @@ rosbags paths (ROS 1, rosbag2 sqlite3 and mcap storage); every bad-input case.""
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 from typing import Any
@@ -487,6 +488,11 @@ def test_sevenscenes_frames_round_trip(sevenscenes_dir: Path, tmp_path: Path) ->
     assert list(infos[0].k) == [585.0, 0.0, 320.0, 0.0, 585.0, 240.0, 0.0, 0.0, 1.0]
 
 
+def unit_normals(rng: np.random.Generator, n: int) -> np.ndarray:
+    v = rng.normal(size=(n, 3))
+    return (v / np.linalg.norm(v, axis=1, keepdims=True)).astype(np.float32)
+
+
 def test_attributes_and_pose_none_round_trip(tmp_path: Path) -> None:
     rng = np.random.default_rng(3)
     n = 500
@@ -507,7 +513,7 @@ def test_attributes_and_pose_none_round_trip(tmp_path: Path) -> None:
             attributes=PointAttributes(
                 intensity=rng.random(n, dtype=np.float32),
                 color_rgb=rng.integers(0, 256, (n, 3), dtype=np.uint8),
-                normal_sensor=rng.normal(size=(n, 3)).astype(np.float32),
+                normal_sensor=unit_normals(rng, n),  # normals that are not unit vectors are not read back
                 time_offset_ns=offsets,
             ),
             sensor_frame="velodyne",
@@ -746,6 +752,54 @@ def test_point_time_reference_override(tmp_path: Path) -> None:
     path = write_mcap(tmp_path / "t.mcap", [("/p", "sensor_msgs/msg/PointCloud2", cloud_msg(stamp, "l", cols), stamp)])
     (frame,) = list(RosLogSource(path, point_time=PointTimeReference.RELATIVE))
     assert np.array_equal(frame.attributes.time_offset_ns, offsets)
+
+
+@pytest.mark.parametrize("variant", ["unit", "zero", "nan", "not_unit"])
+def test_pointcloud2_normals_are_used_only_when_all_are_unit_vectors(
+    tmp_path: Path, variant: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    rng = np.random.default_rng(11)
+    normals = unit_normals(rng, N_PTS)
+    if variant == "zero":
+        normals[:] = 0.0  # BALM-style: the fields are there, every value 0
+    elif variant == "nan":
+        normals[7] = np.nan
+    elif variant == "not_unit":
+        normals[3:9] *= 1.5
+    cols = {c: rng.normal(size=N_PTS).astype(np.float32) for c in "xyz"}
+    cols |= {f"normal_{c}": normals[:, k].copy() for k, c in enumerate("xyz")}
+    path = write_mcap(tmp_path / "n.mcap", [("/p", "sensor_msgs/msg/PointCloud2", cloud_msg(BASE_STAMP_NS, "l", cols), BASE_STAMP_NS)])
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.point_fields"):
+        (frame,) = list(RosLogSource(path))
+    if variant == "unit":
+        assert frame.attributes.normal_sensor.tobytes() == normals.tobytes()
+        assert not caplog.records
+        return
+    assert frame.attributes.normal_sensor is None
+    (record,) = caplog.records
+    expected = {"zero": f"{N_PTS} zero, 0 NaN/inf, 0 not unit", "nan": "0 zero, 1 NaN/inf, 0 not unit",
+                "not_unit": "0 zero, 0 NaN/inf, 6 not unit"}[variant]
+    assert "n.mcap: /p message 0: normals not used" in record.getMessage() and expected in record.getMessage()
+
+
+@pytest.mark.parametrize("variant", ["span_5s", "nan", "far_from_stamp"])
+def test_pointcloud2_implausible_time_field_is_not_used(
+    tmp_path: Path, variant: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    times = np.linspace(0.0, 0.1, N_PTS)  # a plausible Velodyne ``time`` (s from the scan start) ...
+    if variant == "span_5s":
+        times = np.linspace(0.0, 5.0, N_PTS)  # ... is not when it spans 5 s
+    elif variant == "nan":
+        times[4] = np.nan
+    else:
+        times = times + 3600.0  # relative seconds an hour away from the stamp
+    cols = {c: np.ones(N_PTS, dtype=np.float32) for c in "xyz"} | {"time": times.astype(np.float64)}
+    path = write_mcap(tmp_path / "t.mcap", [("/p", "sensor_msgs/msg/PointCloud2", cloud_msg(BASE_STAMP_NS, "l", cols), BASE_STAMP_NS)])
+    with caplog.at_level(logging.WARNING, logger="driftmap.sources.point_fields"):
+        (frame,) = list(RosLogSource(path))
+    assert frame.attributes.time_offset_ns is None
+    (record,) = caplog.records
+    assert "t.mcap: /p message 0: per-point time field 'time' not used" in record.getMessage()
 
 
 def _rosbags_cloud(typestore: Any, msg: dict[str, Any], ros1: bool) -> Any:

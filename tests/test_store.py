@@ -135,7 +135,7 @@ def test_bad_appends_are_rejected_and_change_nothing(tmp_path: Path, synthetic_f
             store.add_revision({1: np.eye(4)}, source="bogus")
         poses = tmp_path / "poses.txt"
         store.export_trajectory(poses)
-        with pytest.raises(ConfigError, match=r"poses.txt: format: 'xyz' is not one of \['tum', 'kitti'\]"):
+        with pytest.raises(ConfigError, match=r"poses.txt: format: 'xyz' is not one of \['tum', 'kitti', 'redwood', '4x4'\]"):
             store.import_poses(poses, format="xyz")
         with pytest.raises(ConfigError, match=r"poses.txt: match: 'nearest' is not one of"):
             store.import_poses(poses, match="nearest")
@@ -143,6 +143,8 @@ def test_bad_appends_are_rejected_and_change_nothing(tmp_path: Path, synthetic_f
             store.import_poses(poses, source="gps")
         with pytest.raises(ConfigError, match=r"out.txt: format: 'xyz' is not one of"):
             store.export_trajectory(tmp_path / "out.txt", format="xyz")
+        with pytest.raises(ConfigError, match=r"out.txt: trajectories are exported as tum or kitti, not 4x4"):
+            store.export_trajectory(tmp_path / "out.txt", format="4x4")  # read, not written
         assert not (tmp_path / "out.txt").exists()
         assert store.size_bytes() == size_before
         assert len(store.revisions) == 2 and len(store) == 4

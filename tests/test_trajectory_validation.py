@@ -18,8 +18,11 @@ from driftmap.errors import SourceError
 from driftmap.geometry import RIGID_TOLERANCE
 from driftmap.trajectory import (
     Trajectory,
+    detect_trajectory_format,
+    has_stamps,
     read_euroc,
     read_kitti,
+    read_matrix4x4,
     read_redwood_log,
     read_trajectory,
     read_tum,
@@ -199,6 +202,66 @@ def test_utf8_byte_order_mark_is_accepted(tmp_path: Path) -> None:
         np.testing.assert_array_equal(traj.poses, read_tum(plain).poses)
 
 
+# ---- 4x4 blocks (one matrix per frame, BALM's alidarPose.csv) --------------------------------------------------------
+
+BLOCK = "1 0 0 0.5\n0 1 0 0\n0 0 1 0\n0 0 0 {s}\n"
+
+
+@pytest.mark.parametrize("read", [read_matrix4x4, read_trajectory])
+@pytest.mark.parametrize(
+    ("text", "line", "fields"),
+    [
+        (BLOCK.format(s=1) + "1 0 0 0\n0 1 0 0\n", 5, ("not a multiple of 4", "only 2 row(s)")),
+        (BLOCK.format(s=1) + "1 0 0 0\n\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", 6, ("blank line inside a 4x4 block", "line 5")),
+        (BLOCK.format(s=1) + "1 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", 5, ("expected 4 numbers", "3 fields")),
+        (BLOCK.format(s=1) + "1,0,,0\n0,1,0,0\n0,0,1,0\n0,0,0,1\n", 5, ("expected 4 numbers", "empty field")),
+        (BLOCK.format(s=1) + "1 0 0 0\n0 1 0 nan\n0 0 1 0\n0 0 0 1\n", 6, ("not finite", "column 4")),
+        (BLOCK.format(s=1) + "1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0.5 0 1\n", 8, ("must start with 0 0 0", "block 1")),
+        (BLOCK.format(s=1) + "2 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", 5, ("rotation block", "not orthonormal", "block 1")),
+        (BLOCK.format(s="10.5") + BLOCK.format(s="10.25"), 8, ("stamp goes back in time", "10.25", "line 4")),
+    ],
+    ids=["partial-block", "blank-inside", "three-numbers", "empty-field", "nan", "last-row", "not-rigid", "backwards"],
+)
+def test_matrix4x4_bad_input_names_line_and_field(tmp_path: Path, read: Callable, text: str, line: int,
+                                                 fields: tuple[str, ...]) -> None:
+    path = tmp_path / "poses.txt"
+    path.write_text(text)
+    _raises_naming(read, path, line, *fields)
+
+
+@pytest.mark.parametrize("separator", [" ", ","])
+def test_matrix4x4_write_read_round_trip_with_and_without_stamps(tmp_path: Path, separator: str) -> None:
+    rng = np.random.default_rng(9)
+    poses = _random_rigid(rng, 50, 20.0)
+    stamps_s = [f"{1630577758 + k // 2}.{(k % 2) * 5}{rng.integers(0, 10**8):08d}" for k in range(len(poses))]
+
+    def write(path: Path, last: list[str]) -> None:
+        blocks = []
+        for T, s in zip(poses, last, strict=True):
+            rows = [[repr(float(v)) for v in T[i]] for i in range(3)] + [["0", "0", "0", s]]
+            end = "," if separator == "," else ""  # BALM ends each row with a comma
+            blocks.append("".join(separator.join(r) + end + "\n" for r in rows))
+        path.write_text("\n".join(blocks))  # blank lines between blocks
+
+    write(tmp_path / "stamped.txt", stamps_s)
+    traj = read_trajectory(tmp_path / "stamped.txt")
+    assert detect_trajectory_format(tmp_path / "stamped.txt") == "4x4" and has_stamps(traj, "4x4")
+    assert traj.frame_ids is None
+    assert traj.stamps_ns.tolist() == [_stamp_ns(s) for s in stamps_s]  # exact, not through a float
+    np.testing.assert_array_equal(traj.poses, poses)  # as written: repr round-trips, the last row is 0 0 0 1
+    write(tmp_path / "plain.txt", ["1"] * len(poses))
+    plain = read_trajectory(tmp_path / "plain.txt")
+    assert not has_stamps(plain, "4x4")
+    assert plain.frame_ids.tolist() == plain.stamps_ns.tolist() == list(range(len(poses)))  # block k = frame k
+    np.testing.assert_array_equal(plain.poses, poses)
+
+
+def test_a_4x4_file_read_as_tum_says_what_it_looks_like(tmp_path: Path) -> None:
+    path = tmp_path / "poses.csv"
+    path.write_text(BLOCK.format(s="1630577758.569490").replace(" ", ","))
+    _raises_naming(read_tum, path, 1, "expected 8 columns", "a file of 4x4 matrices?", "--gt-format 4x4")
+
+
 # ---- round trips ------------------------------------------------------------------------------------------------
 
 
@@ -244,6 +307,7 @@ SHARED_POSE_FILES = {
     "kitti-00-frames0-15/poses.txt": "kitti",
     "icl-nuim-livingroom1-5frames/trajectory.log": "redwood",
     "icl-nuim-livingroom1-5frames/odometry.log": "redwood",
+    "balm-lidar-0-79/alidarPose.csv": "4x4",
 }
 
 
@@ -259,7 +323,8 @@ def _data_lines(path: Path) -> int:
 def test_every_shared_trajectory_file_still_reads(datasets_dir: Path, name: str) -> None:
     path = datasets_dir / name
     traj = read_trajectory(path)
-    expected_rows = _data_lines(path) // (5 if SHARED_POSE_FILES[name] == "redwood" else 1)
+    expected_rows = _data_lines(path) // {"redwood": 5, "4x4": 4}.get(SHARED_POSE_FILES[name], 1)
+    assert detect_trajectory_format(path) == SHARED_POSE_FILES[name]
     assert len(traj) == expected_rows  # every data row became a pose
     assert np.all(np.isfinite(traj.poses))
     R = traj.poses[:, :3, :3]

@@ -77,12 +77,22 @@ _TOPIC_HELP = "ROS logs: the PointCloud2 or depth Image topic to read (default: 
 _POSE_TF_HELP = "ROS logs: frame poses from TF, 'PARENT,CHILD' (e.g. map,base_link) looked up at each frame's stamp."
 _POSE_ODOM_HELP = "ROS logs: frame poses from this nav_msgs/Odometry topic (interpolated at each frame's stamp)."
 _LENIENT_HELP = "Skip unreadable frames (each logged with its reason) instead of stopping at the first."
+_PERIOD_HELP = ("Folders of PLY / PCD clouds without stamps of their own: the scan period in seconds, frame n is "
+                "stamped n * S (e.g. 0.5 for a 2 Hz scanner; without it such a folder is assumed 10 Hz, with a warning). "
+                "Refused for formats with stamps of their own and for folders that carry stamps (file names, "
+                "times.txt, a 4x4 pose file with stamps).")
 
 
 def _source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Optional[str],
-                    pose_from_odometry: Optional[str], lenient: bool) -> dict:
+                    pose_from_odometry: Optional[str], lenient: bool, period_s: Optional[float] = None) -> dict:
     """The source options of ``build`` / ``convert`` that were given (checked against the format later)."""
     from driftmap.errors import ConfigError
+
+    period_ns = None
+    if period_s is not None:
+        if not (np.isfinite(period_s) and period_s > 0 and round(period_s * 1e9) > 0):
+            raise ConfigError(f"--period-s: the scan period must be a positive number of seconds, got {period_s:g}")
+        period_ns = round(period_s * 1e9)
 
     tf = None
     if pose_from_tf is not None:
@@ -91,7 +101,7 @@ def _source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: O
             raise ConfigError(f"--pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {pose_from_tf!r}")
         tf = (parts[0], parts[1])
     options = {"sensor": sensor, "topic": topic, "pose_from_tf": tf, "pose_from_odometry": pose_from_odometry,
-               "lenient": lenient or None}
+               "lenient": lenient or None, "period_ns": period_ns}
     return {k: v for k, v in options.items() if v is not None}
 
 
@@ -289,6 +299,7 @@ def convert(
     pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP)] = None,
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP)] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
+    period_s: Annotated[Optional[float], typer.Option("--period-s", help=_PERIOD_HELP)] = None,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.pipeline.build import check_source_options
@@ -297,7 +308,7 @@ def convert(
     format = _source_format(source, format)
     _check_output(out, "OUT.mcap")
     _refuse_existing(out, "OUT.mcap", overwrite)
-    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
     check_source_options(source, format, options)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames, **options)
@@ -380,7 +391,8 @@ def build(
     pose_from_tf: Annotated[Optional[str], typer.Option("--pose-from-tf", help=_POSE_TF_HELP + " With --poses-from-source they become revision 0.")] = None,
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=_POSE_ODOM_HELP + " With --poses-from-source they become revision 0.")] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=_LENIENT_HELP)] = False,
-    poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (TUM by stamp; KITTI row = frame_id).")] = None,
+    period_s: Annotated[Optional[float], typer.Option("--period-s", help=_PERIOD_HELP)] = None,
+    poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (format detected: TUM, EuRoC and 4x4 blocks with stamps by stamp; KITTI and 4x4 blocks without stamps row = frame_id; Redwood .log by its frame ids).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
     frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
@@ -396,7 +408,7 @@ def build(
     from driftmap.pipeline.build import build as run_build
 
     format = _source_format(source, format)
-    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient)
+    options = _source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
     problems = []  # every problem of the config file and the environment at once
     try:
         cfg = _load_build_config(config)
@@ -471,8 +483,8 @@ def _open_store(path: Path, mode: str = "r"):
 def correct(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     poses: Annotated[Path, typer.Option("--poses", help="Pose file (T_world_sensor per frame).")],
-    format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
-    match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM, index for KITTI: row i = frame_id i)")] = None,
+    format: Annotated[str, typer.Option("--format", help="tum | kitti | redwood (.log) | 4x4 (one 4x4 matrix per frame, the last row 0 0 0 stamp_s or 0 0 0 1)")] = "tum",
+    match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM and 4x4 files with stamps, index for KITTI and 4x4 files without: row i = frame_id i; a Redwood .log matches by the frame ids it names)")] = None,
     source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
     max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", min=0.0, help="Stamp matching tolerance (ms).")] = 10.0,
     no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
@@ -481,8 +493,9 @@ def correct(
 ) -> None:
     """Import a pose file as a new revision (a correction); nothing is overwritten."""
     from driftmap.frame import PoseSource
+    from driftmap.store.frame_store import TrajectoryFormat
 
-    format = _choice(format, ("tum", "kitti"), "--format")
+    format = _choice(format, tuple(f.value for f in TrajectoryFormat), "--format")
     match = None if match is None else _choice(match, ("stamp", "index"), "--match")
     source = _choice(source, tuple(s.value for s in PoseSource if s is not PoseSource.NONE), "--source")
     with _open_store(store_path, "a") as store:
@@ -646,7 +659,7 @@ def diagnose(
     json_path: Annotated[Path, typer.Option("--json", help="Write the diagnosis here (JSON).")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth poses (T_world_sensor) for ATE/RPE.")] = None,
-    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i)")] = None,
+    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i) | redwood (.log: by the frame ids it names) | 4x4 (one 4x4 matrix per frame: by stamp when the last rows hold stamps, else block i = frame_id i)")] = None,
     report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
     compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
     points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
@@ -661,9 +674,9 @@ def diagnose(
     import time
 
     from driftmap.diagnostics.double_wall import DiagnosticCloud
-    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth, write_report
+    from driftmap.diagnostics.report import GT_FORMATS, DiagnoseConfig, diagnose_store, read_ground_truth, write_report
 
-    gt_format = None if gt_format is None else _choice(gt_format, ("tum", "kitti"), "--gt-format")
+    gt_format = None if gt_format is None else _choice(gt_format, GT_FORMATS, "--gt-format")
     _check_output(json_path, "--json")  # before the diagnosis, not after it
     _check_output(report, "--report", folder=True)
     with _open_store(store_path) as store:

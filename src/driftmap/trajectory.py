@@ -1,4 +1,5 @@
-"""Trajectory files: TUM (``stamp tx ty tz qx qy qz qw``) and KITTI (3x4 row-major per line).
+"""Trajectory files: TUM (``stamp tx ty tz qx qy qz qw``), KITTI (3x4 row-major per line), EuRoC CSV, Redwood
+``.log`` and blocks of one 4x4 matrix per frame (``4x4``, with or without a stamp in the last row).
 
 Readers return a :class:`Trajectory` (stamps in int nanoseconds, poses as 4x4 float64); writers take one.
 
@@ -164,7 +165,8 @@ def read_tum(path: str | Path) -> Trajectory:
         parts = line.replace(",", " ").split()
         if len(parts) != 8:
             hint = " (12 numbers per row: a KITTI pose file? read it as KITTI, e.g. --format kitti / --gt-format kitti)" \
-                if len(parts) == 12 else ""
+                if len(parts) == 12 else (" (4 numbers per row: a file of 4x4 matrices? read it as 4x4, e.g. --format 4x4 / "
+                                          "--gt-format 4x4)") if len(parts) == 4 else ""
             raise SourceError(f"{path}:{lineno}: expected 8 columns 'stamp tx ty tz qx qy qz qw', got {len(parts)}{hint}")
         try:
             stamps.append(_stamp_s_to_ns(parts[0]))
@@ -260,7 +262,12 @@ TRAJECTORY_FORMATS = {
     "kitti": "12 numbers per line (3x4 row-major T_world_x, one line per frame)",
     "euroc": "CSV 'stamp_ns, px, py, pz, qw, qx, qy, qz, ...' (integer ns stamp, quaternion w first)",
     "redwood": "blocks of an 'i j n' line + 4 lines of a 4x4 matrix (.log)",
+    "4x4": "blocks of 4 lines of a 4x4 matrix [R t; 0 0 0 s] (space- or comma-separated; s = stamp in seconds, "
+           "or 1: no stamps, block k = frame k)",
 }
+
+#: Formats whose rows carry time (matched to frames by stamp); ``4x4`` files do when their last rows hold stamps.
+STAMPED_FORMATS = ("tum", "euroc")
 
 
 #: (field, name, 1-based file column) of the 7 pose values after the stamp in an EuRoC row.
@@ -355,6 +362,106 @@ def read_redwood_log(path: str | Path) -> Trajectory:
     return Trajectory(frame_ids.copy(), np.asarray(poses, dtype=np.float64), frame_ids)
 
 
+def _matrix_fields(line: str) -> list[str] | None:
+    """The fields of one row of a ``4x4`` file: comma-separated (one trailing comma allowed, as BALM writes
+    them) or whitespace-separated; ``None`` for an empty field between two commas."""
+    if "," in line:
+        fields = [f.strip() for f in line.split(",")]
+        if fields and fields[-1] == "":
+            fields.pop()
+        return None if any(f == "" for f in fields) else fields
+    return line.split()
+
+
+#: (field, name, 1-based column) of the 4 numbers of a row of a 4x4 block
+_MATRIX_COLUMNS = [("matrix entry", f"column {j + 1}", j + 1) for j in range(4)]
+
+
+def read_matrix4x4(path: str | Path) -> Trajectory:
+    """Read a file of one 4x4 matrix ``T_world_x`` per frame: 4 lines of 4 numbers per block (space- or
+    comma-separated, a trailing comma allowed), blank lines allowed between blocks, ``#`` comments.
+
+    The last row of each block is ``0 0 0 s``. When every ``s`` is 1 the file has no time: block ``k`` is frame
+    ``k`` (``stamps_ns`` and ``frame_ids`` are the block indices, as :func:`read_kitti`). Otherwise ``s`` is the
+    stamp in seconds (BALM's ``alidarPose.csv``), parsed exactly to int ns, and ``frame_ids`` is ``None``; the
+    stamps must not go back in time (a repeated one is kept with a warning, as in TUM files).
+
+    Raises :class:`SourceError` naming the file and the 1-based line: a line count that is not a multiple of 4
+    (naming the first line of the incomplete block), a blank line inside a block, a row without 4 numbers, a
+    value that is not a number or not finite, a last row whose first three entries are not 0, and a rotation
+    block that is not a rotation (within :data:`driftmap.geometry.RIGID_TOLERANCE`; rows are kept as written).
+    """
+    path = Path(path)
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    stamp_texts: list[str] = []
+    blank_in_block: int | None = None  # a blank line after 1-3 rows of a block: an error if the block goes on
+    for lineno, line in enumerate(_read_lines(path, "4x4 pose file"), start=1):
+        line = line.partition("#")[0].strip()
+        if not line:
+            if len(rows) % 4 and blank_in_block is None:
+                blank_in_block = lineno
+            continue
+        if blank_in_block is not None:
+            raise SourceError(f"{path}:{blank_in_block}: blank line inside a 4x4 block (after {len(rows) % 4} of its 4 "
+                              f"rows, the block starts on line {linenos[-(len(rows) % 4)]})")
+        fields = _matrix_fields(line)
+        if fields is None or len(fields) != 4:
+            got = "an empty field" if fields is None else f"{len(fields)} fields"
+            raise SourceError(f"{path}:{lineno}: expected 4 numbers per row of a 4x4 pose block, got {got}")
+        try:
+            rows.append([float(f) for f in fields])
+        except ValueError as exc:
+            raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
+        linenos.append(lineno)
+        if len(rows) % 4 == 0:
+            stamp_texts.append(fields[3])
+    if not rows:
+        raise SourceError(f"{path}: no poses in 4x4 pose file")
+    if len(rows) % 4:
+        first = linenos[len(rows) - len(rows) % 4]
+        raise SourceError(f"{path}:{first}: {len(rows)} matrix rows is not a multiple of 4; the block starting on "
+                          f"line {first} has only {len(rows) % 4} row(s) (4 rows per pose)")
+    data = np.asarray(rows)
+    block_lines = linenos[::4]
+    _check_finite(path, data, linenos, _MATRIX_COLUMNS)
+    poses = data.reshape(-1, 4, 4).copy()
+    last = poses[:, 3, :3]
+    bad_last = np.flatnonzero(np.any(last != 0.0, axis=1))
+    if bad_last.size:
+        k = int(bad_last[0])
+        raise SourceError(f"{path}:{linenos[4 * k + 3]}: the last row of a 4x4 pose block must start with 0 0 0, "
+                          f"got {' '.join(repr(float(v)) for v in last[k])} (block {k}, starting on line {block_lines[k]})")
+    stamped = bool(np.any(poses[:, 3, 3] != 1.0))
+    poses[:, 3, 3] = 1.0
+    bad, _ = geometry.rigid_stack_problems(poses)
+    if bad.size:  # as_rigid names what is wrong with the first such block
+        k = int(bad[0])
+        try:
+            geometry.as_rigid(poses[k], f"{path}:{block_lines[k]} (block {k})")
+        except TransformError as exc:
+            raise SourceError(str(exc)) from exc
+    if not stamped:
+        ids = np.arange(len(poses), dtype=np.int64)
+        return Trajectory(ids.copy(), poses, ids)
+    stamps: list[int] = []
+    for k, text in enumerate(stamp_texts):
+        try:
+            stamps.append(_stamp_s_to_ns(text))
+        except (ValueError, OverflowError) as exc:
+            raise SourceError(f"{path}:{linenos[4 * k + 3]}: stamp {text!r} is not a number of seconds") from exc
+    stamp_lines = linenos[3::4]
+    _check_stamp_order(path, stamps, stamp_lines, stamp_texts)
+    return Trajectory(np.asarray(stamps, dtype=np.int64), poses)
+
+
+def has_stamps(trajectory: Trajectory, format: str) -> bool:
+    """Whether the rows of ``trajectory`` (read as ``format``) carry time, so that they match frames by stamp:
+    TUM and EuRoC always; ``4x4`` when its last rows hold stamps (:func:`read_matrix4x4` then leaves
+    ``frame_ids`` unset); KITTI and Redwood ``.log`` never (their ``stamps_ns`` are row indices / frame ids)."""
+    return format in STAMPED_FORMATS or (format == "4x4" and trajectory.frame_ids is None)
+
+
 def _first_data_lines(path: Path, n: int = 5) -> list[str]:
     """The first ``n`` non-empty lines that are not ``#`` comments (reads only the head of the file)."""
     out: list[str] = []
@@ -369,7 +476,7 @@ def _first_data_lines(path: Path, n: int = 5) -> list[str]:
 
 
 def detect_trajectory_format(path: str | Path) -> str:
-    """Tell TUM / KITTI / EuRoC / Redwood ``.log`` apart from the first lines of ``path``.
+    """Tell TUM / KITTI / EuRoC / Redwood ``.log`` / ``4x4`` apart from the first lines of ``path``.
 
     Raises :class:`SourceError` naming every format tried and what the file looks like when none fits.
     """
@@ -407,6 +514,10 @@ def detect_trajectory_format(path: str | Path) -> str:
         return "redwood"
     if len(fields) == 12 and numeric(fields):
         return "kitti"
+    rows = [_matrix_fields(h) for h in head[:4]]
+    if len(rows) == 4 and all(r is not None and len(r) == 4 and numeric(r) for r in rows) \
+            and all(float(v) == 0.0 for v in rows[3][:3]):  # type: ignore[index]
+        return "4x4"
     if len(fields) == 8 and numeric(fields):
         return "tum"
     raise SourceError(
@@ -416,8 +527,10 @@ def detect_trajectory_format(path: str | Path) -> str:
 
 
 def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
-    """Read a TUM, KITTI, EuRoC or Redwood ``.log`` trajectory; ``format=None`` detects it from the contents."""
-    readers = {"tum": read_tum, "kitti": read_kitti, "euroc": read_euroc, "redwood": read_redwood_log}
+    """Read a TUM, KITTI, EuRoC, Redwood ``.log`` or ``4x4`` trajectory; ``format=None`` detects it from the
+    contents."""
+    readers = {"tum": read_tum, "kitti": read_kitti, "euroc": read_euroc, "redwood": read_redwood_log,
+               "4x4": read_matrix4x4}
     if format is None:
         format = detect_trajectory_format(path)
     if format not in readers:

@@ -47,7 +47,7 @@ from driftmap.preprocess.scene import (  # noqa: E402
     sample_positions,
     scene_reach,
 )
-from driftmap.trajectory import Trajectory, read_kitti, read_tum  # noqa: E402
+from driftmap.trajectory import Trajectory, has_stamps, read_trajectory  # noqa: E402
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -275,27 +275,32 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds, coverage=coverage)
 
 
+#: formats of ``diagnose --gt`` (``--gt-format``)
+GT_FORMATS = ("tum", "kitti", "redwood", "4x4")
+
+
 def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,
                       max_dt_ns: int = 10_000_000, kitti_frame: str = "auto",
                       calib_file: str | Path | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Ground-truth poses for the store's frames: TUM rows matched by stamp, KITTI row i = ``frame_id`` i.
+    """Ground-truth poses for the store's frames: TUM rows (and 4x4 blocks with stamps) matched by stamp, KITTI
+    rows (and 4x4 blocks without stamps) row i = ``frame_id`` i, Redwood ``.log`` blocks by the frame id they name.
 
     Returns the matched frame ids and their poses; the file must hold ``T_world_sensor`` of the same sensor
     frame, except that on a store of KITTI Velodyne scans a KITTI data set's own cam0 ``poses.txt`` is
     converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
     in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
     """
-    from driftmap.store.ledger import PoseMatchMode, match_trajectory, stamp_ranges_text
+    from driftmap.store.ledger import PoseMatchMode, match_pose_rows, stamp_ranges_text
 
     fmt = format.lower()
-    if fmt not in ("tum", "kitti"):
-        raise ConfigError(f"--gt-format must be tum or kitti, got {format!r}")
-    if fmt == "tum" and (kitti_frame != "auto" or calib_file is not None):
+    if fmt not in GT_FORMATS:
+        raise ConfigError(f"--gt-format must be one of {', '.join(GT_FORMATS)}, got {format!r}")
+    if fmt != "kitti" and (kitti_frame != "auto" or calib_file is not None):
         raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
-    traj: Trajectory = read_tum(path) if fmt == "tum" else read_kitti(path)
+    traj: Trajectory = read_trajectory(path, fmt)
     traj = store.pose_rows_in_sensor_frame(path, traj, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
-    mode = PoseMatchMode.STAMP if fmt == "tum" else PoseMatchMode.INDEX
-    matched = match_trajectory(traj, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+    mode = PoseMatchMode.STAMP if has_stamps(traj, fmt) else PoseMatchMode.INDEX
+    matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
     if not matched.poses:
         why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
         raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")

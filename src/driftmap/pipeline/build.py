@@ -42,7 +42,7 @@ from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, Odomet
 from driftmap.registration.pairwise import register_prepared, relative_pose
 from driftmap.sources.base import BUILD_SOURCE_FILE, FrameSource, accepted_options, open_source, registered_formats
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import read_trajectory
+from driftmap.trajectory import detect_trajectory_format, has_stamps, read_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -160,7 +160,17 @@ def _detect_format(path: Path, format: str | None) -> str | None:
 
 #: source options the command line offers (``build`` / ``convert``) and the flag that sets each
 SOURCE_OPTION_FLAGS = {"sensor": "--sensor", "topic": "--topic", "pose_from_tf": "--pose-from-tf",
-                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient"}
+                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient", "period_ns": "--period-s"}
+#: why a format may not take a source option, added to the refusal
+_SOURCE_OPTION_REFUSALS = {"period_ns": "--period-s sets the stamps of a folder of PLY / PCD clouds (cloud_folder) that "
+                                        "has none; format {fmt} stamps its frames itself (docs/sources-datasets.md)"}
+
+
+def show_source_option(name: str, value: Any) -> str:
+    """A source option as the command line gives it (``--period-s 0.5`` for ``period_ns=500000000``)."""
+    if name == "period_ns":
+        return f"--period-s {int(value) / 1e9:g}"
+    return f"{SOURCE_OPTION_FLAGS.get(name, name)} {value}"
 
 
 def source_params(path: Path, format: str | None) -> tuple[str | None, frozenset[str]]:
@@ -178,9 +188,10 @@ def check_source_options(path: Path, format: str | None, options: dict[str, Any]
     refused = [k for k in options if k not in params]
     if refused:
         takes = [SOURCE_OPTION_FLAGS[k] for k in SOURCE_OPTION_FLAGS if k in params]
+        reasons = "".join(f"; {_SOURCE_OPTION_REFUSALS[k].format(fmt=fmt)}" for k in refused if k in _SOURCE_OPTION_REFUSALS)
         raise ConfigError(f"{', '.join(SOURCE_OPTION_FLAGS.get(k, k) for k in refused)}: does not apply to {path} "
                           f"(format {fmt}" + (f", which takes {', '.join(takes)})" if takes else ", which takes none of "
-                          f"{', '.join(SOURCE_OPTION_FLAGS.values())})"))
+                          f"{', '.join(SOURCE_OPTION_FLAGS.values())})") + reasons)
 
 
 def _open(source: str | Path, format: str | None, frames: str | None, config: BuildConfig, poses_from_source: bool,
@@ -312,7 +323,7 @@ def _check_resume_settings(store: FrameStore, src: FrameSource, recorded: dict[s
                 f"coordinate frames. Resume with the same pose option or build into another --out")
     if recorded is not None and recorded.get("source_options", {}) != record.get("source_options", {}):
         def show_options(options: dict[str, Any]) -> str:
-            return ", ".join(f"{SOURCE_OPTION_FLAGS.get(k, k)} {v}" for k, v in options.items()) or "none"
+            return ", ".join(show_source_option(k, v) for k, v in options.items()) or "none"
         raise ConfigError(
             f"{out}: cannot --resume with different source options: the stored frames were read with "
             f"{show_options(recorded.get('source_options', {}))} (recorded in {file}), this build with "
@@ -393,20 +404,32 @@ def _remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> Non
 def _pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: str = "auto",
                       calib_file: str | Path | None = None,
                       max_dt_ns: int = DEFAULT_POSES_MAX_DT_NS) -> Callable[[Frame], np.ndarray]:
-    traj = read_trajectory(poses_file)
-    is_kitti = traj.frame_ids is not None and np.array_equal(traj.stamps_ns, traj.frame_ids)
-    if not is_kitti:
-        traj = source.pose_file_in_sensor_frame(Path(poses_file), traj)
-    if is_kitti:  # row i is the pose of frame_id i
+    fmt = detect_trajectory_format(poses_file)
+    traj = read_trajectory(poses_file, fmt)
+    if fmt != "kitti" and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError(f"{poses_file}: not a KITTI pose file (format {fmt}); --kitti-frame / --calib apply to KITTI "
+                          f"files only")
+    if fmt == "kitti":
         rows = _kitti_rows_in_sensor_frame(Path(poses_file), traj.poses, source, kitti_frame, calib_file)
+    else:
+        traj = source.pose_file_in_sensor_frame(Path(poses_file), traj)
+        rows = traj.poses
+    if fmt == "redwood":  # the file names its frames: the 'i' of each 'i j n' line
+        row_of = {int(f): k for k, f in enumerate(traj.frame_ids if traj.frame_ids is not None else [])}
+
+        def by_frame_id(frame: Frame) -> np.ndarray:
+            if frame.frame_id not in row_of:
+                raise SourceError(f"{poses_file}: no pose for frame {frame.frame_id} (the file has frames "
+                                  f"{min(row_of)}..{max(row_of)}, {len(row_of)} poses)")
+            return rows[row_of[frame.frame_id]]
+        return by_frame_id
+    if not has_stamps(traj, fmt):  # KITTI, 4x4 without stamps: row i is the pose of frame_id i
 
         def by_index(frame: Frame) -> np.ndarray:
             if frame.frame_id >= len(rows):
                 raise SourceError(f"{poses_file}: {len(rows)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
             return rows[frame.frame_id]
         return by_index
-    if kitti_frame != "auto" or calib_file is not None:
-        raise ConfigError(f"{poses_file}: not a KITTI pose file; --kitti-frame / --calib apply to KITTI files only")
     stamps = traj.stamps_ns
 
     def by_stamp(frame: Frame) -> np.ndarray:

@@ -87,6 +87,11 @@ class FrameSource:
     def frame_ids(self) -> list[int]:
         return [self._frame_id(i) for i in self._indices()]
 
+    def stamps_ns(self) -> list[int | None]:
+        """The selected frames' stamps without reading the frames (``None`` where the format knows them only
+        from the frame itself)."""
+        return [self._stamp_ns(i) for i in self._indices()]
+
     def frame(self, index: int) -> Frame:
         """The ``index``-th frame of this (possibly sliced) source."""
         indices = self._indices()
@@ -269,12 +274,14 @@ def open_source(path: str | Path, format: str | None = None, **options: Any) -> 
     for spec in formats.values():
         tried.append(spec.name)
         try:
-            if spec.detect(path):
-                logger.info("%s: detected format %s", path, spec.name)
-                return spec.open(path, **options)
+            detected = spec.detect(path)
         except SourceError:
             raise
         except Exception as exc:  # a detector must not hide the others
             logger.debug("%s: detector %s failed: %s", path, spec.name, exc)
+            continue
+        if detected:  # what the opener of the detected format raises (a refused option, ...) is its answer
+            logger.info("%s: detected format %s", path, spec.name)
+            return spec.open(path, **options)
     raise SourceError(f"{path}: cannot tell the format; tried {', '.join(tried)} (pass format= / --format)")
 

@@ -2,13 +2,15 @@
 
 Layout::
 
-    <folder>/scan_000000.pcd, scan_000001.pcd, ...   (or .ply; any name with a number in it)
-    [a pose file given with poses=...]                TUM / KITTI / EuRoC / Redwood .log, row k = k-th cloud
+    <folder>/scan_000000.pcd, scan_000001.pcd, ...   (or .ply; any name with a number in it, or names that are stamps)
+    [times.txt | timestamps.txt | stamps.txt]        optional stamps, seconds, one line per cloud
+    [a pose file given with poses=...]                TUM / KITTI / EuRoC / Redwood .log / 4x4, row k = k-th cloud
 
-Files are ordered by the last number in their name, which is also the ``frame_id``. Without a pose file
-the frames carry no estimate (``PoseSource.NONE``); with one, row ``k`` of it is the estimate of the
-``k``-th cloud (``PoseSource.LOG``). Stamps come from the pose file when it has real stamps (TUM, EuRoC),
-else they are ``frame_id * period_ns``.
+Files are ordered by the last number in their name, which is also the ``frame_id``; names that are stamps
+(``1630577758.569490.pcd``) are ordered by stamp and the ``frame_id`` is the index in that order. Without a pose
+file the frames carry no estimate (``PoseSource.NONE``); with one, row ``k`` of it is the estimate of the
+``k``-th cloud (``PoseSource.LOG``). Where the stamps come from is :class:`CloudFolder`'s precedence
+(docs/sources-datasets.md); normals and per-point times are checked by :mod:`driftmap.sources.point_fields`.
 
 This module also holds the small helpers every folder-of-numbered-files source here shares: numbering,
 stamp-order checks and option validation.
@@ -28,10 +30,12 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from driftmap.errors import SourceError, TransformError
+from driftmap.errors import ConfigError, SourceError, TransformError
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
-from driftmap.sources.base import FrameSource, register_source
-from driftmap.trajectory import Trajectory, detect_trajectory_format, read_trajectory
+from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
+from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, point_time_offsets_ns
+from driftmap.sources.stamps import STAMP_FILE_NAMES, period_problem, read_times, rows_for_frames, stamps_from_file_names
+from driftmap.trajectory import Trajectory, detect_trajectory_format, has_stamps, read_trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -146,15 +150,54 @@ def pose_or_none(T_world_sensor: NDArray[np.float64] | None, source: PoseSource)
 
 # ---- the cloud-folder source ------------------------------------------------------------------------------------
 
+#: files beside the clouds that may be a pose file whose stamps are the clouds' stamps (4x4 blocks with stamps)
+_POSE_FILE_SUFFIXES = (".csv", ".txt", ".log")
+
+
+def _cloud_paths(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(f for f in folder.iterdir() if f.name.lower().endswith(CLOUD_SUFFIXES) and f.is_file())
+
+
+def _ply_properties(file: Path) -> list[str]:
+    """The vertex property names a PLY header declares (empty when it cannot be read)."""
+    names: list[str] = []
+    try:
+        with file.open("rb") as fh:
+            element = None
+            for _ in range(1000):
+                line = fh.readline()
+                if not line or line.strip() == b"end_header":
+                    break
+                parts = line.decode("ascii", "replace").split()
+                if parts[:1] == ["element"] and len(parts) >= 2:
+                    element = parts[1]
+                elif parts[:1] == ["property"] and element == "vertex" and len(parts) >= 3 and parts[1] != "list":
+                    names.append(parts[-1])
+    except OSError:
+        return []
+    return names
+
 
 class CloudFolder(FrameSource):
-    """A folder of ``.ply`` / ``.pcd`` scans (points in the sensor frame), ordered by the number in the name.
+    """A folder of ``.ply`` / ``.pcd`` scans (points in the sensor frame), ordered by the number in the name, or
+    by the stamp when the names are stamps.
 
     Options:
-        poses: optional pose file (TUM, KITTI, EuRoC or Redwood ``.log``; ``poses_format`` to skip detection);
-            row ``k`` is ``T_world_sensor`` of the ``k``-th cloud, carried as ``PoseSource.LOG``.
+        poses: optional pose file (TUM, KITTI, EuRoC, Redwood ``.log`` or 4x4 blocks; ``poses_format`` to skip
+            detection); row ``k`` is ``T_world_sensor`` of the ``k``-th cloud, carried as ``PoseSource.LOG``.
         sensor_kind: ``"lidar"`` (default) or ``"depth_camera"``; sensor_name: defaults to the kind.
-        period_ns: stamp step when the pose file has no stamps (or there is none): ``frame_id * period_ns``.
+        period_ns: stamps ``frame_id * period_ns`` for a folder without stamps of its own (refused with a
+            :class:`ConfigError` when it has some).
+
+    Stamps, first that applies (``describe()["stamps"]`` says which): (a) the ``poses`` file when its rows have
+    stamps (TUM, EuRoC, 4x4 with stamps); (b) file names that are stamps
+    (:func:`driftmap.sources.stamps.name_stamp_ns`: s with a fraction, ms, us or ns; then the frame ids are the
+    files' indices in stamp order); (c) a stamp file in the folder (``times.txt``, ``timestamps.txt``,
+    ``stamps.txt``: seconds, one line per cloud or per frame number); (d) a pose file in the folder whose 4x4
+    blocks carry stamps (BALM's ``alidarPose.csv``): its stamps only, never its poses; (e) ``period_ns``;
+    (f) the nominal 10 Hz, with a warning.
     """
 
     format_name = "cloud_folder"
@@ -168,7 +211,7 @@ class CloudFolder(FrameSource):
         sensor_kind: str | SensorKind = SensorKind.LIDAR,
         sensor_name: str | None = None,
         sensor_frame: str | None = None,
-        period_ns: int = DEFAULT_PERIOD_NS,
+        period_ns: int | None = None,
         poses_from_ground_truth: bool = False,
         frames: str | slice | None = None,
         lenient: bool = False,
@@ -185,19 +228,22 @@ class CloudFolder(FrameSource):
             ) from None
         self.sensor_name = sensor_name or self.sensor_kind.value
         self.sensor_frame = sensor_frame or self.sensor_name
-        if int(period_ns) <= 0:
+        if period_ns is not None and int(period_ns) <= 0:
             raise SourceError(f"{self.path}: period_ns must be positive, got {period_ns}")
-        files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES)
+        named = stamps_from_file_names(_cloud_paths(self.path), f"{self.path} (point-cloud folder)")
+        if named is not None:
+            files = [(k, file) for k, (_, file) in enumerate(named[0])]
+        else:
+            files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES)
         ids = [n for n, _ in files]
         self.poses_path = None if poses is None else Path(poses)
         self._poses: Trajectory | None = None
-        stamps = [n * int(period_ns) for n in ids]
-        stamps_what = f"{self.path} (nominal stamps frame_id * {int(period_ns)} ns)"
+        poses_fmt = None
         if self.poses_path is not None:
             if not self.poses_path.is_file():
                 raise SourceError(f"{self.poses_path}: pose file not found")
-            fmt = poses_format or detect_trajectory_format(self.poses_path)
-            self._poses = read_trajectory(self.poses_path, fmt)
+            poses_fmt = poses_format or detect_trajectory_format(self.poses_path)
+            self._poses = read_trajectory(self.poses_path, poses_fmt)
             if len(self._poses) < len(files):
                 raise SourceError(
                     f"{self.poses_path}: {len(self._poses)} poses for {len(files)} clouds; the first cloud without "
@@ -206,12 +252,93 @@ class CloudFolder(FrameSource):
             if len(self._poses) > len(files):
                 logger.warning("%s: %d poses for %d clouds; the extra rows are ignored",
                                self.poses_path, len(self._poses), len(files))
-            if fmt in ("tum", "euroc"):
-                stamps = [int(s) for s in self._poses.stamps_ns[: len(files)]]
-                stamps_what = str(self.poses_path)
+        stamps, self.stamps_origin, stamps_what = self._stamps(ids, named, poses_fmt, period_ns)
         keep = check_increasing_stamps(stamps, ids, stamps_what, lenient=lenient, skipped=self.skipped)
         # (frame id, file, stamp, pose row)
         self._entries = [(ids[k], files[k][1], stamps[k], k) for k in keep]
+
+    def _stamps(self, ids: list[int], named: tuple[list[tuple[int, Path]], str] | None, poses_fmt: str | None,
+                period_ns: int | None) -> tuple[list[int], str, str]:
+        """The clouds' stamps, where they come from (``describe()["stamps"]``) and what to name in messages."""
+        found: tuple[list[int], str, str] | None = None
+        if self._poses is not None and poses_fmt is not None and has_stamps(self._poses, poses_fmt):
+            assert self.poses_path is not None
+            found = ([int(s) for s in self._poses.stamps_ns[: len(ids)]], self.poses_path.name, str(self.poses_path))
+        elif named is not None:
+            found = ([s for s, _ in named[0]], f"file names ({named[1]})", f"{self.path} (stamps in the file names)")
+        else:
+            found = self._stamp_file(ids) or self._pose_file_stamps(ids)
+        if found is not None:
+            if period_ns is not None:
+                raise ConfigError(f"period_ns={int(period_ns)} (--period-s {int(period_ns) / 1e9:g}): {self.path} has "
+                                  f"stamps of its own ({found[1]}); they are used: remove the option")
+            logger.info("%s: frame stamps from %s", self.path, found[2])
+            return found
+        if period_ns is not None:
+            origin = f"period {int(period_ns) / 1e9:g} s (period_ns / --period-s)"
+            return [n * int(period_ns) for n in ids], origin, f"{self.path} (stamps frame_id * {int(period_ns)} ns)"
+        logger.warning("%s: no stamps in the folder; they are assumed: frame_id * %d ns (nominal 10 Hz). Give them with "
+                       "a stamp file (%s: seconds, one line per cloud), a pose file with stamps (poses=) "
+                       "or the scan period (period_ns, --period-s)", self.path, DEFAULT_PERIOD_NS,
+                       " / ".join(STAMP_FILE_NAMES))
+        return ([n * DEFAULT_PERIOD_NS for n in ids], "assumed 10 Hz",
+                f"{self.path} (nominal stamps frame_id * {DEFAULT_PERIOD_NS} ns)")
+
+    def _stamp_file(self, ids: list[int]) -> tuple[list[int], str, str] | None:
+        """(c) ``times.txt`` / ``timestamps.txt`` / ``stamps.txt``: a file that does not fit the clouds raises."""
+        present = [self.path / name for name in STAMP_FILE_NAMES if (self.path / name).is_file()]
+        if not present:
+            return None
+        if len(present) > 1:
+            raise SourceError(f"{present[0]} and {present[1]}: two stamp files for the clouds of {self.path}; keep one")
+        file = present[0]
+        times = read_times(file)
+        fit = rows_for_frames(len(times), ids)
+        if fit is None:
+            raise SourceError(f"{file}: {len(times)} stamps for {len(ids)} clouds (frames {ids[0]}..{ids[-1]}); a stamp "
+                              f"file needs one line per cloud, or one per frame number of the whole sequence")
+        stamps = [times[r] for r in fit[0]]
+        if all(b > a for a, b in zip(stamps, stamps[1:])):
+            problem = period_problem(stamps)
+            if problem is not None:
+                raise SourceError(f"{file}: read as seconds, the stamps of the {len(ids)} clouds do not fit a sensor: "
+                                  f"{problem} (is the file in seconds?)")
+        return stamps, file.name, f"{file} ({fit[1]})"
+
+    def _pose_file_stamps(self, ids: list[int]) -> tuple[list[int], str, str] | None:
+        """(d) a pose file beside the clouds whose 4x4 blocks carry stamps (not its poses): used when exactly one
+        fits the clouds; a file that does not fit is logged and left alone."""
+        usable: list[tuple[list[int], str, str]] = []
+        for file in sorted(self.path.iterdir()):
+            if (not file.name.lower().endswith(_POSE_FILE_SUFFIXES) or file.name in STAMP_FILE_NAMES
+                    or not file.is_file() or (self.poses_path is not None and same_file_or_copy(file, self.poses_path))):
+                continue
+            try:
+                if detect_trajectory_format(file) != "4x4":
+                    continue
+                traj = read_trajectory(file, "4x4")
+            except (SourceError, OSError, UnicodeDecodeError, ValueError) as exc:
+                logger.debug("%s: not a pose file with stamps (%s)", file, exc)
+                continue
+            if not has_stamps(traj, "4x4"):
+                continue
+            fit = rows_for_frames(len(traj), ids)
+            if fit is None:
+                logger.warning("%s: its %d stamped poses do not fit the %d clouds (frames %d..%d) of %s; its stamps "
+                               "are not used", file, len(traj), len(ids), ids[0], ids[-1], self.path)
+                continue
+            stamps = [int(traj.stamps_ns[r]) for r in fit[0]]
+            problem = period_problem(stamps)
+            if problem is not None:
+                logger.warning("%s: its stamps are not used for the clouds of %s: %s", file, self.path, problem)
+                continue
+            usable.append((stamps, file.name, f"{file} (only the stamps of its 4x4 poses, {fit[1]}; its poses are used "
+                                              f"only when given with poses= or build --poses)"))
+        if len(usable) > 1:
+            logger.warning("%s: %s all carry stamps for the clouds; none is used (pass the right one with poses=)",
+                           self.path, ", ".join(u[1] for u in usable))
+            return None
+        return usable[0] if usable else None
 
     def _count(self) -> int:
         return len(self._entries)
@@ -223,33 +350,45 @@ class CloudFolder(FrameSource):
         return self._entries[index][2]
 
     def read_cloud(self, index: int) -> tuple[NDArray[np.float32], PointAttributes]:
-        """Points (float32, as stored) and attributes (intensity, colours, normals) of the cloud at ``index``."""
-        frame_id, file, _, _ = self._entries[index]
+        """Points (float32, as stored) and attributes (intensity, colours, normals, per-point times) of the cloud
+        at ``index``; normals and times only when they pass :mod:`driftmap.sources.point_fields`' checks."""
+        frame_id, file, stamp_ns, _ = self._entries[index]
         if not file.is_file():
             raise SourceError(f"{file}: cloud of frame {frame_id} not found")
         with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
             cloud = o3d.t.io.read_point_cloud(str(file))
         if "positions" not in cloud.point or cloud.point["positions"].shape[0] == 0:
             raise SourceError(f"{file}: no points could be read (frame {frame_id}; corrupt or empty cloud)")
+        what = f"{file} (frame {frame_id})"
         points = cloud.point["positions"].numpy().astype(np.float32, copy=False)
-        if not np.all(np.isfinite(points)):
-            bad = int(np.count_nonzero(~np.all(np.isfinite(points), axis=1)))
-            logger.warning("%s: dropping %d points with NaN/inf coordinates (frame %d)", file, bad, frame_id)
         finite = np.all(np.isfinite(points), axis=1)
+        if not finite.all():
+            logger.warning("%s: dropping %d points with NaN/inf coordinates (frame %d)", file,
+                           int(np.count_nonzero(~finite)), frame_id)
+
+        def kept(values: NDArray) -> NDArray:
+            return values if finite.all() else values[finite]
+
         attrs: dict[str, Any] = {}
         if "intensity" in cloud.point:
-            attrs["intensity"] = cloud.point["intensity"].numpy().reshape(-1).astype(np.float32)
+            attrs["intensity"] = kept(cloud.point["intensity"].numpy().reshape(-1).astype(np.float32))
         if "colors" in cloud.point:
             colors = cloud.point["colors"].numpy()
             if colors.dtype != np.uint8:  # Open3D reads colours as floats in 0..1
                 colors = np.clip(np.rint(colors.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
-            attrs["color_rgb"] = colors
+            attrs["color_rgb"] = kept(colors)
         if "normals" in cloud.point:
-            attrs["normal_sensor"] = cloud.point["normals"].numpy().astype(np.float32)
-        if not finite.all():
-            points = points[finite]
-            attrs = {k: v[finite] for k, v in attrs.items()}
-        return points, PointAttributes(**attrs)
+            attrs["normal_sensor"] = checked_normals(kept(cloud.point["normals"].numpy()), what)
+        time_field = next((f for f in POINT_TIME_FIELDS if f in cloud.point), None)
+        if time_field is not None:
+            values = kept(cloud.point[time_field].numpy().reshape(-1))
+            attrs["time_offset_ns"] = point_time_offsets_ns(values, stamp_ns, time_field, what)
+        elif file.suffix.lower() == ".ply":
+            dropped = [f for f in _ply_properties(file) if f in POINT_TIME_FIELDS]
+            if dropped:
+                logger.warning("%s: per-point time property %r not used: Open3D's PLY reader skips its type "
+                               "(it reads int, uchar, uint8, uint16, float, double; not uint / uint32)", what, dropped[0])
+        return kept(points), PointAttributes(**attrs)
 
     def _load(self, index: int) -> Frame:
         frame_id, file, stamp_ns, row = self._entries[index]
@@ -285,7 +424,7 @@ class CloudFolder(FrameSource):
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "sensor_kind": self.sensor_kind.value,
-                "poses": None if self.poses_path is None else str(self.poses_path)}
+                "poses": None if self.poses_path is None else str(self.poses_path), "stamps": self.stamps_origin}
 
 
 def _has_cloud_files(path: Path) -> bool:

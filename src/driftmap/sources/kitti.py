@@ -32,7 +32,8 @@ from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
-from driftmap.trajectory import Trajectory, _stamp_s_to_ns, read_kitti
+from driftmap.sources.stamps import read_times
+from driftmap.trajectory import Trajectory, read_kitti
 
 logger = logging.getLogger(__name__)
 
@@ -66,23 +67,6 @@ def read_calib_tr(file: Path) -> NDArray[np.float64]:
         except TransformError as exc:
             raise SourceError(str(exc)) from exc
     raise SourceError(f"{file}: no 'Tr:' line (Velodyne-to-cam0 transform)")
-
-
-def read_times(file: Path) -> list[int]:
-    """``times.txt`` (seconds, one row per frame) as int ns, exactly as written."""
-    try:
-        lines = file.read_text().splitlines()
-    except OSError as exc:
-        raise SourceError(f"{file}: cannot read ({exc})") from exc
-    out = []
-    for lineno, line in enumerate(lines, start=1):
-        if not line.strip():
-            continue
-        try:
-            out.append(_stamp_s_to_ns(line))
-        except ValueError as exc:
-            raise SourceError(f"{file}:{lineno}: {line.strip()!r} is not a number of seconds") from exc
-    return out
 
 
 def velo_poses_from_cam0(T_world_cam0: NDArray[np.float64], T_cam0_velo: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -55,6 +55,12 @@ from driftmap.preprocess.depth import (
     depth_frame,
 )
 from driftmap.sources.base import FrameSource, register_source
+from driftmap.sources.point_fields import (
+    POINT_TIME_FIELDS,
+    PointTimeReference,
+    checked_normals,
+    point_time_offsets_ns,
+)
 from driftmap.sources.tf import TfBuffer, TfError, TransformSeries, normalize_frame, transforms_from_tum
 
 logger = logging.getLogger(__name__)
@@ -89,8 +95,6 @@ DEPTH_ENCODINGS: dict[str, tuple[Any, float | None]] = {
 
 #: ``sensor_msgs/PointField`` datatype -> numpy type code.
 POINTFIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
-#: Per-point time fields, in the order they are looked for.
-POINT_TIME_FIELDS = ("t", "offset_time", "time", "timestamp", "time_stamp")
 
 
 class StampSource(enum.Enum):
@@ -100,15 +104,6 @@ class StampSource(enum.Enum):
     """``header.stamp`` of the message (the sensor's acquisition time)."""
     LOG = "log"
     """The time the recorder logged the message (MCAP ``log_time``, bag receive time)."""
-
-
-class PointTimeReference(enum.Enum):
-    """How float per-point time fields (``time``, ``timestamp``) relate to the frame stamp."""
-
-    AUTO = "auto"
-    """Absolute when the values are closer to the frame stamp than to zero, else relative."""
-    RELATIVE = "relative"
-    ABSOLUTE = "absolute"
 
 
 def normalize_type(name: str) -> str:
@@ -682,48 +677,6 @@ def pointcloud2_array(msg: Any, what: str = "PointCloud2") -> NDArray[np.void]:
     return rows.reshape(-1)
 
 
-def _time_offsets_ns(
-    values: NDArray, stamp_ns: int, reference: PointTimeReference, field: str, what: str
-) -> NDArray[np.int64]:
-    """Per-point times -> int64 ns relative to the frame stamp (see :class:`PointTimeReference`)."""
-    if values.size == 0:
-        return np.empty(0, dtype=np.int64)
-    sample = values[:: max(1, values.size // 1024)]
-    if values.dtype.kind in "iu":  # integer: nanoseconds
-        v = values.astype(np.int64)
-        median = float(np.median(sample.astype(np.float64)))
-        absolute = reference is PointTimeReference.ABSOLUTE or (
-            reference is PointTimeReference.AUTO and stamp_ns > 0 and abs(median - stamp_ns) < stamp_ns / 2
-        )
-        return v - stamp_ns if absolute else v
-    if values.dtype.kind != "f":
-        raise SourceError(f"{what}: per-point time field {field!r} has unsupported type {values.dtype}")
-    v = values.astype(np.float64)
-    finite = sample[np.isfinite(sample)].astype(np.float64)
-    median = float(np.median(finite)) if finite.size else 0.0
-    stamp_s = stamp_ns / 1e9
-    if reference is PointTimeReference.RELATIVE:
-        unit = "relative_s"
-    elif reference is PointTimeReference.ABSOLUTE:
-        unit = "absolute_ns" if median > 1e14 else "absolute_s"
-    elif stamp_ns > 0 and abs(median - stamp_ns) < stamp_ns / 2:
-        unit = "absolute_ns"  # float nanoseconds (e.g. livox_ros_driver2 ``timestamp``)
-    elif stamp_s > 0 and abs(median - stamp_s) < stamp_s / 2:
-        unit = "absolute_s"
-    else:
-        unit = "relative_s"
-    with np.errstate(invalid="ignore"):
-        if unit == "relative_s":
-            out = np.rint(v * 1e9)
-        elif unit == "absolute_ns":
-            out = np.rint(v - float(stamp_ns))
-        else:
-            whole_s = stamp_ns // 1_000_000_000
-            out = np.rint((v - whole_s) * 1e9) - float(stamp_ns - whole_s * 1_000_000_000)
-    out = np.where(np.isfinite(out), out, 0.0)
-    return out.astype(np.int64)
-
-
 @dataclass(frozen=True)
 class CloudPoints:
     """The usable content of one PointCloud2: finite points, their attributes and the rejection counts."""
@@ -782,11 +735,11 @@ def pointcloud2_points(
         color = np.stack([kept(arr[c]) for c in ("r", "g", "b")], axis=1).astype(np.uint8)
     normals = None
     if all(c in names for c in ("normal_x", "normal_y", "normal_z")):
-        normals = np.stack([kept(arr[c]) for c in ("normal_x", "normal_y", "normal_z")], axis=1).astype(np.float32)
+        normals = checked_normals(np.stack([kept(arr[c]) for c in ("normal_x", "normal_y", "normal_z")], axis=1), what)
     time_field = next((f for f in POINT_TIME_FIELDS if f in names), None)
     offsets = None
     if time_field is not None:
-        offsets = _time_offsets_ns(kept(arr[time_field]), stamp_ns, point_time, time_field, what)
+        offsets = point_time_offsets_ns(kept(arr[time_field]), stamp_ns, time_field, what, point_time)
     ring = kept(arr["ring"]).astype(np.uint16) if "ring" in names else None
     attributes = PointAttributes(intensity=intensity, color_rgb=color, normal_sensor=normals, time_offset_ns=offsets)
     return CloudPoints(xyz, attributes, n, counts, ring, time_field)

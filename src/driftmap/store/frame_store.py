@@ -62,7 +62,7 @@ from driftmap.store.ledger import (
     PoseMatchMode,
     Revision,
     _preview,
-    match_trajectory,
+    match_pose_rows,
     stamp_ranges_text,
 )
 from driftmap.store.segment import (
@@ -75,7 +75,7 @@ from driftmap.store.segment import (
     scan_segment,
     unpack_attributes,
 )
-from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+from driftmap.trajectory import Trajectory, has_stamps, read_trajectory, write_kitti, write_tum
 
 logger = logging.getLogger(__name__)
 
@@ -96,8 +96,12 @@ class StoreCorruptError(StoreError):
 
 
 class TrajectoryFormat(enum.Enum):
+    """Pose-file formats of ``correct`` / ``export`` (export writes TUM and KITTI only)."""
+
     TUM = "tum"
     KITTI = "kitti"
+    REDWOOD = "redwood"
+    MATRIX_4X4 = "4x4"
 
 
 @dataclass(frozen=True)
@@ -844,10 +848,10 @@ class FrameStore:
                                   kitti_frame: str = "auto", calib_file: str | Path | None = None) -> Trajectory:
         """The rows of a pose file read for this store's frames (``correct``, ``diagnose --gt``) as their
         ``T_world_sensor``: KITTI rows by :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (a KITTI data
-        set's cam0 ``poses.txt`` on its Velodyne scans), TUM rows by the data set the frames come from
+        set's cam0 ``poses.txt`` on its Velodyne scans), the rows of other formats by the data set the frames come from
         (:func:`driftmap.sources.base.pose_file_in_store_sensor_frame`: the synthetic log's camera files on its
         LiDAR scans); anything else as it is."""
-        if parse_enum(TrajectoryFormat, format, f"{file}: format") is TrajectoryFormat.TUM:
+        if parse_enum(TrajectoryFormat, format, f"{file}: format") is not TrajectoryFormat.KITTI:
             from driftmap.sources.base import pose_file_in_store_sensor_frame
 
             return pose_file_in_store_sensor_frame(self.path, file, trajectory)
@@ -861,10 +865,11 @@ class FrameStore:
                      match: PoseMatchMode | str | None = None, max_dt_ns: int = 10_000_000,
                      source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True,
                      kitti_frame: str = "auto", calib_file: str | Path | None = None) -> tuple[Revision, PoseMatch]:
-        """Import a TUM or KITTI pose file as a new revision.
+        """Import a TUM, KITTI, Redwood ``.log`` or ``4x4`` pose file as a new revision.
 
-        TUM files match by stamp (``max_dt_ns`` tolerance) unless ``match='index'``; KITTI files match by
-        index: row i is the pose of ``frame_id`` i. Rows for frames not in the store are ignored and
+        Files with stamps (TUM, 4x4 blocks with stamps) match by stamp (``max_dt_ns`` tolerance) unless
+        ``match='index'``; files without (KITTI, 4x4 blocks without stamps) match by index: row i is the pose of
+        ``frame_id`` i; a Redwood ``.log`` by the frame ids it names. Rows for frames not in the store are ignored and
         reported in the returned :class:`PoseMatch`; stored frames without a row are propagated from the
         matched ones (``propagate``) or keep their pose.
 
@@ -877,16 +882,21 @@ class FrameStore:
         """
         fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
         source = parse_enum(PoseSource, source, f"{file}: source")
-        default_mode = PoseMatchMode.STAMP if fmt is TrajectoryFormat.TUM else PoseMatchMode.INDEX
-        mode = default_mode if match is None else parse_enum(PoseMatchMode, match, f"{file}: match")
-        if fmt is TrajectoryFormat.TUM and (kitti_frame != "auto" or calib_file is not None):
+        asked = None if match is None else parse_enum(PoseMatchMode, match, f"{file}: match")
+        if fmt is not TrajectoryFormat.KITTI and (kitti_frame != "auto" or calib_file is not None):
             raise ConfigError(f"{file}: kitti_frame / calib_file apply to KITTI pose files only (format {fmt.value})")
-        if fmt is TrajectoryFormat.KITTI and mode is PoseMatchMode.STAMP:
+        if fmt is TrajectoryFormat.KITTI and asked is PoseMatchMode.STAMP:
             raise ConfigError(f"{file}: KITTI pose files have no stamps (row i is frame_id i): match by index")
-        trajectory = read_tum(file) if fmt is TrajectoryFormat.TUM else read_kitti(file)
+        trajectory = read_trajectory(file, fmt.value)
+        stamped = has_stamps(trajectory, fmt.value)
+        mode = asked or (PoseMatchMode.STAMP if stamped else PoseMatchMode.INDEX)
+        if mode is PoseMatchMode.STAMP and not stamped:
+            raise ConfigError(f"{file}: this {fmt.value} pose file has no stamps ("
+                              + ("its blocks end in 0 0 0 1: block i is frame_id i" if fmt is TrajectoryFormat.MATRIX_4X4
+                                 else "it names its frames by id") + "): match by index")
         ids = self.ledger.frame_ids
-        if (match is None and mode is PoseMatchMode.INDEX and len(trajectory) == len(ids) and len(ids) > 1
-                and not np.array_equal(ids, np.arange(len(ids)))):
+        if (match is None and mode is PoseMatchMode.INDEX and fmt is not TrajectoryFormat.REDWOOD
+                and len(trajectory) == len(ids) and len(ids) > 1 and not np.array_equal(ids, np.arange(len(ids)))):
             # the signature of a file written one row per *stored* frame (a KITTI export of a sliced store), read
             # as one row per frame *id*; an explicit match="index" takes the rows as frame ids all the same
             raise StoreError(
@@ -896,11 +906,12 @@ class FrameStore:
                 f"by index explicitly if row i really is frame_id i")
         trajectory = self.pose_rows_in_sensor_frame(file, trajectory, fmt.value, kitti_frame=kitti_frame,
                                                     calib_file=calib_file)
-        matched = match_trajectory(trajectory, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+        matched = match_pose_rows(trajectory, fmt.value, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode,
+                                  max_dt_ns=max_dt_ns)
         if not matched.poses:
             why = f" ({stamp_ranges_text(trajectory, self.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
             raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}){why}; nothing imported")
-        if fmt is TrajectoryFormat.TUM and mode is PoseMatchMode.INDEX and matched.rows:
+        if stamped and mode is PoseMatchMode.INDEX and matched.rows:
             # rows taken as frame ids although the file has stamps: say so when the stamps tell another story
             fids = np.fromiter(matched.rows, dtype=np.int64)
             rows = np.fromiter(matched.rows.values(), dtype=np.int64)
@@ -923,6 +934,8 @@ class FrameStore:
         """Write the poses of a revision: TUM with the frames' stamps, or KITTI one row per stored frame in
         frame order (which reads back as row i = frame_id i only when the ids are 0..N-1: a warning otherwise)."""
         fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
+        if fmt not in (TrajectoryFormat.TUM, TrajectoryFormat.KITTI):
+            raise ConfigError(f"{file}: trajectories are exported as tum or kitti, not {fmt.value}")
         ids = self.ledger.frame_ids
         if fmt is TrajectoryFormat.KITTI and not np.array_equal(ids, np.arange(len(ids))):
             # KITTI has neither stamps nor ids: the readers (correct, build --poses, diagnose --gt) take row i as

@@ -674,6 +674,27 @@ class PoseMatch:
         return len(self.poses)
 
 
+def match_pose_rows(
+    trajectory: Trajectory,
+    format: str,
+    frame_ids: ArrayLike,
+    stamps_ns: ArrayLike | None,
+    *,
+    match: PoseMatchMode | str,
+    max_dt_ns: int = 10_000_000,
+) -> PoseMatch:
+    """:func:`match_trajectory` for a pose file read as ``format`` (``correct``, ``diagnose --gt``): a Redwood
+    ``.log`` names its frames (the ``i`` of each ``i j n`` line), so ``match="index"`` takes those ids rather than
+    the row numbers; every other format as :func:`match_trajectory` (``index``: row i is frame_id i)."""
+    mode = parse_enum(PoseMatchMode, match, "unknown pose match mode", StoreError)
+    if format == "redwood" and mode is PoseMatchMode.INDEX:
+        ids = np.asarray(frame_ids, dtype=np.int64).reshape(-1)
+        named = trajectory.frame_ids if trajectory.frame_ids is not None else np.arange(len(trajectory))
+        return match_trajectory(Trajectory(np.asarray(named, dtype=np.int64), trajectory.poses, trajectory.frame_ids),
+                                ids, ids, match=PoseMatchMode.STAMP, max_dt_ns=0)  # the same id, exactly
+    return match_trajectory(trajectory, frame_ids, stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+
+
 def stamp_ranges_text(trajectory: Trajectory, stamps_ns: ArrayLike) -> str:
     """The file's and the frames' stamp ranges, for a message about stamps that do not meet."""
     def span(values: NDArray[np.int64]) -> str:

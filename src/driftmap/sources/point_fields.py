@@ -1,0 +1,143 @@
+"""Per-point fields a reader takes from a file -- normals and per-point times -- checked against the data before
+they are used. One owner of these rules, shared by the cloud-folder (PCD / PLY) and the ROS PointCloud2 readers.
+
+**Normals.** A normal field is kept only when *every* normal of the cloud is finite and unit length within
+:data:`NORMAL_UNIT_TOLERANCE`. Otherwise the cloud's normals are dropped, all of them, with one warning naming the
+file / message and the counts (zero, NaN / inf, not unit length): a field that is partly wrong is not trusted
+(BALM's PCD files carry ``normal_x/y/z`` fields that are all zero; PCL writes NaN where it could not estimate
+one). Without normals the consumers estimate their own from the points (the diagnostics do).
+
+**Per-point times** (:data:`POINT_TIME_FIELDS`) become ``PointAttributes.time_offset_ns``, int64 ns relative to
+the frame stamp. The unit is decided from the data (:func:`point_time_offsets_ns`): integer fields are
+nanoseconds (Livox ``offset_time``, Ouster ``t``), relative to the scan or absolute when they are close to the
+frame stamp; float fields are seconds relative to the scan (Velodyne / Ouster ROS ``time``, may be negative) or
+absolute epoch seconds / nanoseconds when they are close to the frame stamp (Hesai ``timestamp``). The result
+is then checked: a field with a non-finite value, or whose offsets span more than :data:`MAX_SCAN_SPAN_NS` or
+lie more than that from the frame stamp, is not used (``None``, one warning naming the file / frame / field).
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap.errors import SourceError
+
+logger = logging.getLogger(__name__)
+
+NORMAL_UNIT_TOLERANCE = 1e-2
+"""A normal is unit length when ``abs(|n| - 1) <= NORMAL_UNIT_TOLERANCE`` (float32 normals written by any tool
+are within 1e-6; a field of unnormalised vectors is off by far more)."""
+ZERO_NORMAL_M = 1e-6
+"""A normal shorter than this counts as zero (no normal), not as merely not unit length."""
+
+#: Per-point time fields, in the order they are looked for.
+POINT_TIME_FIELDS = ("t", "offset_time", "time", "timestamp", "time_stamp")
+
+MAX_SCAN_SPAN_NS = 1_000_000_000
+"""Per-point times of one scan span at most this (1 s: a 10 Hz spinning LiDAR spans 0.1 s, a 1 Hz scan 1 s)
+and lie within it of the frame stamp; anything else is not a time field of this scan (or not in its unit)."""
+
+
+class PointTimeReference(enum.Enum):
+    """How float per-point time fields (``time``, ``timestamp``) relate to the frame stamp."""
+
+    AUTO = "auto"
+    """Absolute when the values are closer to the frame stamp than to zero, else relative."""
+    RELATIVE = "relative"
+    ABSOLUTE = "absolute"
+
+
+def normal_problems(normals: NDArray) -> dict[str, int]:
+    """Counts of the normals that are ``non_finite`` (a NaN / inf component), ``zero`` (shorter than
+    :data:`ZERO_NORMAL_M`) and ``non_unit`` (finite, not zero, length off 1 by more than the tolerance)."""
+    n = np.asarray(normals, dtype=np.float64).reshape(-1, 3)
+    finite = np.all(np.isfinite(n), axis=1)
+    length = np.linalg.norm(np.where(finite[:, None], n, 0.0), axis=1)
+    zero = finite & (length < ZERO_NORMAL_M)
+    non_unit = finite & ~zero & (np.abs(length - 1.0) > NORMAL_UNIT_TOLERANCE)
+    return {"non_finite": int(np.count_nonzero(~finite)), "zero": int(np.count_nonzero(zero)),
+            "non_unit": int(np.count_nonzero(non_unit))}
+
+
+def checked_normals(normals: NDArray | None, what: str) -> NDArray[np.float32] | None:
+    """``normals`` (float32, as given) when every one is finite and unit length; otherwise ``None`` and one
+    warning naming ``what`` (the file or message, and the frame) and the counts. See the module docs."""
+    if normals is None:
+        return None
+    normals = np.asarray(normals)
+    counts = normal_problems(normals)
+    bad = sum(counts.values())
+    if not bad:
+        return normals.astype(np.float32, copy=False)
+    n = len(normals)
+    logger.warning("%s: normals not used (%d of %d are unusable: %d zero, %d NaN/inf, %d not unit length within %g); "
+                   "a normal field is used only when every normal is a unit vector", what, bad, n, counts["zero"],
+                   counts["non_finite"], counts["non_unit"], NORMAL_UNIT_TOLERANCE)
+    return None
+
+
+def _offsets_ns(values: NDArray, stamp_ns: int, reference: PointTimeReference, field: str,
+                what: str) -> tuple[NDArray[np.float64] | NDArray[np.int64], str]:
+    """Per-point times -> ns relative to the frame stamp (not yet checked), and how they were read."""
+    sample = values[:: max(1, values.size // 1024)]
+    if values.dtype.kind in "iu":  # integer: nanoseconds
+        v = values.astype(np.int64)
+        median = float(np.median(sample.astype(np.float64)))
+        absolute = reference is PointTimeReference.ABSOLUTE or (
+            reference is PointTimeReference.AUTO and stamp_ns > 0 and abs(median - stamp_ns) < stamp_ns / 2
+        )
+        return (v - stamp_ns, "absolute ns") if absolute else (v, "ns from the scan")
+    if values.dtype.kind != "f":
+        raise SourceError(f"{what}: per-point time field {field!r} has unsupported type {values.dtype}")
+    v = values.astype(np.float64)
+    finite = sample[np.isfinite(sample)].astype(np.float64)
+    median = float(np.median(finite)) if finite.size else 0.0
+    stamp_s = stamp_ns / 1e9
+    if reference is PointTimeReference.RELATIVE:
+        unit = "relative_s"
+    elif reference is PointTimeReference.ABSOLUTE:
+        unit = "absolute_ns" if median > 1e14 else "absolute_s"
+    elif stamp_ns > 0 and abs(median - stamp_ns) < stamp_ns / 2:
+        unit = "absolute_ns"  # float nanoseconds (e.g. livox_ros_driver2 ``timestamp``)
+    elif stamp_s > 0 and abs(median - stamp_s) < stamp_s / 2:
+        unit = "absolute_s"
+    else:
+        unit = "relative_s"
+    if unit == "relative_s":
+        return np.rint(v * 1e9), "s from the scan"
+    if unit == "absolute_ns":
+        return np.rint(v - float(stamp_ns)), "absolute ns"
+    whole_s = stamp_ns // 1_000_000_000
+    return np.rint((v - whole_s) * 1e9) - float(stamp_ns - whole_s * 1_000_000_000), "absolute s"
+
+
+def point_time_offsets_ns(values: NDArray, stamp_ns: int, field: str, what: str,
+                          reference: PointTimeReference = PointTimeReference.AUTO) -> NDArray[np.int64] | None:
+    """Per-point times of a scan stamped ``stamp_ns`` -> int64 ns relative to the stamp, or ``None`` (with one
+    warning naming ``what``, the field and why) when they are not plausible for one scan: a non-finite value,
+    a span over :data:`MAX_SCAN_SPAN_NS`, or an offset farther than that from the stamp (e.g. absolute epoch
+    times in a folder whose stamps are only assumed). See the module docs for the units."""
+    values = np.asarray(values).reshape(-1)
+    if values.size == 0:
+        return np.empty(0, dtype=np.int64)
+    if values.dtype.kind == "f" and not np.all(np.isfinite(values)):
+        bad = int(np.count_nonzero(~np.isfinite(values)))
+        logger.warning("%s: per-point time field %r not used: %d of %d values are NaN/inf", what, field, bad,
+                       values.size)
+        return None
+    with np.errstate(invalid="ignore", over="ignore"):
+        offsets, read_as = _offsets_ns(values, stamp_ns, reference, field, what)
+    lo, hi = float(np.min(offsets)), float(np.max(offsets))
+    limit = float(MAX_SCAN_SPAN_NS)
+    if hi - lo > limit or max(abs(lo), abs(hi)) > limit:
+        why = (f"its values span {(hi - lo) / 1e9:.6g} s" if hi - lo > limit else
+               f"its values lie {lo / 1e9:+.6g} .. {hi / 1e9:+.6g} s from the frame stamp {stamp_ns} ns")
+        logger.warning("%s: per-point time field %r not used: read as %s, %s, more than one scan (%g s) can; "
+                       "is the frame stamp right, and the field in that unit?", what, field, read_as, why,
+                       MAX_SCAN_SPAN_NS / 1e9)
+        return None
+    return np.asarray(offsets).astype(np.int64)
