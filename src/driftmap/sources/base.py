@@ -59,6 +59,8 @@ class FrameSource:
         self._selection: slice | None = parse_frame_slice(frames)
         self.skipped: list[tuple[int, str]] = []
         """(underlying index, reason) of frames skipped in lenient mode."""
+        self._warned: set[str] = set()
+        """What this source has warned about once already (later frames alike log at DEBUG)."""
 
     # ---- to implement
     def _count(self) -> int | None:

@@ -378,7 +378,7 @@ class CloudFolder(FrameSource):
                 colors = np.clip(np.rint(colors.astype(np.float64) * 255.0), 0, 255).astype(np.uint8)
             attrs["color_rgb"] = kept(colors)
         if "normals" in cloud.point:
-            attrs["normal_sensor"] = checked_normals(kept(cloud.point["normals"].numpy()), what)
+            attrs["normal_sensor"] = checked_normals(kept(cloud.point["normals"].numpy()), what, self._warned)
         time_field = next((f for f in POINT_TIME_FIELDS if f in cloud.point), None)
         if time_field is not None:
             values = kept(cloud.point[time_field].numpy().reshape(-1))

@@ -63,9 +63,12 @@ def normal_problems(normals: NDArray) -> dict[str, int]:
             "non_unit": int(np.count_nonzero(non_unit))}
 
 
-def checked_normals(normals: NDArray | None, what: str) -> NDArray[np.float32] | None:
+def checked_normals(normals: NDArray | None, what: str, warned: set[str] | None = None) -> NDArray[np.float32] | None:
     """``normals`` (float32, as given) when every one is finite and unit length; otherwise ``None`` and one
-    warning naming ``what`` (the file or message, and the frame) and the counts. See the module docs."""
+    warning naming ``what`` (the file or message, and the frame) and the counts. See the module docs.
+
+    ``warned``: a source's own set of what it has warned about; when it holds ``"normals"`` already, later frames
+    are logged at DEBUG (a log of 4,000 scans with zero normal fields warns once, not 4,000 times)."""
     if normals is None:
         return None
     normals = np.asarray(normals)
@@ -74,9 +77,14 @@ def checked_normals(normals: NDArray | None, what: str) -> NDArray[np.float32] |
     if not bad:
         return normals.astype(np.float32, copy=False)
     n = len(normals)
-    logger.warning("%s: normals not used (%d of %d are unusable: %d zero, %d NaN/inf, %d not unit length within %g); "
-                   "a normal field is used only when every normal is a unit vector", what, bad, n, counts["zero"],
-                   counts["non_finite"], counts["non_unit"], NORMAL_UNIT_TOLERANCE)
+    again = warned is not None and "normals" in warned
+    logger.log(logging.DEBUG if again else logging.WARNING,
+               "%s: normals not used (%d of %d are unusable: %d zero, %d NaN/inf, %d not unit length within %g); "
+               "a normal field is used only when every normal is a unit vector%s", what, bad, n, counts["zero"],
+               counts["non_finite"], counts["non_unit"], NORMAL_UNIT_TOLERANCE,
+               "" if warned is None or again else " (the source's later frames alike are logged at debug level)")
+    if warned is not None:
+        warned.add("normals")
     return None
 
 

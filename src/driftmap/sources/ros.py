@@ -691,10 +691,12 @@ class CloudPoints:
 
 
 def pointcloud2_points(
-    msg: Any, stamp_ns: int, *, what: str = "PointCloud2", point_time: PointTimeReference = PointTimeReference.AUTO
+    msg: Any, stamp_ns: int, *, what: str = "PointCloud2", point_time: PointTimeReference = PointTimeReference.AUTO,
+    warned: set[str] | None = None,
 ) -> CloudPoints:
     """Points (float32, sensor frame) and attributes of a PointCloud2; points with a NaN or inf coordinate
-    are dropped and counted (whatever ``is_dense`` claims)."""
+    are dropped and counted (whatever ``is_dense`` claims). ``warned``: the reading source's set of warnings given
+    once (:func:`driftmap.sources.point_fields.checked_normals`)."""
     arr = pointcloud2_array(msg, what)
     names = arr.dtype.names or ()
     missing = [c for c in ("x", "y", "z") if c not in names]
@@ -735,7 +737,8 @@ def pointcloud2_points(
         color = np.stack([kept(arr[c]) for c in ("r", "g", "b")], axis=1).astype(np.uint8)
     normals = None
     if all(c in names for c in ("normal_x", "normal_y", "normal_z")):
-        normals = checked_normals(np.stack([kept(arr[c]) for c in ("normal_x", "normal_y", "normal_z")], axis=1), what)
+        normals = checked_normals(np.stack([kept(arr[c]) for c in ("normal_x", "normal_y", "normal_z")], axis=1), what,
+                                  warned)
     time_field = next((f for f in POINT_TIME_FIELDS if f in names), None)
     offsets = None
     if time_field is not None:
@@ -1468,7 +1471,8 @@ class RosLogSource(FrameSource):
             )
             return frame
         what = f"{self.path}: {self.topic} message {m}"
-        cloud = pointcloud2_points(raw.cloud_msg, raw.stamp_ns, what=what, point_time=self.point_time)
+        cloud = pointcloud2_points(raw.cloud_msg, raw.stamp_ns, what=what, point_time=self.point_time,
+                                   warned=self._warned)
         flags = list(raw.flags)
         if cloud.invalid_counts and getattr(raw.cloud_msg, "is_dense", False):
             flags.append(f"is_dense_but_nonfinite: {sum(cloud.invalid_counts.values())} points with NaN/inf")
