@@ -96,7 +96,10 @@ def test_initial_guesses_cover_zero_half_and_turned_predictions() -> None:
     delta = tracking._turn((0, 0, 1), 30.0)
     delta[:3, 3] = (0.4, 0.0, 0.0)
     guesses = dict(tracking.initial_guesses(last_pose, delta, tracking.UP_AXIS_LIDAR, (15.0, 45.0)))
-    assert set(guesses) == {"zero_motion", "half_velocity", "yaw+15", "yaw-15", "yaw+45", "yaw-45"}
+    assert set(guesses) == {"zero_motion", "half_velocity", "yaw+15", "yaw-15", "yaw+45", "yaw-45", "turn+15", "turn-15",
+                            "turn+45", "turn-45"}
+    assert _turn_deg(geometry.invert(last_pose) @ guesses["turn+45"]) == pytest.approx(45.0)  # turned in place
+    assert np.allclose(guesses["turn+45"][:3, 3], last_pose[:3, 3])
     assert np.allclose(guesses["zero_motion"], last_pose)
     half = geometry.invert(last_pose) @ guesses["half_velocity"]
     assert _turn_deg(half) == pytest.approx(15.0) and half[0, 3] == pytest.approx(0.2)

@@ -773,7 +773,9 @@ def diagnose(
         console.print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm at "
                       f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "
                       f"{region.frames_b.min()}-{region.frames_b.max()}"
-                      + ("" if result.verification is None else _verification_note(result.verification[k])), highlight=False)
+                      + ("" if result.verification is None else _verification_note(result.verification[k]))
+                      + ("" if result.causes is None else f"; cause: {result.causes[k].cause} ({result.causes[k].explanation})"),
+                      highlight=False)
     if result.attribution.revisit_note:
         console.print(Text(result.attribution.revisit_note, style="yellow"))
     if report is not None:

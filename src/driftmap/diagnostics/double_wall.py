@@ -578,6 +578,11 @@ class DoubleWallRegion:
     n_voxels: int
     voxel_sizes_m: tuple[float, ...]
     n_points: int
+    rows_a: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    """Frame rows (of the diagnostic cloud) of layer A and B: what :mod:`driftmap.diagnostics.causes` reads."""
+    rows_b: NDArray[np.int64] = field(default_factory=lambda: np.zeros(0, np.int64))
+    members: tuple[tuple[int, int], ...] = ()
+    """(scale index, group index) of the flagged surface groups merged into this region."""
 
     def to_json(self) -> dict:
         return {
@@ -1084,6 +1089,7 @@ def _merge_regions(scales: list[ScaleResult], cloud: PlacedCloud, cfg: DoubleWal
             frames_a=ids[fa], frames_b=ids[fb],
             stamp_ns_a=(int(st[fa].min()), int(st[fa].max())), stamp_ns_b=(int(st[fb].min()), int(st[fb].max())),
             n_voxels=len(members), voxel_sizes_m=tuple(sorted({float(sizes[m]) for m in members})), n_points=int(wts.sum()),
+            rows_a=fa, rows_b=fb, members=tuple(items[m] for m in members),
         ))
     regions.sort(key=lambda r: -r.n_points)
     return regions

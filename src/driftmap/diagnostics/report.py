@@ -25,6 +25,7 @@ from numpy.typing import NDArray  # noqa: E402
 from pydantic import BaseModel, ConfigDict, Field  # noqa: E402
 
 from driftmap.diagnostics.attribution import Attribution, AttributionConfig, attribute, ground_truth_errors  # noqa: E402
+from driftmap.diagnostics.causes import RegionCause, explain_regions  # noqa: E402
 from driftmap.diagnostics.coverage import Coverage, CoverageConfig, assess  # noqa: E402
 from driftmap.diagnostics.double_wall import (  # noqa: E402
     DiagnosticCloud,
@@ -179,6 +180,8 @@ class Diagnosis:
     """Per region (same order), the independent check of :func:`driftmap.diagnostics.verify.verify_regions`."""
     coverage: Coverage | None = None
     """How much of the map was judged, why the rest not, and which headline figures are a verdict."""
+    causes: list[RegionCause] | None = None
+    """Per double-wall region (same order), what caused it (:mod:`driftmap.diagnostics.causes`)."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -216,6 +219,15 @@ class Diagnosis:
             "config": self.config.model_dump(mode="json"),
             "seconds": {k: round(v, 3) for k, v in self.seconds.items()},
         }
+        if self.causes is not None:
+            for region_json, cause in zip(out["double_wall"]["regions"], self.causes):
+                region_json["cause"] = cause.cause
+                region_json["cause_explanation"] = cause.explanation
+                region_json["cause_evidence"] = cause.evidence
+            counts: dict[str, int] = {}
+            for cause in self.causes:
+                counts[cause.cause] = counts.get(cause.cause, 0) + 1
+            out["double_wall"]["causes"] = counts
         if self.trajectory is not None:
             out["trajectory"] = self.trajectory
         if self.verification is not None:
@@ -261,6 +273,7 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     seconds["mme_mpv"] = time.perf_counter() - t
     t = time.perf_counter()
     coverage = assess(placed, walls, attribution.drift.n_frames, cfg.coverage)
+    causes = explain_regions(placed, walls)
     seconds["coverage"] = time.perf_counter() - t
     trajectory = None
     if ground_truth is not None:
@@ -272,7 +285,8 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
             raise ConfigError(f"ground truth matched only {len(rows)} frames; ATE needs at least {MIN_GT_FRAMES}")
         trajectory = ground_truth_errors(placed.poses[rows], gt)
         trajectory["n_frames_matched"] = int(len(rows))
-    return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds, coverage=coverage)
+    return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds, coverage=coverage,
+                     causes=causes)
 
 
 #: formats of ``diagnose --gt`` (``--gt-format``)

@@ -303,9 +303,15 @@ class MapView:
     docs/store.md). Where ``pread`` is not available (:data:`CAN_PREAD`) both modes map the segments.
     """
 
-    def __init__(self, *, store: FrameStore | None = None, release_pages: bool = True):
+    def __init__(self, *, store: FrameStore | None = None, release_pages: bool = True, deskew: bool = True):
         self._store = store
         self._release_pages = release_pages
+        self.deskew = deskew
+        """Place frames with per-point times with the revision's continuous trajectory (:mod:`driftmap.map.deskew`)."""
+        self._timed = np.zeros(0, bool)
+        self._frame_times: dict[int, NDArray[np.int64]] = {}
+        self.deskew_problems: dict[int, str] = {}
+        """Frames with per-point times placed rigidly instead, and why (a flagged frame, never an abort)."""
         self._buffers: list[_Buffer] = []
         self._buffer_index: dict[object, int] = {}
         self._scratch = np.zeros((0, 0), np.float32)
@@ -326,17 +332,20 @@ class MapView:
     # ------------------------------------------------------------------------------------------ building
 
     @classmethod
-    def from_store(cls, store: FrameStore, revision: int, *, release_pages: bool = True) -> MapView:
-        view = cls(store=store, release_pages=release_pages)
+    def from_store(cls, store: FrameStore, revision: int, *, release_pages: bool = True, deskew: bool = True) -> MapView:
+        view = cls(store=store, release_pages=release_pages, deskew=deskew)
         view.revision = revision
         view.refresh()
         return view
 
     @classmethod
-    def from_frames(cls, frames: Iterable[Frame], poses: dict[int, NDArray[np.float64]] | None = None) -> MapView:
+    def from_frames(cls, frames: Iterable[Frame], poses: dict[int, NDArray[np.float64]] | None = None, *,
+                    deskew: bool = True) -> MapView:
         """A view over in-memory frames, placed with their own poses (or ``poses[frame_id]``)."""
-        view = cls()
+        view = cls(deskew=deskew)
         frames = list(frames)
+        view._frame_times = {int(f.frame_id): f.attributes.time_offset_ns for f in frames
+                             if f.attributes.time_offset_ns is not None}
         ids = [int(f.frame_id) for f in frames]
         if len(set(ids)) != len(ids):
             dup = sorted({i for i in ids if ids.count(i) > 1})
@@ -423,6 +432,7 @@ class MapView:
         self._offsets = np.concatenate([self._offsets, n0 + np.cumsum(counts_arr)])
         self._T = np.concatenate([self._T, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)])
         self._boxes = np.concatenate([self._boxes, np.zeros((len(ids), 6), np.float32)])
+        self._timed = np.concatenate([self._timed, np.array([self._has_times(int(f)) for f in ids], dtype=bool)])
         for k, fid in enumerate(ids):
             self._index[int(fid)] = m0 + k
         n_total = int(self._offsets[-1])
@@ -430,7 +440,8 @@ class MapView:
             grown = np.empty((max(n_total, int(len(self._world) * 1.5)), 3), np.float32)
             grown[:n0] = self._world[:n0]
             self._world = grown
-        self._transform(np.arange(m0, len(self.frame_ids)))
+        new_rows = np.arange(m0, len(self.frame_ids))
+        self._transform(np.union1d(new_rows, self._deskew_neighbours(new_rows)))
 
     # ------------------------------------------------------------------------------------------ core
 
@@ -490,6 +501,68 @@ class MapView:
                 # a NaN pose makes any later apply re-transform them
                 self._T[rows[np.isin(self._buf[rows], buffers[k:])]] = np.nan
                 raise
+        if self.deskew:
+            for r in rows[self._timed[rows]]:
+                self._deskew_row(int(r))
+
+    # ------------------------------------------------------------------------------------------ deskew
+
+    def _has_times(self, frame_id: int) -> bool:
+        if frame_id in self._frame_times:
+            return True
+        if self._store is None:
+            return False
+        fields = self._store.frame_info(frame_id)["points"]["fields"]
+        return any(f["name"] == "time_offset_ns" for f in fields)
+
+    def _times(self, frame_id: int) -> tuple[NDArray[np.float32], NDArray[np.int64]]:
+        if frame_id in self._frame_times:
+            r = self._index[frame_id]
+            flat = self._buffers[int(self._buf[r])].flat
+            start, stride, n = int(self._start[r]), int(self._stride[r]), int(self._count[r])
+            pts = flat[start:start + n * stride].reshape(n, stride)[:, :3]
+            return pts, self._frame_times[frame_id]
+        frame = self._store.frame(frame_id)  # type: ignore[union-attr]
+        return frame.points_sensor, frame.attributes.time_offset_ns  # type: ignore[return-value]
+
+    def _time_order(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        order = np.argsort(self.stamps_ns, kind="stable")
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        return order, rank
+
+    def _deskew_neighbours(self, rows: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Frames with per-point times whose deskew uses one of ``rows`` (the frames just before or after them)."""
+        if not self.deskew or not self._timed.any() or rows.size == 0:
+            return np.zeros(0, np.int64)
+        order, rank = self._time_order()
+        k = rank[rows]
+        near = np.concatenate([order[np.clip(k - 1, 0, len(order) - 1)], order[np.clip(k + 1, 0, len(order) - 1)]])
+        near = np.unique(near)
+        return near[self._timed[near]]
+
+    def _deskew_row(self, r: int) -> None:
+        """Re-place frame row ``r`` from its sensor points and per-point times with the view's trajectory."""
+        from driftmap.map.deskew import deskew_to_world, scan_motion
+
+        fid = int(self.frame_ids[r])
+        pts, offsets = self._times(fid)
+        if len(pts) == 0:
+            return
+        order, rank = self._time_order()
+        span = int(np.ptp(offsets)) if len(offsets) else 0
+        motion, why = scan_motion(self.stamps_ns, self._T, r, order, rank, span)
+        if motion is None:
+            if self.deskew_problems.get(fid) != why:
+                logger.warning("frame %d: not deskewed (placed with its pose alone): %s", fid, why)
+            self.deskew_problems[fid] = why
+            return
+        self.deskew_problems.pop(fid, None)
+        world = deskew_to_world(pts, offsets, self._T[r], motion)
+        a, b = int(self._offsets[r]), int(self._offsets[r + 1])
+        self._world[a:b] = world
+        self._boxes[r, :3] = world.min(axis=0)
+        self._boxes[r, 3:] = world.max(axis=0)
 
     def _transform_buffer(self, rows: NDArray[np.int64], b: int, world: NDArray[np.float32]) -> None:
         """Re-transform the frames of ``rows`` whose sensor points live in buffer ``b``."""
@@ -531,6 +604,7 @@ class MapView:
                 raise StoreError(f"apply: {len(target)} poses for {len(self.frame_ids)} frames")
             geometry.require_rigid_stack(target, self.frame_ids, "apply")
         moved = np.flatnonzero(~np.all(np.abs(target - self._T) <= POSE_EPSILON, axis=(1, 2)))  # NaN: stale, redo
+        moved = np.union1d(moved, self._deskew_neighbours(moved)).astype(np.int64)  # their scans' motion changed
         before_boxes = self._boxes[moved].copy()
         before_voxels = [self._voxels(r, voxel_size_m) for r in moved] if voxel_size_m else None
         old_T = self._T[moved].copy()

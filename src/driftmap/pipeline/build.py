@@ -785,7 +785,9 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     lc = config.loop_closure
     if first is not None and first.sensor_kind is SensorKind.LIDAR:
         odometry_voxel_m = odometry_cfg.voxel_size_m if odometry_cfg.method is OdometryMethod.KISS else odometry_cfg.gicp_map_voxel_m
-        lc = lc.over(LoopClosureConfig.for_lidar(odometry_voxel_m))
+        stamps = store.ledger.stamps_ns
+        period_s = float(np.median(np.diff(stamps))) * 1e-9 if len(stamps) > 1 else None
+        lc = lc.over(LoopClosureConfig.for_lidar(odometry_voxel_m, period_s))
     elif first is not None:
         _check_place_descriptor(lc, first)
     if config.num_threads is not None:

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -39,6 +40,9 @@ logger = logging.getLogger(__name__)
 
 
 LIDAR_SUBMAP_RADIUS_FRAMES = 3
+LIDAR_SUBMAP_RADIUS_S = 0.3
+"""A LiDAR keyframe cloud holds the scans within this of the keyframe (3 on each side at 10 Hz, none at 2 Hz), at
+most :data:`LIDAR_SUBMAP_RADIUS_FRAMES` on each side."""
 LIDAR_VOXEL_PER_ODOMETRY_VOXEL = 0.5
 RMSE_GATE_PER_VOXEL = 0.875  # the depth camera's 3.5 cm per 4 cm
 LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL = 10.0
@@ -46,7 +50,7 @@ LIDAR_CORRECTION_PER_ODOMETRY_VOXEL = 2.5
 LIDAR_SCAN_CONTEXT_RADIUS_PER_ODOMETRY_VOXEL = 80.0
 PROXIMITY_DRIFT_FRACTION = 0.05
 """Proximity loops may disagree with odometry by ``max_correction_m`` plus this share of the path between them."""
-LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": str(LIDAR_SUBMAP_RADIUS_FRAMES),
+LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": f"the scans within {LIDAR_SUBMAP_RADIUS_S:g} s, at most {LIDAR_SUBMAP_RADIUS_FRAMES}",
                        "registration_voxel_m": f"{LIDAR_VOXEL_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
                        "max_rmse_m": f"{RMSE_GATE_PER_VOXEL:g} x registration_voxel_m",
                        "proximity_radius_m": f"{LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL:g} x the odometry voxel",
@@ -85,7 +89,7 @@ class LoopClosureConfig(BaseModel):
     num_threads: int = Field(2, ge=1, description="threads of the keyframe registrations (small_gicp, Open3D RANSAC); 1: repeatable to the bit")
 
     @classmethod
-    def for_lidar(cls, odometry_voxel_m: float) -> LoopClosureConfig:
+    def for_lidar(cls, odometry_voxel_m: float, scan_period_s: float | None = None) -> LoopClosureConfig:
         """Defaults for LiDAR scans, whose odometry voxel (KISS-ICP's, scaled to the scene: 1 m outdoors) says how
         coarse and how large their scene is: keyframe clouds of 7 scans (``submap_radius_frames`` 3: one ring scan is
         too sparse for GICP at a depth camera's 4 cm, whose keyframe-to-keyframe edges then pull a good odometry off;
@@ -94,9 +98,15 @@ class LoopClosureConfig(BaseModel):
         corrections up to 2.5 voxels (plus 5 % of the path) accepted: outdoors 10 m and 2.5 m, where keyframes
         7 scans apart are metres apart and a street's drift is metres; places recognised by their Scan Context
         (``place_descriptor``) on a polar grid of 80 odometry voxels (80 m outdoors), whatever the drift. The other
-        fields keep their defaults."""
+        fields keep their defaults. ``scan_period_s`` (the median time between scans): the keyframe cloud holds the
+        scans within :data:`LIDAR_SUBMAP_RADIUS_S` (0.3 s) on each side, at most 3: at 2 Hz a scan moves five times as
+        far, 7 scans span 35 m on a street and keyframes 7 scans apart miss a 22 m revisit (no loop closed; with
+        single-scan keyframes the 2 Hz street closes to 0.7 cm)."""
         voxel = LIDAR_VOXEL_PER_ODOMETRY_VOXEL * odometry_voxel_m
-        return cls(submap_radius_frames=LIDAR_SUBMAP_RADIUS_FRAMES, registration_voxel_m=voxel,
+        radius = LIDAR_SUBMAP_RADIUS_FRAMES
+        if scan_period_s is not None and scan_period_s > 0:
+            radius = min(LIDAR_SUBMAP_RADIUS_FRAMES, int(math.floor(LIDAR_SUBMAP_RADIUS_S / scan_period_s + 1e-9)))
+        return cls(submap_radius_frames=radius, registration_voxel_m=voxel,
                    max_rmse_m=RMSE_GATE_PER_VOXEL * voxel,
                    proximity_radius_m=LIDAR_PROXIMITY_PER_ODOMETRY_VOXEL * odometry_voxel_m,
                    max_correction_m=LIDAR_CORRECTION_PER_ODOMETRY_VOXEL * odometry_voxel_m,

@@ -1,0 +1,92 @@
+"""The failure modes of real LiDAR logs as synthetic regressions with ground truth (docs/synthetic-log.md): a
+stationary start, stops, in-place turns of 45-50 deg per scan, 2 Hz scans -- on the room and on the street. The
+default build of each must stay within 2x the ATE of the same log without the difficulty."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.diagnostics.trajectory_metrics import trajectory_errors
+from driftmap.pipeline.build import build
+from driftmap.sources.synthetic import SyntheticLog, SyntheticLogConfig, generate_synthetic_log
+from driftmap.store.frame_store import FrameStore
+
+ROOM = dict(lidar=True, speed_m_per_s=SyntheticLogConfig().default_speed_m_per_s(), width=80, height=60, fx=65.625,
+            fy=65.625, cx=39.5, cy=29.5)
+STREET_SPEED = dict(speed_m_per_s=SyntheticLogConfig.street().default_speed_m_per_s())
+
+MODES = {
+    "room": lambda: SyntheticLogConfig(**ROOM),
+    "room_stationary_start": lambda: SyntheticLogConfig(stationary_start_frames=23, **ROOM),
+    "room_stops": lambda: SyntheticLogConfig(stops=3, stop_frames=10, **ROOM),
+    "room_turns_45deg": lambda: SyntheticLogConfig(turns_in_place=2, turn_in_place_deg_per_frame=45.0,
+                                                   turn_in_place_frames=8, **ROOM),
+    "room_2hz": lambda: SyntheticLogConfig(frame_period_ns=500_000_000, **ROOM),
+    "street": lambda: SyntheticLogConfig.street(**STREET_SPEED),
+    "street_stationary_start": lambda: SyntheticLogConfig.street(stationary_start_frames=23, **STREET_SPEED),
+    "street_stops": lambda: SyntheticLogConfig.street(stops=3, stop_frames=10, **STREET_SPEED),
+    "street_turns_50deg": lambda: SyntheticLogConfig.street(turn_in_place_at=(0.25, 0.6), turn_in_place_deg_per_frame=50.0,
+                                                            turn_in_place_frames=1, **STREET_SPEED),
+    "street_2hz": lambda: SyntheticLogConfig.street(frame_period_ns=500_000_000, **STREET_SPEED),
+}
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory: pytest.TempPathFactory):
+    """``name -> (final ATE m, revision-0 ATE m, build summary)`` of the default build of each log, built on demand."""
+    root = tmp_path_factory.mktemp("modes")
+    cache: dict[str, tuple[float, float, dict]] = {}
+
+    def get(name: str) -> tuple[float, float, dict]:
+        if name not in cache:
+            log = generate_synthetic_log(root / name, MODES[name]())
+            result = build(log, root / f"{name}.store", source_options={"sensor": "lidar"})
+            gt = SyntheticLog(log, sensor="lidar").ground_truth()
+            store = FrameStore.open(root / f"{name}.store")
+            truth = gt.poses[np.searchsorted(gt.frame_ids, store.frame_ids)]
+            cache[name] = (trajectory_errors(store.poses(), truth).ate_rmse_m,
+                           trajectory_errors(store.poses(0), truth).ate_rmse_m, result.to_json())
+            (root / name / "frames").write_text("")  # the log is not needed again
+            for f in (root / name / "lidar").glob("*"):
+                f.unlink()
+        return cache[name]
+
+    return get
+
+
+# measured (final ATE, cm): room 0.26, stationary start 0.27, stops 0.27, turns 0.28, 2 Hz 0.31; street 3.27,
+# stationary start 3.60, stops 4.48, turns 5.89, 2 Hz 0.70 (before this issue's changes: street stationary start 11.8,
+# turns 2352 (lost), 2 Hz 7.9 (no loop closed); room turns 1.2)
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["room_stationary_start", "room_stops", "room_turns_45deg", "room_2hz"])
+def test_room_lidar_failure_modes_stay_within_2x_of_the_plain_log(built, mode: str) -> None:
+    base, _, _ = built("room")
+    ate, _, summary = built(mode)
+    assert ate <= 2.0 * base, f"{mode}: ATE {100 * ate:.2f} cm, plain room {100 * base:.2f} cm"
+    assert summary["tracking"]["flagged"] == []
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("mode", ["street_stationary_start", "street_stops", "street_turns_50deg", "street_2hz"])
+def test_street_lidar_failure_modes_stay_within_2x_of_the_plain_log(built, mode: str) -> None:
+    base, _, _ = built("street")
+    ate, _, summary = built(mode)
+    assert ate <= 2.0 * base, f"{mode}: ATE {100 * ate:.2f} cm, plain street {100 * base:.2f} cm"
+    assert summary["tracking"]["flagged"] == []
+
+
+@pytest.mark.slow
+def test_in_place_turns_are_recovered_not_lost_and_2hz_closes_its_loop(built) -> None:
+    _, _, turns = built("room_turns_45deg")
+    recovered = turns["tracking"]["recovered"]
+    assert recovered and all(r["status"] == "recovered" for r in recovered)
+    _, ate0, street_2hz = built("street_2hz")
+    ate, _, _ = built("street_2hz")
+    # keyframe clouds of the scans within 0.3 s: single scans at 2 Hz, so keyframes fall into the 22 m revisit
+    assert street_2hz["loop_closure_config"]["submap_radius_frames"] == 0 and street_2hz["loops_accepted"] > 0
+    assert ate < ate0
+    _, _, street = built("street")
+    assert street["loop_closure_config"]["submap_radius_frames"] == 3  # 10 Hz: 7-scan keyframe clouds, as before
