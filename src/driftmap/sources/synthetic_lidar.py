@@ -19,14 +19,14 @@ from __future__ import annotations
 
 import enum
 import math
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-if TYPE_CHECKING:
-    from driftmap.sources.synthetic import SyntheticLogConfig
+SyntheticLogConfig = Any
+"""A :class:`driftmap.sources.synthetic.SyntheticLogConfig` (not imported here: that module imports this one)."""
 
 
 class LidarPattern(str, enum.Enum):

@@ -26,7 +26,7 @@ import enum
 import math
 from collections import defaultdict
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,8 +34,8 @@ from scipy.spatial.transform import Rotation
 
 from driftmap.errors import ConfigError
 
-if TYPE_CHECKING:
-    from driftmap.sources.synthetic import SyntheticLogConfig
+SyntheticLogConfig = Any
+"""A :class:`driftmap.sources.synthetic.SyntheticLogConfig` (not imported here: that module imports this one)."""
 
 STREET_HALF_SIZE_M = (35.0, 25.0)
 """Half the size of the street loop's rounded rectangle (x, y), centreline of the road."""
