@@ -701,6 +701,20 @@ def _scene_sample(src: FrameSource, store: FrameStore, first: Frame, config: Bui
     return sample or [first]
 
 
+def _used_odometry(store: FrameStore, result: BuildResult) -> OdometryConfig:
+    """The odometry settings the store's frames were registered with (this run's, or the earlier build's), else the
+    defaults for its scene: loop closure scales its LiDAR lengths with the odometry voxel."""
+    if result.odometry_config is not None:
+        return OdometryConfig.model_validate(result.odometry_config)
+    recorded = _recorded_odometry(store) if len(store) else None
+    if recorded is not None:
+        return recorded
+    if len(store) == 0:
+        return OdometryConfig()
+    return OdometryConfig.for_frames([store.frame(int(store.frame_ids[k])) for k in sample_positions(len(store))],
+                                     log=False)
+
+
 def _recorded_odometry(store: FrameStore) -> OdometryConfig | None:
     """The odometry settings an earlier build of ``store`` used (``build_summary.json``), for ``--resume``:
     defaults chosen from the scene are not chosen again (a store built before they were is resumed with its
@@ -781,7 +795,7 @@ def _close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, ti
     t0 = time.perf_counter()
     ids = [int(i) for i in store.frame_ids]
     first = store.frame(ids[0]) if ids else None
-    odometry_cfg = config.odometry or (OdometryConfig.for_frame(first, log=False) if first is not None else OdometryConfig())
+    odometry_cfg = config.odometry or _used_odometry(store, result)
     lc = config.loop_closure
     if first is not None and first.sensor_kind is SensorKind.LIDAR:
         odometry_voxel_m = odometry_cfg.voxel_size_m if odometry_cfg.method is OdometryMethod.KISS else odometry_cfg.gicp_map_voxel_m
