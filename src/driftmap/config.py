@@ -26,9 +26,9 @@ import json
 import os
 import tomllib
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from driftmap.errors import ConfigError
@@ -36,11 +36,42 @@ from driftmap.errors import ConfigError
 ENV_PREFIX = "DRIFTMAP_"
 ENV_DELIMITER = "__"
 
+THREADS_PER_CPU = 4
+"""Registration threads are refused beyond this many per CPU of the machine (small_gicp / TBB / OpenMP crash or
+stall with absurd counts: 100000 threads segfaulted; more threads than cores only slow a registration down)."""
+
+
+def max_threads() -> int:
+    """The most registration threads driftmap accepts on this machine: :data:`THREADS_PER_CPU` per CPU."""
+    return THREADS_PER_CPU * max(1, os.cpu_count() or 1)
+
+
+def check_threads(n: int, what: str = "num_threads") -> int:
+    """``n`` if it is a usable thread count (1 .. :func:`max_threads`), else a :class:`ConfigError` naming ``what``:
+    the one check of every thread count driftmap takes (config files, ``--threads``)."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ConfigError(f"{what}: a thread count must be a whole number >= 1, got {n!r}")
+    if n > max_threads():
+        raise ConfigError(f"{what}: {n} threads is more than this machine takes (at most {max_threads()}: "
+                          f"{THREADS_PER_CPU} per CPU, {os.cpu_count() or 1} CPUs)")
+    return n
+
+
+def _threads_field(n: int) -> int:
+    try:
+        return check_threads(n, "thread count")
+    except ConfigError as exc:
+        raise ValueError(str(exc).removeprefix("thread count: ")) from None
+
+
+Threads = Annotated[int, Field(ge=1), AfterValidator(_threads_field)]
+"""A thread-count field of a settings model, checked by :func:`check_threads`."""
+
 
 class DepthConfig(BaseModel):
     """Depth-image sources: the options ``driftmap build`` passes to them (None: the source's own default)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     min_depth_m: float | None = Field(None, ge=0.0, description="closest valid depth (m); None: the source's default (0.2 m for 7-Scenes, TUM, Redwood)")
     max_depth_m: float | None = Field(None, gt=0.0, description="depth at and beyond which pixels are rejected (m), like Open3D depth_trunc; None: the source's default (7-Scenes 4.0 m, TUM and Redwood 5.0 m)")
     depth_scale: float | None = Field(None, gt=0.0, description="depth-image units per metre (1000: millimetres, TUM 5000); None: the format's own; 'build --depth-scale' sets it")
@@ -92,7 +123,7 @@ class PreprocessConfig(BaseModel):
     """Per-frame processing of sensor-frame points, for :func:`driftmap.preprocess.cloud.process_frame` (library
     only: ``driftmap build`` stores full-resolution frames, so this is not a table of :class:`DriftmapConfig`)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     voxel_size_m: float | None = Field(None, gt=0.0, description="voxel size for per-frame downsampling (m); None keeps full resolution")
     statistical_outlier_neighbors: int | None = Field(None, ge=2, description="neighbours for statistical outlier removal; None disables it")
     statistical_outlier_std_ratio: float = Field(2.0, gt=0.0, description="std-dev multiple beyond which a point is an outlier")
@@ -104,14 +135,14 @@ class PreprocessConfig(BaseModel):
 class MapConfig(BaseModel):
     """Fused map export."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     export_voxel_size_m: float | None = Field(None, gt=0.0, description="voxel size of 'export --map' / '--mcap' without --voxel-size-m (m); None: every point (--map), 0.02 m (--mcap)")
 
 
 class DriftmapConfig(BaseSettings):
     """Everything configurable outside ``build.*``, with units in every name."""
 
-    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_nested_delimiter=ENV_DELIMITER, extra="forbid")
+    model_config = SettingsConfigDict(env_prefix=ENV_PREFIX, env_nested_delimiter=ENV_DELIMITER, extra="forbid", allow_inf_nan=False)
     depth: DepthConfig = Field(default_factory=DepthConfig)
     map: MapConfig = Field(default_factory=MapConfig)
 

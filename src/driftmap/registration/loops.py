@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
+from driftmap.config import Threads
 from driftmap.errors import ConfigError
 from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, downsample, register_prepared, relative_pose
 from driftmap.registration.place import ScanContext, scan_context, scan_context_distance, yaw_guess
@@ -63,7 +64,7 @@ LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": f"the scans within {LIDAR_SUBMAP_
 class LoopClosureConfig(BaseModel):
     """Keyframe selection, candidate search and verification gates (metres, degrees)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     keyframe_distance_m: float = Field(0.10, gt=0.0, description="new keyframe after this much translation (m), and never closer than 2 submap_radius_frames + 1 stored frames to the last (keyframe clouds share no frame)")
     keyframe_angle_deg: float = Field(10.0, gt=0.0, description="... or this much rotation (deg)")
     keyframe_max_gap_frames: int = Field(30, ge=1, description="... or this many stored frames (counted in the --frames selection)")
@@ -86,7 +87,7 @@ class LoopClosureConfig(BaseModel):
     max_correction_m: float = Field(0.5, gt=0.0, description="proximity loops: max disagreement with odometry (m)")
     max_correction_deg: float = Field(15.0, gt=0.0, description="... and in rotation (deg)")
     descriptor_max_drift_fraction: float = Field(0.25, gt=0.0, description="descriptor loops: max disagreement with odometry, as a share of the path travelled between the two keyframes (plus max_correction_m): an odometry drifts, but not by a quarter of its path, and look-alike places far apart (parallel streets) are refused")
-    num_threads: int = Field(2, ge=1, description="threads of the keyframe registrations (small_gicp, Open3D RANSAC); 1: repeatable to the bit")
+    num_threads: Threads = Field(2, description="threads of the keyframe registrations (small_gicp, Open3D RANSAC); 1: repeatable to the bit")
 
     @classmethod
     def for_lidar(cls, odometry_voxel_m: float, scan_period_s: float | None = None) -> LoopClosureConfig:

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from driftmap import geometry
+from driftmap.config import Threads
 from driftmap.frame import Frame, SensorKind, TrackingHealth, TrackingStatus
 from driftmap.preprocess.scene import (
     LIDAR_MIN_SCENE_SCALE,
@@ -53,7 +54,7 @@ class OdometryConfig(BaseModel):
     """Odometry settings, in metres. ``method`` picks the implementation; the ``gicp_*`` fields apply to
     ``gicp_map``, ``voxel_size_m`` .. ``max_points_per_voxel`` to ``kiss``, the ranges and ``max_points`` to both."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     method: OdometryMethod = Field(OdometryMethod.GICP_MAP, description="gicp_map (frame-to-map GICP) or kiss (KISS-ICP)")
     max_points: int | None = Field(20_000, ge=100, description="register at most about this many points per frame (every k-th point); None: all")
     min_range_m: float = Field(0.2, ge=0.0, description="points closer than this are ignored (m)")
@@ -74,7 +75,7 @@ class OdometryConfig(BaseModel):
     max_points_per_voxel: int = Field(20, ge=1, description="kiss: points kept per map voxel")
     kiss_refine_gicp: bool = Field(False, description="kiss: refine each KISS-ICP registration by GICP (small_gicp) of the scan against the local map; measured: synthetic street ATE 9.1 -> 0.2 cm, the real Livox log 2.2 -> 1.6 cm, KITTI 00 0-15 0.36 -> 0.38 m, at 1.5-2x the odometry time (off by default: KITTI)")
     kiss_prime_motion: bool = Field(True, description="kiss: whenever the motion model says the sensor stands (the first scans, after a stop), estimate the motion to the next scan by GICP of the two scans and start KISS-ICP's constant-velocity model with it when it is at least half a voxel or 5 deg (from zero velocity a LiDAR that drives off lands short)")
-    num_threads: int = Field(2, ge=1, description="threads of the registration (small_gicp / KISS-ICP); 1: the same frames give the same poses to the bit")
+    num_threads: Threads = Field(2, description="threads of the registration (small_gicp / KISS-ICP); 1: the same frames give the same poses to the bit")
     tracking_retry: bool = Field(True, description="kiss: when a registration fits the map clearly worse than the frames before it, retry from other initial guesses (zero motion, half velocity, turned +-yaw) and keep the best fit (registration/tracking.py)")
     tracking_fitness_radius_voxels: float = Field(0.5, gt=0.0, description="kiss: a registered point fits the map when a map point is within this many voxels")
     tracking_min_fitness: float = Field(0.5, ge=0.0, le=1.0, description="kiss: a frame whose best registration fits less than this share of its points is lost (flagged, its pose bridged)")

@@ -1,0 +1,162 @@
+"""What every command of the ``driftmap`` command line shares: the typer app, the consoles, the option checks
+(every number finite, outputs writable and not inside a store, existing files kept unless ``--overwrite``), the
+source-option help texts, the progress bar, and opening a store with its recovery events printed.
+
+Only the ``driftmap.cli`` package prints and exits; the library raises and logs.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import sys
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+from rich.console import Console
+from rich.logging import RichHandler
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.text import Text
+
+from driftmap import __version__
+
+app = typer.Typer(
+    name="driftmap",
+    help="Multi-frame fusion and drift-aware mapping: frames kept with the poses that produced them.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+    rich_markup_mode=None,  # help texts are plain: "[build] table" stays as written
+)
+# piped output (logs, other tools) gets wide tables instead of rich's 80-column default
+PIPE_WIDTH = None if sys.stdout.isatty() else int(os.environ.get("COLUMNS", "160"))
+# no rich markup in printed text: paths and messages may contain brackets ("run[1].tum")
+console = Console(width=PIPE_WIDTH, markup=False)
+err_console = Console(stderr=True, markup=False)
+
+
+def bold(label: str, value: object, rest: str = "") -> Text:
+    return Text.assemble(label, (str(value), "bold"), rest)
+
+
+def choice(value: str, allowed: tuple[str, ...], flag: str) -> str:
+    """A usage error (exit 2) for an option value outside ``allowed`` (case-insensitive)."""
+    v = value.lower()
+    if v not in allowed:
+        raise typer.BadParameter(f"{value!r} is not one of {', '.join(allowed)}", param_hint=flag)
+    return v
+
+def check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> None:
+    """Refuse, before any work, an output that cannot be written: a folder in its way (or, for ``folder``, a file),
+    a file where a parent folder must go, or a parent that is not writable (one error line, exit 1)."""
+    from driftmap.errors import ConfigError
+
+    if path is None:
+        return
+    if path.exists() and (path.is_dir() != folder):
+        what = "a folder" if path.is_dir() else "a file"
+        raise ConfigError(f"{path}: is {what}, but {flag} needs a {'folder' if folder else 'file'} path")
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir():
+        raise ConfigError(f"{path}: {parent} is a file, so {flag} cannot make a folder there")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"{path}: {parent} is not writable ({flag})")
+
+
+SENSOR_HELP = "Which sensor of a log with several (the synthetic log: depth | lidar)."
+TOPIC_HELP = "ROS logs: the PointCloud2 or depth Image topic to read (default: the only one)."
+POSE_TF_HELP = "ROS logs: frame poses from TF, 'PARENT,CHILD' (e.g. map,base_link) looked up at each frame's stamp."
+POSE_ODOM_HELP = "ROS logs: frame poses from this nav_msgs/Odometry topic (interpolated at each frame's stamp)."
+LENIENT_HELP = "Skip unreadable frames (each logged with its reason) instead of stopping at the first."
+PERIOD_HELP = ("Folders of PLY / PCD clouds without stamps of their own: the scan period in seconds, frame n is "
+                "stamped n * S (e.g. 0.5 for a 2 Hz scanner; without it such a folder is assumed 10 Hz, with a warning). "
+                "Refused for formats with stamps of their own and for folders that carry stamps (file names, "
+                "times.txt, a 4x4 pose file with stamps).")
+
+
+def source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Optional[str],
+                    pose_from_odometry: Optional[str], lenient: bool, period_s: Optional[float] = None) -> dict:
+    """The source options of ``build`` / ``convert`` that were given (checked against the format later)."""
+    from driftmap.errors import ConfigError
+
+    period_ns = None
+    if period_s is not None:
+        if not (math.isfinite(period_s) and period_s > 0 and round(period_s * 1e9) > 0):
+            raise ConfigError(f"--period-s: the scan period must be a positive number of seconds, got {period_s:g}")
+        period_ns = round(period_s * 1e9)
+
+    tf = None
+    if pose_from_tf is not None:
+        parts = [p.strip() for p in pose_from_tf.split(",")]
+        if len(parts) != 2 or not all(parts):
+            raise ConfigError(f"--pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {pose_from_tf!r}")
+        tf = (parts[0], parts[1])
+    options = {"sensor": sensor, "topic": topic, "pose_from_tf": tf, "pose_from_odometry": pose_from_odometry,
+               "lenient": lenient or None, "period_ns": period_ns}
+    return {k: v for k, v in options.items() if v is not None}
+
+
+def finite(value: Any) -> Any:
+    """Every number option is finite (click reads 'nan' and 'inf' as floats): the one check at the command line."""
+    for v in value if isinstance(value, (list, tuple)) else [value]:
+        if v is not None and not math.isfinite(v):
+            raise typer.BadParameter(f"must be a finite number, got {v}")
+    return value
+
+
+def refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
+    """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
+    from driftmap.errors import ConfigError
+
+    if path.is_file() and not overwrite:
+        raise ConfigError(f"{path}: already exists ({flag}); pass --overwrite to replace it")
+
+
+state = {"debug": False}
+
+
+def _version_callback(value: bool) -> None:
+    if value:
+        console.print(f"driftmap {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        Optional[bool], typer.Option("--version", callback=_version_callback, is_eager=True, help="Print the version and exit.")
+    ] = None,
+    debug: Annotated[bool, typer.Option("--debug", help="Debug logging and full tracebacks on errors.")] = False,
+    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Info-level logging.")] = False,
+) -> None:
+    state["debug"] = debug
+    level = logging.DEBUG if debug else logging.INFO if verbose else logging.WARNING
+    logging.basicConfig(level=level, format="%(name)s: %(message)s", handlers=[RichHandler(console=err_console, show_path=False)])
+
+
+def progress_bar() -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+        console=err_console, transient=False,
+    )
+
+
+KITTI_FRAME_HELP = ("Frame of a KITTI pose file on a store of KITTI Velodyne scans: auto (the data set's own cam0 "
+                     "poses.txt is converted to the Velodyne frame, any other file is taken as Velodyne poses) | "
+                     "velodyne (rows as they are) | cam0 (converted with calib.txt Tr).")
+CALIB_HELP = "KITTI calib.txt (line Tr) for --kitti-frame cam0 (default: the data set's calib.txt)."
+
+
+def open_store(path: Path, mode: str = "r"):
+    from driftmap.store.frame_store import FrameStore
+
+    store = FrameStore.open(path, mode)
+    for event in store.recovery_events:
+        err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
+    if store.loss:
+        err_console.print(Text.assemble(("recovered earlier:", "yellow"), f" {store.loss}"), highlight=False)
+    return store

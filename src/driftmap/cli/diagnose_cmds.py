@@ -1,0 +1,219 @@
+"""Commands that judge and show a store: ``diagnose``, ``view``, ``perturb``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING, Annotated, Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+from rich.text import Text
+
+from driftmap.cli.common import (
+    CALIB_HELP,
+    KITTI_FRAME_HELP,
+    app,
+    bold,
+    check_output,
+    choice,
+    console,
+    err_console,
+    finite,
+    open_store,
+    progress_bar,
+    refuse_existing,
+)
+
+if TYPE_CHECKING:
+    from driftmap.diagnostics.verify import RegionCheck
+    from driftmap.pipeline.diagnose import DiagnoseRun
+
+
+def _verification_note(check: RegionCheck) -> str:
+    if check.offset_b_minus_a_m is None:
+        return f"; unverifiable ({check.note})"
+    cause = {True: ", a pose error", False: ", local (its surroundings agree: not a pose error)", None: ""}[check.pose_explained]
+    return f"; measured {100 * check.offset_b_minus_a_m:+.1f} cm: {'confirmed' + cause if check.confirmed else 'NOT confirmed'}"
+
+
+@app.command()
+def diagnose(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    json_path: Annotated[Path, typer.Option("--json", help="Write the diagnosis here (JSON).")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth poses (T_world_sensor) for ATE/RPE.")] = None,
+    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i) | redwood (.log: by the frame ids it names) | 4x4 (one 4x4 matrix per frame: by stamp when the last rows hold stamps, else block i = frame_id i)")] = None,
+    report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
+    compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
+    points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,
+    kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
+    calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
+    verify: Annotated[bool, typer.Option("--verify", help="Re-measure every double-wall region from the stored full-resolution frames with Open3D (adds \"verification\" per region and double_wall.verified).")] = False,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [diagnose] table (or the whole file without one) sets diagnose's own lengths over the scene's defaults: [diagnose.double_wall] voxel_sizes_m, visit_gap_m, ..., [diagnose.attribution], [diagnose.sampling], [diagnose.entropy] (the JSON's \"config\" lists every field); a build config's other tables are ignored.")] = None,
+) -> None:
+    """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
+    disagreement and change points; with --gt also ATE/RPE."""
+    from driftmap.pipeline.diagnose import GT_FORMATS, run_diagnose
+
+    gt_format = None if gt_format is None else choice(gt_format, GT_FORMATS, "--gt-format")
+    check_output(json_path, "--json")  # before the diagnosis, not after it
+    check_output(report, "--report", folder=True)
+    with open_store(store_path) as store, progress_bar() as progress:
+        tasks: dict[str, int] = {}
+
+        def tick(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=total)
+            progress.update(tasks[stage], completed=done, total=total)
+
+        run = run_diagnose(store, json_path, revision=revision, gt=gt, gt_format=gt_format, report_dir=report,
+                           compare_revision=compare_revision, points_per_frame=points_per_frame,
+                           kitti_frame=kitti_frame, calib=calib, verify=verify, config_file=config, progress=tick)
+    _render_diagnosis(run, store_path)
+    console.print(bold("diagnosis: ", json_path))
+
+
+def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
+    """The rows of the diagnose table: the headline figures, each marked "cannot judge" where coverage says so."""
+    result, other, data = run.result, run.other, run.data
+    dw = result.double_walls
+    rows = [
+        ("smearing score", f"{1000 * dw.smearing_score_m:.2f} mm ("
+                           + ", ".join(f"{k:.3g} m: {1000 * v:.2f}" for k, v in dw.score_per_scale_m.items()) + "; between visits)"
+         if dw.voxels_revisited else
+         f"{1000 * dw.smearing_score_m:.2f} mm: no surface was seen on two visits "
+         f"({dw.config.visit_gap_m:g} m of travel apart), so drift cannot show"),
+        ("smearing score, frame to frame", f"{1000 * dw.frame_smearing_score_m:.2f} mm"),
+        ("surface voxels doubled", f"{dw.voxels_flagged} / {dw.voxels_evaluated} ({100 * dw.fraction_flagged:.2f} %)"),
+        ("median separation", "-" if dw.median_separation_m is None else f"{100 * dw.median_separation_m:.1f} cm"),
+        ("double-wall regions", str(len(dw.regions))),
+        ("change points (frame: jump)", ", ".join(
+            f"{c.frame_id}: {100 * c.jump_m:.1f} cm" + (f" / {np.linalg.norm(c.step_deg):.1f} deg" if c.step_deg and np.any(c.step_deg) else "")
+            for c in result.attribution.change_points) or "-"),
+        ("revisited", f"{100 * result.attribution.revisit_fraction:.0f} %"),
+        ("drift rate", "-" if result.attribution.drift.percent_per_m is None else
+         f"{result.attribution.drift.percent_per_m:.2f} %/m, {result.attribution.drift.deg_per_m:.3f} deg/m"
+         + ("" if result.attribution.drift.noise_floor_m is None else
+            f" (above a per-frame floor of {100 * result.attribution.drift.noise_floor_m:.1f} cm, "
+            f"{result.attribution.drift.noise_floor_deg:.2f} deg)")),
+        ("MME / MPV", f"{result.entropy.mme:.3f} / {result.entropy.mpv_m2:.2e} m^2 (r = {result.entropy.radius_m:g} m)"),
+    ]
+    if result.trajectory is not None:
+        tr = result.trajectory
+        rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
+    if other is not None:
+        rows.append((f"smearing score, revision {other.revision}", f"{1000 * other.smearing_score_m:.2f} mm"))
+    if result.verification is not None:
+        ver = data["double_wall"]["verified"]
+        rows.append(("regions confirmed (Open3D)", f"{ver['regions_confirmed']} / {ver['regions_checked']}; "
+                                                   f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed, "
+                                                   f"{ver['regions_local']} regions local"))
+        rows.append(("flagged, confirmed pose errors", f"{100 * ver['fraction_pose']:.2f} % of evaluated voxels"))
+    cov = result.coverage
+    if cov is not None:
+        why = ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f} %" for k, v in cov.not_evaluated_fractions().items() if v >= 0.005)
+        rows.insert(3, ("surface voxels inconsistent", f"{100 * cov.fraction_inconsistent:.2f} % (doubled or smeared)"))
+        rows.insert(0, ("coverage", f"{100 * cov.fraction_evaluated:.0f} % of the samples in evaluated voxels"
+                                    + (f" (not: {why})" if why else "")))
+        labels = {"smearing score": "smearing_score", "surface voxels doubled": "fraction_flagged",
+                  "surface voxels inconsistent": "fraction_inconsistent", "drift rate": "drift_rate"}
+        rows = [(k, v if k not in labels or cov.measures[labels[k]]["valid"] else f"cannot judge ({v})") for k, v in rows]
+    return rows
+
+
+def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:
+    """Print the diagnose table, the "cannot judge" reasons, the first regions and the report files."""
+    result = run.result
+    dw, cov = result.double_walls, result.coverage
+    table = Table(title=f"driftmap diagnose: {store_path} revision {result.revision}")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    for k, v in _diagnosis_rows(run):
+        table.add_row(k, v)
+    console.print(table)
+    if cov is not None and not cov.valid:
+        for reason in cov.reasons:
+            console.print(Text(f"cannot judge: {reason}", style="yellow"))
+    for k, region in enumerate(dw.regions[:5]):
+        console.print(f"  region {k + 1}: {100 * region.separation_m:.1f} +- {100 * region.separation_sigma_m:.1f} cm at "
+                      f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "
+                      f"{region.frames_b.min()}-{region.frames_b.max()}"
+                      + ("" if result.verification is None else _verification_note(result.verification[k]))
+                      + ("" if result.causes is None else f"; cause: {result.causes[k].cause} ({result.causes[k].explanation})"),
+                      highlight=False)
+    if result.attribution.revisit_note:
+        console.print(Text(result.attribution.revisit_note, style="yellow"))
+    for name, file in run.files.items():
+        console.print(f"  {name:20s} {file}")
+
+
+@app.command()
+def view(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation)")] = "frame",
+    out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
+    backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
+    headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
+    reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
+) -> None:
+    """Show the map of a revision coloured by frame, by correction displacement or by double-wall separation:
+    an Open3D window with a display, PNG views (top + two oblique) without one."""
+    from driftmap.viewer import BACKENDS, COLOR_MODES, view_store
+
+    color = choice(color, tuple(COLOR_MODES), "--color")
+    backend = choice(backend, tuple(BACKENDS), "--backend")
+
+    with open_store(store_path) as store:
+        with console.status(f"preparing the {color} view of {store_path}"):
+            result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
+                                headless=headless, backend=backend, reference_revision=reference)
+    if result.fallback_reason:
+        err_console.print(Text(f"{result.fallback_reason}; used the software renderer", style="yellow"), highlight=False)
+    lo, hi = result.value_range
+    console.print(f"revision {result.revision}, colour {result.color} ({result.value_label}: {lo:.4g} .. {hi:.4g}), "
+                  f"{result.n_points_shown:,} of {result.n_points_map:,} points (voxel {result.voxel_size_m:g} m), "
+                  f"backend {result.backend}")
+    if result.n_double_wall_voxels is not None:
+        console.print(f"  double-wall voxels flagged: {result.n_double_wall_voxels}")
+    for name, path in result.files.items():
+        console.print(f"  {name:10s} {path}", highlight=False)
+
+
+@app.command()
+def perturb(
+    poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
+    poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format).")],
+    format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
+    step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
+    step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
+    step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin).")] = None,
+    drift_percent_per_m: Annotated[float, typer.Option("--drift-percent-per-m", callback=finite, help="Translation drift (% of the path travelled).")] = 0.0,
+    drift_direction: Annotated[str, typer.Option("--drift-direction", help="World direction of the translation drift 'x,y,z'.")] = "1,0,0",
+    drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", callback=finite, help="Rotation drift (deg per m travelled).")] = 0.0,
+    drift_axis: Annotated[str, typer.Option("--drift-axis", help="World axis of the rotation drift 'x,y,z' (through the first position).")] = "0,0,1",
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing POSES_OUT; without it an existing file is refused.")] = False,
+) -> None:
+    """Write a perturbed copy of a trajectory: a translation/rotation step at a frame and/or a linear drift."""
+    from driftmap.diagnostics.perturb import PosePerturbation, parse_vector, perturb_pose_file
+    from driftmap.errors import ConfigError
+
+    check_output(poses_out, "POSES_OUT")
+    refuse_existing(poses_out, "POSES_OUT", overwrite)
+    if (step_m is not None or step_deg is not None) and step_frame is None:
+        raise ConfigError("--step-m / --step-deg need --step-frame")
+    if step_frame is not None and step_m is None and step_deg is None:
+        raise ConfigError("--step-frame needs --step-m and/or --step-deg")
+    if step_m is None and step_deg is None and not drift_percent_per_m and not drift_deg_per_m:
+        raise ConfigError("nothing to perturb: give a step (--step-frame with --step-m/--step-deg) or a drift")
+    perturbation = PosePerturbation(
+        step_index=step_frame,
+        step_m=None if step_m is None else parse_vector(step_m, "--step-m"),
+        step_deg=None if step_deg is None else parse_vector(step_deg, "--step-deg"),
+        drift_percent_per_m=drift_percent_per_m, drift_direction=parse_vector(drift_direction, "--drift-direction"),
+        drift_deg_per_m=drift_deg_per_m, drift_axis=parse_vector(drift_axis, "--drift-axis"),
+    )
+    result = perturb_pose_file(poses_in, poses_out, perturbation, format=choice(format, ("tum", "kitti"), "--format"))
+    console.print(f"wrote {len(result)} perturbed poses to {poses_out}")

@@ -1,0 +1,191 @@
+"""Commands on a store and its pose ledger: ``correct``, ``revisions``, ``rollback``, ``export``, ``info``,
+``recover``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import numpy as np
+import typer
+from rich.table import Table
+
+from driftmap.cli.common import (
+    CALIB_HELP,
+    KITTI_FRAME_HELP,
+    app,
+    check_output,
+    choice,
+    console,
+    finite,
+    open_store,
+    progress_bar,
+    refuse_existing,
+)
+
+
+@app.command()
+def correct(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    poses: Annotated[Path, typer.Option("--poses", help="Pose file (T_world_sensor per frame).")],
+    format: Annotated[str, typer.Option("--format", help="tum | kitti | redwood (.log) | 4x4 (one 4x4 matrix per frame, the last row 0 0 0 stamp_s or 0 0 0 1)")] = "tum",
+    match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM and 4x4 files with stamps, index for KITTI and 4x4 files without: row i = frame_id i; a Redwood .log matches by the frame ids it names)")] = None,
+    source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", callback=finite, min=0.0, help="Stamp matching tolerance (ms).")] = 10.0,
+    no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
+    kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
+    calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
+) -> None:
+    """Import a pose file as a new revision (a correction); nothing is overwritten."""
+    from driftmap.frame import PoseSource
+    from driftmap.store.frame_store import TrajectoryFormat
+
+    format = choice(format, tuple(f.value for f in TrajectoryFormat), "--format")
+    match = None if match is None else choice(match, ("stamp", "index"), "--match")
+    source = choice(source, tuple(s.value for s in PoseSource if s is not PoseSource.NONE), "--source")
+    with open_store(store_path, "a") as store:
+        revision, matched = store.import_poses(poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
+                                               source=source, propagate=not no_propagate, kitti_frame=kitti_frame,
+                                               calib_file=calib)
+        d = store.diff(revision.parent_id, revision.revision_id)
+    console.print(f"revision {revision.revision_id} (parent {revision.parent_id}, source {revision.source.value}): "
+                  f"{len(revision.set_directly)} frames set from {poses.name}, {len(revision.propagated)} propagated; "
+                  f"max change {d.max_translation_m:.4f} m / {d.max_rotation_deg:.3f} deg")
+    if matched.unmatched_rows:
+        console.print(f"  {len(matched.unmatched_rows)} rows of {poses.name} matched no stored frame (ignored)")
+
+
+@app.command()
+def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """List the pose revisions: id, parent, source, frames changed, max displacement."""
+    import datetime
+
+    with open_store(store_path) as store:
+        table = Table(title=f"pose revisions of {store_path}")
+        for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
+            table.add_column(col, justify="right" if col not in ("source", "note", "created") else "left",
+                             no_wrap=col != "note")
+        for rev in store.revisions:
+            if rev.parent_id is None:
+                table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")
+                continue
+            d = store.diff(rev.parent_id, rev.revision_id)
+            changed = d.n_changed
+            created = datetime.datetime.fromtimestamp(rev.created_ns / 1e9).isoformat(timespec="seconds")
+            table.add_row(str(rev.revision_id), str(rev.parent_id), rev.source.value, created, str(changed),
+                          f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note)
+        console.print(table)
+
+
+@app.command()
+def rollback(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    to: Annotated[int, typer.Option("--to", help="Revision to restore.")],
+) -> None:
+    """Create a new revision equal to revision N (history is kept)."""
+    with open_store(store_path, "a") as store:
+        rev = store.rollback(to)
+    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({len(rev.set_directly)} frames changed)")
+
+
+@app.command()
+def export(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
+    map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
+    trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
+    format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
+    mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [map] table sets map.export_voxel_size_m (DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M overrides it, --voxel-size-m both).")] = None,
+) -> None:
+    """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
+    from driftmap.config import DriftmapConfig
+
+    if map_path is None and trajectory is None and mcap_path is None:
+        raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
+    format = choice(format, ("tum", "kitti"), "--format")
+    if voxel_size_m is not None and not voxel_size_m > 0:
+        raise typer.BadParameter(f"must be positive, got {voxel_size_m}", param_hint="--voxel-size-m")
+    settings = DriftmapConfig.load(config)  # validated also when --voxel-size-m is given
+    if voxel_size_m is None:
+        voxel_size_m = settings.map.export_voxel_size_m
+    if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
+        raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
+    for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")):
+        check_output(path, flag)
+    outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")]
+    if map_path is not None and voxel_size_m is not None:
+        outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
+    for path, flag in outputs:  # every output checked before anything is written
+        if path is not None:
+            refuse_existing(path, flag, overwrite)
+    with open_store(store_path) as store:
+        rev = store.head if revision is None else revision
+        store.ledger.revision(rev)
+        if trajectory is not None:
+            store.export_trajectory(trajectory, revision=rev, format=format)
+            console.print(f"trajectory (revision {rev}, {format}): {trajectory}")
+        if map_path is not None:
+            view = store.map(rev)
+            _, n_written = view.write(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
+            detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
+            console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
+        if mcap_path is not None:
+            from driftmap.map.foxglove_export import export_foxglove_mcap
+
+            with progress_bar() as progress:
+                task = progress.add_task("foxglove mcap", total=None)
+                summary = export_foxglove_mcap(
+                    store, mcap_path, revision=rev,
+                    map_voxel_size_m=voxel_size_m if voxel_size_m is not None else 0.02,
+                    overwrite=overwrite,
+                    progress=lambda stage, done, total: progress.update(task, description=f"foxglove mcap: {stage}", completed=done, total=total),
+                )
+            console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
+                          f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
+
+
+@app.command()
+def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """Frames, sensors, time span, revisions, size on disk and invalid-pixel statistics of a store."""
+    from collections import Counter
+
+    with open_store(store_path) as store:
+        infos = [store.frame_info(int(f)) for f in store.frame_ids]
+        table = Table(title=f"driftmap store {store_path}")
+        table.add_column("quantity")
+        table.add_column("value", justify="right")
+        stamps = [i["stamp_ns"] for i in infos]
+        sensors = Counter(f"{i['sensor_name']} ({i['sensor_kind']})" for i in infos)
+        invalid = [1 - i["quality"]["n_valid"] / i["quality"]["n_measurements"] for i in infos
+                   if i.get("quality") and i["quality"]["n_measurements"]]
+        flagged = sum(1 for i in infos if i.get("quality") and i["quality"]["flags"])
+        n_points = sum(int(i["points"]["n_points"]) for i in infos)
+        table.add_row("frames", str(len(infos)))
+        table.add_row("frame ids", f"{int(store.frame_ids[0])} .. {int(store.frame_ids[-1])}" if infos else "-")
+        table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
+        if stamps:
+            table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")
+        table.add_row("points (sensor frames)", f"{n_points:,}")
+        table.add_row("revisions", f"{len(store.revisions)} (head {store.head}: {store.revisions[store.head].source.value})")
+        if store.loss:
+            table.add_row("lost to damage (driftmap recover)", str(store.loss))
+        table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")
+        if invalid:
+            table.add_row("invalid-pixel fraction (mean / max)", f"{np.mean(invalid):.3f} / {np.max(invalid):.3f}")
+            table.add_row("frames flagged", str(flagged))
+        console.print(table)
+
+
+@app.command()
+def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
+    """Salvage every intact frame and revision of a damaged store (damaged files are kept beside)."""
+    from driftmap.store.frame_store import FrameStore
+
+    events = FrameStore.recover(store_path)
+    if not events:
+        console.print(f"{store_path}: intact (or already recovered); nothing to do")
+    for event in events:
+        console.print(f"recovered {event}")
