@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -39,6 +39,9 @@ from driftmap.registration.loops import LoopClosureConfig
 from driftmap.report import top_view
 from driftmap.sources.synthetic import ROOM_MAX_M, ROOM_MIN_M, SyntheticLog, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
+
+if TYPE_CHECKING:
+    from driftmap.map.view import MapView
 
 logger = logging.getLogger(__name__)
 
@@ -153,11 +156,69 @@ class _Stages:
 
     def run(self, name: str, fn: Callable[[], Any]) -> Any:
         self.tick(name, 0, 1)
+        value = self.timed(name, fn)
+        self.tick(name, 1, 1)
+        return value
+
+    def timed(self, name: str, fn: Callable[[], Any]) -> Any:
+        """Time ``fn`` without reporting it as a stage (a build reports its own stages)."""
         t = time.perf_counter()
         value = fn()
         self.seconds[name] = round(time.perf_counter() - t, 3)
-        self.tick(name, 1, 1)
         return value
+
+
+@dataclass
+class _DemoRun:
+    """What the steps of one demo run share: where it writes, the log, the stage timer, and the files written so
+    far (the very dict that becomes :attr:`DemoResult.files`: the reports add themselves to it)."""
+
+    out: Path
+    log: SyntheticLog
+    store_dir: Path
+    map_voxel_m: float
+    build_kwargs: dict[str, Any]
+    stages: _Stages
+    files: dict[str, str]
+
+    def run_build(self, stage: str, **kwargs: Any) -> BuildResult:
+        """Run the build on the log into the demo's store, timed as ``stage``."""
+        return self.stages.timed(stage, lambda: build(self.log.path, self.store_dir, **kwargs, **self.build_kwargs))
+
+
+@dataclass
+class _Revision0:
+    """The drifting map (revision 0), diagnosed, and what the later steps reuse (samples, ground truth)."""
+
+    built: BuildResult
+    ground_truth: tuple[np.ndarray, np.ndarray]  # (frame ids, T_world_sensor) of the stored frames
+    diagnose_config: DiagnoseConfig
+    cloud: DiagnosticCloud
+    diagnosis: Diagnosis
+    points: np.ndarray
+    point_frames: np.ndarray
+    spread: WallSpread
+    ate_m: float | None
+    flagged: list[int]
+
+    @property
+    def gt_poses(self) -> np.ndarray:
+        return self.ground_truth[1]
+
+
+@dataclass
+class _Corrected:
+    """The loop closure's revision (if any), diagnosed, and the ground-truth placement as the reference."""
+
+    closed: BuildResult
+    diagnosis: Diagnosis | None
+    points: np.ndarray | None
+    frames_moved: int
+    ate_m: float | None
+    diagnosis_gt: Diagnosis
+    gt_points: np.ndarray
+    spread: WallSpread | None
+    gt_spread: WallSpread
 
 
 def run_demo(
@@ -171,6 +232,21 @@ def run_demo(
     """Run the demo into ``out_dir``; ``progress(stage, done, total)`` reports each stage."""
     t0 = time.perf_counter()
     config = config or DriftmapConfig()
+    run = _prepare(out_dir, log_path, max_frames, config, progress)
+    built = _build(run)
+    before = _diagnose_before(run, built)
+    closed = _close_the_loop(run)
+    after = _diagnose_after(run, before, closed)
+    # 5. figures, diagnosis JSON and the report
+    run.files.update(run.stages.run("figures", lambda: _figures(run.out, before, after)))
+    diag_files = _export_diagnoses_and_config(run, config, before.diagnosis, after.diagnosis)
+    result = _demo_result(run, before, after, diag_files, seconds=time.perf_counter() - t0)
+    return _write_report(run, result, t0)
+
+
+def _prepare(out_dir: str | Path, log_path: str | Path | None, max_frames: int | None, config: DriftmapConfig,
+             progress: DemoProgress | None) -> _DemoRun:
+    """The results folder (its store emptied), the log, and the build settings both builds share."""
     stages = _Stages(progress)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -183,132 +259,172 @@ def run_demo(
         shutil.rmtree(store_dir)
     build_kwargs = dict(poses_from_source=True, frames=f"0:{n}", config=DEMO_BUILD_CONFIG, progress=stages.tick,
                         depth=config.depth)
+    return _DemoRun(out, log, store_dir, map_voxel_m, build_kwargs, stages, {"store": str(store_dir)})
 
-    # 1. the drifting odometry of the log becomes revision 0 of a new store
-    t = time.perf_counter()
-    built: BuildResult = build(log.path, store_dir, loop_closure=False, **build_kwargs)
-    stages.seconds["build (revision 0)"] = round(time.perf_counter() - t, 3)
-    files: dict[str, str] = {"store": str(store_dir)}
-    gt_all = log.ground_truth().poses
-    with FrameStore.open(store_dir) as store:
+
+def _build(run: _DemoRun) -> BuildResult:
+    """1. The drifting odometry of the log becomes revision 0 of a new store."""
+    return run.run_build("build (revision 0)", loop_closure=False)
+
+
+def _diagnose_before(run: _DemoRun, built: BuildResult) -> _Revision0:
+    """2. Sample the stored frames (the loop closure's revision is diagnosed on the same samples) and diagnose
+    revision 0: the double walls of the drifting map; export its map and trajectory."""
+    gt_all = run.log.ground_truth().poses
+    with FrameStore.open(run.store_dir) as store:
         gt_poses = gt_all[store.frame_ids]  # the log's frame ids are its row numbers
         gt = (store.frame_ids.copy(), gt_poses)
         dcfg = DiagnoseConfig.for_store(store)
-        cloud = stages.run("sample frames for diagnosis", lambda: DiagnosticCloud.from_store(store, dcfg.sampling))
-
-        # 2. diagnose revision 0: the double walls of the drifting map
-        diag0 = stages.run("diagnose revision 0", lambda: diagnose_store(store, 0, config=dcfg, cloud=cloud, ground_truth=gt))
+        cloud = run.stages.run("sample frames for diagnosis", lambda: DiagnosticCloud.from_store(store, dcfg.sampling))
+        diag0 = run.stages.run("diagnose revision 0",
+                               lambda: diagnose_store(store, 0, config=dcfg, cloud=cloud, ground_truth=gt))
         view = store.map(0)
         odom_points = view.points_world.copy()
         point_frames = view.point_frame_ids()
-        n_points = len(odom_points)
         odom_spread = _loop_wall_spread(odom_points)
-        files["map_odometry_ply"] = str(view.export(out / "map_odometry.ply", voxel_size_m=map_voxel_m))
-        files["trajectory_odometry_tum"] = str(store.export_trajectory(out / "trajectory_odometry.tum", revision=0))
+        run.files["map_odometry_ply"] = str(view.export(run.out / "map_odometry.ply", voxel_size_m=run.map_voxel_m))
+        run.files["trajectory_odometry_tum"] = str(store.export_trajectory(run.out / "trajectory_odometry.tum", revision=0))
         ate_odometry = trajectory_errors(store.poses(0), gt_poses).ate_rmse_m if len(store) >= 3 else None
         flagged = [int(f) for f in store.frame_ids if (store.frame_info(int(f)).get("quality") or {}).get("flags")]
         del view  # its sensor pages belong to this (read-only) opening of the store
+    return _Revision0(built, gt, dcfg, cloud, diag0, odom_points, point_frames, odom_spread, ate_odometry, flagged)
 
-    # 3. loop closure: the pose graph's revision re-transforms the stored frames (the build resumes the store)
-    t = time.perf_counter()
-    closed: BuildResult = build(log.path, store_dir, resume=True, **build_kwargs)
-    stages.seconds["loop closure + pose graph + re-transform"] = round(time.perf_counter() - t, 3)
 
-    with FrameStore.open(store_dir) as store:
+def _close_the_loop(run: _DemoRun) -> BuildResult:
+    """3. Loop closure: the pose graph's revision re-transforms the stored frames (the build resumes the store)."""
+    return run.run_build("loop closure + pose graph + re-transform", resume=True)
+
+
+def _diagnose_after(run: _DemoRun, before: _Revision0, closed: BuildResult) -> _Corrected:
+    """4. Move the map to the loop closure's revision and diagnose it with revision 0's samples; diagnose the
+    ground-truth placement as the reference. Exports the corrected map, trajectory and MCAP, and the
+    ground-truth map."""
+    rev = closed.loop_revision
+    with FrameStore.open(run.store_dir) as store:
         view = store.map(0)
-        diag1 = None
-        corrected_points = None
-        frames_moved = 0
-        if closed.loop_revision is not None:
-            rev = closed.loop_revision
-            changes = stages.run("re-transform the stored frames", lambda: view.apply(rev))
-            frames_moved = len(changes.changes)
-            corrected_points = view.points_world.copy()
-            # 4. diagnose again with the same samples
-            diag1 = stages.run(f"diagnose revision {rev}", lambda: diagnose_store(store, rev, config=dcfg, cloud=cloud, ground_truth=gt))
-            files["map_corrected_ply"] = str(view.export(out / "map_corrected.ply", voxel_size_m=map_voxel_m))
-        files["trajectory_corrected_tum"] = str(store.export_trajectory(out / "trajectory_corrected.tum"))
-        ate_corrected = trajectory_errors(store.poses(), gt_poses).ate_rmse_m if closed.loop_revision is not None and len(store) >= 3 else None
-        rows_in_cloud = np.searchsorted(store.frame_ids, cloud.frame_ids)
-        diag_gt = stages.run("diagnose the ground-truth placement (reference)",
-                             lambda: diagnose_cloud(cloud, gt_poses[rows_in_cloud], revision=-1, config=dcfg))
-        # the ground-truth map, for the wall spread and the top view (a scratch view, not a revision)
-        view.apply(-1, poses=gt_poses[np.searchsorted(store.frame_ids, view.frame_ids)])
-        gt_points = view.points_world.copy()
-        files["map_ground_truth_ply"] = str(view.export(out / "map_ground_truth.ply", voxel_size_m=map_voxel_m))
-        if closed.loop_revision is not None:
-            files.update(_export_mcap(store, out, closed.loop_revision, diag1))
-    gt_spread = _loop_wall_spread(gt_points)
-    corrected_spread = None if corrected_points is None else _loop_wall_spread(corrected_points)
+        diag1, corrected_points, frames_moved = None, None, 0
+        if rev is not None:
+            diag1, corrected_points, frames_moved = _apply_and_diagnose(run, store, view, rev, before)
+        run.files["trajectory_corrected_tum"] = str(store.export_trajectory(run.out / "trajectory_corrected.tum"))
+        ate_corrected = (trajectory_errors(store.poses(), before.gt_poses).ate_rmse_m
+                         if rev is not None and len(store) >= 3 else None)
+        diag_gt, gt_points = _ground_truth_reference(run, store, view, before)
+        if rev is not None:
+            run.files.update(_export_mcap(store, run.out, rev, diag1))
+    return _Corrected(closed, diag1, corrected_points, frames_moved, ate_corrected, diag_gt, gt_points,
+                      None if corrected_points is None else _loop_wall_spread(corrected_points),
+                      _loop_wall_spread(gt_points))
 
-    # 5. figures, diagnosis JSON and the report
-    def figures() -> dict[str, str]:
-        written: dict[str, str] = {}
-        panels = [(f"revision 0 (drifting odometry): loop wall spread {odom_spread.max_m * 100:.1f} cm",
-                   FusedCloud(odom_points, point_frames))]
-        if corrected_points is not None:
-            panels.append((f"revision {closed.loop_revision} (loop closure): {corrected_spread.max_m * 100:.1f} cm",
-                           FusedCloud(corrected_points, point_frames)))
-        panels.append((f"ground truth: {gt_spread.max_m * 100:.1f} cm", FusedCloud(gt_points, point_frames)))
-        written["top_view_png"] = str(top_view(
-            out / "top_view.png", panels, z_range_m=(0.9, 2.4),
-            title="the same room fused with the drifting odometry, after loop closure, and with ground truth"))
-        figs = out / "figures"
-        for name, path in write_report(figs, diag0).items():
-            written[f"{name}_rev0_png"] = str(path)
-        if diag1 is not None:
-            compare = {"revision 0 (odometry)": diag0, f"revision {diag1.revision} (loop closure)": diag1,
-                       "ground truth (reference)": diag_gt}
-            for name, path in write_report(figs, diag1, compare=compare).items():
-                written[f"{name}_rev{diag1.revision}_png" if name != "score_comparison" else "smearing_before_after_png"] = str(path)
-        return written
 
-    files.update(stages.run("figures", figures))
+def _apply_and_diagnose(run: _DemoRun, store: FrameStore, view: MapView, rev: int,
+                        before: _Revision0) -> tuple[Diagnosis, np.ndarray, int]:
+    """Move ``view`` to revision ``rev``, diagnose it on revision 0's samples and export its map:
+    ``(diagnosis, points, frames moved)``."""
+    changes = run.stages.run("re-transform the stored frames", lambda: view.apply(rev))
+    frames_moved = len(changes.changes)
+    corrected_points = view.points_world.copy()
+    diag1 = run.stages.run(f"diagnose revision {rev}", lambda: diagnose_store(
+        store, rev, config=before.diagnose_config, cloud=before.cloud, ground_truth=before.ground_truth))
+    run.files["map_corrected_ply"] = str(view.export(run.out / "map_corrected.ply", voxel_size_m=run.map_voxel_m))
+    return diag1, corrected_points, frames_moved
+
+
+def _ground_truth_reference(run: _DemoRun, store: FrameStore, view: MapView,
+                            before: _Revision0) -> tuple[Diagnosis, np.ndarray]:
+    """The samples diagnosed at their ground-truth poses, and the map placed there and exported:
+    ``(diagnosis, points)``."""
+    gt_poses = before.gt_poses
+    rows_in_cloud = np.searchsorted(store.frame_ids, before.cloud.frame_ids)
+    diag_gt = run.stages.run("diagnose the ground-truth placement (reference)", lambda: diagnose_cloud(
+        before.cloud, gt_poses[rows_in_cloud], revision=-1, config=before.diagnose_config))
+    # the ground-truth map, for the wall spread and the top view (a scratch view, not a revision)
+    view.apply(-1, poses=gt_poses[np.searchsorted(store.frame_ids, view.frame_ids)])
+    gt_points = view.points_world.copy()
+    run.files["map_ground_truth_ply"] = str(view.export(run.out / "map_ground_truth.ply", voxel_size_m=run.map_voxel_m))
+    return diag_gt, gt_points
+
+
+def _figures(out: Path, before: _Revision0, after: _Corrected) -> dict[str, str]:
+    """The top view of the three placements and the diagnosis figures of both revisions."""
+    written: dict[str, str] = {}
+    panels = [(f"revision 0 (drifting odometry): loop wall spread {before.spread.max_m * 100:.1f} cm",
+               FusedCloud(before.points, before.point_frames))]
+    if after.points is not None:
+        panels.append((f"revision {after.closed.loop_revision} (loop closure): {after.spread.max_m * 100:.1f} cm",
+                       FusedCloud(after.points, before.point_frames)))
+    panels.append((f"ground truth: {after.gt_spread.max_m * 100:.1f} cm", FusedCloud(after.gt_points, before.point_frames)))
+    written["top_view_png"] = str(top_view(
+        out / "top_view.png", panels, z_range_m=(0.9, 2.4),
+        title="the same room fused with the drifting odometry, after loop closure, and with ground truth"))
+    figs = out / "figures"
+    diag0, diag1 = before.diagnosis, after.diagnosis
+    for name, path in write_report(figs, diag0).items():
+        written[f"{name}_rev0_png"] = str(path)
+    if diag1 is not None:
+        compare = {"revision 0 (odometry)": diag0, f"revision {diag1.revision} (loop closure)": diag1,
+                   "ground truth (reference)": after.diagnosis_gt}
+        for name, path in write_report(figs, diag1, compare=compare).items():
+            written[f"{name}_rev{diag1.revision}_png" if name != "score_comparison" else "smearing_before_after_png"] = str(path)
+    return written
+
+
+def _export_diagnoses_and_config(run: _DemoRun, config: DriftmapConfig, diag0: Diagnosis,
+                                 diag1: Diagnosis | None) -> dict[str, Path]:
+    """The diagnosis JSON of each revision, the configuration and the demo's build configuration."""
     diag_files = {}
     for label, d in (("rev0", diag0), ("rev1", diag1)):
         if d is not None:
-            path = out / f"diagnosis_{label}.json"
+            path = run.out / f"diagnosis_{label}.json"
             path.write_text(json.dumps(d.to_json(), indent=1) + "\n")
             diag_files[label] = path
-            files[f"diagnosis_{label}_json"] = str(path)
-    files["config_json"] = str(config.write(out / "config.json"))
-    (out / "build_config.json").write_text(DEMO_BUILD_CONFIG.model_dump_json(indent=2) + "\n")
-    files["build_config_json"] = str(out / "build_config.json")
+            run.files[f"diagnosis_{label}_json"] = str(path)
+    run.files["config_json"] = str(config.write(run.out / "config.json"))
+    (run.out / "build_config.json").write_text(DEMO_BUILD_CONFIG.model_dump_json(indent=2) + "\n")
+    run.files["build_config_json"] = str(run.out / "build_config.json")
+    return diag_files
 
-    result = DemoResult(
-        out_dir=out.resolve(),
-        n_frames=len(gt_poses),
-        n_points=n_points,
+
+def _demo_result(run: _DemoRun, before: _Revision0, after: _Corrected, diag_files: dict[str, Path], *,
+                 seconds: float) -> DemoResult:
+    built, closed, diag1 = before.built, after.closed, after.diagnosis
+    return DemoResult(
+        out_dir=run.out.resolve(),
+        n_frames=len(before.gt_poses),
+        n_points=len(before.points),
         mean_invalid_fraction=float(built.mean_invalid_fraction or 0.0),
-        flagged_frames=flagged,
-        wall_spread_odometry_m=odom_spread.median_m,
-        wall_spread_ground_truth_m=gt_spread.median_m,
-        wall_spread_odometry_max_m=odom_spread.max_m,
-        wall_spread_ground_truth_max_m=gt_spread.max_m,
-        files=files,
-        seconds=time.perf_counter() - t0,
+        flagged_frames=before.flagged,
+        wall_spread_odometry_m=before.spread.median_m,
+        wall_spread_ground_truth_m=after.gt_spread.median_m,
+        wall_spread_odometry_max_m=before.spread.max_m,
+        wall_spread_ground_truth_max_m=after.gt_spread.max_m,
+        files=run.files,
+        seconds=seconds,
         loops_accepted=closed.loops_accepted,
-        wall_spread_corrected_m=None if corrected_spread is None else corrected_spread.median_m,
-        wall_spread_corrected_max_m=None if corrected_spread is None else corrected_spread.max_m,
-        ate_odometry_m=ate_odometry,
-        ate_corrected_m=ate_corrected,
+        wall_spread_corrected_m=None if after.spread is None else after.spread.median_m,
+        wall_spread_corrected_max_m=None if after.spread is None else after.spread.max_m,
+        ate_odometry_m=before.ate_m,
+        ate_corrected_m=after.ate_m,
         loop_revision=closed.loop_revision,
         loops_tried=closed.loops_tried,
         max_correction_m=closed.max_correction_m,
-        frames_retransformed=frames_moved,
-        diagnosis_before=DiagnosisSummary.of("revision 0 (odometry)", diag0, diag_files.get("rev0"), revision=0),
+        frames_retransformed=after.frames_moved,
+        diagnosis_before=DiagnosisSummary.of("revision 0 (odometry)", before.diagnosis, diag_files.get("rev0"), revision=0),
         diagnosis_after=None if diag1 is None else DiagnosisSummary.of(
             f"revision {diag1.revision} (loop closure)", diag1, diag_files.get("rev1"), revision=diag1.revision),
-        diagnosis_ground_truth=DiagnosisSummary.of("ground truth (reference)", diag_gt, None, revision=None),
+        diagnosis_ground_truth=DiagnosisSummary.of("ground truth (reference)", after.diagnosis_gt, None, revision=None),
         seconds_per_stage={**{f"build: {k}": round(v, 3) for k, v in built.seconds_per_stage.items()},
                            **{f"loop closure: {k}": round(v, 3) for k, v in closed.seconds_per_stage.items()},
-                           **stages.seconds},
+                           **run.stages.seconds},
     )
-    files["report_md"] = str(write_markdown_report(out / "report.md", result))
-    files["report_html"] = str(write_html_report(out / "report.html", result))
-    files["summary_json"] = str(out / "summary.json")
+
+
+def _write_report(run: _DemoRun, result: DemoResult, t0: float) -> DemoResult:
+    """The Markdown and HTML reports, then ``summary.json`` with the total time (since ``t0``)."""
+    run.files["report_md"] = str(write_markdown_report(run.out / "report.md", result))
+    run.files["report_html"] = str(write_html_report(run.out / "report.html", result))
+    run.files["summary_json"] = str(run.out / "summary.json")
     result = replace(result, seconds=time.perf_counter() - t0)
-    (out / "summary.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    (run.out / "summary.json").write_text(json.dumps(result.to_json(), indent=2) + "\n")
     return result
 
 
