@@ -25,12 +25,16 @@ from driftmap.frame import (
     Provenance,
     SensorKind,
 )
-from driftmap.preprocess.depth import BackprojectionResult, InvalidFractionMonitor, InvalidReason, backproject, depth_frame
+from driftmap._version import __version__
 
-__version__ = "0.1.0"
-
-#: Heavier entry points, imported on first use (``driftmap.FrameStore`` etc.) so ``import driftmap`` stays light.
+#: Heavier entry points, imported on first use (``driftmap.FrameStore``, ``driftmap.backproject`` etc.) so that
+#: ``import driftmap`` and ``import driftmap.store`` stay light (no numba, Open3D, GTSAM or KISS-ICP).
 _LAZY = {
+    "BackprojectionResult": "driftmap.preprocess.depth",
+    "InvalidFractionMonitor": "driftmap.preprocess.depth",
+    "InvalidReason": "driftmap.preprocess.depth",
+    "backproject": "driftmap.preprocess.depth",
+    "depth_frame": "driftmap.preprocess.depth",
     "FrameStore": "driftmap.store.frame_store",
     "MapView": "driftmap.map.view",
     "ChangeSet": "driftmap.map.view",

@@ -61,3 +61,71 @@ def parse_enum(kind: type[E], value: object, what: str, error: type[DriftmapErro
         return kind(value)
     except ValueError:
         raise error(f"{what}: {value!r} is not one of {[m.value for m in kind]}") from None
+
+
+class FrameRejectedError(StoreError):
+    """The store refused a frame (or revision) before writing anything: a value it cannot store faithfully.
+
+    ``frame_id`` and ``field`` name what was refused (``frame_id`` is None for a record that is not a frame)."""
+
+    def __init__(self, message: str, *, frame_id: int | None, field: str):
+        super().__init__(message)
+        self.frame_id = frame_id
+        self.field = field
+
+
+class StoreIOError(StoreError, OSError):
+    """An operating-system error (disk full, read-only file system, I/O error, permissions) at the store boundary.
+
+    ``path`` (also ``filename``) is the file the store was reading or writing, ``errno`` the OS error number (None
+    if unknown); the message names both and says how to continue (``driftmap build ... --resume`` /
+    ``driftmap recover STORE``). It is a :class:`StoreError` and, so that code catching ``OSError`` still does,
+    an ``OSError``."""
+
+    def __init__(self, message: str, *, path: object, errno: int | None):
+        super().__init__(message)
+        self.path = path
+        self.errno = errno
+        self.filename = None if path is None else str(path)
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""
+
+
+class OutputInsideStoreError(ConfigError):
+    """An output path (an export, a report, a figure) lies inside a frame-store folder, where it could replace or
+    corrupt the store's own files. ``path``: the output as given, ``flag``: the option or argument that named it,
+    ``store``: the store folder it is in."""
+
+    def __init__(self, message: str, *, path: object, flag: str, store: object):
+        super().__init__(message)
+        self.path = path
+        self.flag = flag
+        self.store = store
+
+
+class EmptyExportError(DriftmapError):
+    """An export has nothing to write (no frames, no points); nothing was written."""
+
+
+class EmptyStoreError(StoreError, EmptyExportError):
+    """The store (or the revision asked for) has no frames, so an export or analysis has nothing to work on."""
+
+    def __init__(self, message: str, *, store: object, revision: int | None):
+        super().__init__(message)
+        self.store = store
+        self.revision = revision
+
+
+class OutputWriteError(DriftmapError, OSError):
+    """An output file (export, figure) could not be written; ``path`` (also ``filename``) names it and nothing was
+    left under that name. Also an ``OSError``, as the error it stands for."""
+
+    def __init__(self, message: str, *, path: object, errno: int | None):
+        super().__init__(message)
+        self.path = path
+        self.errno = errno
+        self.filename = None if path is None else str(path)
+
+    def __str__(self) -> str:
+        return str(self.args[0]) if self.args else ""

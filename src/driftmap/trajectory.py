@@ -190,15 +190,31 @@ def _format_number(value: float) -> str:
     return repr(float(value))
 
 
+def _write_text_atomically(path: str | Path, text: str, what: str, trajectory: Trajectory) -> None:
+    """Write a pose file: refused when empty (its readers refuse a file without poses) or inside a store folder;
+    written under a temporary name in the same folder and renamed into place when complete, so a failed write
+    leaves no partial file and an existing file survives a failed overwrite."""
+    from driftmap.errors import EmptyExportError
+    from driftmap.store.guards import atomic_output
+
+    if len(trajectory) == 0:
+        raise EmptyExportError(f"{path}: no poses to write ({what}); nothing written")
+    with atomic_output(path, f"{what} file") as tmp:
+        tmp.write_text(text)
+
+
 def write_tum(path: str | Path, trajectory: Trajectory) -> None:
     """Write a TUM file (stamps in seconds with nanosecond digits, quaternions ``qx qy qz qw``); numbers are
-    written with the shortest digits that read back exactly, so :func:`read_tum` returns the same poses."""
-    quat = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat()
+    written with the shortest digits that read back exactly, so :func:`read_tum` returns the same poses.
+
+    The file appears complete or not at all (temporary file renamed into place); an empty trajectory is an
+    :class:`~driftmap.errors.EmptyExportError` and a path inside a store folder is refused."""
+    quat = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat() if len(trajectory) else np.zeros((0, 4))
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for stamp, T, q in zip(trajectory.stamps_ns, trajectory.poses, quat, strict=True):
         t = T[:3, 3]
         lines.append(f"{_format_stamp_ns(int(stamp))} " + " ".join(_format_number(v) for v in (*t, *q)))
-    Path(path).write_text("\n".join(lines) + "\n")
+    _write_text_atomically(path, "\n".join(lines) + "\n", "TUM trajectory", trajectory)
 
 
 #: (field, name, 1-based file column) of the 12 numbers of a KITTI row (3x4 row-major ``[R | t]``).
@@ -249,9 +265,11 @@ def read_kitti(path: str | Path) -> Trajectory:
 
 
 def write_kitti(path: str | Path, trajectory: Trajectory) -> None:
-    """Write one 3x4 row-major line per pose, with the shortest digits that read back exactly."""
+    """Write one 3x4 row-major line per pose, with the shortest digits that read back exactly (atomically, never
+    empty, never inside a store folder: as :func:`write_tum`)."""
     rows = trajectory.poses[:, :3, :].reshape(-1, 12)
-    Path(path).write_text("".join(" ".join(_format_number(v) for v in row) + "\n" for row in rows))
+    _write_text_atomically(path, "".join(" ".join(_format_number(v) for v in row) + "\n" for row in rows),
+                           "KITTI trajectory", trajectory)
 
 
 # ---- EuRoC, Redwood .log, and format detection -----------------------------------------------------------------

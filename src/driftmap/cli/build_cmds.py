@@ -30,6 +30,7 @@ from driftmap.cli.common import (
     source_options,
 )
 from driftmap.errors import DriftmapError
+from driftmap.store import refuse_inside_store
 
 
 @app.command()
@@ -41,6 +42,8 @@ def demo(
     """Run the whole story on the embedded synthetic drifting-robot log: build -> diagnose -> loop closure
     -> diagnose again -> exports -> report."""
     from driftmap.demo import region_lines, run_demo, summary_rows
+
+    check_output(out, "--out", folder=True)
 
     with progress_bar() as progress:
         tasks: dict[str, int] = {}
@@ -168,6 +171,7 @@ def synth(
         from dataclasses import replace
 
         cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
+    refuse_inside_store(out, "OUT")
     with console.status(f"ray-casting the synthetic {scene}"):
         path = generate_synthetic_log(out, cfg)
     console.print(bold("synthetic log: ", path.resolve()))
@@ -292,6 +296,7 @@ def build(
     from driftmap.pipeline.build import build as run_build
 
     format = _source_format(source, format)
+    refuse_inside_store(out, "--out", output_is_store=True)  # --resume continues a store; none is made inside one
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
     problems = []  # every problem of the config file and the environment at once
     try:

@@ -49,12 +49,17 @@ def choice(value: str, allowed: tuple[str, ...], flag: str) -> str:
     return v
 
 def check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> None:
-    """Refuse, before any work, an output that cannot be written: a folder in its way (or, for ``folder``, a file),
-    a file where a parent folder must go, or a parent that is not writable (one error line, exit 1)."""
+    """Refuse, before any work, an output that cannot be written or must not be: one inside a frame-store folder
+    (any store: exports, reports and traces never land among a store's own files), a folder in its way (or, for
+    ``folder``, a file), a file where a parent folder must go, or a parent that is not writable (one error line,
+    exit 1)."""
     from driftmap.errors import ConfigError
 
     if path is None:
         return
+    from driftmap.store import refuse_inside_store
+
+    refuse_inside_store(path, flag)  # no command writes into a store folder except through the store
     if path.exists() and (path.is_dir() != folder):
         what = "a folder" if path.is_dir() else "a file"
         raise ConfigError(f"{path}: is {what}, but {flag} needs a {'folder' if folder else 'file'} path")

@@ -165,6 +165,7 @@ def view(
 
     color = choice(color, tuple(COLOR_MODES), "--color")
     backend = choice(backend, tuple(BACKENDS), "--backend")
+    check_output(out, "--out", folder=True)
 
     with open_store(store_path) as store:
         with console.status(f"preparing the {color} view of {store_path}"):

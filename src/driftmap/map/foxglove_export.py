@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import logging
 import math
-import os
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -53,10 +52,11 @@ from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from driftmap import __version__
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, EmptyStoreError
 from driftmap.frame import PointAttributes
 from driftmap.preprocess.cloud import voxel_downsample
 from driftmap.sources.mcap_export import ExportError
+from driftmap.store.guards import atomic_output, refuse_inside_store
 from driftmap.store.segment import WORLD_FRAME, cloud_frame_name, pack_points
 
 if TYPE_CHECKING:
@@ -64,6 +64,11 @@ if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
 
 logger = logging.getLogger(__name__)
+
+
+class EmptyStoreExportError(ExportError, EmptyStoreError):
+    """The store to export has no frames (an :class:`ExportError` as before, and an
+    :class:`~driftmap.errors.EmptyStoreError`)."""
 
 TOPIC_MAP = "/map"
 TOPIC_TRAJECTORY = "/trajectory"
@@ -260,13 +265,18 @@ def export_foxglove_mcap(
     ``map_voxel_size_m`` deduplicates ``/map`` (None: every point of every frame); ``frame_voxel_size_m``
     downsamples each frame on ``/points`` (None: every point); ``include_frames=False`` leaves out
     ``/points`` (``/tf`` is still written). ``double_walls`` (a detector result or its regions) adds
-    ``/double_walls``. An existing file at ``path`` is an :class:`ExportError` unless ``overwrite``; the
-    file is written to ``<path>.tmp`` and renamed into place only when complete, so a failed export never
-    leaves a half-written file under the requested name. ``compression``: ``zstd`` | ``lz4`` | ``none``.
+    ``/double_walls``. An existing file at ``path`` is an :class:`ExportError` unless ``overwrite``; a ``path``
+    inside any store folder is refused, ``overwrite`` or not (:func:`driftmap.store.refuse_inside_store`). The
+    file is written under a temporary name in the same folder (``.<name>.<random>.tmp.mcap``) and renamed into
+    place only when complete, so a failed export never leaves a half-written file under the requested name.
+    ``compression``: ``zstd`` | ``lz4`` | ``none``.
 
     Raises :class:`~driftmap.errors.StoreError` for an unknown revision, :class:`~driftmap.errors.ConfigError`
-    for a non-positive voxel size or unknown compression, :class:`ExportError` for an empty store, a
-    negative frame stamp (MCAP log times are unsigned) or an existing output.
+    for a non-positive voxel size or unknown compression, :class:`~driftmap.errors.OutputInsideStoreError` for a
+    path inside a store, :class:`EmptyStoreExportError` (an :class:`ExportError` and an
+    :class:`~driftmap.errors.EmptyStoreError`) for a store without frames, :class:`ExportError` for a negative
+    frame stamp (MCAP log times are unsigned) or an existing output, and
+    :class:`~driftmap.errors.OutputWriteError` naming ``path`` when the file cannot be written (a full disk).
     """
     t_start = time.perf_counter()
     path = Path(path)
@@ -280,13 +290,15 @@ def export_foxglove_mcap(
         chunk_compression = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}[compression]
     except KeyError:
         raise ConfigError(f"compression must be zstd, lz4 or none, got {compression!r}") from None
+    refuse_inside_store(path, "Foxglove MCAP export path")  # any store folder, --overwrite or not
     if path.is_dir():
         raise ExportError(f"{path}: is a directory; give a file name such as {path / 'export.mcap'}")
     if path.exists() and not overwrite:
         raise ExportError(f"{path}: already exists; pass overwrite=True (CLI: --overwrite) to replace it")
     frame_ids = np.asarray(store.frame_ids, dtype=np.int64)
     if len(frame_ids) == 0:
-        raise ExportError(f"{store.path}: the store has no frames; nothing to export")
+        raise EmptyStoreExportError(f"store {store.path} has no frames in revision {rev}: nothing to export (nothing "
+                                    f"written to {path})", store=store.path, revision=rev)
     stamps = np.asarray(store.ledger.stamps_ns, dtype=np.int64)
     if stamps.min() < 0:
         bad = int(frame_ids[np.argmin(stamps)])
@@ -297,8 +309,6 @@ def export_foxglove_mcap(
     tick = progress or (lambda stage, done, total: None)
     regions = _regions_of(double_walls)
 
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
     counts: dict[str, int] = {}
     n_frame_points = 0
 
@@ -306,79 +316,74 @@ def export_foxglove_mcap(
         writer.write_message(topic, msg, log_time=int(stamp_ns), publish_time=int(stamp_ns), sequence=counts.get(topic, 0))
         counts[topic] = counts.get(topic, 0) + 1
 
-    try:
-        with open(tmp, "wb") as fh:
-            writer = Writer(fh, compression=chunk_compression)
-            writer.add_metadata(METADATA_NAME, {
-                "driftmap_version": __version__,
-                "store_path": str(Path(store.path).resolve()),
-                "revision": str(rev),
-                "revision_source": rev_info.source.value,
-                "revision_parent": "" if rev_info.parent_id is None else str(rev_info.parent_id),
-                "revision_note": rev_info.note,
-                "head_revision": str(store.head),
-                "source": _sources(store),
-                "n_frames": str(len(frame_ids)),
-                "world_frame": WORLD_FRAME,
-                "map_voxel_size_m": "" if map_voxel_size_m is None else f"{map_voxel_size_m:g}",
-                "frame_voxel_size_m": "" if frame_voxel_size_m is None else f"{frame_voxel_size_m:g}",
-                "topics": ",".join([TOPIC_MAP, TOPIC_TRAJECTORY, TOPIC_TF] + ([TOPIC_POINTS] if include_frames else [])
-                                   + ([TOPIC_DOUBLE_WALLS] if regions else [])),
-            })
+    with atomic_output(path, "Foxglove MCAP export path", guard=False) as tmp, open(tmp, "wb") as fh:
+        writer = Writer(fh, compression=chunk_compression)
+        writer.add_metadata(METADATA_NAME, {
+            "driftmap_version": __version__,
+            "store_path": str(Path(store.path).resolve()),
+            "revision": str(rev),
+            "revision_source": rev_info.source.value,
+            "revision_parent": "" if rev_info.parent_id is None else str(rev_info.parent_id),
+            "revision_note": rev_info.note,
+            "head_revision": str(store.head),
+            "source": _sources(store),
+            "n_frames": str(len(frame_ids)),
+            "world_frame": WORLD_FRAME,
+            "map_voxel_size_m": "" if map_voxel_size_m is None else f"{map_voxel_size_m:g}",
+            "frame_voxel_size_m": "" if frame_voxel_size_m is None else f"{frame_voxel_size_m:g}",
+            "topics": ",".join([TOPIC_MAP, TOPIC_TRAJECTORY, TOPIC_TF] + ([TOPIC_POINTS] if include_frames else [])
+                               + ([TOPIC_DOUBLE_WALLS] if regions else [])),
+        })
 
-            # the revision's result, logged at the first stamp so that it shows as soon as the file opens
-            tick("map", 0, 1)
-            view = store.map(rev)
-            fused = view.fused(map_voxel_size_m)
-            del view
-            n_map = len(fused.points_world)
-            offsets = fused.provenance_offsets
-            n_frames_per_voxel = np.diff(offsets).astype(np.float32)
-            first_frame = (np.minimum.reduceat(fused.provenance_frame_ids, offsets[:-1]).astype(np.float32)
-                           if n_map else np.zeros(0, np.float32))
-            map_rows = np.empty((n_map, 5), dtype="<f4")
-            map_rows[:, :3] = fused.points_world
-            map_rows[:, 3] = n_frames_per_voxel
-            map_rows[:, 4] = first_frame
-            _check_size(map_rows.nbytes, f"{TOPIC_MAP} ({n_map:,} points)", "raise map_voxel_size_m")
-            map_fields = [{"name": n, "offset": 4 * i, "type": _FLOAT32} for i, n in enumerate(("x", "y", "z", "n_frames", "frame_id"))]
-            write(writer, TOPIC_MAP, _cloud_message(WORLD_FRAME, t0, map_rows.tobytes(), 20, map_fields), t0)
-            del fused, map_rows
-            tick("map", 1, 1)
+        # the revision's result, logged at the first stamp so that it shows as soon as the file opens
+        tick("map", 0, 1)
+        view = store.map(rev)
+        fused = view.fused(map_voxel_size_m)
+        del view
+        n_map = len(fused.points_world)
+        offsets = fused.provenance_offsets
+        n_frames_per_voxel = np.diff(offsets).astype(np.float32)
+        first_frame = (np.minimum.reduceat(fused.provenance_frame_ids, offsets[:-1]).astype(np.float32)
+                       if n_map else np.zeros(0, np.float32))
+        map_rows = np.empty((n_map, 5), dtype="<f4")
+        map_rows[:, :3] = fused.points_world
+        map_rows[:, 3] = n_frames_per_voxel
+        map_rows[:, 4] = first_frame
+        _check_size(map_rows.nbytes, f"{TOPIC_MAP} ({n_map:,} points)", "raise map_voxel_size_m")
+        map_fields = [{"name": n, "offset": 4 * i, "type": _FLOAT32} for i, n in enumerate(("x", "y", "z", "n_frames", "frame_id"))]
+        write(writer, TOPIC_MAP, _cloud_message(WORLD_FRAME, t0, map_rows.tobytes(), 20, map_fields), t0)
+        del fused, map_rows
+        tick("map", 1, 1)
 
-            trajectory = PosesInFrame(frame_id=WORLD_FRAME)
-            _set_stamp(trajectory, t0)
-            for k in order:
-                _set_pose(trajectory.poses.add(), poses[k])
-            write(writer, TOPIC_TRAJECTORY, trajectory, t0)
+        trajectory = PosesInFrame(frame_id=WORLD_FRAME)
+        _set_stamp(trajectory, t0)
+        for k in order:
+            _set_pose(trajectory.poses.add(), poses[k])
+        write(writer, TOPIC_TRAJECTORY, trajectory, t0)
 
-            if regions:
-                write(writer, TOPIC_DOUBLE_WALLS, double_wall_scene(regions, t0), t0)
+        if regions:
+            write(writer, TOPIC_DOUBLE_WALLS, double_wall_scene(regions, t0), t0)
 
-            # every frame at its stamp: its pose in the revision, then its sensor-frame points
-            for done, k in enumerate(order, start=1):
-                fid, stamp = int(frame_ids[k]), int(stamps[k])
-                info = store.frame_info(fid)
-                child = cloud_frame_name(info["sensor_frame"], fid)
-                tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=child)
-                _set_stamp(tf, stamp)
-                T = poses[k]
-                tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in T[:3, 3])
-                qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
-                tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = float(qx), float(qy), float(qz), float(qw)
-                write(writer, TOPIC_TF, tf, stamp)
-                if include_frames:
-                    points, attrs = frame_cloud_points(store, fid, frame_voxel_size_m)
-                    payload, stride, fields = pack_points(points, attrs)
-                    _check_size(len(payload), f"{TOPIC_POINTS} frame {fid}", "set frame_voxel_size_m")
-                    write(writer, TOPIC_POINTS, _cloud_message(child, stamp, payload, stride, fields), stamp)
-                    n_frame_points += len(points)
-                tick("frames", done, len(order))
-            writer.finish()
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        # every frame at its stamp: its pose in the revision, then its sensor-frame points
+        for done, k in enumerate(order, start=1):
+            fid, stamp = int(frame_ids[k]), int(stamps[k])
+            info = store.frame_info(fid)
+            child = cloud_frame_name(info["sensor_frame"], fid)
+            tf = FrameTransform(parent_frame_id=WORLD_FRAME, child_frame_id=child)
+            _set_stamp(tf, stamp)
+            T = poses[k]
+            tf.translation.x, tf.translation.y, tf.translation.z = (float(v) for v in T[:3, 3])
+            qx, qy, qz, qw = Rotation.from_matrix(T[:3, :3]).as_quat()
+            tf.rotation.x, tf.rotation.y, tf.rotation.z, tf.rotation.w = float(qx), float(qy), float(qz), float(qw)
+            write(writer, TOPIC_TF, tf, stamp)
+            if include_frames:
+                points, attrs = frame_cloud_points(store, fid, frame_voxel_size_m)
+                payload, stride, fields = pack_points(points, attrs)
+                _check_size(len(payload), f"{TOPIC_POINTS} frame {fid}", "set frame_voxel_size_m")
+                write(writer, TOPIC_POINTS, _cloud_message(child, stamp, payload, stride, fields), stamp)
+                n_frame_points += len(points)
+            tick("frames", done, len(order))
+        writer.finish()
     summary = FoxgloveExportSummary(
         path=path,
         revision=rev,

@@ -16,8 +16,9 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, DriftmapError
+from driftmap.errors import ConfigError, DriftmapError, EmptyExportError
 from driftmap.frame import Frame
+from driftmap.store.guards import atomic_output
 
 logger = logging.getLogger(__name__)
 
@@ -58,15 +59,26 @@ def fuse(frames: Iterable[Frame], poses: Mapping[int, NDArray[np.float64]] | Non
 
 
 def write_cloud(path: str | Path, points_world: NDArray[np.floating], colors_rgb01: NDArray[np.floating] | None = None) -> Path:
-    """Write a PLY or PCD file with Open3D (binary, readable by CloudCompare)."""
+    """Write a PLY or PCD file with Open3D (binary, readable by CloudCompare).
+
+    Checked first: the suffix, at least one point (Open3D cannot write an empty cloud:
+    :class:`~driftmap.errors.EmptyExportError`), and a path outside every store folder
+    (:func:`driftmap.store.refuse_inside_store`). The file is written under a temporary name in the same folder and
+    renamed into place when complete (:func:`driftmap.store.atomic_output`): a failed write leaves no partial file and
+    an existing file survives a failed overwrite."""
     path = Path(path)
     if path.suffix.lower() not in (".ply", ".pcd"):
         raise ConfigError(f"{path}: map export supports .ply and .pcd")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_world, dtype=np.float64)))
+    points = np.asarray(points_world, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ConfigError(f"{path}: points must be an (N, 3) array, got shape {points.shape}")
+    if len(points) == 0:
+        raise EmptyExportError(f"{path}: no points to write; nothing written")
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     if colors_rgb01 is not None:
         pcd.colors = o3d.utility.Vector3dVector(np.asarray(colors_rgb01, dtype=np.float64))
-    if not o3d.io.write_point_cloud(str(path), pcd, write_ascii=False, compressed=False):
-        raise DriftmapError(f"{path}: Open3D could not write the point cloud")
+    with atomic_output(path, "map export path") as tmp:
+        if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False):
+            raise DriftmapError(f"{path}: Open3D could not write the point cloud")
     logger.info("wrote %d points to %s", len(pcd.points), path)
     return path

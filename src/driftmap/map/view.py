@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, StoreError
+from driftmap.errors import ConfigError, EmptyExportError, EmptyStoreError, StoreError
 from driftmap.frame import Frame
 from driftmap.map._kernels import (
     INF_KEY,
@@ -51,6 +51,8 @@ from driftmap.map._kernels import (
 )
 from driftmap.map.fusion import write_cloud
 from driftmap.preprocess.cloud import RegionOfInterest
+from driftmap.store.guards import atomic_output, refuse_inside_store
+from driftmap.voxels import first_per_key, voxel_keys
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -243,15 +245,9 @@ class _PieceIndex:
 
 
 def _packed_voxel_keys(points_or_keys: NDArray, voxel_size_m: float | None) -> NDArray[np.int64]:
-    """One int64 per point identifying its voxel (``floor(p / voxel_size_m)``, or given integer keys)."""
-    keys = points_or_keys if voxel_size_m is None else np.floor(points_or_keys / voxel_size_m).astype(np.int64)
-    if len(keys) == 0:
-        return np.zeros(0, np.int64)
-    keys = keys - keys.min(axis=0)
-    span = keys.max(axis=0) + 1
-    if float(span[0]) * float(span[1]) * float(span[2]) >= 2.0**62:
-        raise ConfigError("voxel grid too large to index (voxel_size_m too small for the map extent)")
-    return (keys[:, 0] * span[1] + keys[:, 1]) * span[2] + keys[:, 2]
+    """One int64 per point identifying its voxel (``floor(p / voxel_size_m)``, or given integer keys) on the
+    points' bounding grid: :func:`driftmap.voxels.voxel_keys`."""
+    return voxel_keys(points_or_keys, voxel_size_m)
 
 
 @dataclass
@@ -682,7 +678,7 @@ class MapView:
         keys = np.floor(pts[np.isfinite(pts).all(axis=1)] / voxel_size_m).astype(np.int64)
         if len(keys) == 0:
             return keys
-        _, first = np.unique(_packed_voxel_keys(keys, None), return_index=True)
+        first = first_per_key(_packed_voxel_keys(keys, None))  # in key order, as np.unique(return_index=True)
         return keys[first]
 
     # ------------------------------------------------------------------------------------------ access
@@ -867,10 +863,32 @@ class MapView:
 
     def write(self, path: str | Path, *, voxel_size_m: float | None = None, roi: RegionOfInterest | None = None,
               provenance: bool = False) -> tuple[Path, int]:
-        """:meth:`export`, also returning how many points the file holds (after voxel fusion)."""
+        """:meth:`export`, also returning how many points the file holds (after voxel fusion).
+
+        The input is checked first: a view without frames is an :class:`~driftmap.errors.EmptyStoreError` ("store X
+        has no frames in revision N"), a map without a finite point an :class:`~driftmap.errors.EmptyExportError`;
+        a path inside a store folder is refused (:func:`driftmap.store.refuse_inside_store`). Each file is written
+        under a temporary name and renamed into place when complete: a failed export leaves no partial file, and an
+        existing file survives a failed overwrite."""
+        path = Path(path)
+        if path.suffix.lower() not in (".ply", ".pcd"):
+            raise ConfigError(f"{path}: map export supports .ply and .pcd")
+        refuse_inside_store(path, "map export path")
+        if len(self.frame_ids) == 0:
+            where = f"store {self._store.path}" if self._store is not None else "the map"
+            raise EmptyStoreError(f"{where} has no frames in revision {self.revision}: no map to export (nothing "
+                                  f"written to {path})", store=None if self._store is None else self._store.path,
+                                  revision=self.revision)
         fused = self.fused(voxel_size_m, roi)
-        out = write_cloud(path, fused.points_world)
-        if provenance:
-            np.savez_compressed(Path(str(out) + ".provenance.npz"), offsets=fused.provenance_offsets,
-                                frame_ids=fused.provenance_frame_ids)
+        if len(fused.points_world) == 0:
+            raise EmptyExportError(f"{path}: the map of revision {self.revision} has no point to write ({len(self.frame_ids)} "
+                                   f"frames, none with a finite point{' in the region' if roi is not None else ''}); "
+                                   f"nothing written")
+        if not provenance:
+            return write_cloud(path, fused.points_world), len(fused.points_world)
+        side = Path(str(path) + ".provenance.npz")
+        with atomic_output(side, "map provenance file") as tmp_side:
+            with open(tmp_side, "wb") as fh:  # a file object: savez does not append ".npz" to the temporary name
+                np.savez_compressed(fh, offsets=fused.provenance_offsets, frame_ids=fused.provenance_frame_ids)
+            out = write_cloud(path, fused.points_world)  # the map first: a failed map leaves no new provenance file
         return out, len(fused.points_world)

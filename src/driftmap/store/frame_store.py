@@ -42,6 +42,7 @@ import re
 import shutil
 import time
 import uuid
+import zlib
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -50,9 +51,24 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap import __version__
-from driftmap.errors import ConfigError, StoreError, parse_enum
+from driftmap import __version__, geometry
+from driftmap.errors import (
+    ConfigError,
+    DriftmapError,
+    EmptyStoreError,
+    FrameRejectedError,
+    GeometryError,
+    StoreError,
+    parse_enum,
+)
 from driftmap.frame import Frame, PoseEstimate, PoseSource
+from driftmap.store.guards import (
+    READ_HINT,
+    RECOVER_HINT,
+    RESUME_HINT,
+    SEGMENT_FILE,
+    store_io_error,
+)
 from driftmap.store.ledger import (
     SAME_POSE_DEG,
     SAME_POSE_M,
@@ -70,8 +86,10 @@ from driftmap.store.segment import (
     SegmentScan,
     SegmentWriter,
     StoredFrameRef,
+    check_frame_for_store,
     frame_from_info,
     iter_payload_bytes,
+    read_store_uuid,
     scan_segment,
     unpack_attributes,
 )
@@ -225,6 +243,34 @@ def _free_name(path: Path) -> Path:
     return candidate
 
 
+def _decode_frame(ref: StoredFrameRef, mm: mmap.mmap | None) -> Frame | str:
+    """The frame ``ref`` points at, or why it cannot be read back. Returns instead of raising, so that no exception
+    (traceback) keeps a view of the mapped segment alive."""
+    n, stride = ref.n_points, ref.point_stride
+    payload = np.frombuffer(iter_payload_bytes(ref, mm), dtype=np.uint8)
+    if len(payload) != n * stride:
+        return f"{len(payload)} payload bytes, {n * stride} expected"
+    try:
+        if stride == 12:
+            points = payload.view("<f4").reshape(n, 3)
+        else:
+            points = np.ascontiguousarray(payload.reshape(n, stride)[:, :12]).view("<f4").reshape(n, 3)
+        attributes = unpack_attributes(payload, n, stride, ref.info["points"]["fields"])
+        return frame_from_info(ref.info, points, attributes)
+    except (DriftmapError, KeyError, TypeError, ValueError, ArithmeticError, AttributeError) as exc:
+        return f"stored metadata cannot be read back ({type(exc).__name__}: {exc})"
+
+
+def _segment_index(name: str) -> int:
+    return int(name[len("segment-"):].split(".")[0])
+
+
+def _segment_files(folder: Path) -> list[Path]:
+    """The ``segment-NNNNNN.mcap`` files of a store folder, in index order."""
+    files = [f for f in folder.iterdir() if SEGMENT_FILE.fullmatch(f.name)] if folder.is_dir() else []
+    return sorted(files, key=lambda f: _segment_index(f.name))
+
+
 def _id_sample(ids: NDArray[np.int64]) -> str:
     """``0, 5, 10, ..., 95`` for messages."""
     shown = ", ".join(str(int(i)) for i in ids[:3])
@@ -278,10 +324,14 @@ class FrameStore:
     def create(cls, path: str | Path, *, fsync: bool = False) -> FrameStore:
         """Create a new, empty store directory (it must not exist or be empty) and open it for appending."""
         path = Path(path)
-        if path.exists() and not path.is_dir():
-            raise StoreError(f"{path}: exists and is a file, not a store directory")
-        if path.exists() and any(path.iterdir()):
-            raise StoreError(f"{path}: exists and is not empty; open it instead of creating it")
+        hint = "nothing was stored; fix that and run the command again"
+        try:
+            if path.exists() and not path.is_dir():
+                raise StoreError(f"{path}: exists and is a file, not a store directory")
+            if path.exists() and any(path.iterdir()):
+                raise StoreError(f"{path}: exists and is not empty; open it instead of creating it")
+        except OSError as exc:
+            raise store_io_error(exc, path, "looking at the store folder", path, hint) from exc
         try:
             path.mkdir(parents=True, exist_ok=True)
         except OSError as exc:
@@ -294,7 +344,10 @@ class FrameStore:
             "driftmap_version": __version__,
             "segments": [],
         }
-        _atomic_write_json(path / MANIFEST, manifest)
+        try:
+            _atomic_write_json(path / MANIFEST, manifest)
+        except OSError as exc:
+            raise store_io_error(exc, path / MANIFEST, "writing the manifest of a new store", path, hint) from exc
         store = cls(path, "a", manifest, fsync=fsync)
         store._acquire_lock()
         return store
@@ -330,14 +383,18 @@ class FrameStore:
                              f"segment-NNNNNN.mcap files)")
         fix = f"; run `driftmap recover {path}` to rebuild it from the segments" if hint else ""
         try:
-            manifest = json.loads(file.read_text())
+            manifest = json.loads(file.read_bytes())
         except FileNotFoundError as exc:
             segments = sorted(path.glob("segment-*.mcap")) if path.is_dir() else []
             if segments:
                 raise StoreCorruptError(f"{file}: missing, but {path} holds {len(segments)} segment file(s){fix}",
                                         path=file, offset=None) from exc
             raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
-        except (OSError, json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except IsADirectoryError as exc:
+            raise StoreCorruptError(f"{file}: is a folder, not the manifest{fix}", path=file, offset=None) from exc
+        except OSError as exc:  # permissions, an I/O error: the file may be fine
+            raise store_io_error(exc, file, "reading the manifest", path, READ_HINT) from exc
+        except (ValueError, RecursionError) as exc:  # not JSON, not UTF-8, absurd numbers or nesting
             raise StoreCorruptError(f"{file}: unreadable manifest ({exc}){fix}", path=file, offset=None) from exc
         if not isinstance(manifest, dict):
             raise StoreCorruptError(f"{file}: unreadable manifest (a JSON {type(manifest).__name__}, not an object){fix}",
@@ -354,14 +411,31 @@ class FrameStore:
         if not shape_ok:
             raise StoreCorruptError(f"{file}: unreadable manifest (store_uuid or the segment list is missing or malformed){fix}",
                                     path=file, offset=None)
+        names = [seg["name"] for seg in segments]
+        for seg in segments:
+            # a name is joined to the store folder: only segment-NNNNNN.mcap (no "/", no "..") may be used
+            size = seg.get("bytes")
+            if (not SEGMENT_FILE.fullmatch(seg["name"]) or seg["state"] not in ("open", "closed")
+                    or isinstance(size, bool) or (size is not None and size < 0)):
+                raise StoreCorruptError(f"{file}: unreadable manifest (segment entry {seg!r} is malformed){fix}",
+                                        path=file, offset=None)
+        if len(set(names)) != len(names):
+            raise StoreCorruptError(f"{file}: unreadable manifest (a segment is listed twice){fix}", path=file, offset=None)
+        indexes = [_segment_index(n) for n in names]
+        if indexes != sorted(indexes):  # segments are replayed in this order: a revision follows the frames it names
+            raise StoreCorruptError(f"{file}: unreadable manifest (segments listed out of order: {names}){fix}",
+                                    path=file, offset=None)
+        if not isinstance(manifest.get("lost_segments", []), list):
+            raise StoreCorruptError(f"{file}: unreadable manifest (lost_segments is not a list){fix}", path=file, offset=None)
         return manifest
 
     @staticmethod
-    def _manifest_from_segments(path: Path, why: str) -> dict[str, Any]:
+    def _manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None = None) -> dict[str, Any]:
         """A manifest for the ``segment-NNNNNN.mcap`` files of ``path``; every readable one must name the same store.
 
-        A segment that was not closed cleanly is listed as open, so recovery rewrites it."""
-        files = sorted(path.glob("segment-*.mcap"))
+        A segment that was not closed cleanly is listed as open, so recovery rewrites it. ``lost_segments``: the
+        names an earlier recovery recorded as lost (kept)."""
+        files = _segment_files(path)
         if not files:
             raise StoreError(f"{why}; no segment files in {path} to rebuild it from")
         uuids: dict[str, list[str]] = {}
@@ -385,45 +459,91 @@ class FrameStore:
             "segments": segments,
             "rebuilt_ns": time.time_ns(),
             "rebuilt_because": why,
+            **({"lost_segments": list(lost_segments)} if lost_segments else {}),
         }
 
+    def _unlisted_segments(self) -> list[str]:
+        """Segment files in the folder that the manifest does not list: a manifest that is damaged or was replaced
+        by an older copy, or a segment recorded as lost that is back (opening would silently miss their frames)."""
+        known = {s.name for s in self._segments}
+        return [f.name for f in _segment_files(self.path) if f.name not in known]
+
     def _acquire_lock(self) -> None:
-        fh = open(self.path / LOCK_FILE, "a+")
+        """Take the writer lock (``writer.lock``, flock'ed): appending needs write access, reading never takes it."""
+        lock = self.path / LOCK_FILE
+        hint = (f"appending needs write access to the store folder (reading does not: FrameStore.open(path) / "
+                f"`driftmap info {self.path}`)")
+        try:
+            fh = open(lock, "a+")
+        except OSError as exc:
+            raise store_io_error(exc, lock, "taking the writer lock", self.path, hint) from exc
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError as exc:
             fh.close()
             if exc.errno in (errno.EAGAIN, errno.EACCES):
                 raise StoreError(f"{self.path}: another process is appending to this store") from exc
-            raise
-        fh.seek(0)
-        fh.truncate()
-        fh.write(f"{os.getpid()}\n")
-        fh.flush()
+            raise store_io_error(exc, lock, "taking the writer lock", self.path, hint) from exc
+        try:
+            fh.seek(0)
+            fh.truncate()
+            fh.write(f"{os.getpid()}\n")
+            fh.flush()
+        except OSError as exc:  # the pid is informative only, but a full disk now fails every append later
+            with contextlib.suppress(OSError):
+                fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+                fh.close()
+            raise store_io_error(exc, lock, "writing the writer lock", self.path, RESUME_HINT) from exc
         self._lock_fh = fh
 
     def _writer_alive(self) -> bool:
-        """True if some process holds the writer lock (never true for the writer itself)."""
-        lock = self.path / LOCK_FILE
-        if self._lock_fh is not None or not lock.exists():
+        """True if some process holds the writer lock (never true for the writer itself). Needs no write access:
+        the lock file is opened read-only, and one that is missing or cannot be opened means no writer is known."""
+        if self._lock_fh is not None:
             return False
-        with open(lock, "a+") as fh:
-            try:
-                fcntl.flock(fh.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
-            except OSError:
-                return True
-            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-        return False
+        lock = self.path / LOCK_FILE
+        try:
+            fd = os.open(lock, os.O_RDONLY)
+        except FileNotFoundError:
+            return False
+        except OSError as exc:
+            logger.debug("%s: cannot open the writer lock to see whether a writer is alive (%s)", lock, exc)
+            return False
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError as exc:
+            return exc.errno in (errno.EAGAIN, errno.EACCES)
+        else:
+            fcntl.flock(fd, fcntl.LOCK_UN)
+            return False
+        finally:
+            os.close(fd)
 
     def _load(self, *, verify: bool) -> None:
         live_writer = self._writer_alive()
+        fix = f"; run `driftmap recover {self.path}`"
+        try:
+            unlisted = self._unlisted_segments()
+        except OSError as exc:
+            raise store_io_error(exc, self.path, "listing the segments", self.path, READ_HINT) from exc
+        if unlisted:
+            raise StoreCorruptError(f"{self.path / MANIFEST}: does not list {_preview(unlisted)}, which the store folder "
+                                    f"holds (a damaged manifest, or an older copy of it?){fix}",
+                                    path=self.path / MANIFEST, offset=None)
         scans: list[SegmentScan] = []
         for seg in self._segments:
             file = self.path / seg.name
             if not file.exists():
-                raise StoreCorruptError(f"{file}: segment listed in the manifest is missing; run `driftmap recover "
-                                        f"{self.path}`", path=file, offset=None)
-            scan = scan_segment(file, verify=verify)
+                if seg is self._segments[-1] and seg.state == "open" and live_writer:
+                    continue  # a live writer is starting this segment (listed first, then created)
+                raise StoreCorruptError(f"{file}: segment listed in the manifest is missing{fix}", path=file, offset=None)
+            try:
+                scan = scan_segment(file, verify=verify)
+            except OSError as exc:
+                raise store_io_error(exc, file, "reading the segment", self.path, READ_HINT) from exc
+            if scan.store_uuid is not None and scan.store_uuid != self._manifest["store_uuid"]:
+                raise StoreCorruptError(f"{file}: belongs to store {scan.store_uuid}, but {MANIFEST} is that of store "
+                                        f"{self._manifest['store_uuid']}{fix}", path=file, offset=None)
             if seg.state == "closed":
                 if seg.bytes is not None and scan.size != seg.bytes:
                     raise StoreCorruptError(
@@ -449,7 +569,11 @@ class FrameStore:
         if self.loss:
             logger.info("%s: recorded losses: %s", self.path, self.loss)
         if self.mode == "a":
-            self._recover_open_segments()
+            try:
+                self._recover_open_segments()
+            except OSError as exc:
+                raise store_io_error(exc, getattr(exc, "filename", None) or self.path, "recovering a segment left open by "
+                                     "a writer that stopped", self.path, RECOVER_HINT) from exc
 
     def _replay(self, scans: list[SegmentScan], *, strict: bool) -> tuple[DataLoss, set[int], set[int]]:
         """Add the scanned segments' frames and revisions to this (empty) store, in store order (a revision refers
@@ -479,9 +603,14 @@ class FrameStore:
                 if ref.frame_id in self._refs:
                     raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path,
                                             offset=ref.payload_offset)
+                try:
+                    self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]),
+                                          np.asarray(ref.info["pose"]["T_world_sensor"], dtype=np.float64).reshape(4, 4),
+                                          ref.info["pose"].get("source"))
+                except (StoreError, GeometryError, ValueError, TypeError, KeyError) as exc:
+                    raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id}: damaged metadata ({exc}){fix}",
+                                            path=scan.path, offset=ref.payload_offset) from exc
                 self._refs[ref.frame_id] = ref
-                self.ledger.add_frame(ref.frame_id, int(ref.info["stamp_ns"]),
-                                      np.asarray(ref.info["pose"]["T_world_sensor"]).reshape(4, 4), ref.info["pose"].get("source"))
             for rev_json in scan.revisions:
                 try:
                     rev = Revision.from_json(rev_json)
@@ -517,7 +646,10 @@ class FrameStore:
                     rev = _without_frames(rev, absent)
                 if rev.parent_id in stand_ins:
                     orphaned[rid] = int(rev.parent_id)
-                self.ledger.commit(rev)
+                try:
+                    self.ledger.commit(rev)
+                except StoreError as exc:
+                    raise StoreCorruptError(f"{scan.path}: {exc}{fix}", path=scan.path, offset=None) from exc
         lost_frames = sorted(f for f in named_lost | declared_frames if f not in self.ledger)
         return DataLoss(tuple(lost_frames), tuple(stand_ins), trimmed, orphaned), new_frames, new_revisions
 
@@ -529,11 +661,20 @@ class FrameStore:
             file = self.path / seg.name
             scan = seg.scan
             assert scan is not None
+            bad = self._unreadable_frames(scan)
+            if bad:  # not what a crash leaves behind: never repaired behind the user's back
+                raise StoreCorruptError(f"{file}: frames {_preview(f for f, _ in bad)} cannot be read back ({bad[0][1]}); "
+                                        f"run `driftmap recover {self.path}`", path=file, offset=None)
             tmp = file.with_name(file.name + ".recovering")
             tmp.unlink(missing_ok=True)
             writer = SegmentWriter(tmp, index, self._manifest["store_uuid"], fsync=True)
-            self._copy_scan_into(scan, writer)
-            size = writer.close()
+            try:
+                self._copy_scan_into(scan, writer)
+                size = writer.close()
+            except BaseException:
+                writer.abandon()
+                tmp.unlink(missing_ok=True)
+                raise
             if scan.valid_bytes < scan.size:
                 with open(file, "rb") as src, open(self.path / f"{Path(seg.name).stem}.dropped-tail.bin", "wb") as dst:
                     src.seek(scan.valid_bytes)
@@ -548,7 +689,10 @@ class FrameStore:
                                                       len(scan.revisions), scan.size - scan.valid_bytes,
                                                       scan.problem or "writer did not close the segment"))
 
-    def _copy_scan_into(self, scan: SegmentScan, writer: SegmentWriter) -> None:
+    def _copy_scan_into(self, scan: SegmentScan, writer: SegmentWriter) -> list[tuple[int, str]]:
+        """Copy the scanned frames (bit for bit) and revisions into ``writer``; returns (frame id, reason) of the
+        frames whose stored metadata cannot be read back (they are not copied)."""
+        skipped: list[tuple[int, str]] = []
         with open(scan.path, "rb") as fh:
             mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if scan.size else None
             try:
@@ -558,12 +702,47 @@ class FrameStore:
                 # frames keep their file order; revisions go after the frames they may refer to
                 for _, kind, item in sorted(items, key=lambda x: (x[1] == "revision", x[0])):
                     if kind == "frame":
-                        writer.append_frame(self._frame_from_ref(item, mm))
+                        frame = _decode_frame(item, mm)
+                        if isinstance(frame, str):
+                            logger.warning("%s: frame %d: %s: not copied", scan.path, item.frame_id, frame)
+                            skipped.append((item.frame_id, frame))
+                            continue
+                        writer.append_frame(frame, check=False)  # as stored, bit for bit
                     else:
-                        writer.append_revision(item, int(item.get("created_ns", 0)))
+                        writer.append_revision(item, int(item["created_ns"]))
             finally:
                 if mm is not None:
                     mm.close()
+        return skipped
+
+    def _unreadable_frames(self, scan: SegmentScan) -> list[tuple[int, str]]:
+        """(frame id, reason) of the scanned frames that cannot be read back as stored: metadata that does not
+        rebuild a :class:`Frame`, or a point payload whose CRC32 is not the one the metadata recorded. (Opening
+        checks only what it needs and the chunk CRCs; this is the rest, run by ``recover``.)"""
+        bad = []
+        if not scan.frames:
+            return bad
+        with open(scan.path, "rb") as fh:
+            mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            for ref in scan.frames:
+                try:
+                    frame_from_info(ref.info, np.zeros((0, 3), np.float32),
+                                    unpack_attributes(np.zeros(0, np.uint8), 0, ref.point_stride, ref.info["points"]["fields"]))
+                except (DriftmapError, KeyError, TypeError, ValueError, ArithmeticError, AttributeError) as exc:
+                    bad.append((ref.frame_id, f"unreadable metadata ({type(exc).__name__}: {exc})"))
+                    continue
+                payload = iter_payload_bytes(ref, mm)
+                problem = ("the point payload is cut short" if len(payload) != ref.n_points * ref.point_stride else
+                           "the point payload's CRC32 is not the one its metadata recorded"
+                           if zlib.crc32(payload) != ref.info["points"]["crc32"] else None)
+                del payload
+                if problem is not None:
+                    bad.append((ref.frame_id, problem))
+        finally:
+            with contextlib.suppress(BufferError):
+                mm.close()
+        return bad
 
     def _write_manifest(self) -> None:
         self._manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes} for s in self._segments]
@@ -589,6 +768,13 @@ class FrameStore:
         open afterwards.
         """
         path = Path(path)
+        try:
+            return cls._recover(path)
+        except OSError as exc:  # whatever step it was: every step so far is complete, the next run goes on from there
+            raise store_io_error(exc, exc.filename or path, "recovering the store", path, RECOVER_HINT) from exc
+
+    @classmethod
+    def _recover(cls, path: Path) -> list[RecoveryEvent]:
         events: list[RecoveryEvent] = []
         rebuilt_because: str | None = None
         try:
@@ -596,9 +782,20 @@ class FrameStore:
         except StoreCorruptError as exc:
             rebuilt_because = str(exc)
             manifest = cls._manifest_from_segments(path, rebuilt_because)
+        else:  # readable, but does it describe the segments in the folder?
+            listed = cls(path, "r", manifest)
+            unlisted = listed._unlisted_segments()
+            strangers = [s.name for s in listed._segments if (path / s.name).exists()
+                         and read_store_uuid(path / s.name) not in (None, manifest["store_uuid"])]
+            if unlisted or strangers:
+                rebuilt_because = (f"{path / MANIFEST}: " + (f"does not list {_preview(unlisted)}" if unlisted else
+                                   f"names store {manifest['store_uuid']}, its segments {_preview(strangers)} another"))
+                lost = [n for n in manifest.get("lost_segments", []) if isinstance(n, str)]
+                manifest = cls._manifest_from_segments(path, rebuilt_because, lost)
         store = cls(path, "a", manifest, fsync=True)
         store._acquire_lock()
         kept_manifest = ""
+        current = path / MANIFEST
         try:
             if rebuilt_because is not None:
                 if (path / MANIFEST).exists():
@@ -610,7 +807,7 @@ class FrameStore:
             scans: list[SegmentScan] = []
             damage: list[str] = []
             for index, seg in enumerate(store._segments):
-                file = path / seg.name
+                file = current = path / seg.name
                 if not file.exists():
                     events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0,
                                                 "file not found: its frames and revisions are lost"))
@@ -618,18 +815,29 @@ class FrameStore:
                     seg.state = "missing"
                     continue
                 scan = scan_segment(file, verify=True, stop_on_error=False)
+                twice = [r.frame_id for r in scan.frames if r.frame_id in known_frames]
+                unreadable = store._unreadable_frames(scan)
                 healthy = (seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
-                           and scan.size == seg.bytes)
+                           and scan.size == seg.bytes and not twice and not unreadable)
                 if not healthy:
                     was_open = seg.state != "closed"
-                    scan.frames = [r for r in scan.frames if r.frame_id not in known_frames]
-                    tmp = file.with_name(file.name + ".recovering")
+                    dropped = {f for f, _ in unreadable}  # never copied: a fresh CRC would make them look intact
+                    scan.frames = [r for r in scan.frames if r.frame_id not in known_frames and r.frame_id not in dropped]
+                    tmp = current = file.with_name(file.name + ".recovering")
                     tmp.unlink(missing_ok=True)
                     writer = SegmentWriter(tmp, index, manifest["store_uuid"], fsync=True)
-                    store._copy_scan_into(scan, writer)
-                    for event in scan.data_lost:
-                        writer.append_event(event, int(event.get("recovered_ns", 0)))
-                    size = writer.close()
+                    try:
+                        skipped = unreadable + store._copy_scan_into(scan, writer)
+                        for event in scan.data_lost:
+                            writer.append_event(event, int(event.get("recovered_ns", 0)))
+                        size = writer.close()
+                    except BaseException:
+                        writer.abandon()
+                        raise
+                    if skipped:
+                        lost_ids = {f for f, _ in skipped}
+                        scan.frames = [r for r in scan.frames if r.frame_id not in lost_ids]
+                    current = file
                     damaged = _free_name(file.with_name(file.name + ".damaged"))
                     _keep_copy(file, damaged)
                     os.replace(tmp, file)  # atomic: the segment is never missing, whenever recovery stops
@@ -639,6 +847,10 @@ class FrameStore:
                     problems = [f"{why} at offset {off}" for off, why in scan.damaged_chunks]
                     if scan.problem:
                         problems.append(f"{scan.problem} at offset {scan.problem_offset}")
+                    if twice:
+                        problems.append(f"frames {_preview(twice)} are stored in an earlier segment too (the later copies "
+                                        f"were dropped)")
+                    problems += [f"frame {f}: {why}" for f, why in skipped]
                     detail = "; ".join(problems) or ("segment was not closed" if was_open else "size differs from the manifest")
                     damage.append(f"{seg.name}: {detail}")
                     tail = 0 if scan.complete else scan.size - scan.valid_bytes
@@ -659,6 +871,7 @@ class FrameStore:
             if new_frames or new_revisions:
                 because = "; ".join(damage) or "stored revisions name frames or follow revisions that no segment holds"
                 now = time.time_ns()
+                current = path / f"segment-{store._next_segment_index():06d}.mcap"
                 writer = store._writable()
                 writer.append_event({"event": EVENT_DATA_LOST, "recovered_ns": now, "frame_ids": sorted(new_frames),
                                      "revision_ids": sorted(new_revisions), "because": because}, now)
@@ -668,6 +881,8 @@ class FrameStore:
                 events.append(RecoveryEvent(store._segments[-1].name, f"recorded the loss in a {EVENT_DATA_LOST} event",
                                             len(replayed), len(replayed.revisions), 0, because,
                                             loss.only(new_frames, new_revisions)))
+        except OSError as exc:
+            raise store_io_error(exc, exc.filename or current, "recovering the store", path, RECOVER_HINT) from exc
         finally:
             if store._writer is not None:
                 store._writer.abandon()
@@ -697,18 +912,49 @@ class FrameStore:
     def __contains__(self, frame_id: int) -> bool:
         return frame_id in self.ledger
 
-    def _writable(self) -> SegmentWriter:
+    def _writable(self, what: str = "appending") -> SegmentWriter:
+        """The segment writer of this session (a new segment is started, and listed in the manifest, on first use).
+
+        An ``OSError`` is a :class:`StoreIOError` naming the file; a writer broken by an earlier failed write
+        refuses (see :class:`SegmentWriter`)."""
         if self._closed:
             raise StoreError(f"{self.path}: store is closed")
         if self.mode != "a":
             raise StoreError(f"{self.path}: opened read-only; open with mode='a' to append")
+        if self._writer is not None and self._writer.broken is not None:
+            raise StoreError(f"{self._writer.path}: cannot go on {what}: an earlier write to this segment failed "
+                             f"({self._writer.broken}); close the store: {RESUME_HINT.format(store=self.path)}")
         if self._writer is None:
-            index = self._next_segment_index()
+            try:
+                index = self._next_segment_index()
+            except OSError as exc:
+                raise store_io_error(exc, self.path, f"listing the segments ({what})", self.path) from exc
             name = f"segment-{index:06d}.mcap"
             self._segments.append(_Segment(name, "open", None))
-            self._write_manifest()
-            self._writer = SegmentWriter(self.path / name, index, self._manifest["store_uuid"], fsync=self._fsync)
+            try:
+                self._write_manifest()
+            except OSError as exc:
+                self._segments.pop()  # the manifest on disk is the one before (written atomically)
+                raise store_io_error(exc, self.path / MANIFEST, f"starting segment {name} ({what})", self.path) from exc
+            try:
+                self._writer = SegmentWriter(self.path / name, index, self._manifest["store_uuid"], fsync=self._fsync)
+            except OSError as exc:
+                self._forget_unstarted_segment(name)
+                raise store_io_error(exc, self.path / name, f"starting the segment ({what})", self.path) from exc
         return self._writer
+
+    def _forget_unstarted_segment(self, name: str) -> None:
+        """After a new segment could not be started: take it off the manifest again if its file was never made
+        (a listed segment that does not exist would read as data lost); else it stays, ``open``, for recovery."""
+        file = self.path / name
+        if file.exists():
+            return
+        self._segments = [seg for seg in self._segments if seg.name != name]
+        try:
+            self._write_manifest()
+        except OSError as exc:
+            logger.warning("%s: could not take the unstarted segment %s off the manifest (%s); run `driftmap recover "
+                           "%s`", self.path / MANIFEST, name, exc, self.path)
 
     def _next_segment_index(self) -> int:
         """One past the highest segment index in use: listed, removed by recovery, or any ``segment-N.*`` file
@@ -720,14 +966,33 @@ class FrameStore:
     def append(self, frame: Frame) -> None:
         """Store a frame (sensor-frame points and metadata) with the pose that produced it (revision 0).
 
-        A duplicate ``frame_id`` is rejected before anything is written.
+        Every value is checked before anything is written (:func:`driftmap.store.segment.check_frame_for_store`:
+        a stamp that is not an integer in ``0 .. 2**63 - 1`` ns, a non-finite or non-rigid pose, an infinite point
+        coordinate, ... are a :class:`~driftmap.errors.FrameRejectedError` naming the frame and the field; NaN
+        points are stored, the map leaves them out), and so is a duplicate ``frame_id``. After a refused frame the
+        store goes on as before (append the next one, or close it).
+
+        A failed write (disk full, I/O error) is a :class:`~driftmap.errors.StoreIOError` naming the segment file:
+        the frames before it stay intact, the unfinished record is cut off, and the segment is left ``open`` for
+        the next writer (``driftmap build ... --resume``) or ``driftmap recover`` to finish; this session takes no
+        more appends.
         """
-        if frame.frame_id in self.ledger:
-            raise StoreError(f"{self.path}: frame {frame.frame_id} is already stored; frame ids must be unique")
-        writer = self._writable()
-        payload_offset, info = writer.append_frame(frame)
-        self.ledger.add_frame(frame.frame_id, frame.stamp_ns, frame.pose.T_world_sensor, frame.pose.source)
-        self._refs[frame.frame_id] = StoredFrameRef(info, writer.path, payload_offset)
+        check_frame_for_store(frame, str(self.path))
+        fid = int(frame.frame_id)
+        if fid in self.ledger:
+            raise StoreError(f"{self.path}: frame {fid} is already stored; frame ids must be unique")
+        try:  # what the ledger will check after the write, checked before it (Frame already makes poses rigid)
+            T = geometry.as_rigid(frame.pose.T_world_sensor, f"{self.path}: frame {fid}: pose.T_world_sensor")
+            source = parse_enum(PoseSource, frame.pose.source, f"{self.path}: frame {fid}: pose.source", StoreError)
+        except (GeometryError, StoreError) as exc:
+            raise FrameRejectedError(str(exc), frame_id=fid, field="pose") from exc
+        writer = self._writable(f"appending frame {fid}")
+        try:
+            payload_offset, info = writer.append_frame(frame, check=False)
+        except OSError as exc:
+            raise store_io_error(exc, writer.path, f"appending frame {fid}", self.path) from exc
+        self.ledger.add_frame(fid, frame.stamp_ns, T, source)
+        self._refs[fid] = StoredFrameRef(info, writer.path, payload_offset)
 
     def frame_info(self, frame_id: int) -> dict[str, Any]:
         """The stored metadata of a frame (JSON-like dict)."""
@@ -747,20 +1012,29 @@ class FrameStore:
         for seg in self._segments:
             if self.path / seg.name == segment:
                 if seg.mm is None or len(seg.mm) < min_size:
-                    with open(segment, "rb") as fh:
-                        seg.mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+                    try:
+                        with open(segment, "rb") as fh:
+                            seg.mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+                    except (OSError, ValueError) as exc:  # ValueError: an empty file cannot be mapped
+                        if isinstance(exc, OSError):
+                            raise store_io_error(exc, segment, "mapping the segment", self.path, READ_HINT) from exc
+                        raise StoreCorruptError(f"{segment}: empty; run `driftmap recover {self.path}`", path=segment,
+                                                offset=0) from exc
+                    if len(seg.mm) < min_size:
+                        raise StoreCorruptError(f"{segment}: {len(seg.mm)} bytes, but a frame's points end at offset "
+                                                f"{min_size} (truncated after the store was opened?); run `driftmap "
+                                                f"recover {self.path}`", path=segment, offset=len(seg.mm))
                 return seg.mm
         raise StoreError(f"{segment}: not a segment of {self.path}")
 
     def _frame_from_ref(self, ref: StoredFrameRef, mm: mmap.mmap | None) -> Frame:
-        payload = np.frombuffer(iter_payload_bytes(ref, mm), dtype=np.uint8)
-        n, stride = ref.n_points, ref.point_stride
-        if stride == 12:
-            points = payload.view("<f4").reshape(n, 3)
-        else:
-            points = np.ascontiguousarray(payload.reshape(n, stride)[:, :12]).view("<f4").reshape(n, 3)
-        attributes = unpack_attributes(payload, n, stride, ref.info["points"]["fields"])
-        return frame_from_info(ref.info, points, attributes)
+        """The frame ``ref`` points at; metadata or a payload that cannot be read back is a
+        :class:`StoreCorruptError` naming the segment and the frame (``driftmap recover`` drops such frames)."""
+        frame = _decode_frame(ref, mm)
+        if isinstance(frame, str):  # raised here, where no view of the mapped segment is alive (it could not be closed)
+            raise StoreCorruptError(f"{ref.segment}: frame {ref.frame_id}: {frame}; run `driftmap recover {self.path}`",
+                                    path=ref.segment, offset=ref.payload_offset)
+        return frame
 
     def frame(self, frame_id: int, revision: int | None = None) -> Frame:
         """A stored frame (points copied out of the store), with its pose in ``revision`` (default 0)."""
@@ -799,8 +1073,13 @@ class FrameStore:
         return self.ledger.poses(self.head if revision is None else revision)
 
     def _persist(self, revision: Revision) -> Revision:
-        writer = self._writable()
-        writer.append_revision(revision.to_json(), revision.created_ns)
+        writer = self._writable(f"storing revision {revision.revision_id}")
+        try:
+            writer.append_revision(revision.to_json(), revision.created_ns)
+        except OSError as exc:
+            raise store_io_error(exc, writer.path, f"storing pose revision {revision.revision_id}", self.path,
+                                 "the frames and revisions stored before it are intact; free space (or fix the device), "
+                                 "run `driftmap recover {store}` and make the correction again") from exc
         return self.ledger.commit(revision)
 
     def add_revision(self, poses: Mapping[int, NDArray[np.float64]], *, source: PoseSource | str, parent: int | None = None,
@@ -943,10 +1222,16 @@ class FrameStore:
             logger.warning("%s: KITTI export writes one row per stored frame, but the frame ids are %s (not 0..%d): "
                            "reading it back takes row i as frame_id i; export TUM (with stamps) to round-trip",
                            file, _id_sample(ids), len(ids) - 1)
-        poses = self.poses(revision)
+        rev = self.head if revision is None else revision
+        self.ledger.revision(rev)  # StoreError naming the revision and the valid range
+        if len(ids) == 0:
+            raise EmptyStoreError(f"store {self.path} has no frames in revision {rev}: no trajectory to export "
+                                  f"(nothing written to {file})", store=self.path, revision=rev)
+        poses = self.poses(rev)
         traj = Trajectory(self.ledger.stamps_ns.copy(), poses, ids.copy())
         file = Path(file)
-        file.parent.mkdir(parents=True, exist_ok=True)
+        # written under a temporary name and renamed into place (write_tum / write_kitti); a path inside a store
+        # folder is refused
         (write_tum if fmt is TrajectoryFormat.TUM else write_kitti)(file, traj)
         return file
 
@@ -964,14 +1249,33 @@ class FrameStore:
         return sum((self.path / s.name).stat().st_size for s in self._segments if (self.path / s.name).exists())
 
     def close(self) -> None:
+        """Finish this session's segment (MCAP summary and footer), record it ``closed`` and release the lock.
+
+        After a failed write the segment cannot be finished: it is left ``open`` (its complete chunks intact) for
+        the next writer or ``driftmap recover``, with a warning, and closing succeeds. A failure to finish it
+        now (disk full) is a :class:`~driftmap.errors.StoreIOError` naming the file; the lock is released and the
+        segment is left the same way."""
         if self._closed:
             return
         try:
-            if self._writer is not None:
-                size = self._writer.close()
-                self._segments[-1].state, self._segments[-1].bytes = "closed", size
-                self._writer = None
-                self._write_manifest()
+            writer, self._writer = self._writer, None
+            if writer is not None:
+                if writer.broken is not None:
+                    logger.warning("%s: left open after a failed write (%s); its frames are intact, and the next writer "
+                                   "(driftmap build ... --resume) or `driftmap recover %s` finishes it", writer.path,
+                                   writer.broken, self.path)
+                    writer.abandon()
+                    return
+                try:
+                    size = writer.close()
+                except OSError as exc:
+                    raise store_io_error(exc, writer.path, "finishing the segment (summary and footer)", self.path) from exc
+                seg = next(s for s in self._segments if s.name == writer.path.name)
+                seg.state, seg.bytes = "closed", size
+                try:
+                    self._write_manifest()
+                except OSError as exc:
+                    raise store_io_error(exc, self.path / MANIFEST, f"recording {seg.name} as closed", self.path) from exc
         finally:
             self._release()
             self._closed = True
@@ -983,8 +1287,10 @@ class FrameStore:
                     seg.mm.close()
                 seg.mm = None
         if self._lock_fh is not None:
-            fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_UN)
-            self._lock_fh.close()
+            with contextlib.suppress(OSError):
+                fcntl.flock(self._lock_fh.fileno(), fcntl.LOCK_UN)
+            with contextlib.suppress(OSError):
+                self._lock_fh.close()
             self._lock_fh = None
 
     def __enter__(self) -> FrameStore:

@@ -1,0 +1,175 @@
+"""What protects a frame store from the outside: outputs that would land inside a store folder, exports written
+atomically, and operating-system errors turned into errors that name the file and say how to continue.
+
+- :func:`refuse_inside_store` refuses an output path inside *any* store folder (symlinks and ``..`` resolved; a
+  store is recognised by its manifest, or by its segment files when the manifest is damaged or gone), so an
+  export, a report or a figure can never replace a segment or ``store.json``.
+- :func:`atomic_output` writes a file under a temporary name in the same folder and renames it into place only
+  when it is complete: a failed export leaves no partial file, and an existing file survives a failed overwrite.
+- :func:`store_io_error` turns an ``OSError`` met while reading or writing a store into a
+  :class:`~driftmap.errors.StoreIOError` naming the file, what was being done and the way to continue.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno as errno_codes
+import json
+import logging
+import os
+import re
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+
+from driftmap.errors import OutputInsideStoreError, OutputWriteError, StoreIOError
+
+logger = logging.getLogger(__name__)
+
+FORMAT_NAME = "driftmap-store"
+MANIFEST = "store.json"
+LOCK_FILE = "writer.lock"
+SEGMENT_FILE = re.compile(r"segment-\d{6,}\.mcap")
+"""The name of a segment file (``segment-000000.mcap``); manifests naming anything else are refused."""
+_MAX_MANIFEST_PROBE_BYTES = 64 << 20
+
+
+def _manifest_says_store(file: Path) -> bool | None:
+    """True / False: ``file`` is / is not a driftmap manifest; None: it cannot be read or parsed (damaged?)."""
+    try:
+        if file.stat().st_size > _MAX_MANIFEST_PROBE_BYTES:
+            return None
+        data = json.loads(file.read_bytes())
+    except (OSError, ValueError):
+        return None
+    return isinstance(data, dict) and data.get("format") == FORMAT_NAME
+
+
+def is_store_folder(folder: str | Path) -> bool:
+    """Whether ``folder`` is a driftmap frame store: its ``store.json`` is a driftmap manifest, or it holds
+    ``segment-NNNNNN.mcap`` files (a store whose manifest is damaged or missing), or its ``store.json`` is
+    unreadable next to a ``writer.lock``."""
+    folder = Path(folder)
+    try:
+        if not folder.is_dir():
+            return False
+        manifest = folder / MANIFEST
+        verdict = _manifest_says_store(manifest) if manifest.is_file() else False
+        if verdict:
+            return True
+        if verdict is None and (folder / LOCK_FILE).exists():
+            return True
+        with os.scandir(folder) as entries:
+            return any(SEGMENT_FILE.fullmatch(entry.name) for entry in entries)
+    except OSError:  # an unreadable folder: not known to be a store
+        return False
+
+
+def _resolved(path: str | Path) -> Path:
+    """``path`` made absolute with every symlink and ``..`` resolved (as far as it exists)."""
+    return Path(os.path.realpath(os.path.abspath(os.fspath(path))))
+
+
+def store_folder_of(path: str | Path, *, include_self: bool = True) -> Path | None:
+    """The store folder ``path`` lies in (resolved), or None. ``include_self``: ``path`` being a store folder
+    itself counts too."""
+    resolved = _resolved(path)
+    candidates = ([resolved] if include_self else []) + list(resolved.parents)
+    for folder in candidates:
+        if is_store_folder(folder):
+            return folder
+    return None
+
+
+def refuse_inside_store(path: str | Path | None, flag: str, *, output_is_store: bool = False) -> None:
+    """Refuse an output ``path`` that lies inside a frame-store folder (any store, not only the one being read):
+    writing there could replace a segment or the manifest. Symlinks and ``..`` are resolved first, so neither a
+    link into a store nor ``STORE/sub/../segment-000000.mcap`` gets through. ``flag`` names the option in the
+    error (e.g. ``"--mcap"``). ``output_is_store``: ``path`` is itself a store to create or continue (``build
+    --out``): only a store folder *around* it is refused. ``None`` is accepted (an output that was not given).
+
+    Raises :class:`~driftmap.errors.OutputInsideStoreError` (a ``ConfigError``) naming the flag, the path and the store.
+    """
+    if path is None:
+        return
+    store = store_folder_of(path, include_self=not output_is_store)
+    if store is None:
+        return
+    resolved = _resolved(path)
+    where = "is the frame store" if resolved == store else "is inside the frame store"
+    shown = f"{path}" if Path(os.path.abspath(path)) == resolved else f"{path} (= {resolved})"
+    raise OutputInsideStoreError(
+        f"{flag} {shown}: {where} {store}; writing there could replace or corrupt the store's own files "
+        f"(segments, {MANIFEST}): write it outside the store folder", path=path, flag=flag, store=store)
+
+
+def _fsync_dir(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | Path, what: str, *, guard: bool = True) -> Iterator[Path]:
+    """Write ``path`` atomically: the body writes the file at the yielded temporary path (same folder, same
+    suffix, so format detection by extension still works); when it returns, the file is flushed to disk and
+    renamed over ``path``. If the body raises, the temporary file is removed and ``path`` is untouched (a new
+    file never appears half-written, an existing one survives a failed overwrite).
+
+    ``what`` names the output in errors (a CLI flag or the function). ``guard``: refuse a path inside a store
+    folder first (:func:`refuse_inside_store`). An ``OSError`` becomes :class:`~driftmap.errors.OutputWriteError`
+    naming ``path``.
+    """
+    path = Path(path)
+    if guard:
+        refuse_inside_store(path, what)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        if not tmp.exists():
+            raise OutputWriteError(f"{path}: the writer produced no file ({what})", path=path, errno=None)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        _fsync_dir(path.parent)
+    except OSError as exc:
+        raise OutputWriteError(
+            f"{path}: could not be written ({what}): {exc.strerror or exc}"
+            + (" (no space left on the device)" if exc.errno == errno_codes.ENOSPC else "")
+            + "; nothing was written under that name (an existing file is unchanged)",
+            path=path, errno=exc.errno) from exc
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+
+
+#: how to continue after an I/O error, by what was being done
+RESUME_HINT = ("the frames stored before it are intact; free space (or fix the device) and continue with "
+               "`driftmap build ... --resume` for a build, or run `driftmap recover {store}`")
+RECOVER_HINT = "free space (or fix the device) and run `driftmap recover {store}` again: it continues where it stopped"
+READ_HINT = ("check the file's permissions and the device (reading a store needs read access only, no lock and no "
+             "write access)")
+
+
+def store_io_error(exc: OSError, file: str | Path, action: str, store: str | Path, hint: str = RESUME_HINT) -> StoreIOError:
+    """A :class:`StoreIOError` for ``exc`` met while ``action`` (e.g. ``"appending frame 7"``) on ``file``."""
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno == errno_codes.ENOSPC:
+        reason = "no space left on the device"
+    elif exc.errno == errno_codes.EROFS:
+        reason = "read-only file system"
+    code = f" [{errno_codes.errorcode.get(exc.errno, exc.errno)}]" if exc.errno else ""
+    message = f"{file}: {action} failed: {reason}{code}; {hint.format(store=store)}"
+    logger.debug("%s", message, exc_info=exc)
+    return StoreIOError(message, path=Path(file), errno=exc.errno)
+
+
+__all__ = ["FORMAT_NAME", "LOCK_FILE", "MANIFEST", "SEGMENT_FILE", "atomic_output", "is_store_folder",
+           "refuse_inside_store", "store_folder_of", "store_io_error"]
