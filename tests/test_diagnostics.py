@@ -329,7 +329,7 @@ def test_visit_smearing_measures_the_disagreement_between_visits_not_the_jitter(
     jitter within the visits (2 cm of jitter per frame: 1.01 cm; leaving the jitter in the visit means' noise
     out gives 1.10 cm); visits that agree give little (3.1 mm against 4.4 mm without the jitter term: the rest is
     the bias of a clipped square root); runs closer than the gap are one visit (NaN: nothing to compare)."""
-    from driftmap.diagnostics.double_wall import _visit_smear
+    from driftmap.diagnostics.layers import visit_smear as _visit_smear
 
     rng = np.random.default_rng(0)
     for jitter in (0.0, 0.02):

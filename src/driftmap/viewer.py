@@ -44,9 +44,11 @@ from PIL import Image  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
 from driftmap.map.view import POSE_EPSILON  # noqa: E402
+from driftmap.preprocess.scene import LIDAR_OUTDOOR_P99_RANGE_M, scan_reach_m  # noqa: E402
+from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
 if TYPE_CHECKING:
-    from driftmap.diagnostics.double_wall import DoubleWallResult
+    from driftmap.diagnostics.wall_results import DoubleWallResult
     from driftmap.store.frame_store import FrameStore
 
 logger = logging.getLogger(__name__)
@@ -62,7 +64,6 @@ GREY_RGB = (120, 120, 120)
 """Points without a value: unchanged by the correction, or not on a flagged double wall."""
 # (colormap, lower, upper end used): both ends stay visible on the dark background
 _PALETTES = {"frame": ("turbo", 0.08, 0.95), "revision": ("inferno", 0.3, 1.0), "double-wall": ("inferno", 0.3, 1.0)}
-_KEY_BITS = 21
 _OPEN3D_TIMEOUT_S = 300.0
 
 
@@ -181,10 +182,9 @@ def default_voxel_size_m(store: FrameStore) -> float:
     LiDAR maps."""
     kind = store_sensor_kind(store)
     if kind is SensorKind.LIDAR:
-        from driftmap.registration.odometry import is_indoor_lidar
-
         first = next(f for f in store.frame_ids if store.frame_info(int(f))["sensor_kind"] == kind.value)
-        if is_indoor_lidar(store.frame(int(first))):
+        reach_m = scan_reach_m(store.frame(int(first)))
+        if reach_m is not None and reach_m < LIDAR_OUTDOOR_P99_RANGE_M:  # a room, a corridor
             return DEFAULT_VOXEL_SIZE_M[SensorKind.DEPTH_CAMERA]
     return DEFAULT_VOXEL_SIZE_M[kind]
 
@@ -200,31 +200,6 @@ def _check_revision(store: FrameStore, revision: int | None, what: str = "--revi
     if not isinstance(rev, (int, np.integer)) or not 0 <= int(rev) <= store.head:
         raise StoreError(f"{store.path}: {what} {rev} does not exist (the store has revisions 0..{store.head})")
     return int(rev)
-
-
-def _pack_keys(keys: NDArray[np.int64], what: str) -> NDArray[np.int64]:
-    """One int64 per integer voxel key triple (21 bits per axis, absolute grid)."""
-    half = 1 << (_KEY_BITS - 1)
-    if len(keys) and (keys.min() < -half or keys.max() >= half):
-        raise ConfigError(f"{what}: the map spans more than {1 << _KEY_BITS} voxels along an axis; use a larger voxel size")
-    k = keys + half
-    return (k[:, 0] << (2 * _KEY_BITS)) | (k[:, 1] << _KEY_BITS) | k[:, 2]
-
-
-def _first_per_key(keys: NDArray[np.int64]) -> NDArray[np.int64]:
-    """Index of the first entry of every distinct key (in array order)."""
-    if len(keys) == 0:
-        return np.zeros(0, np.int64)
-    order = np.argsort(keys, kind="stable")
-    first = np.ones(len(order), bool)
-    first[1:] = keys[order][1:] != keys[order][:-1]
-    return order[first]
-
-
-def _random_per_key(keys: NDArray[np.int64], rng: np.random.Generator) -> NDArray[np.int64]:
-    """Index of one entry of every distinct key, chosen at random (a fair representative per voxel)."""
-    perm = rng.permutation(len(keys))
-    return perm[_first_per_key(keys[perm])]
 
 
 def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_points: int,
@@ -245,8 +220,8 @@ def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_point
         fid = np.repeat(np.asarray(chunk, np.int64), [len(p) for p in parts])
         ok = np.all(np.isfinite(pts), axis=1)
         pts, fid = pts[ok], fid[ok]
-        keys = _pack_keys(np.floor(pts / voxel_size_m).astype(np.int64), "view")
-        sel = _random_per_key(keys, rng)
+        keys = voxel_keys(pts, voxel_size_m, grid=ABSOLUTE_GRID, what="view")  # compared across chunks below
+        sel = random_per_key(keys, rng)
         kept_p.append(pts[sel])
         kept_f.append(fid[sel])
         kept_k.append(keys[sel])
@@ -261,7 +236,7 @@ def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_point
     n_map = view.n_points
     if not kept_p:
         raise StoreError(f"{store.path}: revision {revision} has no points to show")
-    sel = _random_per_key(np.concatenate(kept_k), rng)
+    sel = random_per_key(np.concatenate(kept_k), rng)
     points, frame_ids = np.concatenate(kept_p)[sel], np.concatenate(kept_f)[sel]
     if len(points) > max_points:
         logger.info("view: %d voxels; showing a random %d of them", len(points), max_points)
@@ -307,8 +282,9 @@ def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now:
 def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32],
                         points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult]:
     """|separation| of the finest flagged double-wall voxel containing each point (NaN: none)."""
-    from driftmap.diagnostics.double_wall import DiagnosticCloud, detect_double_walls
-    from driftmap.diagnostics.report import DiagnoseConfig
+    from driftmap.diagnostics.detector import detect_double_walls
+    from driftmap.diagnostics.diagnose_config import DiagnoseConfig
+    from driftmap.diagnostics.samples import DiagnosticCloud
 
     cfg = DiagnoseConfig.for_store(store)
     sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
@@ -321,14 +297,14 @@ def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.flo
         if not scale.flagged.any():
             continue
         size = scale.voxel_size_m
-        flagged_keys = _pack_keys(np.floor(scale.centers_m[scale.flagged] / size).astype(np.int64), "double-wall")
+        flagged_keys = voxel_keys(scale.centers_m[scale.flagged], size, grid=ABSOLUTE_GRID, what="double-wall")
         seps = np.abs(scale.separation_m[scale.flagged])
         order = np.argsort(flagged_keys)
         flagged_keys, seps = flagged_keys[order], seps[order]
         # several groups (two surfaces, two sensor sides) can share a voxel: keep the largest separation
         uniq, start = np.unique(flagged_keys, return_index=True)
         sep_max = np.maximum.reduceat(seps, start)
-        pk = _pack_keys(np.floor(points / size).astype(np.int64), "double-wall")
+        pk = voxel_keys(points, size, grid=ABSOLUTE_GRID, what="double-wall")  # looked up among the flagged keys
         pos = np.clip(np.searchsorted(uniq, pk), 0, len(uniq) - 1)
         hit = (uniq[pos] == pk) & ~done
         values[hit] = sep_max[pos[hit]]

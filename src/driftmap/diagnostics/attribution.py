@@ -3,7 +3,7 @@ pose jumps over time (change points), a drift-rate estimate and how much of the 
 
 All three use one linearised point-to-plane step (Gauss-Newton) of a frame against a *consensus*. The
 samples are sorted into surface groups (voxel x dominant own-frame normal x sensor side, see
-:func:`driftmap.diagnostics.double_wall.surface_groups`) and small lateral cells; the consensus plane at a
+:func:`driftmap.diagnostics.surfaces.surface_groups`) and small lateral cells; the consensus plane at a
 point is the group normal through the mean offset of the points that an allowed set of *other* frames put
 in the same cell (so a frame that is 5 cm off still finds its consensus, which a nearest-neighbour search
 would miss: the frame's own neighbours are closer). Per-cell prefix sums over frames in time order give
@@ -35,10 +35,10 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from driftmap import geometry
-from driftmap.diagnostics.double_wall import PlacedCloud, SurfaceGroups, _dense_ids, surface_groups
-from driftmap.diagnostics.trajectory_metrics import project_rotations, relative_pose_errors, trajectory_errors
-from driftmap.errors import ConfigError
+from driftmap.diagnostics.ground_truth import SegmentErrors, ground_truth_errors, segment_errors
+from driftmap.diagnostics.samples import PlacedCloud
+from driftmap.diagnostics.surfaces import SurfaceGroups, surface_groups
+from driftmap.voxels import dense_ids
 
 logger = logging.getLogger(__name__)
 
@@ -46,7 +46,7 @@ logger = logging.getLogger(__name__)
 class AttributionConfig(BaseModel):
     """Parameters of the per-frame disagreement, change points and drift rate (indoor RGB-D defaults)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     voxel_size_m: float = Field(0.2, gt=0.0, description="voxel size of the surface groups the consensus is built on (m)")
     cell_fraction: float = Field(0.25, gt=0.0, le=1.0, description="lateral cell size as a fraction of the voxel size")
     normal_max_angle_deg: float = Field(20.0, gt=0.0, lt=90.0, description="own-frame normals within this angle of the group normal")
@@ -202,7 +202,7 @@ class _CellTable:
         M = n_frames
         self.M = M
         key = sg.cell * M + rows
-        self.entry, self.keys = _dense_ids(key)
+        self.entry, self.keys = dense_ids(key)
         E = len(self.keys)
         e_row = self.keys % M if E else np.zeros(0, np.int64)
         n_e = np.bincount(self.entry, minlength=E).astype(np.float64)
@@ -400,7 +400,7 @@ def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig 
         return empty
     rows = cloud.frame_index[sg.point_index]
     s2 = cloud.sigma_normal_m[sg.point_index].astype(np.float64) ** 2
-    entry, keys = _dense_ids(sg.cell * M + rows)
+    entry, keys = dense_ids(sg.cell * M + rows)
     E = len(keys)
     e_cell, e_row = keys // M, keys % M
     n_e = np.bincount(entry, minlength=E).astype(np.float64)
@@ -413,7 +413,7 @@ def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig 
     ok = (pj >= 1) & (pj <= M - 1)
     pe, pj = pe[ok], pj[ok]
     before = pj > e_row[pe]
-    pid, pkeys = _dense_ids(e_cell[pe] * M + pj)
+    pid, pkeys = dense_ids(e_cell[pe] * M + pj)
     P = len(pkeys)
     nA = np.bincount(pid, weights=np.where(before, n_e[pe], 0.0), minlength=P)
     nB = np.bincount(pid, weights=np.where(before, 0.0, n_e[pe]), minlength=P)
@@ -520,77 +520,9 @@ def attribute(cloud: PlacedCloud, config: AttributionConfig | None = None) -> At
     return result
 
 
-# ---------------------------------------------------------------------------------------------- ground truth
-
-
-@dataclass(frozen=True)
-class SegmentErrors:
-    """KITTI-style errors: per segment length, mean translational error (%) and rotational error (deg/m)."""
-
-    lengths_m: NDArray[np.float64]
-    translation_percent: NDArray[np.float64]
-    rotation_deg_per_m: NDArray[np.float64]
-    n_segments: NDArray[np.int64]
-
-    @property
-    def mean_translation_percent(self) -> float | None:
-        ok = self.n_segments > 0
-        return float(np.mean(self.translation_percent[ok])) if ok.any() else None
-
-    @property
-    def mean_rotation_deg_per_m(self) -> float | None:
-        ok = self.n_segments > 0
-        return float(np.mean(self.rotation_deg_per_m[ok])) if ok.any() else None
-
-
-def segment_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
-                   lengths_m: tuple[float, ...] = (100, 200, 300, 400, 500, 600, 700, 800), step_frames: int = 10) -> SegmentErrors:
-    """KITTI odometry metric (Geiger et al. 2012): for segments of each length along the ground-truth path,
-    starting every ``step_frames`` frames, the relative-pose error at the segment's end divided by its length."""
-    est = np.asarray(estimate, dtype=np.float64)
-    gt = np.asarray(ground_truth, dtype=np.float64)
-    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
-        raise ConfigError(f"segment_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
-    est, gt = project_rotations(est), project_rotations(gt)  # as trajectory_errors: files store a few digits
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
-    L = np.asarray(lengths_m, dtype=np.float64)
-    starts = np.arange(0, len(gt), step_frames)
-    first = np.repeat(starts, len(L))
-    li = np.tile(np.arange(len(L)), len(starts))
-    last = np.searchsorted(s, s[first] + L[li])  # the first frame at least `length` along the path
-    ok = last < len(gt)
-    first, li, last = first[ok], li[ok], last[ok]
-    E = relative_pose_errors(est, gt, first, last)
-    t_err = np.bincount(li, np.linalg.norm(E[:, :3, 3], axis=1) / L[li], minlength=len(L))
-    r_err = np.bincount(li, np.degrees(geometry.relative_rotation_angle_rad(np.eye(3), E)) / L[li], minlength=len(L))
-    count = np.bincount(li, minlength=len(L)).astype(np.int64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return SegmentErrors(L, 100.0 * t_err / np.maximum(count, 1), r_err / np.maximum(count, 1), count)
-
-
-def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
-                        segment_lengths_m: tuple[float, ...] | None = None) -> dict:
-    """ATE (rigid Umeyama), RPE over consecutive frames and KITTI segment errors as a JSON-ready dict.
-
-    Segment lengths default to 1/8 .. 8/8 of the ground-truth path (KITTI's 100..800 m on a long drive)."""
-    errs = trajectory_errors(estimate, ground_truth)
-    gt = np.asarray(ground_truth, dtype=np.float64)
-    total = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
-    lengths = segment_lengths_m or tuple(total * k / 8.0 for k in range(1, 8)) if total > 0 else ()
-    seg = segment_errors(estimate, ground_truth, lengths_m=lengths, step_frames=1) if lengths else None
-    est_path = float(np.sum(np.linalg.norm(np.diff(np.asarray(estimate)[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
-    lengths_apart = max(total, est_path) > 3.0 * max(min(total, est_path), 0.1) and max(total, est_path) > 1.0
-    if lengths_apart or errs.ate_rmse_m > max(0.5 * max(total, est_path), 1.0):
-        logger.warning("ATE %.2f m over a path of %.2f m estimated and %.2f m in the ground truth: is the ground truth "
-                       "for these frames (the same sequence, frame numbering and sensor frame)?",
-                       errs.ate_rmse_m, est_path, total)
-    return {
-        "ate_rmse_m": errs.ate_rmse_m,
-        "ate_max_m": errs.ate_max_m,
-        "rpe_trans_rmse_m": errs.rpe_trans_rmse_m,
-        "rpe_rot_rmse_deg": errs.rpe_rot_rmse_deg,
-        "n_poses": errs.n_poses,
-        "segment_translation_percent": None if seg is None else seg.mean_translation_percent,
-        "segment_rotation_deg_per_m": None if seg is None else seg.mean_rotation_deg_per_m,
-        "segment_lengths_m": [float(v) for v in lengths],
-    }
+__all__ = [
+    "Attribution", "AttributionConfig", "ChangePoint", "DriftRate", "FrameAlignment", "SegmentErrors", "SplitScan",
+    "attribute", "change_points", "drift_rate", "ground_truth_errors", "segment_errors", "split_scan",
+]
+"""Public names; ``SegmentErrors``, ``segment_errors`` and ``ground_truth_errors`` live in
+:mod:`driftmap.diagnostics.ground_truth` and are re-exported here."""

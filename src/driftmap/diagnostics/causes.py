@@ -26,7 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.diagnostics.double_wall import DoubleWallRegion, DoubleWallResult, PlacedCloud
+from driftmap.diagnostics.samples import PlacedCloud
+from driftmap.diagnostics.wall_results import DoubleWallRegion, DoubleWallResult
 
 logger = logging.getLogger(__name__)
 

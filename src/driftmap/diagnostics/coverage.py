@@ -28,7 +28,9 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from driftmap.diagnostics.double_wall import DoubleWallResult, PlacedCloud, ScaleResult
+from driftmap.diagnostics.samples import PlacedCloud
+from driftmap.diagnostics.wall_results import DoubleWallResult, ScaleResult
+from driftmap.voxels import keys_on_bounding_grid, voxel_coords
 
 logger = logging.getLogger(__name__)
 
@@ -39,22 +41,12 @@ NOT_EVALUATED = ("too_few_frames", "not_a_surface", "too_sparse", "no_normals")
 class CoverageConfig(BaseModel):
     """When the diagnosis has seen enough of the map to judge it."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     min_fraction_evaluated: float = Field(0.2, ge=0.0, le=1.0, description="the double-wall verdict needs at least this share of the samples (with and without normals) in evaluated voxels (all scales)")
     min_groups_evaluated: int = Field(50, ge=1, description="... and at least this many surface groups evaluated")
     min_groups_revisited: int = Field(10, ge=1, description="the smearing score needs at least this many surface groups seen on two visits or more")
     min_drift_frames: int = Field(5, ge=1, description="the drift rate needs at least this many frames compared with earlier ones after the revisit path")
     smeared_separations: float = Field(1.0, gt=0.0, description="an evaluated, unflagged group whose frames disagree by more than this many times double_wall.min_separation_m is smeared")
-
-
-_OFFSET = 1 << 20
-
-
-def _voxel_keys(points: NDArray[np.float64], size_m: float) -> NDArray[np.int64]:
-    """One int64 per point: its voxel's integer coordinates (within +-2^20 voxels of the origin) packed."""
-    k = np.floor(np.asarray(points, dtype=np.float64) / size_m).astype(np.int64) + _OFFSET
-    k = np.clip(k, 0, 2 * _OFFSET - 1)
-    return (k[:, 0] << 42) | (k[:, 1] << 21) | k[:, 2]
 
 
 @dataclass(frozen=True)
@@ -92,8 +84,9 @@ def smeared_groups(scale: ScaleResult, separations: float) -> NDArray[np.bool_]:
 def scale_coverage(placed: PlacedCloud, scale: ScaleResult, min_points: int, separations: float) -> ScaleCoverage:
     """Every occupied voxel of ``scale`` in one state (usable samples and samples without a normal)."""
     size = scale.voxel_size_m
-    k_ok = _voxel_keys(placed.points_world, size)
-    k_bad = _voxel_keys(placed.rejected_world, size)
+    both = np.concatenate([voxel_coords(placed.points_world, size), voxel_coords(placed.rejected_world, size)])
+    keys, _ = keys_on_bounding_grid(both, f"coverage at {size} m")  # one grid: the two sets' keys compare
+    k_ok, k_bad = keys[:len(placed.points_world)], keys[len(placed.points_world):]
     occupied = np.unique(np.concatenate([k_ok, k_bad]))
     V = len(occupied)
     v_ok = np.searchsorted(occupied, k_ok)
@@ -213,8 +206,8 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
         smear.append(f"{revisited} surface groups were seen on two visits ({walls.config.visit_gap_m:g} m of travel "
                      f"apart; at least {cfg.min_groups_revisited} needed): drift cannot show in the smearing score")
     drift = [] if drift_frames >= cfg.min_drift_frames else [
-        f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
-        f"{cfg.min_drift_frames} needed): too little of the map was seen again"]
+        (f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
+         f"{cfg.min_drift_frames} needed): too little of the map was seen again")]
     measures = {name: {"valid": not reasons, "reasons": reasons} for name, reasons in (
         ("fraction_flagged", surfaces), ("fraction_inconsistent", surfaces), ("smearing_score", smear),
         ("drift_rate", drift))}

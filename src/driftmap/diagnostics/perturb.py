@@ -37,9 +37,12 @@ from scipy.spatial.transform import Rotation
 from driftmap.errors import ConfigError, GeometryError, parse_enum
 from driftmap.frame import Frame, PointAttributes
 from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+from driftmap.voxels import dense_ids
 
 if TYPE_CHECKING:
-    from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallResult, SurfaceGroups
+    from driftmap.diagnostics.samples import DiagnosticCloud
+    from driftmap.diagnostics.surfaces import SurfaceGroups
+    from driftmap.diagnostics.wall_results import DoubleWallResult
 
 
 class PoseFileFormat(enum.Enum):
@@ -126,6 +129,15 @@ class PosePerturbation:
     drift_deg_per_m: float = 0.0
     drift_axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
+    def __post_init__(self) -> None:
+        for name in ("step_m", "step_deg", "drift_percent_per_m", "drift_direction", "drift_deg_per_m", "drift_axis"):
+            value = getattr(self, name)
+            if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
+                raise ConfigError(f"PosePerturbation.{name}: must be finite, got {value!r}")
+        for name, used in (("drift_direction", self.drift_percent_per_m), ("drift_axis", self.drift_deg_per_m)):
+            if used and not np.linalg.norm(np.asarray(getattr(self, name), dtype=np.float64)) > 0:
+                raise ConfigError(f"PosePerturbation.{name}: a drift needs a non-zero direction, got {getattr(self, name)!r}")
+
     def apply(self, poses: ArrayLike) -> NDArray[np.float64]:
         T = _poses(poses)
         if (self.step_m is not None or self.step_deg is not None) and self.step_index is None:
@@ -210,6 +222,8 @@ def parse_vector(text: str | Sequence[float], name: str) -> tuple[float, float, 
         values = [float(v) for v in text]
     if len(values) != 3:
         raise ConfigError(f"{name}: expected 3 comma-separated numbers 'x,y,z', got {text!r}")
+    if not all(np.isfinite(values)):
+        raise ConfigError(f"{name}: the numbers must be finite, got {text!r}")
     return (values[0], values[1], values[2])
 
 
@@ -284,7 +298,7 @@ def evaluate_step(samples: DiagnosticCloud, base_poses: ArrayLike, step_index: i
                   max_baseline_m: float = 0.003, max_baseline_smear_m: float | None = 0.004) -> list[StepDetection]:
     """Score a :class:`~driftmap.diagnostics.double_wall.DoubleWallResult` computed on ``samples`` placed with
     ``translation_step(base_poses, step_index, step_m)`` against what that step must produce."""
-    from driftmap.diagnostics.double_wall import surface_groups
+    from driftmap.diagnostics.surfaces import surface_groups
 
     base = np.asarray(base_poses, dtype=np.float64)
     step = _vector(step_m, "step_m")
@@ -344,11 +358,9 @@ def evaluate_step(samples: DiagnosticCloud, base_poses: ArrayLike, step_index: i
 def _baseline_smear(sg: SurfaceGroups, rows: NDArray[np.int64], offset: NDArray[np.float64], n_frames: int, G: int, C: int) -> NDArray[np.float64]:
     """Per surface group of ``sg``: point-weighted scatter of the frames' mean offsets (relative to the lateral-cell
     means, as the detector computes them) beyond what the pooled within-frame scatter explains."""
-    from driftmap.diagnostics.double_wall import _dense_ids
-
     c_n = np.bincount(sg.cell, minlength=C).astype(np.float64)
     r = offset - np.bincount(sg.cell, weights=offset, minlength=C)[sg.cell] / c_n[sg.cell]
-    gf, keys = _dense_ids(sg.group * n_frames + rows)
+    gf, keys = dense_ids(sg.group * n_frames + rows)
     E = len(keys)
     e_g = keys // n_frames
     n = np.bincount(gf, minlength=E).astype(np.float64)

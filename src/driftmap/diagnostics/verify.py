@@ -54,7 +54,7 @@ from numpy.typing import NDArray
 from driftmap.errors import ConfigError, StoreError
 
 if TYPE_CHECKING:
-    from driftmap.diagnostics.double_wall import DoubleWallRegion
+    from driftmap.diagnostics.wall_results import DoubleWallRegion
     from driftmap.store.frame_store import FrameStore
 
 logger = logging.getLogger(__name__)

@@ -1,0 +1,137 @@
+"""Ground truth for a diagnosis: reading a ground-truth trajectory for a store's frames, and how far poses are
+from it (ATE, RPE, KITTI segment errors). Only a diagnosis with ``--gt`` uses this; every other measure of
+:mod:`driftmap.diagnostics` works without ground truth."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.diagnostics.trajectory_metrics import project_rotations, relative_pose_errors, trajectory_errors
+from driftmap.errors import ConfigError, StoreError
+from driftmap.trajectory import Trajectory, has_stamps, read_trajectory
+
+if TYPE_CHECKING:
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+MIN_GT_FRAMES = 3
+"""ATE (a rigid alignment) and RPE need at least this many frames with a ground-truth pose."""
+
+#: formats of ``diagnose --gt`` (``--gt-format``)
+GT_FORMATS = ("tum", "kitti", "redwood", "4x4")
+
+
+def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,
+                      max_dt_ns: int = 10_000_000, kitti_frame: str = "auto",
+                      calib_file: str | Path | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Ground-truth poses for the store's frames: TUM rows (and 4x4 blocks with stamps) matched by stamp, KITTI
+    rows (and 4x4 blocks without stamps) row i = ``frame_id`` i, Redwood ``.log`` blocks by the frame id they name.
+
+    Returns the matched frame ids and their poses; the file must hold ``T_world_sensor`` of the same sensor
+    frame, except that on a store of KITTI Velodyne scans a KITTI data set's own cam0 ``poses.txt`` is
+    converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
+    in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
+    """
+    from driftmap.store.ledger import PoseMatchMode, match_pose_rows, stamp_ranges_text
+
+    fmt = format.lower()
+    if fmt not in GT_FORMATS:
+        raise ConfigError(f"--gt-format must be one of {', '.join(GT_FORMATS)}, got {format!r}")
+    if fmt != "kitti" and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
+    traj: Trajectory = read_trajectory(path, fmt)
+    traj = store.pose_rows_in_sensor_frame(path, traj, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
+    mode = PoseMatchMode.STAMP if has_stamps(traj, fmt) else PoseMatchMode.INDEX
+    matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+    if not matched.poses:
+        why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
+        raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")
+    if len(matched.poses) < MIN_GT_FRAMES:  # found before the costly diagnosis, not after it
+        raise StoreError(f"{path}: ground truth matched only {len(matched.poses)} of the {len(store.ledger.frame_ids)} "
+                         f"stored frames (by {mode.value}); ATE/RPE need at least {MIN_GT_FRAMES}")
+    if matched.unmatched_frames:
+        logger.warning("%s: %d stored frames have no ground-truth pose; they are left out of ATE/RPE", path,
+                       len(matched.unmatched_frames))
+    ids = np.array(sorted(matched.poses), dtype=np.int64)
+    return ids, np.array([matched.poses[int(i)] for i in ids])
+
+
+@dataclass(frozen=True)
+class SegmentErrors:
+    """KITTI-style errors: per segment length, mean translational error (%) and rotational error (deg/m)."""
+
+    lengths_m: NDArray[np.float64]
+    translation_percent: NDArray[np.float64]
+    rotation_deg_per_m: NDArray[np.float64]
+    n_segments: NDArray[np.int64]
+
+    @property
+    def mean_translation_percent(self) -> float | None:
+        ok = self.n_segments > 0
+        return float(np.mean(self.translation_percent[ok])) if ok.any() else None
+
+    @property
+    def mean_rotation_deg_per_m(self) -> float | None:
+        ok = self.n_segments > 0
+        return float(np.mean(self.rotation_deg_per_m[ok])) if ok.any() else None
+
+
+def segment_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
+                   lengths_m: tuple[float, ...] = (100, 200, 300, 400, 500, 600, 700, 800), step_frames: int = 10) -> SegmentErrors:
+    """KITTI odometry metric (Geiger et al. 2012): for segments of each length along the ground-truth path,
+    starting every ``step_frames`` frames, the relative-pose error at the segment's end divided by its length."""
+    est = np.asarray(estimate, dtype=np.float64)
+    gt = np.asarray(ground_truth, dtype=np.float64)
+    if est.shape != gt.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ConfigError(f"segment_errors: need matching (N, 4, 4) arrays, got {est.shape} and {gt.shape}")
+    est, gt = project_rotations(est), project_rotations(gt)  # as trajectory_errors: files store a few digits
+    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))])
+    L = np.asarray(lengths_m, dtype=np.float64)
+    starts = np.arange(0, len(gt), step_frames)
+    first = np.repeat(starts, len(L))
+    li = np.tile(np.arange(len(L)), len(starts))
+    last = np.searchsorted(s, s[first] + L[li])  # the first frame at least `length` along the path
+    ok = last < len(gt)
+    first, li, last = first[ok], li[ok], last[ok]
+    E = relative_pose_errors(est, gt, first, last)
+    t_err = np.bincount(li, np.linalg.norm(E[:, :3, 3], axis=1) / L[li], minlength=len(L))
+    r_err = np.bincount(li, np.degrees(geometry.relative_rotation_angle_rad(np.eye(3), E)) / L[li], minlength=len(L))
+    count = np.bincount(li, minlength=len(L)).astype(np.int64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return SegmentErrors(L, 100.0 * t_err / np.maximum(count, 1), r_err / np.maximum(count, 1), count)
+
+
+def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
+                        segment_lengths_m: tuple[float, ...] | None = None) -> dict:
+    """ATE (rigid Umeyama), RPE over consecutive frames and KITTI segment errors as a JSON-ready dict.
+
+    Segment lengths default to 1/8 .. 8/8 of the ground-truth path (KITTI's 100..800 m on a long drive)."""
+    errs = trajectory_errors(estimate, ground_truth)
+    gt = np.asarray(ground_truth, dtype=np.float64)
+    total = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    lengths = segment_lengths_m or tuple(total * k / 8.0 for k in range(1, 8)) if total > 0 else ()
+    seg = segment_errors(estimate, ground_truth, lengths_m=lengths, step_frames=1) if lengths else None
+    est_path = float(np.sum(np.linalg.norm(np.diff(np.asarray(estimate)[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    lengths_apart = max(total, est_path) > 3.0 * max(min(total, est_path), 0.1) and max(total, est_path) > 1.0
+    if lengths_apart or errs.ate_rmse_m > max(0.5 * max(total, est_path), 1.0):
+        logger.warning("ATE %.2f m over a path of %.2f m estimated and %.2f m in the ground truth: is the ground truth "
+                       "for these frames (the same sequence, frame numbering and sensor frame)?",
+                       errs.ate_rmse_m, est_path, total)
+    return {
+        "ate_rmse_m": errs.ate_rmse_m,
+        "ate_max_m": errs.ate_max_m,
+        "rpe_trans_rmse_m": errs.rpe_trans_rmse_m,
+        "rpe_rot_rmse_deg": errs.rpe_rot_rmse_deg,
+        "n_poses": errs.n_poses,
+        "segment_translation_percent": None if seg is None else seg.mean_translation_percent,
+        "segment_rotation_deg_per_m": None if seg is None else seg.mean_rotation_deg_per_m,
+        "segment_lengths_m": [float(v) for v in lengths],
+    }

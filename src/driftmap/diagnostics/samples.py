@@ -1,0 +1,318 @@
+"""The diagnostics' samples: a bounded random subset of every frame's sensor-frame points, each with a normal
+estimated *within its own frame* (smearing between frames cannot corrupt it), its planarity and a sensor-noise
+level along the normal (:class:`DiagnosticCloud`); placed in the world with one revision's poses
+(:class:`PlacedCloud`), cheaply, so one set of samples serves many revisions and perturbation experiments.
+
+Every measure of :mod:`driftmap.diagnostics` (double walls, attribution, coverage, causes) reads these samples.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+from pydantic import BaseModel, ConfigDict, Field
+
+from driftmap.diagnostics.noise import NoiseModel
+from driftmap.errors import GeometryError
+from driftmap.frame import Frame, SensorKind
+from driftmap.preprocess.cloud import estimate_normals
+
+if TYPE_CHECKING:
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+UNIT_NORMAL_TOLERANCE = 0.05
+"""A stored normal is used only when its length is within this of 1 (zero or NaN normal fields are not normals)."""
+
+
+class SamplingConfig(BaseModel):
+    """How many points of each frame the diagnostics look at, and how their own-frame normals are made.
+
+    The work is bounded per store: ``points_budget`` samples in total, shared by the frames (at least
+    ``min_points_per_frame``, at most ``max_points_per_frame`` each), unless ``points_per_frame`` fixes it.
+    Few frames get more points each, which is where the statistics need them most.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    points_budget: int = Field(600_000, ge=1000, description="samples in total over all frames")
+    points_per_frame: int | None = Field(None, ge=50, description="fixed samples per frame (overrides the budget)")
+    min_points_per_frame: int = Field(1000, ge=50, description="lower bound of the per-frame share of the budget")
+    max_points_per_frame: int = Field(20_000, ge=50, description="upper bound of the per-frame share of the budget")
+    normals_oversample: float = Field(2.0, ge=1.0, description="normals are estimated on this many times the kept points (same frame)")
+    normals_k: int = Field(16, ge=5, le=100, description="nearest neighbours (same frame) per normal")
+    min_normal_confidence: float = Field(0.5, ge=0.0, le=1.0, description="drop points whose normal is ill-defined (1 - l0/l1 below this)")
+    max_curvature: float = Field(0.05, gt=0.0, le=1.0 / 3.0, description="drop non-planar points (surface variation l0/(l0+l1+l2) above this)")
+    seed: int = 0
+
+    def per_frame(self, n_frames: int) -> int:
+        """Samples kept per frame for a store of ``n_frames`` frames."""
+        if self.points_per_frame is not None:
+            return self.points_per_frame
+        share = self.points_budget // max(n_frames, 1)
+        return int(min(max(share, self.min_points_per_frame), self.max_points_per_frame))
+
+
+@dataclass(frozen=True)
+class DiagnosticCloud:
+    """Per-frame samples in their sensor frames: points, own-frame normals and noise along the normal.
+
+    Points of frame row ``k`` are ``points_sensor[offsets[k]:offsets[k + 1]]``; rows are in time order.
+    Use :meth:`place` to put them in the world with a revision's poses.
+    """
+
+    frame_ids: NDArray[np.int64]
+    stamps_ns: NDArray[np.int64]
+    offsets: NDArray[np.int64]
+    points_sensor: NDArray[np.float32]
+    normals_sensor: NDArray[np.float32]
+    sigma_normal_m: NDArray[np.float32]
+    sensor_kinds: tuple[SensorKind, ...]
+    n_points_source: NDArray[np.int64]
+    """How many points each frame had before sampling."""
+    rejected_points_sensor: NDArray[np.float32] = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    """Drawn samples without a usable normal (thinned like the kept ones), frame row ``k``'s at
+    ``rejected_offsets[k]:rejected_offsets[k + 1]``, with their :class:`RejectReason`: where the map holds points
+    the measures cannot use (the coverage report)."""
+    rejected_offsets: NDArray[np.int64] | None = None
+    rejected_reason: NDArray[np.uint8] = field(default_factory=lambda: np.zeros(0, np.uint8))
+    sample_counts: NDArray[np.int64] | None = None
+    """(M, 3) per frame: samples drawn for normals, of them without a defined normal, of them not planar."""
+    stored_normals_refused: NDArray[np.bool_] | None = None
+    """(M,) frames whose stored normals were not unit vectors (estimated from the points instead)."""
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_ids)
+
+    @property
+    def n_points(self) -> int:
+        return int(self.offsets[-1])
+
+    def frame_index(self) -> NDArray[np.int64]:
+        """Row (into ``frame_ids``) of every sample."""
+        return np.repeat(np.arange(self.n_frames), np.diff(self.offsets))
+
+    @classmethod
+    def from_frames(cls, frames: Iterable[Frame], config: SamplingConfig | None = None,
+                    noise: NoiseModel | None = None) -> DiagnosticCloud:
+        """Sample frames (any order; rows are sorted by stamp). ``noise`` defaults per sensor kind."""
+        cfg = config or SamplingConfig()
+        frames = list(frames)
+        keep = cfg.per_frame(len(frames))
+        rows = []
+        for frame in frames:
+            rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
+                                      frame.attributes.normal_sensor, cfg, keep, noise))
+        return cls._assemble(rows)
+
+    @classmethod
+    def from_store(cls, store: FrameStore, config: SamplingConfig | None = None, noise: NoiseModel | None = None,
+                   frame_ids: Sequence[int] | None = None,
+                   progress: Callable[[str, int, int | None], None] | None = None) -> DiagnosticCloud:
+        """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here. ``progress(stage, done,
+        total)`` is called after each frame (the sampling with its normals is most of a diagnosis' time)."""
+        cfg = config or SamplingConfig()
+        ids = store.frame_ids if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
+        keep = cfg.per_frame(len(ids))
+        rows = []
+        for k, fid in enumerate(ids):
+            frame = store.frame(int(fid))
+            rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
+                                      frame.attributes.normal_sensor, cfg, keep, noise))
+            if progress is not None:
+                progress("sampling frames", k + 1, len(ids))
+        return cls._assemble(rows)
+
+    @classmethod
+    def _assemble(cls, rows: list[tuple]) -> DiagnosticCloud:
+        if not rows:
+            raise GeometryError("diagnostics: no frames to sample")
+        rows.sort(key=lambda r: (r[1], r[0]))
+        counts = np.array([len(r[3]) for r in rows], dtype=np.int64)
+        refused = np.array([r[10] for r in rows], dtype=bool)
+        if refused.any():
+            ids = [r[0] for r in rows if r[10]]
+            logger.warning("%d of %d frames carry stored normals that are mostly not unit vectors (zero, NaN or not "
+                           "normalised; frames %s): their normals are estimated from their points instead", len(ids),
+                           len(rows), ", ".join(map(str, ids[:5])) + (" ..." if len(ids) > 5 else ""))
+        rejected_counts = np.array([len(r[7]) for r in rows], dtype=np.int64)
+        return cls(
+            rejected_points_sensor=np.concatenate([r[7] for r in rows]).astype(np.float32).reshape(-1, 3),
+            rejected_offsets=np.concatenate([[0], np.cumsum(rejected_counts)]).astype(np.int64),
+            rejected_reason=np.concatenate([r[8] for r in rows]).astype(np.uint8),
+            sample_counts=np.array([r[9] for r in rows], dtype=np.int64).reshape(-1, 3),
+            stored_normals_refused=refused,
+            frame_ids=np.array([r[0] for r in rows], dtype=np.int64),
+            stamps_ns=np.array([r[1] for r in rows], dtype=np.int64),
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            points_sensor=np.concatenate([r[3] for r in rows]).astype(np.float32),
+            normals_sensor=np.concatenate([r[4] for r in rows]).astype(np.float32),
+            sigma_normal_m=np.concatenate([r[5] for r in rows]).astype(np.float32),
+            sensor_kinds=tuple(r[2] for r in rows),
+            n_points_source=np.array([r[6] for r in rows], dtype=np.int64),
+        )
+
+    def subset(self, rows: Sequence[int] | NDArray[np.integer]) -> DiagnosticCloud:
+        """The samples of some frame rows only (kept in time order)."""
+        rows = np.unique(np.asarray(rows, dtype=np.int64))
+        if rows.size == 0 or rows[0] < 0 or rows[-1] >= self.n_frames:
+            raise GeometryError(f"subset: rows must be a non-empty subset of 0..{self.n_frames - 1}")
+        counts = np.diff(self.offsets)[rows]
+        idx = np.concatenate([np.arange(self.offsets[r], self.offsets[r + 1]) for r in rows])
+        return DiagnosticCloud(
+            frame_ids=self.frame_ids[rows], stamps_ns=self.stamps_ns[rows],
+            offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+            points_sensor=self.points_sensor[idx], normals_sensor=self.normals_sensor[idx],
+            sigma_normal_m=self.sigma_normal_m[idx], sensor_kinds=tuple(self.sensor_kinds[r] for r in rows),
+            n_points_source=self.n_points_source[rows], **self._rejected_subset(rows),
+        )
+
+    def _rejected_subset(self, rows: NDArray[np.int64]) -> dict:
+        if self.rejected_offsets is None:
+            return {}
+        counts = np.diff(self.rejected_offsets)[rows]
+        idx = np.concatenate([np.arange(self.rejected_offsets[r], self.rejected_offsets[r + 1]) for r in rows])
+        return {"rejected_points_sensor": self.rejected_points_sensor[idx],
+                "rejected_offsets": np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
+                "rejected_reason": self.rejected_reason[idx],
+                "sample_counts": None if self.sample_counts is None else self.sample_counts[rows],
+                "stored_normals_refused": None if self.stored_normals_refused is None else self.stored_normals_refused[rows]}
+
+    def place(self, poses: NDArray[np.float64]) -> PlacedCloud:
+        """World positions and normals with ``poses[k] = T_world_sensor`` of frame row ``k``."""
+        T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        if len(T) != self.n_frames:
+            raise GeometryError(f"place: {len(T)} poses for {self.n_frames} frames")
+        pts = np.empty((self.n_points, 3), np.float64)
+        nrm = np.empty((self.n_points, 3), np.float64)
+        for k in range(self.n_frames):
+            a, b = self.offsets[k], self.offsets[k + 1]
+            R, t = T[k, :3, :3], T[k, :3, 3]
+            pts[a:b] = self.points_sensor[a:b].astype(np.float64) @ R.T + t
+            nrm[a:b] = self.normals_sensor[a:b].astype(np.float64) @ R.T
+        origins = T[:, :3, 3].copy()
+        steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
+        path = np.concatenate([[0.0], np.cumsum(steps)])
+        return PlacedCloud(self, T, pts, nrm, self.frame_index(), origins, path)
+
+
+class RejectReason(enum.IntEnum):
+    """Why a drawn sample has no usable own-frame normal (kept, without a normal, for the coverage report)."""
+
+    NO_NORMAL = 1
+    """too few neighbours in its frame, or an ill-defined normal (confidence below ``min_normal_confidence``)"""
+    NOT_PLANAR = 2
+    """its neighbourhood is not a surface (surface variation above ``max_curvature``: edges, clutter, foliage)"""
+
+
+def _usable_stored_normals(frame_id: int, normals: NDArray[np.float32] | None) -> NDArray[np.float32] | None:
+    """A frame's stored normals, or None when most of them are not unit vectors (zero, NaN, not normalised: a
+    normal field that is not normals, such as the all-zero ones of some PCD writers)."""
+    if normals is None or len(normals) == 0:
+        return normals
+    length = np.linalg.norm(np.asarray(normals, dtype=np.float64), axis=1)
+    unit = np.isfinite(length) & (np.abs(length - 1.0) <= UNIT_NORMAL_TOLERANCE)
+    if np.count_nonzero(unit) >= 0.5 * len(unit):
+        return normals
+    logger.debug("frame %d: %d of %d stored normals are not unit vectors", frame_id, len(unit) - int(unit.sum()), len(unit))
+    return None
+
+
+def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],
+                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, keep_n: int, noise: NoiseModel | None) -> tuple:
+    """``(frame_id, stamp_ns, kind, points, normals, sigma, n_source, rejected points, rejected reasons,
+    (drawn, no_normal, not_planar), stored normals refused)`` of one frame."""
+    rng = np.random.default_rng([cfg.seed, frame_id & 0x7FFFFFFF])
+    pts = np.asarray(points, dtype=np.float32)
+    finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
+    n_src = len(pts)
+    n_norm = min(len(finite), int(keep_n * cfg.normals_oversample))
+    pick = finite if n_norm == len(finite) else rng.choice(finite, n_norm, replace=False)
+    sub = pts[pick]
+    usable = _usable_stored_normals(frame_id, normals)
+    refused = normals is not None and usable is None
+    reason = np.zeros(len(sub), np.uint8)
+    if usable is not None:
+        nrm = np.asarray(usable, dtype=np.float32)[pick]
+        length = np.linalg.norm(nrm.astype(np.float64), axis=1)
+        ok = np.isfinite(length) & (np.abs(length - 1.0) <= UNIT_NORMAL_TOLERANCE)
+        reason[~ok] = RejectReason.NO_NORMAL
+    elif len(sub) >= cfg.normals_k:
+        res = estimate_normals(sub, k=cfg.normals_k)
+        nrm = res.normals
+        defined = (res.confidence >= cfg.min_normal_confidence) & np.all(np.isfinite(nrm), axis=1)
+        planar = res.curvature <= cfg.max_curvature
+        ok = defined & planar
+        reason[~defined] = RejectReason.NO_NORMAL
+        reason[defined & ~planar] = RejectReason.NOT_PLANAR
+    else:
+        nrm, ok = np.zeros_like(sub), np.zeros(len(sub), bool)
+        reason[:] = RejectReason.NO_NORMAL
+    keep = np.flatnonzero(ok)
+    n_ok = len(keep)
+    if len(keep) > keep_n:
+        keep = np.sort(rng.choice(keep, keep_n, replace=False))
+    # the rejected samples, thinned as the usable ones were: both populations at the same density
+    bad = np.flatnonzero(~ok)
+    rate = len(keep) / n_ok if n_ok else min(1.0, keep_n / max(len(bad), 1))
+    n_bad = int(round(len(bad) * rate))
+    if n_bad < len(bad):
+        bad = np.sort(rng.choice(bad, n_bad, replace=False))
+    model = noise or NoiseModel.for_sensor(kind)
+    sigma = model.sigma_normal_m(sub[keep], nrm[keep]) if len(keep) else np.zeros(0)
+    counts = (len(sub), int(np.count_nonzero(reason == RejectReason.NO_NORMAL)),
+              int(np.count_nonzero(reason == RejectReason.NOT_PLANAR)))
+    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src, sub[bad], reason[bad], counts, refused)
+
+
+@dataclass(frozen=True)
+class PlacedCloud:
+    """A :class:`DiagnosticCloud` placed in the world with one set of poses (float64)."""
+
+    samples: DiagnosticCloud
+    poses: NDArray[np.float64]
+    points_world: NDArray[np.float64]
+    normals_world: NDArray[np.float64]
+    frame_index: NDArray[np.int64]
+    origins_world: NDArray[np.float64]
+    """(M, 3) sensor origin of every frame."""
+    path_length_m: NDArray[np.float64]
+    """(M,) distance travelled by the sensor up to each frame (frames in time order)."""
+
+    @property
+    def frame_ids(self) -> NDArray[np.int64]:
+        return self.samples.frame_ids
+
+    @property
+    def stamps_ns(self) -> NDArray[np.int64]:
+        return self.samples.stamps_ns
+
+    @property
+    def sigma_normal_m(self) -> NDArray[np.float32]:
+        return self.samples.sigma_normal_m
+
+    @cached_property
+    def rejected_world(self) -> NDArray[np.float64]:
+        """World positions of the samples without a usable normal (:attr:`DiagnosticCloud.rejected_points_sensor`)."""
+        s = self.samples
+        if s.rejected_offsets is None or len(s.rejected_points_sensor) == 0:
+            return np.zeros((0, 3))
+        rows = np.repeat(np.arange(s.n_frames), np.diff(s.rejected_offsets))
+        p = s.rejected_points_sensor.astype(np.float64)
+        R, t = self.poses[rows, :3, :3], self.poses[rows, :3, 3]
+        return np.einsum("nij,nj->ni", R, p) + t
+
+    @cached_property
+    def world_columns(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """``points_world`` and ``normals_world`` as (3, N) contiguous columns, made once per placed cloud: numpy's
+        per-point arithmetic and gathers on a column run several times faster than on (N, 3) rows."""
+        return np.ascontiguousarray(self.points_world.T), np.ascontiguousarray(self.normals_world.T)
+
