@@ -19,6 +19,7 @@ from driftmap import geometry
 from driftmap.errors import ConfigError, DriftmapError, EmptyExportError
 from driftmap.frame import Frame
 from driftmap.store.guards import atomic_output
+from driftmap.voxels import first_point_per_voxel
 
 logger = logging.getLogger(__name__)
 
@@ -39,9 +40,7 @@ class FusedCloud:
             raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
         if len(self) == 0:
             return self
-        keys = np.floor(self.points_world / voxel_size_m).astype(np.int64)
-        _, first = np.unique(keys, axis=0, return_index=True)
-        first.sort()
+        first = first_point_per_voxel(self.points_world, voxel_size_m)
         return FusedCloud(self.points_world[first], self.frame_ids[first])
 
 
