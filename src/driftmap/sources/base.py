@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +31,8 @@ def parse_frame_slice(spec: str | slice | None) -> slice | None:
     """``"START:STOP[:STEP]"`` (any part may be empty) -> ``slice``; ``None`` stays ``None``."""
     if spec is None or isinstance(spec, slice):
         return spec
+    if not spec.strip():
+        raise SourceError(f"--frames {spec!r}: empty; expected START:STOP[:STEP] (leave --frames out for every frame)")
     parts = spec.split(":")
     if not 1 <= len(parts) <= 3:
         raise SourceError(f"--frames {spec!r}: expected START:STOP[:STEP]")
@@ -285,5 +288,48 @@ def open_source(path: str | Path, format: str | None = None, **options: Any) -> 
         if detected:  # what the opener of the detected format raises (a refused option, ...) is its answer
             logger.info("%s: detected format %s", path, spec.name)
             return spec.open(path, **options)
-    raise SourceError(f"{path}: cannot tell the format; tried {', '.join(tried)} (pass format= / --format)")
+    raise SourceError(f"{path}: cannot tell the format{_foreign_hint(path)}; the formats driftmap reads: "
+                      + "; ".join(f"{name} ({spec.description})" for name, spec in formats.items())
+                      + " (none of their detectors matched; pass format= / --format to force one)")
+
+
+#: file suffixes of formats driftmap does not read, and how to get their data into one it reads
+FOREIGN_FORMATS: dict[tuple[str, ...], str] = {
+    (".vtk", ".vtp", ".vtu"): "VTK: save the points as PLY (ParaView's Save Data, or meshio) into a folder of "
+                              "clouds, one file per scan",
+    (".pcap", ".osf"): "an Ouster / Velodyne packet capture or Ouster OSF: export the scans to PCD / PLY files "
+                       "(Ouster SDK, ouster-cli) into a folder, or record them as a ROS 2 bag / MCAP with the driver "
+                       "(ouster-ros, velodyne)",
+    (".las", ".laz"): "LAS / LAZ: convert each scan to PLY or PCD, e.g. `pdal translate scan.las scan.ply`, into a "
+                      "folder of clouds",
+    (".e57",): "E57: convert each scan to PLY or PCD (PDAL, CloudCompare) into a folder of clouds",
+    (".xyz", ".pts", ".xyzn", ".xyzrgb"): "a text point file: convert it to PCD / PLY (Open3D reads .xyz / .pts) "
+                                          "into a folder of clouds",
+    (".h5", ".hdf5", ".npy", ".npz"): "an array file: write each scan as PCD / PLY into a folder of clouds",
+    (".pcd", ".ply"): "one point-cloud file: the cloud_folder format reads a folder of them; pass the folder that "
+                      "holds it (or put it in one)",
+    (".bin",): "one binary scan: the kitti format reads a sequence folder with velodyne/NNNNNN.bin; pass that folder",
+    (".db3",): "a rosbag2 storage file: pass the rosbag2 folder with its metadata.yaml",
+    (".png", ".jpg", ".jpeg"): "one image: the depth-image formats read data-set folders (7scenes, tum, redwood)",
+    (".mcap", ".bag"): "a log that does not start with its format's magic bytes: a damaged or foreign file",
+}
+
+
+def _foreign_hint(path: Path) -> str:
+    """``" (it looks like X: how to convert it)"`` for a file (or a folder of files) of a recognisable format
+    driftmap does not read; ``""`` otherwise."""
+    suffixes: list[str] = []
+    try:
+        if path.is_dir():
+            with os.scandir(path) as it:
+                suffixes = [Path(e.name).suffix.lower() for e, _ in zip(it, range(10_000)) if e.is_file()]
+        else:
+            suffixes = [path.suffix.lower()]
+    except OSError:
+        return ""
+    for known, hint in FOREIGN_FORMATS.items():
+        n = sum(s in known for s in suffixes)
+        if n:
+            return f" (it holds {n} {'/'.join(known)} file(s): {hint})" if path.is_dir() else f" (it looks like {hint})"
+    return ""
 

@@ -33,8 +33,21 @@ from numpy.typing import NDArray
 from driftmap.errors import ConfigError, SourceError, TransformError
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
+from driftmap.sources.cloud_headers import CloudHeader, NotACloudFile, check_cloud_file
 from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, point_time_offsets_ns
-from driftmap.sources.stamps import STAMP_FILE_NAMES, period_problem, read_times, rows_for_frames, stamps_from_file_names
+from driftmap.sources.stamps import (
+    MAX_STAMP_NS,
+    STAMP_FILE_NAMES,
+    check_increasing_stamps,
+    check_pose_file_stamps,
+    name_stamp_ns,
+    nominal_stamp_ns,
+    period_problem,
+    read_pose_file,
+    read_times,
+    rows_for_frames,
+    stamps_from_file_names,
+)
 from driftmap.trajectory import Trajectory, detect_trajectory_format, has_stamps, read_trajectory
 
 logger = logging.getLogger(__name__)
@@ -57,26 +70,32 @@ def frame_number(name: str | Path) -> int | None:
 
 
 def numbered_files(
-    folder: Path, what: str, *, pattern: str | None = None, suffixes: Sequence[str] | None = None
+    folder: Path, what: str, *, pattern: str | None = None, suffixes: Sequence[str] | None = None,
+    lenient: bool = False,
 ) -> list[tuple[int, Path]]:
     """``(frame number, path)`` of the files in ``folder`` matching a glob ``pattern`` or ending in one of
     ``suffixes`` (case-insensitive), ordered by number.
 
-    Raises :class:`SourceError` when the folder is missing, has no such file, a name has no number or two
-    files carry the same number.
+    Raises :class:`SourceError` when the folder is missing, has no such file, a name has no number (or one too
+    large for a frame id) or two files carry the same number. A name that matches but is a symlink loop or a
+    dangling symlink raises naming the link and where it leads (lenient: left out with a warning).
     """
     if not folder.is_dir():
         raise SourceError(f"{folder}: no such folder ({what})")
     if pattern is not None:
-        candidates = [f for f in folder.glob(pattern) if f.is_file()]
+        matching = list(folder.glob(pattern))
     else:
         lowered = tuple(s.lower() for s in suffixes or ())
-        candidates = [f for f in folder.iterdir() if f.name.lower().endswith(lowered) and f.is_file()]
+        matching = [f for f in folder.iterdir() if f.name.lower().endswith(lowered)]
+    candidates = frame_files(matching, what, lenient=lenient)
     found: dict[int, Path] = {}
     for file in candidates:
         number = frame_number(file.name)
         if number is None:
             raise SourceError(f"{file}: no frame number in the file name ({what})")
+        if number > MAX_FRAME_NUMBER:
+            raise SourceError(f"{file}: the number {number} in the file name is too large for a frame id "
+                              f"(at most {MAX_FRAME_NUMBER}) ({what})")
         if number in found:
             first, second = sorted((found[number], file))
             raise SourceError(f"{first} and {second}: both are frame {number} ({what})")
@@ -86,40 +105,50 @@ def numbered_files(
     return sorted(found.items())
 
 
-def check_increasing_stamps(
-    stamps_ns: Sequence[int],
-    frame_ids: Sequence[int | str],
-    what: str,
-    *,
-    lenient: bool,
-    skipped: list[tuple[int, str]] | None = None,
-) -> list[int]:
-    """Positions to keep so that stamps strictly increase.
+MAX_FRAME_NUMBER = 2**63 - 1
+"""Frame ids are int64 (the store's ledger)."""
 
-    A duplicate or earlier stamp raises :class:`SourceError` naming ``what`` (the file) and the two frames;
-    in lenient mode the later frame is dropped with a logged reason (and recorded in ``skipped``).
-    ``frame_ids`` name the entries: an int ``n`` reads "frame n", a string is used as it is ("row 7").
-    """
 
-    def name(k: int) -> str:
-        return f"frame {frame_ids[k]}" if isinstance(frame_ids[k], (int, np.integer)) else str(frame_ids[k])
-
-    keep: list[int] = []
-    for k, stamp in enumerate(stamps_ns):
-        if keep and stamp <= stamps_ns[keep[-1]]:
-            prev = keep[-1]
-            kind = "duplicate stamp" if stamp == stamps_ns[prev] else "stamp goes back in time"
-            reason = (
-                f"{what}: {kind}: {name(k)} has stamp_ns {stamp}, {name(prev)} before it has stamp_ns {stamps_ns[prev]}"
-            )
-            if not lenient:
-                raise SourceError(reason)
-            logger.warning("%s (%s skipped)", reason, name(k))
-            if skipped is not None:
-                skipped.append((k, reason))
+def frame_files(paths: Sequence[Path], what: str, *, lenient: bool = False) -> list[Path]:
+    """The regular files among ``paths`` (names that match a source's frame files). A name that is a symlink loop
+    or a dangling symlink raises :class:`SourceError` naming the link and the chain (lenient: a warning, left out);
+    folders and other non-files are not frames and are left out silently."""
+    out = []
+    for file in paths:
+        if file.is_file():
+            out.append(file)
             continue
-        keep.append(k)
-    return keep
+        problem = broken_link_problem(file)
+        if problem is None:
+            continue
+        if not lenient:
+            raise SourceError(f"{problem} ({what})")
+        logger.warning("%s (%s); the file is left out", problem, what)
+    return out
+
+
+def broken_link_problem(path: Path) -> str | None:
+    """What is wrong with a symlink that does not lead to a file (a loop, a dangling link), naming the chain;
+    ``None`` when ``path`` is not such a link."""
+    if not path.is_symlink():
+        return None
+    chain = [path]
+    seen = {os.path.abspath(path)}
+    current = path
+    while current.is_symlink():
+        try:
+            target = Path(os.readlink(current))
+        except OSError as exc:
+            return f"{path}: symlink cannot be read ({exc.strerror})"
+        current = target if target.is_absolute() else current.parent / target
+        chain.append(current)
+        key = os.path.abspath(current)
+        if key in seen or len(chain) > 40:
+            return f"{path}: symlink loop ({' -> '.join(str(c) for c in chain)})"
+        seen.add(key)
+    if not current.exists():
+        return f"{path}: dangling symlink ({' -> '.join(str(c) for c in chain)}, which does not exist)"
+    return None  # a link to a folder or another existing non-file: not a frame file, as a folder of that name
 
 
 def opener_for(cls: type[FrameSource]) -> Callable[..., FrameSource]:
@@ -154,10 +183,58 @@ def pose_or_none(T_world_sensor: NDArray[np.float64] | None, source: PoseSource)
 _POSE_FILE_SUFFIXES = (".csv", ".txt", ".log")
 
 
-def _cloud_paths(folder: Path) -> list[Path]:
+def _cloud_paths(folder: Path, *, lenient: bool = False) -> list[Path]:
     if not folder.is_dir():
         return []
-    return sorted(f for f in folder.iterdir() if f.name.lower().endswith(CLOUD_SUFFIXES) and f.is_file())
+    return sorted(frame_files([f for f in folder.iterdir() if f.name.lower().endswith(CLOUD_SUFFIXES)],
+                              "point-cloud folder", lenient=lenient))
+
+
+def _read_checked_cloud(file: Path, frame_id: int) -> Any:
+    """The Open3D tensor cloud of a PCD / PLY file whose header was checked against its bytes first
+    (:func:`driftmap.sources.cloud_headers.check_cloud_file`), and whose point count is then checked against the
+    header: a header that lies about sizes never reaches Open3D's reader (which trusts it)."""
+    if not file.is_file():
+        raise SourceError(f"{file}: cloud of frame {frame_id} not found")
+    try:
+        header = check_cloud_file(file)
+    except NotACloudFile as exc:
+        raise SourceError(f"{file}: no points could be read (frame {frame_id}; corrupt or empty cloud: "
+                          f"{exc.reason})") from exc
+    except SourceError as exc:
+        raise SourceError(f"{exc} (frame {frame_id})") from exc
+    if header.n_points == 0:
+        raise SourceError(f"{file}: the header says the cloud has no points (frame {frame_id})")
+    try:
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            cloud = o3d.t.io.read_point_cloud(str(file))
+    except RuntimeError as exc:
+        raise SourceError(f"{file}: Open3D cannot read the cloud of frame {frame_id} ({exc})") from exc
+    n_read = cloud.point["positions"].shape[0] if "positions" in cloud.point else 0
+    if n_read == 0:
+        raise SourceError(f"{file}: no points could be read (frame {frame_id}; corrupt or empty cloud)")
+    if n_read != header.n_points:
+        raise SourceError(f"{file}: Open3D read {n_read} points of frame {frame_id}, the header says "
+                          f"{header.n_points}: corrupt data")
+    if header.dtype is not None and header.encoding in ("binary", "binary_little_endian", "binary_big_endian"):
+        _check_positions_match_bytes(file, frame_id, header, cloud.point["positions"].numpy())
+    return cloud
+
+
+def _check_positions_match_bytes(file: Path, frame_id: int, header: CloudHeader, positions: NDArray) -> None:
+    """The coordinates Open3D read are the ones the binary data holds (bit for bit, as float32)."""
+    assert header.dtype is not None
+    raw = np.memmap(file, dtype=header.dtype, mode="r", offset=header.data_offset, shape=(header.n_points,))
+    try:
+        for k, axis in enumerate("xyz"):
+            expected = np.asarray(raw[axis], dtype=np.float32)
+            got = positions[:, k].astype(np.float32, copy=False)
+            if not np.array_equal(expected, got, equal_nan=True):
+                bad = int(np.flatnonzero(~((expected == got) | (np.isnan(expected) & np.isnan(got))))[0])
+                raise SourceError(f"{file}: the reader's {axis} of point {bad} of frame {frame_id} is {got[bad]!r}, the "
+                                  f"file holds {expected[bad]!r}: the cloud was not read as written")
+    finally:
+        del raw
 
 
 def _ply_properties(file: Path) -> list[str]:
@@ -230,11 +307,12 @@ class CloudFolder(FrameSource):
         self.sensor_frame = sensor_frame or self.sensor_name
         if period_ns is not None and int(period_ns) <= 0:
             raise SourceError(f"{self.path}: period_ns must be positive, got {period_ns}")
-        named = stamps_from_file_names(_cloud_paths(self.path), f"{self.path} (point-cloud folder)")
+        self._nominal_period_ns: int | None = None
+        named = stamps_from_file_names(_cloud_paths(self.path, lenient=lenient), f"{self.path} (point-cloud folder)")
         if named is not None:
             files = [(k, file) for k, (_, file) in enumerate(named[0])]
         else:
-            files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES)
+            files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES, lenient=lenient)
         ids = [n for n, _ in files]
         self.poses_path = None if poses is None else Path(poses)
         self._poses: Trajectory | None = None
@@ -243,7 +321,7 @@ class CloudFolder(FrameSource):
             if not self.poses_path.is_file():
                 raise SourceError(f"{self.poses_path}: pose file not found")
             poses_fmt = poses_format or detect_trajectory_format(self.poses_path)
-            self._poses = read_trajectory(self.poses_path, poses_fmt)
+            self._poses = read_pose_file(read_trajectory, self.poses_path, poses_fmt)
             if len(self._poses) < len(files):
                 raise SourceError(
                     f"{self.poses_path}: {len(self._poses)} poses for {len(files)} clouds; the first cloud without "
@@ -263,7 +341,8 @@ class CloudFolder(FrameSource):
         found: tuple[list[int], str, str] | None = None
         if self._poses is not None and poses_fmt is not None and has_stamps(self._poses, poses_fmt):
             assert self.poses_path is not None
-            found = ([int(s) for s in self._poses.stamps_ns[: len(ids)]], self.poses_path.name, str(self.poses_path))
+            stamps = check_pose_file_stamps(self.poses_path, poses_fmt, self._poses.stamps_ns[: len(ids)].tolist())
+            found = (stamps, self.poses_path.name, str(self.poses_path))
         elif named is not None:
             found = ([s for s, _ in named[0]], f"file names ({named[1]})", f"{self.path} (stamps in the file names)")
         else:
@@ -276,13 +355,46 @@ class CloudFolder(FrameSource):
             return found
         if period_ns is not None:
             origin = f"period {int(period_ns) / 1e9:g} s (period_ns / --period-s)"
-            return [n * int(period_ns) for n in ids], origin, f"{self.path} (stamps frame_id * {int(period_ns)} ns)"
+            return self._nominal(ids, int(period_ns)), origin, f"{self.path} (stamps frame_id * {int(period_ns)} ns)"
+        stamps = self._nominal(ids, DEFAULT_PERIOD_NS)
         logger.warning("%s: no stamps in the folder; they are assumed: frame_id * %d ns (nominal 10 Hz). Give them with "
                        "a stamp file (%s: seconds, one line per cloud), a pose file with stamps (poses=) "
                        "or the scan period (period_ns, --period-s)", self.path, DEFAULT_PERIOD_NS,
                        " / ".join(STAMP_FILE_NAMES))
-        return ([n * DEFAULT_PERIOD_NS for n in ids], "assumed 10 Hz",
-                f"{self.path} (nominal stamps frame_id * {DEFAULT_PERIOD_NS} ns)")
+        return stamps, "assumed 10 Hz", f"{self.path} (nominal stamps frame_id * {DEFAULT_PERIOD_NS} ns)"
+
+    def _nominal(self, ids: list[int], period_ns: int) -> list[int]:
+        """``frame_id * period_ns`` per cloud. A stamp out of the int64 range (a frame number from a file name that
+        is a stamp) is kept here and refused when its frame is read (:meth:`_checked_stamp_ns`)."""
+        self._nominal_period_ns = period_ns
+        return [n * period_ns for n in ids]
+
+    def _checked_stamp_ns(self, frame_id: int, file: Path, stamp_ns: int) -> int:
+        """The frame's stamp; one out of range (only nominal stamps can be) raises :class:`SourceError` naming the
+        file and, when the file names are stamps that were not taken as stamps, why (:func:`nominal_stamp_ns`)."""
+        if 0 <= stamp_ns <= MAX_STAMP_NS:
+            return stamp_ns
+        try:
+            return nominal_stamp_ns(frame_id, self._nominal_period_ns or 1, str(file))
+        except SourceError as exc:
+            files = [f for _, f, _, _ in self._entries]
+            raise SourceError(f"{exc}{self._names_not_stamps_reason(files)}") from None
+
+    def _names_not_stamps_reason(self, files: list[Path]) -> str:
+        """Why file names that are stamps were taken as frame numbers (``""`` when they are not all stamps)."""
+        parsed = [name_stamp_ns(f.name) for f in files]
+        n_stamps = sum(p is not None for p in parsed)
+        if n_stamps < len(parsed):
+            return (f" (only {n_stamps} of the {len(parsed)} file names are stamps, so all are taken as frame numbers; "
+                    f"name every file by its stamp, or give the stamps with a stamp file (times.txt) or poses=)"
+                    if n_stamps else "")
+        units = sorted({p[1] for p in parsed if p is not None})
+        if len(units) > 1:
+            return f" (the file names are stamps of different units, {', '.join(units)}, so they were not used as stamps)"
+        problem = period_problem(sorted(p[0] for p in parsed if p is not None))
+        return (f" (the file names are stamps in {units[0]}, but {problem}, so they were not used as stamps; give the "
+                f"stamps with a stamp file (times.txt) or poses=, or rename the files to frame numbers)"
+                if problem else "")
 
     def _stamp_file(self, ids: list[int]) -> tuple[list[int], str, str] | None:
         """(c) ``times.txt`` / ``timestamps.txt`` / ``stamps.txt``: a file that does not fit the clouds raises."""
@@ -316,7 +428,7 @@ class CloudFolder(FrameSource):
             try:
                 if detect_trajectory_format(file) != "4x4":
                     continue
-                traj = read_trajectory(file, "4x4")
+                traj = read_pose_file(read_trajectory, file, "4x4")
             except (SourceError, OSError, UnicodeDecodeError, ValueError) as exc:
                 logger.debug("%s: not a pose file with stamps (%s)", file, exc)
                 continue
@@ -327,7 +439,11 @@ class CloudFolder(FrameSource):
                 logger.warning("%s: its %d stamped poses do not fit the %d clouds (frames %d..%d) of %s; its stamps "
                                "are not used", file, len(traj), len(ids), ids[0], ids[-1], self.path)
                 continue
-            stamps = [int(traj.stamps_ns[r]) for r in fit[0]]
+            try:
+                stamps = check_pose_file_stamps(file, "4x4", [int(traj.stamps_ns[r]) for r in fit[0]])
+            except SourceError as exc:
+                logger.warning("%s; its stamps are not used for the clouds of %s", exc, self.path)
+                continue
             problem = period_problem(stamps)
             if problem is not None:
                 logger.warning("%s: its stamps are not used for the clouds of %s: %s", file, self.path, problem)
@@ -353,13 +469,8 @@ class CloudFolder(FrameSource):
         """Points (float32, as stored) and attributes (intensity, colours, normals, per-point times) of the cloud
         at ``index``; normals and times only when they pass :mod:`driftmap.sources.point_fields`' checks."""
         frame_id, file, stamp_ns, _ = self._entries[index]
-        if not file.is_file():
-            raise SourceError(f"{file}: cloud of frame {frame_id} not found")
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            cloud = o3d.t.io.read_point_cloud(str(file))
-        if "positions" not in cloud.point or cloud.point["positions"].shape[0] == 0:
-            raise SourceError(f"{file}: no points could be read (frame {frame_id}; corrupt or empty cloud)")
         what = f"{file} (frame {frame_id})"
+        cloud = _read_checked_cloud(file, frame_id)
         points = cloud.point["positions"].numpy().astype(np.float32, copy=False)
         finite = np.all(np.isfinite(points), axis=1)
         if not finite.all():
@@ -392,6 +503,7 @@ class CloudFolder(FrameSource):
 
     def _load(self, index: int) -> Frame:
         frame_id, file, stamp_ns, row = self._entries[index]
+        stamp_ns = self._checked_stamp_ns(frame_id, file, stamp_ns)
         points, attributes = self.read_cloud(index)
         T = None if self._poses is None else self._poses.poses[row]
         try:

@@ -8,7 +8,9 @@ Layout of a sequence folder (``sequences/NN/`` in the official archive)::
     poses.txt             ground truth T_world_cam0 (KITTI 3x4 rows), row k = frame k; also looked up as
                           ../../poses/NN.txt (the official layout) or given with poses=
 
-``frame_id`` is the number in the ``.bin`` name. Ground truth is converted to the Velodyne frame:
+``frame_id`` is the number in the ``.bin`` name. The point layout (``x, y, z, intensity`` or, as some conversions
+write, ``x, y, z`` only) is decided once for the whole folder (:func:`decide_point_layout`), never per file.
+Ground truth is converted to the Velodyne frame:
 ``T_world_velo = inv(Tr) @ T_cam0 @ Tr`` (so the world is the Velodyne frame of frame 0). Frames carry no
 estimate (``PoseSource.NONE``) unless ``poses_from_ground_truth=True``. Points are the raw scan (no range
 filtering); intensity is a per-point attribute.
@@ -31,9 +33,9 @@ from driftmap import geometry
 from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
-from driftmap.sources.cloud_folder import check_increasing_stamps, numbered_files, opener_for, pose_or_none
-from driftmap.sources.stamps import read_times
-from driftmap.trajectory import Trajectory, read_kitti
+from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
+from driftmap.sources.stamps import check_increasing_stamps, nominal_stamp_ns, read_pose_file, read_times
+from driftmap.trajectory import Trajectory, _read_lines, read_kitti
 
 logger = logging.getLogger(__name__)
 
@@ -42,14 +44,116 @@ NOMINAL_PERIOD_NS = 100_000_000
 POINT_BYTES = 16  # float32 x, y, z, intensity
 
 
+class PointLayout(str, enum.Enum):
+    """What a point of a ``.bin`` scan holds: float32 ``x, y, z, intensity`` (KITTI) or ``x, y, z``."""
+
+    AUTO = "auto"
+    XYZI = "xyzi"
+    XYZ = "xyz"
+
+    @property
+    def columns(self) -> int:
+        return 4 if self is PointLayout.XYZI else 3
+
+    @property
+    def point_bytes(self) -> int:
+        return 4 * self.columns
+
+    @property
+    def spelled(self) -> str:
+        return "float32 x, y, z, intensity" if self is PointLayout.XYZI else "float32 x, y, z"
+
+
+LAYOUT_SAMPLE_BYTES = 1 << 20
+"""How much of a scan the layout check reads (a multiple of 48 bytes: whole points in either layout)."""
+MIN_LAYOUT_POINTS = 32
+"""A scan sample shorter than this many points cannot tell the layouts apart."""
+ABSURD_COORDINATE_M = 1e5
+"""No LiDAR measures this far: coordinates beyond it mean the bytes are read in the wrong layout."""
+
+
+def _layout_misfit(sample: bytes, layout: PointLayout) -> float | None:
+    """How badly the bytes read as ``layout`` fit a LiDAR scan: the median step between consecutive points over
+    their median range (about 0.004 for a KITTI scan in its own layout, about 1.4 in the other one, where every
+    "point" mixes the axes of two points); ``inf`` when over 1 % of the coordinates are NaN / inf or absurd;
+    ``None`` for a sample too short to tell."""
+    values = np.frombuffer(sample, dtype="<f4")
+    points = values[: len(values) // layout.columns * layout.columns].reshape(-1, layout.columns)[:, :3]
+    if len(points) < MIN_LAYOUT_POINTS:
+        return None
+    xyz = points.astype(np.float64)
+    sane = np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < ABSURD_COORDINATE_M).all(axis=1)
+    if np.mean(sane) < 0.99:
+        return float("inf")
+    xyz = xyz[sane]
+    ranges = np.linalg.norm(xyz, axis=1)
+    scale = float(np.median(ranges))
+    if len(xyz) < MIN_LAYOUT_POINTS or scale <= 0:
+        return None
+    return float(np.median(np.linalg.norm(np.diff(xyz, axis=0), axis=1))) / scale
+
+
+def _layout_from_data(files: list[Path]) -> tuple[PointLayout | None, str]:
+    """The layout the data of (up to three of) ``files`` fits clearly better, or ``None`` and why not."""
+    picks = sorted({files[0], files[len(files) // 2], files[-1]})
+    votes = []
+    for file in picks:
+        try:
+            with file.open("rb") as fh:
+                sample = fh.read(LAYOUT_SAMPLE_BYTES)
+        except OSError:
+            continue
+        sample = sample[: len(sample) // 48 * 48]
+        misfit = {lay: _layout_misfit(sample, lay) for lay in (PointLayout.XYZI, PointLayout.XYZ)}
+        if any(m is None for m in misfit.values()):
+            votes.append((None, f"{file.name} holds too few points to tell"))
+            continue
+        best, other = sorted(misfit, key=lambda lay: misfit[lay])  # type: ignore[arg-type]
+        clear = misfit[best] < 0.5 and misfit[other] >= 4 * misfit[best]  # type: ignore[operator]
+        votes.append((best if clear else None, f"{file.name} reads about as well either way" if not clear else
+                      f"{file.name} reads as a scan only as {best.value}"))
+    chosen = {v for v, _ in votes}
+    if len(chosen) == 1 and None not in chosen:
+        return chosen.pop(), "; ".join(w for _, w in votes)
+    return None, "; ".join(w for _, w in votes) or "no scan could be read"
+
+
+def decide_point_layout(files: list[Path], folder: Path) -> tuple[PointLayout, str]:
+    """One layout for every scan of a folder, and why: from the files' sizes (a size that is a multiple of 16 but
+    not of 12 can only be x, y, z, intensity, and the other way round; the layout more files fit wins, and the
+    others raise when read), and, when every size is a multiple of both (48), from the data
+    (:func:`_layout_misfit`). :class:`SourceError` asking for ``point_layout=`` when neither settles it."""
+    sizes = {}
+    for file in files:
+        try:
+            sizes[file] = file.stat().st_size
+        except OSError:
+            continue
+    fits = {lay: [f for f, n in sizes.items() if n > 0 and n % lay.point_bytes == 0]
+            for lay in (PointLayout.XYZI, PointLayout.XYZ)}
+    n16, n12 = len(fits[PointLayout.XYZI]), len(fits[PointLayout.XYZ])
+    if n16 == n12 == 0:
+        return PointLayout.XYZI, "no scan size fits either layout (the KITTI layout is assumed; every scan raises)"
+    if n16 != n12 or set(fits[PointLayout.XYZI]) != set(fits[PointLayout.XYZ]):
+        if n16 == n12:
+            raise SourceError(f"{folder}: {n16} scans have a size that only float32 x, y, z, intensity (16 bytes a "
+                              f"point) fits and {n12} one that only x, y, z (12 bytes) fits: the folder mixes layouts "
+                              f"or holds damaged scans; open it with point_layout='xyzi' or 'xyz'")
+        layout = PointLayout.XYZI if n16 > n12 else PointLayout.XYZ
+        return layout, f"the sizes of {max(n16, n12)} of {len(sizes)} scans are multiples of {layout.point_bytes} bytes"
+    layout, why = _layout_from_data(fits[PointLayout.XYZI])
+    if layout is None:
+        raise SourceError(f"{folder}: cannot tell whether the scans are float32 x, y, z, intensity (16 bytes a point) "
+                          f"or x, y, z (12 bytes): every size is a multiple of both, and {why}; open it with "
+                          f"point_layout='xyzi' or 'xyz'")
+    return layout, f"every size fits both layouts; {why}"
+
+
 def read_calib_tr(file: Path) -> NDArray[np.float64]:
     """``T_cam0_velo`` from the ``Tr:`` line of a KITTI odometry ``calib.txt``."""
-    try:
-        lines = file.read_text().splitlines()
-    except FileNotFoundError:
-        raise SourceError(f"{file}: calibration not found (needed for the Velodyne ground truth)") from None
-    except OSError as exc:
-        raise SourceError(f"{file}: cannot read calibration ({exc})") from exc
+    if not file.is_file():
+        raise SourceError(f"{file}: calibration not found (needed for the Velodyne ground truth)")
+    lines = _read_lines(file, "calibration")  # SourceError naming the file (and line) for unreadable / non-UTF-8 text
     for lineno, line in enumerate(lines, start=1):
         key, _, rest = line.partition(":")
         if key.strip() != "Tr":
@@ -286,9 +390,11 @@ class KittiOdometry(FrameSource):
         poses: ground-truth pose file (KITTI format, cam0); default ``poses.txt`` in the folder or
             ``../../poses/<folder name>.txt``.
         poses_from_ground_truth: frames carry the Velodyne ground truth (``PoseSource.GROUND_TRUTH``).
+        point_layout: ``"auto"`` (default: decided for the whole folder by :func:`decide_point_layout`),
+            ``"xyzi"`` (float32 x, y, z, intensity: KITTI) or ``"xyz"``.
 
-    Bad input: a ``.bin`` whose size is not a multiple of 16 bytes raises :class:`SourceError` naming the
-    file (lenient: the frame is skipped); a pose file with fewer rows than frames raises naming the file and
+    Bad input: a ``.bin`` whose size is not a multiple of the folder's point size (16 bytes for KITTI's
+    x, y, z, intensity) raises :class:`SourceError` naming the file (lenient: the frame is skipped); a pose file with fewer rows than frames raises naming the file and
     the first frame without a pose (lenient: a warning, those frames have no ground truth); ``times.txt``
     must have a row per frame and increasing stamps (lenient: offending frames are skipped).
     """
@@ -301,14 +407,23 @@ class KittiOdometry(FrameSource):
         *,
         poses: str | Path | None = None,
         poses_from_ground_truth: bool = False,
+        point_layout: PointLayout | str = PointLayout.AUTO,
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
         super().__init__(str(path), frames=frames, lenient=lenient)
         self.path = Path(path)
         self.poses_from_ground_truth = poses_from_ground_truth
-        scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin")
+        scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin", lenient=lenient)
         ids = [n for n, _ in scans]
+        layout = parse_enum(PointLayout, point_layout, f"{self.path}: point_layout", SourceError)
+        if layout is PointLayout.AUTO:
+            layout, why = decide_point_layout([f for _, f in scans], self.path / "velodyne")
+            logger.info("%s: scans read as %s (%s)", self.path, layout.spelled, why)
+        else:
+            why = "point_layout option"
+        self.point_layout: PointLayout = layout
+        self.point_layout_reason = why
 
         # stamps: times.txt row k = frame k
         times_file = self.path / "times.txt"
@@ -330,7 +445,7 @@ class KittiOdometry(FrameSource):
         else:
             logger.warning("%s: no times.txt; stamps are frame_id * %d ns (nominal 10 Hz)", self.path,
                            NOMINAL_PERIOD_NS)
-            stamps = [n * NOMINAL_PERIOD_NS for n, _ in scans]
+            stamps = [nominal_stamp_ns(n, NOMINAL_PERIOD_NS, str(f)) for n, f in scans]
             stamps_what = str(self.path)
         keep = check_increasing_stamps(stamps, [n for n, _ in scans], stamps_what, lenient=lenient,
                                        skipped=self.skipped)
@@ -357,7 +472,7 @@ class KittiOdometry(FrameSource):
     def _load_ground_truth(self, *, lenient: bool) -> None:
         """``poses_file`` (cam0) as ``T_world_velo`` per frame, converted with ``calib.txt`` ``Tr``."""
         assert self.poses_file is not None
-        cam0 = read_kitti(self.poses_file)
+        cam0 = read_pose_file(read_kitti, self.poses_file)
         self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
         velo = velo_poses_from_cam0(cam0.poses, self.T_cam0_velo)
         for n, _, _ in self._entries:
@@ -391,20 +506,23 @@ class KittiOdometry(FrameSource):
         return self._entries[index][2]
 
     def read_scan(self, index: int) -> NDArray[np.float32]:
-        """The raw (N, 4) float32 scan ``x, y, z, intensity`` at ``index``."""
+        """The raw (N, 4) float32 scan ``x, y, z, intensity`` at ``index`` ((N, 3) ``x, y, z`` for a folder of
+        that layout)."""
         frame_id, file, _ = self._entries[index]
+        layout = self.point_layout
         try:
             size = file.stat().st_size
         except FileNotFoundError:
             raise SourceError(f"{file}: scan of frame {frame_id} not found") from None
-        if size == 0 or size % POINT_BYTES:
+        if size == 0 or size % layout.point_bytes:
             raise SourceError(
-                f"{file}: size {size} bytes of frame {frame_id} is not a positive multiple of {POINT_BYTES} "
-                f"(float32 x, y, z, intensity per point): truncated or not a KITTI scan"
+                f"{file}: size {size} bytes of frame {frame_id} is not a positive multiple of {layout.point_bytes} "
+                f"({layout.spelled} per point, the layout of every scan of this folder: {self.point_layout_reason}): "
+                f"truncated or not a KITTI scan"
             )
         try:
-            return np.fromfile(file, dtype="<f4").reshape(-1, 4)
-        except OSError as exc:
+            return np.fromfile(file, dtype="<f4").reshape(-1, layout.columns)
+        except (OSError, ValueError) as exc:
             raise SourceError(f"{file}: cannot read scan of frame {frame_id} ({exc})") from exc
 
     def _load(self, index: int) -> Frame:
@@ -431,7 +549,7 @@ class KittiOdometry(FrameSource):
             sensor_kind=SensorKind.LIDAR,
             points_sensor=scan[:, :3],
             pose=pose,
-            attributes=PointAttributes(intensity=scan[:, 3]),
+            attributes=PointAttributes(intensity=scan[:, 3] if scan.shape[1] == 4 else None),
             provenance=Provenance(str(file.resolve()), frame_id),
             sensor_frame="velodyne",
         )
@@ -450,7 +568,7 @@ class KittiOdometry(FrameSource):
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "ground_truth": None if self.poses_file is None else str(self.poses_file),
-                "estimate": None}
+                "estimate": None, "point_layout": self.point_layout.value}
 
 
 MIN_SCAN_POINTS = 1000

@@ -16,10 +16,13 @@ sources share (16-bit PNG reading, Open3D intrinsics JSON, the Kinect-class rang
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
-from collections.abc import Mapping, Sequence
+import struct
+import zlib
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,12 +30,13 @@ import numpy as np
 from numpy.typing import NDArray
 from PIL import Image
 
-from driftmap.errors import DepthScaleError, SourceError
+from driftmap.errors import DepthError, DepthScaleError, GeometryError, SourceError
 from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
 from driftmap.preprocess.depth import COMMON_DEPTH_SCALES, UINT16_NO_READING, InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source
 from driftmap.sources.cloud_folder import frame_number, numbered_files, opener_for, pose_or_none
-from driftmap.trajectory import Trajectory, read_redwood_log
+from driftmap.sources.stamps import nominal_stamp_ns, read_pose_file
+from driftmap.trajectory import Trajectory, _read_lines, read_redwood_log
 
 logger = logging.getLogger(__name__)
 
@@ -52,16 +56,96 @@ PRIMESENSE_DEFAULT = PinholeIntrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, w
 # ---- RGB-D helpers shared with the 7-Scenes and TUM sources ----------------------------------------------------
 
 
-def read_depth_png(file: Path, frame_id: int) -> NDArray[np.uint16]:
-    """A single-channel 16-bit PNG as a (height, width) uint16 array; :class:`SourceError` names the file."""
+#: what Pillow raises for damaged images besides OSError (truncated headers, bad chunks, decompression bombs)
+_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, struct.error, zlib.error, Image.DecompressionBombError)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: PNG colour type -> samples per pixel
+_PNG_CHANNELS = {0: 1, 2: 3, 3: 1, 4: 2, 6: 4}
+#: Adam7 passes: (x start, y start, x step, y step)
+_ADAM7 = ((0, 0, 8, 8), (4, 0, 8, 8), (0, 4, 4, 8), (2, 0, 4, 4), (0, 2, 2, 4), (1, 0, 2, 2), (0, 1, 1, 2))
+
+
+def _png_raw_bytes(width: int, height: int, bit_depth: int, colour_type: int, interlace: int) -> int:
+    """The bytes of filtered scanlines a PNG of this header decompresses to."""
+    bits = _PNG_CHANNELS[colour_type] * bit_depth
+
+    def rows(w: int, h: int) -> int:
+        return 0 if w == 0 or h == 0 else h * (1 + (w * bits + 7) // 8)
+
+    if not interlace:
+        return rows(width, height)
+    return sum(rows((width - x0 + dx - 1) // dx, (height - y0 + dy - 1) // dy) for x0, y0, dx, dy in _ADAM7)
+
+
+def png_size_problem(file: Path) -> str | None:
+    """What is wrong with the sizes of a PNG file, or ``None``: the image data must decompress to exactly the bytes
+    its IHDR size implies (counted while streaming, so a header that claims a huge image allocates nothing).
+    Files that are not PNG are left to Pillow."""
+    data = file.read_bytes()
+    if not data.startswith(PNG_SIGNATURE):
+        return None
+    pos, header, inflater, produced = len(PNG_SIGNATURE), None, zlib.decompressobj(), 0
+    while pos + 8 <= len(data):
+        length, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + length]
+        if len(body) < length:
+            return f"chunk {kind.decode('latin-1')!r} says {length} bytes, the file holds {len(body)} (truncated)"
+        pos += 12 + length
+        if kind == b"IHDR":
+            if length != 13:
+                return f"IHDR chunk of {length} bytes (13 expected)"
+            header = struct.unpack(">IIBBBBB", body)
+            if header[3] not in _PNG_CHANNELS or header[2] not in (1, 2, 4, 8, 16):
+                return f"IHDR: bit depth {header[2]}, colour type {header[3]}"
+        elif kind == b"IDAT" and header is not None:
+            expected = _png_raw_bytes(header[0], header[1], header[2], header[3], header[6])
+            try:
+                chunk = inflater.decompress(body, 1 << 20)
+                while True:
+                    produced += len(chunk)
+                    if produced > expected or not inflater.unconsumed_tail:
+                        break
+                    chunk = inflater.decompress(inflater.unconsumed_tail, 1 << 20)
+            except zlib.error as exc:
+                return f"image data does not decompress ({exc})"
+            if produced > expected:
+                break
+        elif kind == b"IEND":
+            break
+    if header is None:
+        return "no IHDR chunk"
+    expected = _png_raw_bytes(header[0], header[1], header[2], header[3], header[6])
+    if produced != expected:
+        return (f"the header says {header[0]}x{header[1]} pixels ({expected} bytes of image data), the file's image "
+                f"data {'holds more than that' if produced > expected else f'holds {produced}'}: a damaged header "
+                f"or a truncated file")
+    return None
+
+
+def _open_image_checked(file: Path, frame_id: int, what: str) -> Image.Image:
+    """``Image.open`` of a frame's image whose stated size fits the bytes of the file (checked before any pixel
+    is decoded: :func:`png_size_problem`); :class:`SourceError` naming the file otherwise."""
     try:
-        with Image.open(file) as image:
+        problem = png_size_problem(file)
+        if problem is not None:
+            raise SourceError(f"{file}: {what} of frame {frame_id}: {problem}")
+        return Image.open(file)
+    except FileNotFoundError:
+        raise SourceError(f"{file}: {what} of frame {frame_id} not found") from None
+    except _IMAGE_ERRORS as exc:
+        raise SourceError(f"{file}: cannot read {what} of frame {frame_id} ({type(exc).__name__}: {exc})") from exc
+
+
+def read_depth_png(file: Path, frame_id: int) -> NDArray[np.uint16]:
+    """A single-channel 16-bit PNG as a (height, width) uint16 array; :class:`SourceError` names the file (a
+    missing or damaged file, a header whose image size the file cannot hold, another image type)."""
+    image = _open_image_checked(file, frame_id, "depth image")
+    try:
+        with image:
             mode = image.mode
             depth = np.asarray(image)
-    except FileNotFoundError:
-        raise SourceError(f"{file}: depth image of frame {frame_id} not found") from None
-    except OSError as exc:
-        raise SourceError(f"{file}: cannot read depth image of frame {frame_id} ({exc})") from exc
+    except _IMAGE_ERRORS as exc:
+        raise SourceError(f"{file}: cannot read depth image of frame {frame_id} ({type(exc).__name__}: {exc})") from exc
     if depth.dtype in (np.int32, np.uint32) and depth.ndim == 2 and depth.size:
         if 0 <= depth.min() and depth.max() <= 65535:
             depth = depth.astype(np.uint16)  # older Pillow opens 16-bit PNGs in mode "I"
@@ -75,13 +159,25 @@ def read_depth_png(file: Path, frame_id: int) -> NDArray[np.uint16]:
 
 def read_color_image(file: Path, frame_id: int) -> NDArray[np.uint8]:
     """An 8-bit RGB image as (height, width, 3) uint8."""
+    image = _open_image_checked(file, frame_id, "colour image")
     try:
-        with Image.open(file) as image:
+        with image:
             return np.asarray(image.convert("RGB"))
-    except FileNotFoundError:
-        raise SourceError(f"{file}: colour image of frame {frame_id} not found") from None
-    except OSError as exc:
-        raise SourceError(f"{file}: cannot read colour image of frame {frame_id} ({exc})") from exc
+    except _IMAGE_ERRORS as exc:
+        raise SourceError(f"{file}: cannot read colour image of frame {frame_id} ({type(exc).__name__}: {exc})") from exc
+
+
+@contextlib.contextmanager
+def frame_errors_named(file: Path, frame_id: int) -> Iterator[None]:
+    """Errors about a frame's content that do not name its file (a depth image of another size than the
+    intrinsics, an unusable depth image) as :class:`SourceError` naming it, so lenient sources skip the frame.
+    :class:`DepthScaleError` passes unchanged: a wrong scale is wrong for every frame."""
+    try:
+        yield
+    except DepthScaleError:
+        raise
+    except (GeometryError, DepthError) as exc:
+        raise SourceError(f"{file} (frame {frame_id}): {exc}") from exc
 
 
 def check_sensor_range(
@@ -135,12 +231,12 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
         data = json.loads(file.read_text())
     except FileNotFoundError:
         raise SourceError(f"{file}: intrinsics file not found") from None
-    except (OSError, json.JSONDecodeError) as exc:
+    except (OSError, ValueError) as exc:  # ValueError: JSON that does not parse, text that is not UTF-8
         raise SourceError(f"{file}: cannot read intrinsics JSON ({exc})") from exc
     try:
         m = [float(v) for v in data["intrinsic_matrix"]]
         width, height = int(data["width"]), int(data["height"])
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise SourceError(f"{file}: expected 'width', 'height' and a 9-number 'intrinsic_matrix' ({exc!r})") from exc
     if len(m) != 9:
         raise SourceError(f"{file}: intrinsic_matrix has {len(m)} numbers, expected 9")
@@ -152,23 +248,60 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
         )
     if K[0, 1] != 0:
         logger.warning("%s: skew %g in the intrinsic matrix is ignored", file, K[0, 1])
-    return PinholeIntrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height)
+    return intrinsics_named(file, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=width, height=height)
+
+
+#: focal lengths a pinhole depth camera can have, pixels (below 1 px the field of view of even a 2-pixel image
+#: passes 90 degrees; beyond 1e6 px every point lands on the optical axis)
+FOCAL_RANGE_PX = (1.0, 1e6)
+
+
+def intrinsics_problem(intrinsics: PinholeIntrinsics) -> str | None:
+    """What no pinhole camera has (a focal length outside :data:`FOCAL_RANGE_PX`, a principal point farther than one
+    image size outside the image), or ``None``. Such values back-project depth to absurd or infinite coordinates."""
+    lo, hi = FOCAL_RANGE_PX
+    i = intrinsics
+    if not (lo <= i.fx <= hi and lo <= i.fy <= hi):
+        return f"focal lengths fx={i.fx:g}, fy={i.fy:g} px are outside {lo:g} .. {hi:g} px"
+    if not (-i.width <= i.cx <= 2 * i.width and -i.height <= i.cy <= 2 * i.height):
+        return (f"principal point cx={i.cx:g}, cy={i.cy:g} px lies far outside the {i.width}x{i.height} image")
+    return None
+
+
+def checked_intrinsics(intrinsics: PinholeIntrinsics, what: str | Path) -> PinholeIntrinsics:
+    """``intrinsics``, or :class:`SourceError` naming ``what`` (where they come from) and :func:`intrinsics_problem`."""
+    problem = intrinsics_problem(intrinsics)
+    if problem is not None:
+        raise SourceError(f"{what}: unusable camera intrinsics ({problem})")
+    return intrinsics
+
+
+def intrinsics_named(what: str | Path, **values: Any) -> PinholeIntrinsics:
+    """``PinholeIntrinsics(**values)``, checked (:func:`checked_intrinsics`); values it refuses (a negative or NaN
+    focal length, a zero width) or no camera has raise :class:`SourceError` naming ``what`` (the file they were
+    read from)."""
+    try:
+        intrinsics = PinholeIntrinsics(**values)
+    except (GeometryError, TypeError, ValueError, OverflowError) as exc:
+        raise SourceError(f"{what}: unusable camera intrinsics ({exc})") from exc
+    return checked_intrinsics(intrinsics, what)
 
 
 def intrinsics_from_option(value: Any, what: str, *, width: int = 640, height: int = 480) -> PinholeIntrinsics:
     """``intrinsics=`` as :class:`PinholeIntrinsics`, a mapping (``fx fy cx cy [width height]``), a sequence
     ``(fx, fy, cx, cy[, width, height])`` or the path of an Open3D intrinsics JSON."""
     if isinstance(value, PinholeIntrinsics):
-        return value
+        return checked_intrinsics(value, f"{what}: intrinsics option")
     if isinstance(value, (str, Path)):
         return read_open3d_intrinsics(Path(value))
     try:
         if isinstance(value, Mapping):
-            return PinholeIntrinsics(**{"width": width, "height": height, **value})
+            intrinsics = PinholeIntrinsics(**{"width": width, "height": height, **value})
+            return checked_intrinsics(intrinsics, f"{what}: intrinsics option")
         if isinstance(value, Sequence) and len(value) in (4, 6):
             values = list(value) + ([width, height] if len(value) == 4 else [])
-            return PinholeIntrinsics(*values)
-    except TypeError as exc:
+            return checked_intrinsics(PinholeIntrinsics(*values), f"{what}: intrinsics option")
+    except (TypeError, ValueError, OverflowError, GeometryError) as exc:
         raise SourceError(f"{what}: bad intrinsics {value!r} ({exc})") from exc
     raise SourceError(
         f"{what}: intrinsics must be PinholeIntrinsics, a mapping, (fx, fy, cx, cy[, width, height]) or an Open3D "
@@ -256,7 +389,7 @@ class RedwoodRgbd(FrameSource):
         match_file = self.path / "rgbd.match"
         entries: list[tuple[int, Path, Path | None]] = []
         if match_file.is_file():
-            for lineno, line in enumerate(match_file.read_text().splitlines(), start=1):
+            for lineno, line in enumerate(_read_lines(match_file, "Redwood rgbd.match"), start=1):
                 parts = line.split()
                 if not parts or parts[0].startswith("#"):
                     continue
@@ -273,8 +406,10 @@ class RedwoodRgbd(FrameSource):
             if color_dir.is_dir():
                 colors = dict(numbered_files(color_dir, "Redwood colour", suffixes=(".jpg", ".png")))
             entries = [(n, f, colors.get(n)) for n, f in numbered_files(self.path / "depth", "Redwood depth",
-                                                                            suffixes=(".png",))]
+                                                                            suffixes=(".png",), lenient=lenient)]
         ids = [e[0] for e in entries]
+        for frame_id, depth_file, _ in entries:  # nominal 30 Hz stamps of the file numbers must be stamps
+            nominal_stamp_ns(frame_id, NOMINAL_30HZ_PERIOD_NS, str(depth_file))
         for k in range(1, len(ids)):
             if ids[k] <= ids[k - 1]:
                 what = str(match_file) if match_file.is_file() else str(self.path / "depth")
@@ -287,7 +422,7 @@ class RedwoodRgbd(FrameSource):
         self.trajectory_file = self.path / trajectory
         self._gt: dict[int, NDArray[np.float64]] | None = None
         if self.trajectory_file.is_file():
-            gt = read_redwood_log(self.trajectory_file)
+            gt = read_pose_file(read_redwood_log, self.trajectory_file)
             self._gt = dict(zip(gt.frame_ids.tolist(), gt.poses, strict=True))
             missing = [i for i in ids if i not in self._gt]
             if missing:
@@ -298,7 +433,7 @@ class RedwoodRgbd(FrameSource):
         self.odometry_file = self.path / odometry
         self._odometry: dict[int, NDArray[np.float64]] | None = None
         if self.odometry_file.is_file():
-            odo = read_redwood_log(self.odometry_file)
+            odo = read_pose_file(read_redwood_log, self.odometry_file)
             self._odometry = dict(zip(odo.frame_ids.tolist(), odo.poses, strict=True))
 
     def _count(self) -> int:
@@ -334,6 +469,11 @@ class RedwoodRgbd(FrameSource):
             if color_file is None:
                 raise SourceError(f"{self.path}: no colour image for frame {frame_id} (color=True)")
             color = read_color_image(color_file, frame_id)
+        with frame_errors_named(depth_file, frame_id):
+            return self._depth_frame(depth, frame_id, depth_file, pose, color)
+
+    def _depth_frame(self, depth: NDArray[np.uint16], frame_id: int, depth_file: Path, pose: Any,
+                     color: NDArray[np.uint8] | None) -> Frame:
         return depth_frame(
             depth,
             self.intrinsics,

@@ -23,6 +23,7 @@ frame ids from its ``driftmap.export`` metadata record.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import heapq
 import inspect
@@ -61,6 +62,8 @@ from driftmap.sources.point_fields import (
     checked_normals,
     point_time_offsets_ns,
 )
+from driftmap.sources.redwood import checked_intrinsics
+from driftmap.sources.stamps import check_stamp_ns
 from driftmap.sources.tf import TfBuffer, TfError, TransformSeries, normalize_frame, transforms_from_tum
 
 logger = logging.getLogger(__name__)
@@ -117,6 +120,18 @@ def normalize_type(name: str) -> str:
 def stamp_ns_of(stamp: Any) -> int:
     """``builtin_interfaces/Time`` (``sec``, ``nanosec``) -> int nanoseconds."""
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+@contextlib.contextmanager
+def message_fields(what: str) -> Iterator[None]:
+    """Field access on decoded messages: a message whose schema lacks a standard field of its type, or holds one of
+    another type (a damaged or foreign schema decodes into such objects), is a :class:`SourceError` naming ``what``
+    (the log, topic and message), not an ``AttributeError`` / ``TypeError`` from deep inside."""
+    try:
+        yield
+    except (AttributeError, TypeError, ValueError, KeyError, IndexError, OverflowError) as exc:
+        raise SourceError(f"{what}: the message does not have the fields of its type ({type(exc).__name__}: {exc}); "
+                          f"is its schema damaged or not the standard one?") from exc
 
 
 def _field(msg: Any, *names: str) -> Any:
@@ -254,7 +269,6 @@ class _McapBackend(_Backend):
     format_name = FORMAT_MCAP
 
     def __init__(self, path: Path, *, lenient: bool):
-        from mcap.exceptions import McapError
         from mcap.reader import SeekingReader
         from mcap_ros2.decoder import DecoderFactory
 
@@ -267,9 +281,9 @@ class _McapBackend(_Backend):
         self._size = path.stat().st_size
         try:
             self._reader = SeekingReader(self._file)
-        except McapError as exc:
+        except Exception as exc:  # McapError, or whatever a damaged magic / header makes the parser raise
             self._file.close()
-            raise SourceError(f"{path}: not an MCAP file ({exc})") from exc
+            raise SourceError(f"{path}: not an MCAP file ({type(exc).__name__}: {exc})") from exc
         self._factory = DecoderFactory()
         self._decoders: dict[int, Any] = {}
         self._summary = None
@@ -435,8 +449,25 @@ class _McapBackend(_Backend):
                 f"{schema.name if schema else '?'} ({type(exc).__name__}: {exc})"
             ) from exc
 
+    @contextlib.contextmanager
+    def _records(self, what: str) -> Iterator[None]:
+        """Records read directly (chunks, message indexes): whatever a damaged one makes the parser raise is a
+        :class:`SourceError` naming the file."""
+        try:
+            yield
+        except SourceError:
+            raise
+        except Exception as exc:  # the mcap parser raises many types for a damaged record
+            raise SourceError(
+                f"{self.path}: damaged MCAP data while reading {what} ({type(exc).__name__}: {exc})"
+            ) from exc
+
     def log_times(self, topic: str) -> NDArray[np.int64]:
         """From the message-index records next to every chunk (no chunk is decompressed)."""
+        with self._records(f"the message index of {topic}"):
+            return self._log_times(topic)
+
+    def _log_times(self, topic: str) -> NDArray[np.int64]:
         from mcap.records import MessageIndex
         from mcap.stream_reader import StreamReader
 
@@ -465,6 +496,10 @@ class _McapBackend(_Backend):
 
     def first_messages(self, topics: Sequence[str]) -> dict[str, _Raw]:
         """One pass over the earliest chunks: every chunk is read at most once, however many topics."""
+        with self._records(f"the first messages of {', '.join(topics)}"):
+            return self._first_messages(topics)
+
+    def _first_messages(self, topics: Sequence[str]) -> dict[str, _Raw]:
         from mcap.records import Chunk, Message
         from mcap.stream_reader import StreamReader, breakup_chunk
 
@@ -630,11 +665,56 @@ def _raw_bytes(data: Any) -> Any:
 
 def pointcloud2_array(msg: Any, what: str = "PointCloud2") -> NDArray[np.void]:
     """All fields of a ``sensor_msgs/PointCloud2`` as a structured array of ``height * width`` points
-    (row-major, row padding removed, fields in the message's byte order; nothing is filtered)."""
-    endian = ">" if msg.is_bigendian else "<"
+    (row-major, row padding removed, fields in the message's byte order; nothing is filtered).
+
+    Every size the message states (``width``, ``height``, ``point_step``, ``row_step``, the fields' offsets and
+    counts) is checked against the bytes of ``data`` before anything is built: :class:`SourceError` naming
+    ``what`` and the field otherwise."""
+    data = _raw_bytes(msg.data)
+    width, height, point_step, row_step = _checked_cloud_layout(msg, len(data), what)
+    dtype = _cloud_dtype(msg, point_step, what)
+    n = width * height
+    if n == 0:
+        return np.empty(0, dtype=dtype)
+    if row_step == width * point_step:
+        return np.frombuffer(data, dtype=dtype, count=n)
+    rows = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
+    return rows.reshape(-1)
+
+
+def _checked_cloud_layout(msg: Any, n_bytes: int, what: str) -> tuple[int, int, int, int]:
+    """``(width, height, point_step, row_step)`` of a PointCloud2, checked against its ``n_bytes`` of data."""
     point_step = int(msg.point_step)
     width, height = int(msg.width), int(msg.height)
     row_step = int(msg.row_step)
+    if point_step <= 0:
+        raise SourceError(f"{what}: point_step is {point_step}")
+    if width * height == 0:
+        if n_bytes:
+            raise SourceError(f"{what}: {width}x{height} points, but data has {n_bytes} bytes: width / height do not "
+                              f"describe the data")
+        if point_step >= 2**31:
+            raise SourceError(f"{what}: point_step is {point_step}")
+        return width, height, point_step, row_step
+    if row_step < width * point_step:
+        raise SourceError(f"{what}: row_step {row_step} < width {width} * point_step {point_step}")
+    needed = row_step * (height - 1) + width * point_step
+    if n_bytes < needed:
+        raise SourceError(
+            f"{what}: data has {n_bytes} bytes, {width}x{height} points with point_step {point_step} and row_step "
+            f"{row_step} need {needed}"
+        )
+    if n_bytes > row_step * height:
+        raise SourceError(
+            f"{what}: data has {n_bytes} bytes, more than the height {height} * row_step {row_step} = "
+            f"{row_step * height} of {width}x{height} points: width / height / row_step do not describe the data"
+        )
+    return width, height, point_step, row_step
+
+
+def _cloud_dtype(msg: Any, point_step: int, what: str) -> np.dtype:
+    """The structured dtype of one point (``point_step`` bytes), every field checked to fit in it."""
+    endian = ">" if msg.is_bigendian else "<"
     names, formats, offsets = [], [], []
     for f in msg.fields:
         name = str(f.name)
@@ -646,35 +726,21 @@ def pointcloud2_array(msg: Any, what: str = "PointCloud2") -> NDArray[np.void]:
         if code is None:
             raise SourceError(f"{what}: field {name!r} has unknown PointField datatype {f.datatype}")
         count = max(int(f.count), 1)
-        dtype = np.dtype(endian + code) if count == 1 else np.dtype((endian + code, (count,)))
-        if int(f.offset) + dtype.itemsize > point_step:
+        item_bytes = np.dtype(code).itemsize * count
+        if int(f.offset) < 0 or int(f.offset) + item_bytes > point_step:  # checked before a dtype of that size is made
             raise SourceError(
-                f"{what}: field {name!r} (offset {f.offset}, {dtype.itemsize} bytes) does not fit in "
+                f"{what}: field {name!r} (offset {f.offset}, {item_bytes} bytes) does not fit in "
                 f"point_step {point_step}"
             )
         names.append(name)
-        formats.append(dtype)
+        formats.append(np.dtype(endian + code) if count == 1 else np.dtype((endian + code, (count,))))
         offsets.append(int(f.offset))
-    if point_step <= 0:
-        raise SourceError(f"{what}: point_step is {point_step}")
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
-    data = _raw_bytes(msg.data)
-    n_bytes = len(data)
-    n = width * height
-    if n == 0:
-        return np.empty(0, dtype=dtype)
-    if row_step < width * point_step:
-        raise SourceError(f"{what}: row_step {row_step} < width {width} * point_step {point_step}")
-    needed = row_step * (height - 1) + width * point_step
-    if n_bytes < needed:
-        raise SourceError(
-            f"{what}: data has {n_bytes} bytes, {width}x{height} points with point_step {point_step} and row_step "
-            f"{row_step} need {needed}"
-        )
-    if row_step == width * point_step:
-        return np.frombuffer(data, dtype=dtype, count=n)
-    rows = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
-    return rows.reshape(-1)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": point_step})
+
+
+#: PointCloud2 fields read as one value per point
+_SCALAR_FIELDS = frozenset(("x", "y", "z", "intensity", "rgb", "rgba", "r", "g", "b", "normal_x", "normal_y",
+                            "normal_z", "ring", *POINT_TIME_FIELDS))
 
 
 @dataclass(frozen=True)
@@ -705,6 +771,9 @@ def pointcloud2_points(
             f"{what}: PointCloud2 has no {'/'.join(missing)} field (fields present: {', '.join(names) or 'none'})"
         )
     n = len(arr)
+    for c in names:  # the fields read below hold one value per point
+        if c in _SCALAR_FIELDS and arr.dtype[c].shape:
+            raise SourceError(f"{what}: field {c!r} has count {arr.dtype[c].shape[0]}; expected 1 value per point")
     for c in "xyz":
         if arr.dtype[c].kind != "f" and arr.dtype[c].kind not in "iu":
             raise SourceError(f"{what}: field {c!r} has unsupported type {arr.dtype[c]}")
@@ -769,6 +838,11 @@ def depth_image_array(msg: Any, what: str = "Image") -> tuple[NDArray, float | N
         raise SourceError(
             f"{what}: data has {len(data)} bytes, a {width}x{height} {encoding} image with step {step} needs {needed}"
         )
+    if len(data) > step * height:
+        raise SourceError(
+            f"{what}: data has {len(data)} bytes, more than the height {height} * step {step} = {step * height} of a "
+            f"{width}x{height} {encoding} image: width / height / step do not describe the data"
+        )
     wire = np.dtype(dtype).newbyteorder(">" if msg.is_bigendian else "<")
     image = np.ndarray((height, width), dtype=wire, buffer=data, strides=(step, item))
     if not wire.isnative or step != width * item:
@@ -810,7 +884,7 @@ def camera_info_intrinsics(
         intrinsics = PinholeIntrinsics(fx=fx, fy=fy, cx=cx, cy=cy, width=int(msg.width), height=int(msg.height))
     except GeometryError as exc:
         raise SourceError(f"{what}: {exc}") from exc
-    return intrinsics, flags
+    return checked_intrinsics(intrinsics, what), flags
 
 
 def transform_msg_matrix(transform: Any) -> NDArray[np.float64]:
@@ -855,13 +929,14 @@ def load_tf(
         samples: dict[tuple[str, str], tuple[list[int], list[list[float]], list[list[float]]]] = {}
         for raw in backend.stream([topic]):
             msg = backend.decode(raw)
-            for tr in msg.transforms:
-                parent, child = normalize_frame(tr.header.frame_id), normalize_frame(tr.child_frame_id)
-                t, q = tr.transform.translation, tr.transform.rotation
-                entry = samples.setdefault((parent, child), ([], [], []))
-                entry[0].append(stamp_ns_of(tr.header.stamp) if stamp is StampSource.HEADER else raw.log_time_ns)
-                entry[1].append([t.x, t.y, t.z])
-                entry[2].append([q.x, q.y, q.z, q.w])
+            with message_fields(f"{backend.path}: {topic} message logged at {raw.log_time_ns} ns"):
+                for tr in msg.transforms:
+                    parent, child = normalize_frame(tr.header.frame_id), normalize_frame(tr.child_frame_id)
+                    t, q = tr.transform.translation, tr.transform.rotation
+                    entry = samples.setdefault((parent, child), ([], [], []))
+                    entry[0].append(stamp_ns_of(tr.header.stamp) if stamp is StampSource.HEADER else raw.log_time_ns)
+                    entry[1].append([float(t.x), float(t.y), float(t.z)])
+                    entry[2].append([float(q.x), float(q.y), float(q.z), float(q.w)])
         for (parent, child), (stamps, trans, quats) in samples.items():
             T = transforms_from_tum(trans, quats, what=f"{backend.path}: {topic} {parent} -> {child}")
             if is_static:
@@ -900,19 +975,21 @@ def load_pose_topic(
     parents, children = set(), set()
     for raw in backend.stream([topic]):
         msg = backend.decode(raw)
-        if info.msgtype == TRANSFORM_STAMPED:
-            t, q = msg.transform.translation, msg.transform.rotation
-            trans.append([t.x, t.y, t.z])
-            children.add(normalize_frame(msg.child_frame_id))
-        else:
-            pose = msg.pose.pose if info.msgtype in (ODOMETRY, POSE_WITH_COVARIANCE_STAMPED) else msg.pose
-            p, q = pose.position, pose.orientation
-            trans.append([p.x, p.y, p.z])
-            if info.msgtype == ODOMETRY:
+        with message_fields(f"{backend.path}: {topic} message logged at {raw.log_time_ns} ns"):
+            if info.msgtype == TRANSFORM_STAMPED:
+                t, q = msg.transform.translation, msg.transform.rotation
+                translation = [float(t.x), float(t.y), float(t.z)]
                 children.add(normalize_frame(msg.child_frame_id))
-        quats.append([q.x, q.y, q.z, q.w])
-        parents.add(normalize_frame(msg.header.frame_id))
-        stamps.append(stamp_ns_of(msg.header.stamp) if stamp is StampSource.HEADER else raw.log_time_ns)
+            else:
+                pose = msg.pose.pose if info.msgtype in (ODOMETRY, POSE_WITH_COVARIANCE_STAMPED) else msg.pose
+                p, q = pose.position, pose.orientation
+                translation = [float(p.x), float(p.y), float(p.z)]
+                if info.msgtype == ODOMETRY:
+                    children.add(normalize_frame(msg.child_frame_id))
+            quats.append([float(q.x), float(q.y), float(q.z), float(q.w)])
+            trans.append(translation)
+            parents.add(normalize_frame(msg.header.frame_id))
+            stamps.append(stamp_ns_of(msg.header.stamp) if stamp is StampSource.HEADER else raw.log_time_ns)
     if not stamps:
         raise SourceError(f"{backend.path}: topic {topic} has no messages")
     if len(parents) > 1 or len(children) > 1:
@@ -1078,10 +1155,12 @@ class RosLogSource(FrameSource):
         first = self._first_message(self.topic)
         if first is None:
             raise SourceError(f"{self.path}: topic {self.topic} has no messages")
-        self.first_sensor_frame = normalize_frame(first.header.frame_id)
-        if self.msgtype == IMAGE and str(first.encoding) not in DEPTH_ENCODINGS:
+        with message_fields(f"{self.path}: {self.topic} message 0"):
+            self.first_sensor_frame = normalize_frame(first.header.frame_id)
+            encoding = str(first.encoding) if self.msgtype == IMAGE else None
+        if encoding is not None and encoding not in DEPTH_ENCODINGS:
             raise SourceError(
-                f"{self.path}: topic {self.topic} is a {first.encoding!r} image, not a depth image "
+                f"{self.path}: topic {self.topic} is a {encoding!r} image, not a depth image "
                 f"(expected {', '.join(DEPTH_ENCODINGS)})"
             )
 
@@ -1149,9 +1228,11 @@ class RosLogSource(FrameSource):
             elif info.msgtype == IMAGE:
                 try:
                     msg = self._first_message(name)
+                    with message_fields(f"{self.path}: {name} message 0"):
+                        encoding = None if msg is None else str(msg.encoding)
                 except SourceError:
                     continue
-                if msg is not None and str(msg.encoding) in DEPTH_ENCODINGS:
+                if encoding in DEPTH_ENCODINGS:
                     candidates.append(name)
         if not candidates:
             listed = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(self._topics.items())) or "none"
@@ -1217,10 +1298,12 @@ class RosLogSource(FrameSource):
         for name in infos:
             try:
                 msg = self._first_message(name)
+                with message_fields(f"{self.path}: {name} message 0"):
+                    frame = None if msg is None else normalize_frame(msg.header.frame_id)
             except SourceError as exc:
                 logger.warning("%s: skipping CameraInfo topic %s: %s", self.path, name, exc)
                 continue
-            if msg is not None and normalize_frame(msg.header.frame_id) == self.first_sensor_frame:
+            if frame == self.first_sensor_frame:
                 return name
         if self.msgtype == IMAGE:
             raise SourceError(
@@ -1273,10 +1356,11 @@ class RosLogSource(FrameSource):
     def header_stamps(self) -> NDArray[np.int64]:
         """``header.stamp`` of every message on the topic (decodes every message once; cached)."""
         if self._header_stamps is None:
-            self._header_stamps = np.fromiter(
-                (stamp_ns_of(self._backend.decode(raw).header.stamp) for raw in self._backend.stream([self.topic])),
-                dtype=np.int64,
-            )
+            with message_fields(f"{self.path}: {self.topic}"):
+                self._header_stamps = np.fromiter(
+                    (stamp_ns_of(self._backend.decode(raw).header.stamp) for raw in self._backend.stream([self.topic])),
+                    dtype=np.int64,
+                )
         return self._header_stamps
 
     def _stamps(self) -> NDArray[np.int64]:
@@ -1321,6 +1405,10 @@ class RosLogSource(FrameSource):
     # ---- camera info
     def _caminfo_from_msg(self, msg: Any, what: str) -> tuple[str, PinholeIntrinsics, tuple[str, ...]]:
         """``(frame_id, intrinsics, flags)`` of a CameraInfo; parsed once per distinct calibration."""
+        with message_fields(what):
+            return self._caminfo_fields(msg, what)
+
+    def _caminfo_fields(self, msg: Any, what: str) -> tuple[str, PinholeIntrinsics, tuple[str, ...]]:
         key = (
             msg.header.frame_id,
             tuple(_field(msg, "k", "K")),
@@ -1359,10 +1447,20 @@ class RosLogSource(FrameSource):
     def _measure(
         self, raw: _Raw, m: int, info: tuple[str, PinholeIntrinsics, tuple[str, ...]] | None
     ) -> RawMeasurement:
+        """Message ``m`` decoded to arrays (no back-projection); its fields checked (:func:`message_fields`)."""
+        with message_fields(f"{self.path}: {self.topic} message {m}"):
+            return self._measure_fields(raw, m, info)
+
+    def _measure_fields(
+        self, raw: _Raw, m: int, info: tuple[str, PinholeIntrinsics, tuple[str, ...]] | None
+    ) -> RawMeasurement:
         msg = self._backend.decode(raw)
         what = f"{self.path}: {self.topic} message {m}"
         sensor_frame = normalize_frame(msg.header.frame_id)
-        stamp_ns = stamp_ns_of(msg.header.stamp) if self.stamp is StampSource.HEADER else raw.log_time_ns
+        if self.stamp is StampSource.HEADER:
+            stamp_ns = check_stamp_ns(stamp_ns_of(msg.header.stamp), f"{what}: header.stamp")
+        else:
+            stamp_ns = check_stamp_ns(raw.log_time_ns, f"{what}: log time")
         if info is None and self.camera_info_topic is not None:
             info = self._caminfo_at(raw.log_time_ns)
         intrinsics, flags = None, ()
@@ -1471,8 +1569,9 @@ class RosLogSource(FrameSource):
             )
             return frame
         what = f"{self.path}: {self.topic} message {m}"
-        cloud = pointcloud2_points(raw.cloud_msg, raw.stamp_ns, what=what, point_time=self.point_time,
-                                   warned=self._warned)
+        with message_fields(what):
+            cloud = pointcloud2_points(raw.cloud_msg, raw.stamp_ns, what=what, point_time=self.point_time,
+                                       warned=self._warned)
         flags = list(raw.flags)
         if cloud.invalid_counts and getattr(raw.cloud_msg, "is_dense", False):
             flags.append(f"is_dense_but_nonfinite: {sum(cloud.invalid_counts.values())} points with NaN/inf")
@@ -1622,7 +1721,17 @@ def _opener(format_name: str) -> Any:
         return RosLogSource(path, format=format_name, **options)
 
     open_log.__doc__ = RosLogSource.__doc__
+    # the wrapper's signature is ``**options``: declare what it takes, so that what reads an opener's options
+    # (sources.base.accepted_options: build / convert checking --topic, --pose-from-tf, ... and depth.* against
+    # the format) sees them. Options that apply to depth-image topics only are left out: the format alone cannot
+    # tell whether a log's topic is one (build would pass its automatic pixel_stride to PointCloud2 topics, which
+    # refuse it); the API takes them.
+    open_log.accepted_options = frozenset(accepted) - DEPTH_IMAGE_ONLY_OPTIONS  # type: ignore[attr-defined]
     return open_log
+
+
+#: :class:`RosLogSource` options that apply to depth-image topics only (not declared as the format's options)
+DEPTH_IMAGE_ONLY_OPTIONS = frozenset({"pixel_stride", "min_depth_m", "max_depth_m"})
 
 
 def _parse_origin(record: dict[str, str]) -> dict[str, Any] | None:
@@ -1647,7 +1756,7 @@ def read_export_origin(path: str | Path) -> dict[str, Any] | None:
             for record in make_reader(fh).iter_metadata():
                 if record.name == EXPORT_METADATA_NAME:
                     return _parse_origin(dict(record.metadata))
-    except Exception as exc:  # noqa: BLE001 - a damaged or foreign file simply names no origin
+    except Exception as exc:
         logger.debug("%s: no export origin (%s)", path, exc)
     return None
 

@@ -15,6 +15,7 @@ Layout of a sequence folder (``seq-01/`` in the official archives)::
 from __future__ import annotations
 
 import logging
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -32,9 +33,12 @@ from driftmap.sources.redwood import (
     KINECT_RANGE_M,
     NOMINAL_30HZ_PERIOD_NS,
     check_sensor_range,
+    frame_errors_named,
     intrinsics_from_option,
+    intrinsics_named,
     read_depth_png,
 )
+from driftmap.sources.stamps import nominal_stamp_ns
 from driftmap.trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
@@ -43,10 +47,18 @@ DEFAULT_INTRINSICS = PinholeIntrinsics(fx=585.0, fy=585.0, cx=320.0, cy=240.0, w
 INTRINSICS_FILE = "camera-intrinsics.txt"
 
 
+def _loadtxt(file: Path) -> NDArray[np.float64]:
+    """``np.loadtxt`` of a small matrix file; an empty file reads as an empty array (the shape check names it),
+    without numpy's warning."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        return np.loadtxt(file, ndmin=2)
+
+
 def read_pose_txt(file: Path, frame_id: int) -> NDArray[np.float64]:
     """A 7-Scenes ``frame-NNNNNN.pose.txt``: 4x4 camera-to-world, validated as rigid (projected onto SO(3))."""
     try:
-        T = np.loadtxt(file, ndmin=2)
+        T = _loadtxt(file)
     except FileNotFoundError:
         raise SourceError(f"{file}: ground-truth pose of frame {frame_id} not found") from None
     except (OSError, ValueError) as exc:
@@ -61,12 +73,12 @@ def read_pose_txt(file: Path, frame_id: int) -> NDArray[np.float64]:
 
 def _read_intrinsics_txt(file: Path) -> PinholeIntrinsics:
     try:
-        K = np.loadtxt(file, ndmin=2)
+        K = _loadtxt(file)
     except (OSError, ValueError) as exc:
         raise SourceError(f"{file}: cannot read the camera matrix ({exc})") from exc
     if K.shape != (3, 3) or K[2].tolist() != [0.0, 0.0, 1.0]:
         raise SourceError(f"{file}: expected a 3x3 camera matrix with last row [0 0 1], got {K.tolist()}")
-    return PinholeIntrinsics(fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
+    return intrinsics_named(file, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
 
 
 class SevenScenes(FrameSource):
@@ -120,7 +132,9 @@ class SevenScenes(FrameSource):
         else:
             logger.info("%s: no %s; using the 7-Scenes default fx=fy=585, cx=320, cy=240", self.path, INTRINSICS_FILE)
             self.intrinsics = DEFAULT_INTRINSICS
-        self._frames = numbered_files(self.path, "7-Scenes depth", pattern="frame-*.depth.png")
+        self._frames = numbered_files(self.path, "7-Scenes depth", pattern="frame-*.depth.png", lenient=lenient)
+        for frame_id, file in self._frames:  # nominal 30 Hz stamps of the file numbers must be stamps
+            nominal_stamp_ns(frame_id, NOMINAL_30HZ_PERIOD_NS, str(file))
         self._monitor = InvalidFractionMonitor()
         self.missing_depth: list[tuple[int, Path]] = self._find_missing_depth()
         """``(frame_id, depth file)`` of frames the sequence numbers (a gap in the numbering, or a pose / colour
@@ -175,6 +189,10 @@ class SevenScenes(FrameSource):
             pose = pose_or_none(None, PoseSource.NONE)
         depth = read_depth_png(file, frame_id)
         check_sensor_range(depth, self.depth_scale, self.sensor_range_m, what=f"frame {frame_id} ({file})")
+        with frame_errors_named(file, frame_id):
+            return self._depth_frame(depth, frame_id, file, pose)
+
+    def _depth_frame(self, depth: NDArray[np.uint16], frame_id: int, file: Path, pose: Any) -> Frame:
         return depth_frame(
             depth,
             self.intrinsics,

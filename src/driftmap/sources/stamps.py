@@ -1,23 +1,93 @@
-"""Frame stamps that a folder of files carries: stamps as file names, stamp files (``times.txt``), and the checks
-that they fit the data (the unit decided by magnitude, stamps that increase, a plausible period).
+"""Frame stamps: the one place that checks every stamp a source reads from a file, and the stamps a folder of files
+carries (stamps as file names, stamp files such as ``times.txt``).
 
-Used by the cloud-folder source (its precedence of stamps is documented there and in docs/sources-datasets.md)
-and by KITTI (``times.txt``).
+Every stamp that becomes a frame's ``stamp_ns`` passes through here: :func:`parse_stamp_s` (text in seconds, as
+``times.txt``, TUM's ``depth.txt``), :func:`check_stamp_ns` (a stamp read some other way: a ROS header, a pose file's
+rows, a file name), :func:`nominal_stamp_ns` (``frame_id * period`` for data without stamps) and
+:func:`check_increasing_stamps` (frames need strictly increasing stamps). A stamp must be a finite number, ``>= 0``
+and within the int64 nanoseconds the frame store keeps (:data:`MAX_STAMP_NS`, the year 2262); anything else is a
+:class:`SourceError` naming the file and the line (or the message), never a traceback at store time.
+
+Used by every source here: the cloud-folder source (its precedence of stamps is documented there and in
+docs/sources-datasets.md), KITTI (``times.txt``), TUM (``depth.txt``), the nominal-rate data sets and the ROS logs.
 """
 
 from __future__ import annotations
 
 import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from driftmap.errors import SourceError
-from driftmap.trajectory import _read_lines, _stamp_s_to_ns
+from driftmap.trajectory import Trajectory, _read_lines, _stamp_s_to_ns
 
 logger = logging.getLogger(__name__)
+
+MAX_STAMP_NS = 2**63 - 1
+"""The largest stamp a frame can carry (the store keeps int64 nanoseconds: 2262-04-11)."""
+
+_SECONDS_TEXT = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+"""A number of seconds as data files write it: digits, an optional fraction and exponent (no ``nan`` / ``inf``,
+no ``1_000``)."""
+
+
+def read_pose_file(reader: Callable[..., Trajectory], path: Path, *args: Any) -> Trajectory:
+    """``reader(path, *args)`` (a :mod:`driftmap.trajectory` reader), with a value beyond what it can hold (a stamp
+    past the int64 ns range, a frame number too large) raised as :class:`SourceError` naming the file instead of a
+    bare ``OverflowError``."""
+    try:
+        return reader(path, *args)
+    except OverflowError as exc:
+        raise SourceError(f"{path}: a stamp or number is out of range ({exc}); stamps must lie within "
+                          f"0 .. {MAX_STAMP_NS} ns") from exc
+
+
+def check_stamp_ns(stamp_ns: int, where: str, *, shown: str | None = None) -> int:
+    """``stamp_ns`` when it can be a frame's stamp (``0 <= stamp_ns <=`` :data:`MAX_STAMP_NS`); otherwise a
+    :class:`SourceError` naming ``where`` (``file:line``, the message, ...) and the stamp (``shown``: as written)."""
+    value = int(stamp_ns)
+    text = shown if shown is not None else f"{value} ns"
+    if value < 0:
+        raise SourceError(f"{where}: stamp {text} is negative; frame stamps must be >= 0 (seconds since the start of "
+                          f"the recording or the Unix epoch)")
+    if value > MAX_STAMP_NS:
+        raise SourceError(f"{where}: stamp {text} is beyond the largest stamp a frame can carry ({MAX_STAMP_NS} ns, "
+                          f"the year 2262): is it in another unit than seconds?")
+    return value
+
+
+def parse_stamp_s(text: str, where: str) -> int:
+    """A stamp written in seconds (``times.txt``, TUM lists) as int ns, exactly as written, checked: a plain
+    number (not NaN / inf), ``>= 0`` and within :data:`MAX_STAMP_NS`; otherwise :class:`SourceError` naming
+    ``where`` (``file:line``) and the text."""
+    stripped = text.strip()
+    if not _SECONDS_TEXT.fullmatch(stripped):
+        raise SourceError(f"{where}: {stripped!r} is not a number of seconds")
+    try:
+        value = _stamp_s_to_ns(stripped)
+    except (ValueError, OverflowError) as exc:
+        raise SourceError(f"{where}: {stripped!r} is not a finite number of seconds") from exc
+    return check_stamp_ns(value, where, shown=f"{stripped!r} s")
+
+
+def nominal_stamp_ns(frame_id: int, period_ns: int, where: str) -> int:
+    """``frame_id * period_ns``, the stamp of a frame of data without stamps (nominal rate, ``--period-s``),
+    checked like every stamp: a frame number so large that the stamp leaves the int64 range raises naming
+    ``where`` (the file the number comes from) and, when the number reads as a Unix time, says so."""
+    value = int(frame_id) * int(period_ns)
+    if 0 <= value <= MAX_STAMP_NS:
+        return value
+    hint = ""
+    as_stamp = name_stamp_ns(str(frame_id))
+    if as_stamp is not None:
+        hint = (f"; the number reads as a Unix time in {as_stamp[1]} (a stamp, not a frame number): give the frames "
+                f"stamps that fit their names (see the stamp precedence in docs/sources-datasets.md)")
+    raise SourceError(f"{where}: frame number {frame_id} times the period {int(period_ns)} ns is not a stamp a frame "
+                      f"can carry (0 .. {MAX_STAMP_NS} ns){hint}")
 
 STAMP_FILE_NAMES = ("times.txt", "timestamps.txt", "stamps.txt")
 """Stamp files a folder of clouds may hold: one stamp per line, in seconds (as KITTI's ``times.txt``)."""
@@ -102,15 +172,75 @@ def stamps_from_file_names(files: Sequence[Path], what: str) -> tuple[list[tuple
 
 def read_times(file: Path) -> list[int]:
     """A stamp file (``times.txt``: seconds, one row per frame; blank lines skipped) as int ns, exactly as
-    written. A line that is not one number of seconds raises :class:`SourceError` naming ``file:line``."""
+    written. A line that is not one number of seconds, or a stamp that is negative or out of range, raises
+    :class:`SourceError` naming ``file:line`` (:func:`parse_stamp_s`)."""
+    return [stamp for stamp, _ in read_times_with_lines(file)]
+
+
+def read_times_with_lines(file: Path) -> list[tuple[int, int]]:
+    """:func:`read_times` with the 1-based line of each stamp: ``[(stamp_ns, line)]``."""
     out = []
     for lineno, line in enumerate(_read_lines(file, "stamp file"), start=1):
-        if not line.strip():
+        if line.strip():
+            out.append((parse_stamp_s(line, f"{file}:{lineno}"), lineno))
+    return out
+
+
+def check_increasing_stamps(
+    stamps_ns: Sequence[int],
+    frame_ids: Sequence[int | str],
+    what: str,
+    *,
+    lenient: bool,
+    skipped: list[tuple[int, str]] | None = None,
+) -> list[int]:
+    """Positions to keep so that stamps strictly increase.
+
+    A duplicate or earlier stamp raises :class:`SourceError` naming ``what`` (the file) and the two frames;
+    in lenient mode the later frame is dropped with a logged reason (and recorded in ``skipped``).
+    ``frame_ids`` name the entries: an int ``n`` reads "frame n", a string is used as it is ("row 7").
+    """
+
+    def name(k: int) -> str:
+        return f"frame {frame_ids[k]}" if isinstance(frame_ids[k], (int, np.integer)) else str(frame_ids[k])
+
+    keep: list[int] = []
+    for k, stamp in enumerate(stamps_ns):
+        if keep and stamp <= stamps_ns[keep[-1]]:
+            prev = keep[-1]
+            kind = "duplicate stamp" if stamp == stamps_ns[prev] else "stamp goes back in time"
+            reason = (
+                f"{what}: {kind}: {name(k)} has stamp_ns {stamp}, {name(prev)} before it has stamp_ns {stamps_ns[prev]}"
+            )
+            if not lenient:
+                raise SourceError(reason)
+            logger.warning("%s (%s skipped)", reason, name(k))
+            if skipped is not None:
+                skipped.append((k, reason))
             continue
-        try:
-            out.append(_stamp_s_to_ns(line))
-        except (ValueError, OverflowError) as exc:
-            raise SourceError(f"{file}:{lineno}: {line.strip()!r} is not a number of seconds") from exc
+        keep.append(k)
+    return keep
+
+
+def pose_file_stamp_lines(file: Path, format: str) -> list[int]:
+    """The 1-based line of each row's stamp in a pose file with stamps (TUM and EuRoC: every data line; ``4x4``:
+    the last line of every block), for messages about a row; empty when the file cannot be read."""
+    try:
+        lines = _read_lines(file, "pose file")
+    except SourceError:
+        return []
+    data = [k for k, line in enumerate(lines, start=1) if line.partition("#")[0].strip()]
+    return data[3::4] if format == "4x4" else data
+
+
+def check_pose_file_stamps(file: Path, format: str, stamps_ns: Sequence[int]) -> list[int]:
+    """The stamps of a pose file's rows that stamp frames, each checked as a frame's stamp (:func:`check_stamp_ns`),
+    errors naming the file and the line of the row."""
+    lines = pose_file_stamp_lines(file, format)
+    out = []
+    for k, stamp in enumerate(stamps_ns):
+        where = f"{file}:{lines[k]}" if k < len(lines) else f"{file} (row {k + 1})"
+        out.append(check_stamp_ns(int(stamp), where))
     return out
 
 

@@ -38,15 +38,17 @@ from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, SourceError, parse_enum
+from driftmap.errors import ConfigError, DriftmapError, SourceError, parse_enum
 from driftmap.frame import Frame, PinholeIntrinsics, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
+from driftmap.sources.redwood import frame_errors_named, intrinsics_named, read_depth_png
+from driftmap.sources.stamps import check_increasing_stamps, check_stamp_ns, read_pose_file
 from driftmap.sources.synthetic_lidar import LidarPattern, cast_lidar, lidar_rays
-from driftmap.sources.synthetic_motion import (
-    STREET_CORNER_RADIUS_M,
+from driftmap.sources.synthetic_motion import (  # re-exported: STREET_CORNER_RADIUS_M, STREET_PERIMETER_M, street_path
+    STREET_CORNER_RADIUS_M,  # noqa: F401
     STREET_HALF_SIZE_M,
-    STREET_PERIMETER_M,
+    STREET_PERIMETER_M,  # noqa: F401
     MotionSchedule,
     ScanMotion,
     base_poses_at,
@@ -56,7 +58,7 @@ from driftmap.sources.synthetic_motion import (
     moving_scans,
     non_moving_scans,
     path_length_m,
-    street_path,
+    street_path,  # noqa: F401
 )
 from driftmap.trajectory import Trajectory, read_tum, write_tum
 
@@ -540,21 +542,44 @@ class SyntheticLog(FrameSource):
             self.meta = json.loads(meta_file.read_text())
         except FileNotFoundError as exc:
             raise SourceError(f"{meta_file}: not a driftmap synthetic log (metadata file missing)") from exc
-        except json.JSONDecodeError as exc:
+        except (OSError, ValueError) as exc:  # JSON that does not parse, text that is not UTF-8
             raise SourceError(f"{meta_file}: corrupt metadata ({exc})") from exc
-        if self.meta.get("format") != FORMAT_NAME:
-            raise SourceError(f"{meta_file}: format is {self.meta.get('format')!r}, expected {FORMAT_NAME!r}")
-        self.intrinsics = PinholeIntrinsics(**self.meta["intrinsics"])
+        if not isinstance(self.meta, dict) or self.meta.get("format") != FORMAT_NAME:
+            found = self.meta.get("format") if isinstance(self.meta, dict) else type(self.meta).__name__
+            raise SourceError(f"{meta_file}: format is {found!r}, expected {FORMAT_NAME!r}")
+        try:
+            self._read_metadata(meta_file)
+        except (KeyError, TypeError, ValueError, OverflowError, DriftmapError) as exc:
+            if isinstance(exc, SourceError):
+                raise
+            raise SourceError(f"{meta_file}: corrupt metadata ({type(exc).__name__}: {exc})") from exc
+        self._monitor = InvalidFractionMonitor()
+
+    def _read_metadata(self, meta_file: Path) -> None:
+        """The fields of ``synthetic.json`` this source uses, checked: the frames' ids and stamps (every stamp a
+        frame's, :func:`driftmap.sources.stamps.check_stamp_ns`, strictly increasing), intrinsics, extrinsics."""
+        frames = self.meta["frames"]
+        if not isinstance(frames, list) or not all(isinstance(e, dict) for e in frames):
+            raise SourceError(f"{meta_file}: field frames must be a list of frame entries")
+        for k, entry in enumerate(frames):
+            where = f"{meta_file} (frames[{k}].stamp_ns)"
+            if not isinstance(entry.get("stamp_ns"), int) or not isinstance(entry.get("frame_id"), int):
+                raise SourceError(f"{where}: frame_id and stamp_ns must be integers, got {entry.get('frame_id')!r}, "
+                                  f"{entry.get('stamp_ns')!r}")
+            check_stamp_ns(entry["stamp_ns"], where)
+        check_increasing_stamps([e["stamp_ns"] for e in frames], [e["frame_id"] for e in frames], str(meta_file),
+                                lenient=False)
+        self.intrinsics = intrinsics_named(f"{meta_file} (intrinsics)", **self.meta["intrinsics"])
         self.depth_scale = float(self.meta["depth_scale"])
-        self.T_base_sensor = np.asarray(self.meta["T_base_sensor"], dtype=np.float64)
+        self.T_base_sensor = geometry.as_rigid(np.asarray(self.meta["T_base_sensor"], dtype=np.float64),
+                                               f"{meta_file} (T_base_sensor)")
         self.config = SyntheticLogConfig(**{**self.meta["config"], **{k: tuple(v) for k, v in self.meta["config"].items()
                                                                       if isinstance(v, list)}})
-        self._odometry = read_tum(self.path / self.meta["odometry"])
+        self._odometry = read_pose_file(read_tum, self.path / str(self.meta["odometry"]))
         if len(self._odometry) != len(self.meta["frames"]):
             raise SourceError(
                 f"{self.path / self.meta['odometry']}: {len(self._odometry)} poses for {len(self.meta['frames'])} frames"
             )
-        self._monitor = InvalidFractionMonitor()
 
     def _count(self) -> int:
         return len(self.meta["frames"])
@@ -570,18 +595,21 @@ class SyntheticLog(FrameSource):
 
     def read_depth(self, index: int) -> NDArray[np.uint16]:
         entry = self.meta["frames"][index]
-        file = self.path / entry["depth"]
-        try:
-            return np.asarray(Image.open(file))
-        except OSError as exc:
-            raise SourceError(f"{file}: cannot read depth image of frame {entry['frame_id']} ({exc})") from exc
+        return read_depth_png(self.path / str(entry.get("depth")), entry["frame_id"])
 
     def depth_frame(self, index: int, monitor: InvalidFractionMonitor | None = None) -> Frame:
         """The depth frame at underlying ``index`` (validated and back-projected)."""
         entry = self.meta["frames"][index]
         pose = PoseEstimate(self._odometry.poses[index], revision=0, source=PoseSource.ODOMETRY)
+        depth = self.read_depth(index)
+        with frame_errors_named(self.path / str(entry["depth"]), int(entry["frame_id"])):
+            return self._depth_frame(index, depth, pose, monitor)
+
+    def _depth_frame(self, index: int, depth: NDArray[np.uint16], pose: PoseEstimate,
+                     monitor: InvalidFractionMonitor | None) -> Frame:
+        entry = self.meta["frames"][index]
         return depth_frame(
-            self.read_depth(index),
+            depth,
             self.intrinsics,
             frame_id=int(entry["frame_id"]),
             stamp_ns=int(entry["stamp_ns"]),
@@ -602,8 +630,11 @@ class SyntheticLog(FrameSource):
         entry = self.meta["frames"][index]
         if "lidar" not in entry:
             raise SourceError(f"{self.path}: this log has no LiDAR scans (generate with lidar=True)")
-        file = self.path / entry["lidar"]
-        raw = np.fromfile(file, dtype=np.float32)
+        file = self.path / str(entry["lidar"])
+        try:
+            raw = np.fromfile(file, dtype="<f4")
+        except OSError as exc:
+            raise SourceError(f"{file}: cannot read the LiDAR scan of frame {entry['frame_id']} ({exc})") from exc
         if raw.size % 4:
             raise SourceError(f"{file}: size {raw.nbytes} bytes is not a multiple of 16 (x, y, z, intensity float32)")
         scan = raw.reshape(-1, 4)
@@ -667,7 +698,7 @@ class SyntheticLog(FrameSource):
     def ground_truth(self) -> Trajectory:
         """Ground-truth ``T_world_sensor`` of the selected frames, for the sensor this source yields (the depth
         camera, or with ``sensor="lidar"`` the LiDAR); for evaluation only."""
-        return self._of_selected_sensor(read_tum(self.path / self.meta["ground_truth"]))
+        return self._of_selected_sensor(read_pose_file(read_tum, self.path / str(self.meta["ground_truth"])))
 
 
 def _detect(path: Path) -> bool:

@@ -27,15 +27,17 @@ from driftmap.errors import SourceError
 from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source
-from driftmap.sources.cloud_folder import check_increasing_stamps, opener_for, pose_or_none
+from driftmap.sources.cloud_folder import opener_for, pose_or_none
 from driftmap.sources.redwood import (
     KINECT_RANGE_M,
     check_sensor_range,
+    frame_errors_named,
     intrinsics_from_option,
     read_color_image,
     read_depth_png,
 )
-from driftmap.trajectory import Trajectory, _stamp_s_to_ns, read_tum
+from driftmap.sources.stamps import check_increasing_stamps, parse_stamp_s, read_pose_file
+from driftmap.trajectory import Trajectory, _read_lines, read_tum
 
 logger = logging.getLogger(__name__)
 
@@ -62,13 +64,11 @@ def tum_setup(name: str) -> str | None:
 
 
 def read_file_list(file: Path) -> list[tuple[int, str, int]]:
-    """``(stamp_ns, relative path, line number)`` of a TUM ``depth.txt`` / ``rgb.txt``."""
-    try:
-        lines = file.read_text().splitlines()
-    except FileNotFoundError:
-        raise SourceError(f"{file}: not found") from None
-    except OSError as exc:
-        raise SourceError(f"{file}: cannot read ({exc})") from exc
+    """``(stamp_ns, relative path, line number)`` of a TUM ``depth.txt`` / ``rgb.txt``; stamps checked by
+    :func:`driftmap.sources.stamps.parse_stamp_s` (errors name ``file:line``)."""
+    if not file.is_file():
+        raise SourceError(f"{file}: not found")
+    lines = _read_lines(file, "TUM file list")  # SourceError for unreadable or non-UTF-8 text, naming the line
     out = []
     for lineno, line in enumerate(lines, start=1):
         line = line.strip()
@@ -77,10 +77,7 @@ def read_file_list(file: Path) -> list[tuple[int, str, int]]:
         parts = line.split()
         if len(parts) < 2:
             raise SourceError(f"{file}:{lineno}: expected 'stamp_s file', got {line!r}")
-        try:
-            out.append((_stamp_s_to_ns(parts[0]), parts[1], lineno))
-        except ValueError as exc:
-            raise SourceError(f"{file}:{lineno}: stamp {parts[0]!r} is not a number of seconds") from exc
+        out.append((parse_stamp_s(parts[0], f"{file}:{lineno}"), parts[1], lineno))
     if not out:
         raise SourceError(f"{file}: no entries")
     return out
@@ -164,7 +161,7 @@ class TumRgbd(FrameSource):
         self._gt_pose: list[NDArray[np.float64] | None] = [None] * len(self._entries)
         self.frames_without_ground_truth: list[int] = []
         if self.groundtruth_file.is_file():
-            gt = read_tum(self.groundtruth_file)
+            gt = read_pose_file(read_tum, self.groundtruth_file)
             gt_keep = check_increasing_stamps(gt.stamps_ns.tolist(), [f"row {r + 1}" for r in range(len(gt))],
                                               str(self.groundtruth_file), lenient=lenient)
             gt_stamps, gt_poses = gt.stamps_ns[gt_keep], gt.poses[gt_keep]
@@ -246,6 +243,11 @@ class TumRgbd(FrameSource):
                     f"{frame_id} (stamp_ns {stamp_ns})"
                 )
             color = read_color_image(self._rgb[index], frame_id)
+        with frame_errors_named(file, frame_id):
+            return self._depth_frame(depth, frame_id, stamp_ns, file, pose, color)
+
+    def _depth_frame(self, depth: NDArray[np.uint16], frame_id: int, stamp_ns: int, file: Path, pose: Any,
+                     color: NDArray[np.uint8] | None) -> Frame:
         return depth_frame(
             depth,
             self.intrinsics,

@@ -1,0 +1,584 @@
+"""No silent wrong answer at the readers' boundary (issue 22), through the path a user takes (``driftmap build`` /
+``convert`` via the CLI, or the API where that is the entry point):
+
+- sizes read from a header (PCD ``POINTS`` / ``WIDTH`` / ``HEIGHT``, PLY element counts, a depth PNG's size, a
+  PointCloud2's layout) are checked against the bytes present before anything is allocated;
+- stamps read from files are finite, ``>= 0`` and within the int64 ns a frame carries, else an error naming the
+  file and the line;
+- the ROS-log options (``--lenient``, ``--topic``, ``--pose-from-tf``, ``--pose-from-odometry``) are accepted for
+  every ROS log format and still refused, with the documented message, for formats that do not take them;
+- a folder of KITTI-layout ``.bin`` scans has one point layout (x, y, z, intensity or x, y, z) for every file;
+- symlink loops, bad intrinsics, file names that are stamps and foreign formats are reported as what they are.
+"""
+
+from __future__ import annotations
+
+import shutil
+import struct
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cloud_files import (
+    ROS_LOG_KINDS,
+    replace_once,
+    ros_log_messages,
+    write_pcd,
+    write_ply,
+    write_ros_log,
+    write_ros_messages,
+)
+from PIL import Image
+from scipy.spatial.transform import Rotation
+from typer.testing import CliRunner
+
+from driftmap import geometry
+from driftmap.cli import app
+from driftmap.errors import ConfigError, SourceError
+from driftmap.sources.base import open_source
+from driftmap.store.frame_store import FrameStore
+
+KITTI_EVERY = 4
+"""KITTI frame 0, every 4th point: 31,167 points (the cloud of the issue)."""
+LOG_STAMP0_NS = 1_700_000_000_000_000_000
+
+
+def _ok(args: list[object]) -> str:
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code == 0, (result.output, result.exception)
+    return result.output
+
+
+def _refused(args: list[object]) -> BaseException:
+    result = CliRunner().invoke(app, [str(a) for a in args])
+    assert result.exit_code != 0 and result.exception is not None, result.output
+    return result.exception
+
+
+def _kitti_scan(kitti_dir: Path, k: int, every: int = KITTI_EVERY) -> np.ndarray:
+    return np.fromfile(kitti_dir / "velodyne" / f"{k:06d}.bin", dtype="<f4").reshape(-1, 4)[::every]
+
+
+def _columns(scan: np.ndarray) -> dict[str, np.ndarray]:
+    return {"x": scan[:, 0].copy(), "y": scan[:, 1].copy(), "z": scan[:, 2].copy(), "intensity": scan[:, 3].copy()}
+
+
+# ---- 1. sizes in headers ---------------------------------------------------------------------------------------
+
+
+def _cloud_file(folder: Path, kind: str, scan: np.ndarray) -> Path:
+    """KITTI frame 0 (31,167 points) as ``scan_0`` in one of the cloud encodings."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if kind == "pcd_binary_compressed":
+        import open3d as o3d
+
+        cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(scan[:, :3]))
+        cloud.point["intensity"] = o3d.core.Tensor(scan[:, 3:4])
+        path = folder / "scan_0.pcd"
+        assert o3d.t.io.write_point_cloud(str(path), cloud, compressed=True)
+        return path
+    if kind.startswith("pcd"):
+        return write_pcd(folder / "scan_0.pcd", _columns(scan), data=kind.removeprefix("pcd_"))
+    return write_ply(folder / "scan_0.ply", _columns(scan), ascii=kind == "ply_ascii")
+
+
+CLOUD_KINDS = ["pcd_ascii", "pcd_binary", "pcd_binary_compressed", "ply_ascii", "ply_binary"]
+
+
+def _lie_about_count(file: Path, n: int, claimed: int) -> None:
+    """Every count field of the header says ``claimed`` instead of ``n`` (consistent with itself, not the data)."""
+    if file.suffix == ".pcd":
+        replace_once(file, f"WIDTH {n}\n".encode(), f"WIDTH {claimed}\n".encode())
+        replace_once(file, f"POINTS {n}\n".encode(), f"POINTS {claimed}\n".encode())
+    else:
+        replace_once(file, f"element vertex {n}\n".encode(), f"element vertex {claimed}\n".encode())
+
+
+@pytest.mark.parametrize("claimed", [99_999_999, 10])
+@pytest.mark.parametrize("kind", CLOUD_KINDS)
+def test_a_cloud_header_that_lies_about_its_point_count_is_refused_by_build(kind: str, claimed: int, kitti_dir: Path,
+                                                                           tmp_path: Path) -> None:
+    """The issue's file: 31,167 points, a header saying 99,999,999 (Open3D then returns 99,999,999 points, zeros
+    beyond the data, or crashes on binary_compressed); and a header saying fewer points than the data holds."""
+    scan = _kitti_scan(kitti_dir, 0)
+    assert len(scan) == 31_167
+    folder = tmp_path / "clouds"
+    file = _cloud_file(folder, kind, scan)
+    assert len(open_source(folder).frame(0).points_sensor) == 31_167  # the honest file reads as written
+    _lie_about_count(file, 31_167, claimed)
+    exc = _refused(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+    assert isinstance(exc, SourceError), exc
+    field = "header field POINTS" if kind.startswith("pcd") else "header field element vertex"
+    assert str(exc).startswith(str(file)) and field in str(exc), exc
+    if (tmp_path / "store").exists():  # nothing of the lie was stored
+        with FrameStore.open(tmp_path / "store") as store:
+            assert store.frame_ids.size == 0
+
+
+def test_a_pcd_whose_points_contradict_width_and_height_names_both(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    file = _cloud_file(folder, "pcd_ascii", _kitti_scan(kitti_dir, 0))
+    replace_once(file, b"POINTS 31167\n", b"POINTS 99999999\n")
+    with pytest.raises(SourceError, match=r"scan_0\.pcd:10: header field POINTS is 99999999 but WIDTH \* HEIGHT"):
+        list(open_source(folder))
+
+
+def test_lenient_skips_a_cloud_whose_header_lies_and_says_why(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for k in range(3):
+        write_pcd(folder / f"scan_{k}.pcd", _columns(_kitti_scan(kitti_dir, k)))
+    n1 = len(_kitti_scan(kitti_dir, 1))
+    _lie_about_count(folder / "scan_1.pcd", n1, 99_999_999)
+    source = open_source(folder, lenient=True)
+    frames = list(source)
+    assert [f.frame_id for f in frames] == [0, 2]
+    (index, reason), = source.skipped
+    assert index == 1 and "scan_1.pcd" in reason and "POINTS" in reason
+
+
+def _png_with_size(src: Path, dst: Path, width: int, height: int) -> Path:
+    """``src`` (a PNG) with its IHDR width and height replaced (and the chunk's CRC fixed: a well-formed lie)."""
+    data = bytearray(src.read_bytes())
+    assert data[12:16] == b"IHDR"
+    data[16:24] = struct.pack(">II", width, height)
+    data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])) & 0xFFFFFFFF)
+    dst.write_bytes(bytes(data))
+    return dst
+
+
+def _sevenscenes_copy(sevenscenes_dir: Path, folder: Path, ids: range) -> Path:
+    folder.mkdir(parents=True)
+    for i in ids:
+        for suffix in ("depth.png", "pose.txt"):
+            shutil.copy(sevenscenes_dir / f"frame-{i:06d}.{suffix}", folder / f"frame-{i:06d}.{suffix}")
+    return folder
+
+
+def test_a_depth_png_whose_header_claims_more_pixels_than_its_bytes_hold_is_refused(sevenscenes_dir: Path,
+                                                                                    tmp_path: Path) -> None:
+    folder = _sevenscenes_copy(sevenscenes_dir, tmp_path / "seq", range(3))
+    for width, height in ((2000, 2000), (60_000, 60_000), (640, 479)):
+        bad = _png_with_size(sevenscenes_dir / "frame-000001.depth.png", folder / "frame-000001.depth.png", width,
+                             height)
+        exc = _refused(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+        assert isinstance(exc, SourceError) and str(bad) in str(exc)
+        assert f"the header says {width}x{height} pixels" in str(exc), exc
+        shutil.rmtree(tmp_path / "store", ignore_errors=True)
+    source = open_source(folder, lenient=True)  # lenient: the frame is skipped with the reason
+    assert [f.frame_id for f in source] == [0, 2] and "640x479" in source.skipped[0][1]
+
+
+def test_a_pointcloud2_whose_layout_does_not_describe_its_data_is_refused(tmp_path: Path) -> None:
+    from driftmap.sources.ros import pointcloud2_array
+
+    class Msg:  # a decoded PointCloud2 (the attributes every decoder gives)
+        def __init__(self, width: int, data: bytes) -> None:
+            self.height, self.width, self.point_step, self.row_step = 1, width, 12, 12 * width
+            self.is_bigendian, self.data = False, data
+            self.fields = [type("F", (), {"name": n, "offset": 4 * k, "datatype": 7, "count": 1})
+                           for k, n in enumerate("xyz")]
+
+    xyz = np.arange(30, dtype="<f4").tobytes()  # 10 points
+    assert len(pointcloud2_array(Msg(10, xyz))) == 10
+    with pytest.raises(SourceError, match=r"data has 120 bytes, 20x1 points .* need 240"):
+        pointcloud2_array(Msg(20, xyz))
+    with pytest.raises(SourceError, match=r"data has 120 bytes, more than the height 1 \* row_step 60"):
+        pointcloud2_array(Msg(5, xyz))
+
+
+# ---- 2. stamps read from files ---------------------------------------------------------------------------------
+
+
+def _kitti_copy(kitti_dir: Path, folder: Path, n: int, *, scans: list[np.ndarray] | None = None) -> Path:
+    (folder / "velodyne").mkdir(parents=True)
+    for k in range(n):
+        scan = _kitti_scan(kitti_dir, k, every=10) if scans is None else scans[k]
+        scan.tofile(folder / "velodyne" / f"{k:06d}.bin")
+    shutil.copy(kitti_dir / "calib.txt", folder / "calib.txt")
+    return folder
+
+
+def test_kitti_times_starting_before_zero_are_refused_naming_the_line(kitti_dir: Path, tmp_path: Path) -> None:
+    """A times.txt starting at -0.5 s used to reach the store and fail there with a raw struct.error."""
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 3)
+    (folder / "times.txt").write_text("-0.5\n-0.4\n-0.3\n")
+    exc = _refused(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+    assert isinstance(exc, SourceError)
+    assert str(exc).startswith(f"{folder / 'times.txt'}:1: stamp '-0.5' s is negative")
+    (folder / "times.txt").write_text("0.0\nnan\n0.2\n")
+    with pytest.raises(SourceError, match=r"times\.txt:2: 'nan' is not a number of seconds"):
+        open_source(folder)
+    (folder / "times.txt").write_text("0.0\n0.1\n1e12\n")
+    with pytest.raises(SourceError, match=r"times\.txt:3: stamp '1e12' s is beyond the largest stamp"):
+        open_source(folder)
+    (folder / "times.txt").write_text("0.0\n0.1\n0.1\n")  # strictly increasing (lenient: the later frame skipped)
+    with pytest.raises(SourceError, match=r"times\.txt: duplicate stamp: frame 2 .* frame 1"):
+        open_source(folder)
+    assert open_source(folder, lenient=True).frame_ids() == [0, 1]
+
+
+def test_tum_depth_list_stamps_are_checked(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "rgbd_dataset_freiburg1_x"
+    (folder / "depth").mkdir(parents=True)
+    lines = []
+    for k, stamp in enumerate(("-0.033", "0.0", "0.033")):
+        depth = np.asarray(Image.open(sevenscenes_dir / f"frame-{k:06d}.depth.png")).astype(np.uint32) * 5
+        Image.fromarray(np.clip(depth, 0, 65535).astype(np.uint16)).save(folder / "depth" / f"{k}.png")
+        lines.append(f"{stamp} depth/{k}.png")
+    (folder / "depth.txt").write_text("# depth\n" + "\n".join(lines) + "\n")
+    exc = _refused(["build", folder, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError) and str(exc).startswith(f"{folder / 'depth.txt'}:2: stamp '-0.033' s is negative")
+
+
+def test_cloud_folder_stamps_from_a_pose_file_are_checked_naming_its_line(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for k in range(3):
+        write_pcd(folder / f"scan_{k}.pcd", _columns(_kitti_scan(kitti_dir, k, every=10)))
+    poses = tmp_path / "poses.tum"
+    poses.write_text("# stamp x y z qx qy qz qw\n-1.0 0 0 0 0 0 0 1\n-0.9 0 0 0 0 0 0 1\n-0.8 0 0 0 0 0 0 1\n")
+    with pytest.raises(SourceError, match=rf"{poses}:2: stamp -1000000000 ns is negative"):
+        open_source(folder, poses=poses)  # (the API's pose file: its rows stamp the clouds)
+    (folder / "times.txt").write_text("0.0\n-0.1\n0.2\n")
+    exc = _refused(["build", folder, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError) and str(exc).startswith(f"{folder / 'times.txt'}:2: stamp '-0.1' s is negative")
+
+
+def test_a_negative_ros_header_stamp_is_refused_naming_the_message(kitti_dir: Path, tmp_path: Path) -> None:
+    """ROS 2's ``builtin_interfaces/Time.sec`` is an int32: a negative stamp is refused (lenient: skipped)."""
+    scans = [(LOG_STAMP0_NS + k * 100_000_000, *_xyz_intensity(_kitti_scan(kitti_dir, k, 50))) for k in range(3)]
+    messages = ros_log_messages(scans, [np.eye(4)] * 3, np.eye(4))
+    first_cloud = next(k for k, m in enumerate(messages) if m[0] == "/points")
+    topic, typename, msg, log_time = messages[first_cloud]
+    messages[first_cloud] = (topic, typename, {**msg, "header": {**msg["header"], "stamp": {"sec": -1, "nanosec": 0}}},
+                             log_time)
+    log = write_ros_messages(tmp_path / "log.mcap", "mcap", messages)
+    with pytest.raises(SourceError, match=r"log\.mcap: /points message 0: header\.stamp: stamp -1000000000 ns is negative"):
+        list(open_source(log))
+    source = open_source(log, lenient=True)
+    assert [f.frame_id for f in source] == [1, 2] and "negative" in source.skipped[0][1]
+
+
+def _xyz_intensity(scan: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return np.ascontiguousarray(scan[:, :3]), np.ascontiguousarray(scan[:, 3])
+
+
+# ---- 6. ROS-log options from the command line ------------------------------------------------------------------
+
+
+N_LOG_SCANS = 3
+
+
+@pytest.fixture(scope="module")
+def ros_logs(kitti_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, tuple[Path, list[np.ndarray]]]:
+    """Three real KITTI scans (every 20th point) as PointCloud2 on /points in an MCAP, a ROS 1 bag and a rosbag2
+    folder, with /tf, /tf_static and /odom, and a fourth cloud whose data is one point short (only --lenient reads
+    past it). Values: (log, the expected T_world_sensor = T_odom_base @ T_base_lidar per scan)."""
+    root = tmp_path_factory.mktemp("ros_logs")
+    scans, T_odom_base = [], []
+    for k in range(N_LOG_SCANS + 1):
+        scan = _kitti_scan(kitti_dir, k, every=20)
+        scans.append((LOG_STAMP0_NS + k * 100_000_000, scan[:, :3].copy(), scan[:, 3].copy()))
+        T_odom_base.append(geometry.make_transform(Rotation.from_euler("z", 2.0 * k, degrees=True), (0.8 * k, 0.1 * k, 0)))
+    T_base_lidar = geometry.make_transform(None, (0.3, 0.0, 1.7))
+    logs = {}
+    for kind in ROS_LOG_KINDS:
+        path = root / {"mcap": "log.mcap", "rosbag1": "log.bag", "rosbag2": "log"}[kind]
+        write_ros_log(path, kind, scans, T_odom_base, T_base_lidar, short_last_cloud=True)
+        logs[kind] = (path, [T @ T_base_lidar for T in T_odom_base[:N_LOG_SCANS]])
+    return logs
+
+
+POSE_OPTIONS = {"tf": ["--pose-from-tf", "odom,base_link"], "odometry": ["--pose-from-odometry", "/odom"]}
+
+
+@pytest.mark.parametrize("kind", ROS_LOG_KINDS)
+def test_ros_log_options_are_accepted_by_build(kind: str, ros_logs: dict, tmp_path: Path) -> None:
+    log, expected = ros_logs[kind]
+    for name, pose_option in POSE_OPTIONS.items():
+        out = tmp_path / f"store_{name}"
+        _ok(["build", log, "--out", out, "--lenient", "--topic", "/points", *pose_option, "--poses-from-source",
+             "--no-loop-closure"])
+        with FrameStore.open(out) as store:
+            assert store.frame_ids.tolist() == [0, 1, 2]  # the short fourth cloud skipped (--lenient)
+            np.testing.assert_allclose(store.poses(0), np.array(expected), atol=1e-9)
+    exc = _refused(["build", log, "--out", tmp_path / "strict", "--topic", "/points", "--no-loop-closure"])
+    assert isinstance(exc, SourceError) and "/points message 3" in str(exc)
+
+
+@pytest.mark.parametrize("kind", ROS_LOG_KINDS)
+def test_ros_log_options_are_accepted_by_convert(kind: str, ros_logs: dict, tmp_path: Path) -> None:
+    log, expected = ros_logs[kind]
+    for name, pose_option in POSE_OPTIONS.items():
+        out = tmp_path / f"{name}.mcap"
+        _ok(["convert", log, out, "--lenient", "--topic", "/points", *pose_option])
+        frames = list(open_source(out))
+        assert [f.frame_id for f in frames] == [0, 1, 2]
+        np.testing.assert_allclose([f.T_world_sensor for f in frames], expected, atol=1e-9)
+
+
+def test_depth_settings_stay_refused_for_ros_logs(ros_logs: dict, tmp_path: Path) -> None:
+    """Declaring the ROS openers' options does not make build pass depth-image settings to logs whose topic may be a
+    PointCloud2 (docs/sources-datasets.md: refused rather than ignored)."""
+    log, _ = ros_logs["mcap"]
+    result = CliRunner().invoke(app, ["build", str(log), "--out", str(tmp_path / "s"), "--lenient"],
+                                env={"DRIFTMAP_DEPTH__MIN_DEPTH_M": "0.5"})
+    assert isinstance(result.exception, ConfigError), result.output
+    assert str(result.exception).startswith(f"depth.min_depth_m: does not apply to {log} (format mcap")
+
+
+@pytest.mark.parametrize("command", ["build", "convert"])
+def test_ros_log_options_are_still_refused_for_a_kitti_folder(command: str, kitti_dir: Path, tmp_path: Path) -> None:
+    out = tmp_path / ("store" if command == "build" else "out.mcap")
+    target = ["--out", out] if command == "build" else [out]
+    for flag, value in (("--topic", "/points"), ("--pose-from-tf", "odom,base_link"), ("--pose-from-odometry", "/odom")):
+        exc = _refused([command, kitti_dir, *target, flag, value])
+        assert isinstance(exc, ConfigError)
+        assert str(exc) == f"{flag}: does not apply to {kitti_dir} (format kitti, which takes --lenient)"
+    assert not out.exists()
+
+
+# ---- 8. one point layout for a KITTI-layout folder --------------------------------------------------------------
+
+
+def test_a_folder_of_xyz_scans_whose_sizes_divide_by_16_is_read_as_xyz(kitti_dir: Path, tmp_path: Path) -> None:
+    """x, y, z float32 scans whose sizes happen to be multiples of 16 (and so of 48): the data decides, for the
+    whole folder; every scan's points are the bytes as x, y, z triples."""
+    xyz = [_kitti_scan(kitti_dir, k, every=8)[:, :3] for k in range(3)]
+    xyz = [np.ascontiguousarray(p[: len(p) // 4 * 4]) for p in xyz]
+    assert all(p.nbytes % 48 == 0 for p in xyz)
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 3, scans=xyz)
+    out = tmp_path / "store"
+    _ok(["build", folder, "--out", out, "--no-loop-closure"])
+    with FrameStore.open(out) as store:
+        for k in range(3):
+            frame = store.frame(k)
+            assert frame.points_sensor.tobytes() == xyz[k].tobytes()
+            assert frame.attributes.intensity is None
+
+
+def test_one_xyz_sized_scan_makes_the_whole_folder_xyz(kitti_dir: Path, tmp_path: Path) -> None:
+    """Before: the first file (size a multiple of 16) was read as x, y, z, intensity, the next one failed."""
+    xyz = [np.ascontiguousarray(_kitti_scan(kitti_dir, k, every=8)[:, :3]) for k in range(3)]
+    xyz[0] = xyz[0][: len(xyz[0]) // 4 * 4]  # 48-byte multiple: fits both layouts
+    xyz[1] = xyz[1][: len(xyz[1]) // 4 * 4 + 1]  # 12-byte multiple only
+    xyz[2] = xyz[2][: len(xyz[2]) // 4 * 4 + 2]
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 3, scans=xyz)
+    source = open_source(folder)
+    assert source.point_layout.value == "xyz" and source.describe()["point_layout"] == "xyz"
+    assert [f.points_sensor.tobytes() for f in source] == [p.tobytes() for p in xyz]
+
+
+def test_kitti_layout_that_cannot_be_told_asks_for_the_option(kitti_dir: Path, tmp_path: Path) -> None:
+    rng = np.random.default_rng(7)
+    noise = [rng.normal(scale=10.0, size=(48, 4)).astype("<f4") for _ in range(2)]  # no scan in either layout
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 2, scans=noise)
+    with pytest.raises(SourceError, match=r"cannot tell whether the scans are .* point_layout='xyzi' or 'xyz'"):
+        open_source(folder)
+    source = open_source(folder, point_layout="xyzi")
+    assert [f.points_sensor.tobytes() for f in source] == [np.ascontiguousarray(n[:, :3]).tobytes() for n in noise]
+    with pytest.raises(SourceError, match=r"point_layout: 'xyzw' is not one of"):
+        open_source(folder, point_layout="xyzw")
+
+
+def test_the_real_kitti_scans_stay_xyzi(kitti_dir: Path) -> None:
+    source = open_source(kitti_dir, frames="0:2")
+    assert source.point_layout.value == "xyzi"
+    raw = np.fromfile(kitti_dir / "velodyne" / "000000.bin", dtype="<f4").reshape(-1, 4)
+    frame = source.frame(0)
+    assert frame.points_sensor.tobytes() == np.ascontiguousarray(raw[:, :3]).tobytes()
+    assert frame.attributes.intensity.tobytes() == np.ascontiguousarray(raw[:, 3]).tobytes()
+
+
+# ---- 13. what happened, said ------------------------------------------------------------------------------------
+
+
+def test_a_symlink_loop_among_frame_files_is_named(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    a, b = folder / "frame-000000.depth.png", folder / "frame-000001.depth.png"
+    a.symlink_to(b.name)
+    b.symlink_to(a.name)
+    exc = _refused(["build", folder, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError) and "symlink loop" in str(exc) and str(a) in str(exc), exc
+    # one loop beside real frames: named too (it used to be left out without a word); lenient leaves it out
+    shutil.copy(sevenscenes_dir / "frame-000002.depth.png", folder / "frame-000002.depth.png")
+    with pytest.raises(SourceError, match=r"frame-00000[01]\.depth\.png: symlink loop"):
+        open_source(folder)
+    assert open_source(folder, lenient=True).frame_ids() == [2]
+
+
+def test_a_negative_focal_length_names_the_intrinsics_file(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    folder = _sevenscenes_copy(sevenscenes_dir, tmp_path / "seq", range(2))
+    (folder / "camera-intrinsics.txt").write_text("-585 0 320\n0 585 240\n0 0 1\n")
+    exc = _refused(["build", folder, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError)
+    assert str(exc).startswith(f"{folder / 'camera-intrinsics.txt'}: unusable camera intrinsics") and "fx=-585" in str(exc)
+
+
+def test_cloud_files_named_by_nanosecond_stamps_that_are_not_used_as_stamps_say_so(kitti_dir: Path,
+                                                                                    tmp_path: Path) -> None:
+    """Two scans named by ns stamps 20 s apart: too slow for the names to be taken as stamps (median step outside
+    1 ms .. 10 s), and as frame numbers their 10 Hz stamps leave the int64 range: the error says why."""
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for k in range(2):
+        write_pcd(folder / f"{1_630_577_758_569_490_000 + k * 20_000_000_000}.pcd",
+                  _columns(_kitti_scan(kitti_dir, k, every=10)))
+    exc = _refused(["build", folder, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError)
+    message = str(exc)
+    assert str(folder / "1630577758569490000.pcd") in message
+    assert "reads as a Unix time in ns" in message and "median step is 20 s" in message
+    # with the stamps given, the names are frame numbers that fit: read
+    (folder / "times.txt").write_text("0.0\n0.1\n")
+    assert open_source(folder).frame_ids() == [1_630_577_758_569_490_000, 1_630_577_778_569_490_000]
+
+
+def test_one_cloud_named_by_a_stamp_among_numbered_ones_says_so(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for name in ("scan_1.pcd", "1630577758569490000.pcd"):
+        write_pcd(folder / name, _columns(_kitti_scan(kitti_dir, 0, every=10)))
+    source = open_source(folder)
+    assert source.frame_ids() == [1, 1_630_577_758_569_490_000] and len(source.frame(0).points_sensor)
+    with pytest.raises(SourceError) as info:
+        source.frame(1)
+    message = str(info.value)
+    assert message.startswith(f"{folder / '1630577758569490000.pcd'}: frame number 1630577758569490000 times the period")
+    assert "reads as a Unix time in ns" in message and "only 1 of the 2 file names are stamps" in message
+    assert [f.frame_id for f in open_source(folder, lenient=True)] == [1]
+
+
+def test_a_frame_number_too_large_for_a_frame_id_is_named(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    write_pcd(folder / "scan_99999999999999999999999.pcd", _columns(_kitti_scan(kitti_dir, 0, every=10)))
+    with pytest.raises(SourceError, match=r"scan_99999999999999999999999\.pcd: the number .* too large for a frame id"):
+        open_source(folder)
+
+
+@pytest.mark.parametrize(("name", "expected"), [("scans", "LAS / LAZ"), ("scan.vtk", "VTK"), ("drive.pcap", "Ouster"),
+                                                ("scan.pcd", "one point-cloud file")])
+def test_an_unknown_format_lists_the_known_ones_and_how_to_convert(name: str, expected: str, tmp_path: Path) -> None:
+    path = tmp_path / name
+    if name == "scans":
+        path.mkdir()
+        for k in range(2):
+            (path / f"scan_{k}.las").write_bytes(b"LASF" + bytes(200))
+    else:
+        path.write_bytes(b"# .PCD v0.7\n" if name.endswith(".pcd") else bytes(64))
+    exc = _refused(["build", path, "--out", tmp_path / "store"])
+    assert isinstance(exc, SourceError) and str(exc).startswith(f"{path}: cannot tell the format")
+    assert expected in str(exc)
+    for known in ("7scenes", "tum", "kitti", "redwood", "cloud_folder", "mcap", "rosbag1", "rosbag2"):
+        assert f"{known} (" in str(exc)
+
+
+# ---- bugs the fuzzed readers (tests/test_fuzz_readers.py) found, one deterministic case each ---------------------
+
+
+def test_fuzz_found_a_calib_txt_that_is_not_utf8(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 2)
+    shutil.copy(kitti_dir / "poses.txt", folder / "poses.txt")
+    (folder / "calib.txt").write_bytes((kitti_dir / "calib.txt").read_bytes() + b"\x80\n")
+    with pytest.raises(SourceError, match=r"calib\.txt.*not UTF-8"):
+        open_source(folder, poses_from_ground_truth=True)
+
+
+def _cloud_log(tmp_path: Path, **layout: object) -> Path:
+    """An MCAP of one PointCloud2 (10 points) whose layout fields are overridden by ``layout``."""
+    xyz = np.arange(30, dtype=np.float32).reshape(10, 3)
+    (topic, typename, msg, log_time), = [m for m in ros_log_messages([(LOG_STAMP0_NS, xyz, np.zeros(10, np.float32))],
+                                                                     [np.eye(4)], np.eye(4)) if m[0] == "/points"]
+    return write_ros_messages(tmp_path / "log.mcap", "mcap", [(topic, typename, {**msg, **layout}, log_time)])
+
+
+@pytest.mark.parametrize(("layout", "message"), [
+    ({"point_step": 2**32 - 1}, r"row_step 160 < width 10 \* point_step 4294967295"),  # was a ValueError
+    ({"height": 0}, r"10x0 points, but data has 160 bytes"),  # was an empty frame
+    ({"fields": [{"name": "x", "offset": 0, "datatype": 7, "count": 3}, {"name": "y", "offset": 4, "datatype": 7,
+                                                                        "count": 1},
+                 {"name": "z", "offset": 8, "datatype": 7, "count": 1}]}, r"field 'x' has count 3"),
+])
+def test_fuzz_found_pointcloud2_layouts(layout: dict, message: str, tmp_path: Path) -> None:
+    with pytest.raises(SourceError, match=message):
+        list(open_source(_cloud_log(tmp_path, **layout)))
+
+
+def test_fuzz_found_a_camera_info_that_back_projects_to_infinity(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """A CameraInfo with cx = 1e300 was accepted (it is finite) and gave frames whose points were -inf."""
+    from driftmap.frame import PinholeIntrinsics
+    from driftmap.sources.mcap_export import write_depth_image_mcap
+
+    depth = np.asarray(Image.open(sevenscenes_dir / "frame-000000.depth.png"))
+    for cx, ok in ((320.0, True), (1e300, False), (-700.0, False)):
+        log = tmp_path / f"cam_{ok}_{cx:g}.mcap"
+        write_depth_image_mcap(log, [depth], [LOG_STAMP0_NS], PinholeIntrinsics(585.0, 585.0, cx, 240.0, 640, 480))
+        if ok:
+            assert np.isfinite(open_source(log).frame(0).points_sensor).all()
+            continue
+        with pytest.raises(SourceError, match=r"unusable camera intrinsics \(principal point cx=.* lies far outside"):
+            list(open_source(log))
+
+
+def test_fuzz_found_a_schema_without_the_standard_fields(tmp_path: Path) -> None:
+    """An MCAP whose TFMessage schema lacks child_frame_id decoded into messages without it: an AttributeError."""
+    from mcap_ros2.writer import Writer
+
+    from driftmap.sources.mcap_export import ros2_msgdef
+
+    xyz = np.arange(30, dtype=np.float32).reshape(10, 3)
+    messages = ros_log_messages([(LOG_STAMP0_NS, xyz, np.zeros(10, np.float32))], [np.eye(4)], np.eye(4))
+    path = tmp_path / "log.mcap"
+    with open(path, "wb") as f:
+        writer, schemas = Writer(f), {}
+        for topic, typename, msg, log_time in messages:
+            if typename not in schemas:
+                text = ros2_msgdef(typename)
+                if typename == "tf2_msgs/msg/TFMessage":
+                    text = text.replace("string child_frame_id", "string child_frame_ie")
+                    msg = {"transforms": [{**t, "child_frame_ie": t["child_frame_id"]} for t in msg["transforms"]]}
+                schemas[typename] = writer.register_msgdef(typename, text)
+            elif typename == "tf2_msgs/msg/TFMessage":
+                msg = {"transforms": [{**t, "child_frame_ie": t["child_frame_id"]} for t in msg["transforms"]]}
+            writer.write_message(topic, schemas[typename], msg, log_time=log_time, publish_time=log_time)
+        writer.finish()
+    with pytest.raises(SourceError, match=r"/tf(_static)? message logged at .* does not have the fields of its type"):
+        open_source(path, pose_from_tf=("odom", "base_link"))
+
+
+def test_fuzz_found_a_pcd_count_too_large_for_a_dtype(kitti_dir: Path, tmp_path: Path) -> None:
+    folder = tmp_path / "clouds"
+    file = _cloud_file(folder, "pcd_ascii", _kitti_scan(kitti_dir, 0, every=100))
+    replace_once(file, b"COUNT 1 1 1 1\n", b"COUNT 1 1 1 2147483648\n")
+    with pytest.raises(SourceError, match=r"scan_0\.pcd:6: header field COUNT says 2147483651 values per point"):
+        open_source(folder).frame(0)
+
+
+@pytest.mark.parametrize("line", [b"data ascii\n", b"DATA Ascii\n"])
+def test_fuzz_found_pcd_keys_and_values_in_another_case(line: bytes, kitti_dir: Path, tmp_path: Path) -> None:
+    """The PCD spec spells keys and DATA / TYPE values exactly; other spellings are not read as them."""
+    folder = tmp_path / "clouds"
+    file = _cloud_file(folder, "pcd_ascii", _kitti_scan(kitti_dir, 0, every=100))
+    replace_once(file, b"DATA ascii\n", line)
+    with pytest.raises(SourceError, match=r"scan_0\.pcd"):
+        open_source(folder).frame(0)
+
+
+def test_fuzz_found_a_pose_file_stamp_beyond_int64(kitti_dir: Path, tmp_path: Path) -> None:
+    """A 4x4 pose file whose stamp (9630577759 s, year 2275) is past the int64 ns range: an OverflowError from the
+    trajectory reader, now a SourceError naming the file (given with poses=) or a file left alone (found beside)."""
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for k in range(3):
+        write_pcd(folder / f"scan_{k}.pcd", _columns(_kitti_scan(kitti_dir, k, every=100)))
+    blocks = "".join(f"1,0,0,{k}\n0,1,0,0\n0,0,1,0\n0,0,0,{s},\n" for k, s in enumerate(("1.0", "1.5", "9630577759.0")))
+    poses = tmp_path / "poses.csv"
+    poses.write_text(blocks)
+    with pytest.raises(SourceError, match=r"poses\.csv: a stamp or number is out of range"):
+        open_source(folder, poses=poses)
+    (folder / "alidarPose.csv").write_text(blocks)
+    assert open_source(folder).describe()["stamps"] == "assumed 10 Hz"
