@@ -383,6 +383,31 @@ def test_kitti_layout_that_cannot_be_told_asks_for_the_option(kitti_dir: Path, t
         open_source(folder, point_layout="xyzw")
 
 
+def test_point_layout_is_given_on_the_command_line_for_build_and_convert(kitti_dir: Path, tmp_path: Path) -> None:
+    """The ambiguous-layout error asks for ``point_layout``; ``--point-layout`` gives it through the CLI (build and
+    convert), a wrong value is a usage error, and formats without .bin scans refuse the flag."""
+    rng = np.random.default_rng(7)
+    noise = [rng.normal(scale=10.0, size=(48, 4)).astype("<f4") for _ in range(2)]
+    folder = _kitti_copy(kitti_dir, tmp_path / "seq", 2, scans=noise)
+    poses = tmp_path / "identity.txt"  # KITTI rows, taken as Velodyne poses
+    poses.write_text("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2)
+    given = ["--poses", str(poses), "--no-loop-closure"]
+    runner = CliRunner()
+    out = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "a"), *given])
+    assert out.exit_code != 0 and "point_layout" in str(out.exception), out.output
+    for cmd in (["build", str(folder), "--out", str(tmp_path / "s"), *given],
+                ["convert", str(folder), str(tmp_path / "c.mcap")]):
+        done = runner.invoke(app, [*cmd, "--point-layout", "xyzi"])
+        assert done.exit_code == 0, (done.output, done.exception)
+    with FrameStore.open(tmp_path / "s") as store:
+        assert store.frame(0).points_sensor.tobytes() == np.ascontiguousarray(noise[0][:, :3]).tobytes()
+    bad = runner.invoke(app, ["build", str(folder), "--out", str(tmp_path / "b"), "--point-layout", "xyzw"])
+    assert bad.exit_code == 2 and "--point-layout" in bad.output
+    refused = runner.invoke(app, ["convert", str(Path(__file__).resolve().parents[1] / "datasets" / "synthetic-loop"),
+                                  str(tmp_path / "d.mcap"), "--point-layout", "xyz"])
+    assert refused.exit_code != 0 and "--point-layout" in str(refused.exception)
+
+
 def test_the_real_kitti_scans_stay_xyzi(kitti_dir: Path) -> None:
     source = open_source(kitti_dir, frames="0:2")
     assert source.point_layout.value == "xyzi"

@@ -53,6 +53,8 @@ class Trajectory:
 def _stamp_s_to_ns(text: str) -> int:
     """Seconds as written in a file -> int ns, exactly (no float rounding of the decimal digits)."""
     text = text.strip()
+    if "_" in text or not text:  # int() would read "1_000"
+        raise ValueError(f"{text!r} is not a number of seconds")
     negative = text.startswith("-")
     if negative:
         text = text[1:]
@@ -61,7 +63,12 @@ def _stamp_s_to_ns(text: str) -> int:
     else:
         whole, _, frac = text.partition(".")
         value = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9] or "0")
+    if value > _INT64_MAX:  # a stamp must fit the int64 ns every stamp is kept in
+        raise OverflowError(f"{text!r} s is beyond the int64 nanosecond range")
     return -value if negative else value
+
+
+_INT64_MAX = 2**63 - 1
 
 
 def _format_stamp_ns(stamp_ns: int) -> str:
@@ -173,8 +180,8 @@ def read_tum(path: str | Path) -> Trajectory:
             rows.append([float(p) for p in parts[1:]])
         except ValueError as exc:
             raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
-        except OverflowError as exc:  # e.g. "1e400" as a stamp
-            raise SourceError(f"{path}:{lineno}: stamp {parts[0]!r} is not finite") from exc
+        except OverflowError as exc:  # e.g. "1e400" or "1e10" s as a stamp
+            raise SourceError(f"{path}:{lineno}: stamp {parts[0]!r} is not a usable time ({exc})") from exc
         linenos.append(lineno)
         stamp_texts.append(parts[0])
     if not rows:

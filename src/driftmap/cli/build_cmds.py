@@ -14,6 +14,7 @@ from driftmap.cli.common import (
     KITTI_FRAME_HELP,
     LENIENT_HELP,
     PERIOD_HELP,
+    POINT_LAYOUT_HELP,
     POSE_ODOM_HELP,
     POSE_TF_HELP,
     SENSOR_HELP,
@@ -194,6 +195,7 @@ def convert(
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=POSE_ODOM_HELP)] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=LENIENT_HELP)] = False,
     period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite, help=PERIOD_HELP)] = None,
+    point_layout: Annotated[Optional[str], typer.Option("--point-layout", help=POINT_LAYOUT_HELP)] = None,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.pipeline.build import check_source_options
@@ -202,7 +204,7 @@ def convert(
     format = _source_format(source, format)
     check_output(out, "OUT.mcap")
     refuse_existing(out, "OUT.mcap", overwrite)
-    options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
+    options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     check_source_options(source, format, options)
     with console.status(f"converting {source}"):
         summary = convert_source(source, out, format=format, frames=frames, **options)
@@ -280,6 +282,7 @@ def build(
     pose_from_odometry: Annotated[Optional[str], typer.Option("--pose-from-odometry", help=POSE_ODOM_HELP + " With --poses-from-source they become revision 0.")] = None,
     lenient: Annotated[bool, typer.Option("--lenient", help=LENIENT_HELP)] = False,
     period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite, help=PERIOD_HELP)] = None,
+    point_layout: Annotated[Optional[str], typer.Option("--point-layout", help=POINT_LAYOUT_HELP)] = None,
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (format detected: TUM, EuRoC and 4x4 blocks with stamps by stamp; KITTI and 4x4 blocks without stamps row = frame_id; Redwood .log by its frame ids).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
@@ -297,7 +300,7 @@ def build(
 
     format = _source_format(source, format)
     refuse_inside_store(out, "--out", output_is_store=True)  # --resume continues a store; none is made inside one
-    options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s)
+    options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     problems = []  # every problem of the config file and the environment at once
     try:
         cfg = _load_build_config(config)

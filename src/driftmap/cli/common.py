@@ -76,6 +76,9 @@ SENSOR_HELP = "Which sensor of a log with several (the synthetic log: depth | li
 TOPIC_HELP = "ROS logs: the PointCloud2 or depth Image topic to read (default: the only one)."
 POSE_TF_HELP = "ROS logs: frame poses from TF, 'PARENT,CHILD' (e.g. map,base_link) looked up at each frame's stamp."
 POSE_ODOM_HELP = "ROS logs: frame poses from this nav_msgs/Odometry topic (interpolated at each frame's stamp)."
+POINT_LAYOUTS = ("auto", "xyzi", "xyz")
+POINT_LAYOUT_HELP = ("KITTI-layout .bin scans: auto (decided once for the folder from the file sizes, then the data) | "
+                     "xyzi (float32 x, y, z, intensity) | xyz (float32 x, y, z); give it when auto cannot tell.")
 LENIENT_HELP = "Skip unreadable frames (each logged with its reason) instead of stopping at the first."
 PERIOD_HELP = ("Folders of PLY / PCD clouds without stamps of their own: the scan period in seconds, frame n is "
                 "stamped n * S (e.g. 0.5 for a 2 Hz scanner; without it such a folder is assumed 10 Hz, with a warning). "
@@ -84,7 +87,8 @@ PERIOD_HELP = ("Folders of PLY / PCD clouds without stamps of their own: the sca
 
 
 def source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Optional[str],
-                    pose_from_odometry: Optional[str], lenient: bool, period_s: Optional[float] = None) -> dict:
+                    pose_from_odometry: Optional[str], lenient: bool, period_s: Optional[float] = None,
+                    point_layout: Optional[str] = None) -> dict:
     """The source options of ``build`` / ``convert`` that were given (checked against the format later)."""
     from driftmap.errors import ConfigError
 
@@ -100,8 +104,9 @@ def source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Op
         if len(parts) != 2 or not all(parts):
             raise ConfigError(f"--pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {pose_from_tf!r}")
         tf = (parts[0], parts[1])
+    layout = None if point_layout is None else choice(point_layout, POINT_LAYOUTS, "--point-layout")
     options = {"sensor": sensor, "topic": topic, "pose_from_tf": tf, "pose_from_odometry": pose_from_odometry,
-               "lenient": lenient or None, "period_ns": period_ns}
+               "lenient": lenient or None, "period_ns": period_ns, "point_layout": layout}
     return {k: v for k, v in options.items() if v is not None}
 
 

@@ -35,7 +35,8 @@ def detect_format(path: Path, format: str | None) -> str | None:
 
 #: source options the command line offers (``build`` / ``convert``) and the flag that sets each
 SOURCE_OPTION_FLAGS = {"sensor": "--sensor", "topic": "--topic", "pose_from_tf": "--pose-from-tf",
-                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient", "period_ns": "--period-s"}
+                       "pose_from_odometry": "--pose-from-odometry", "lenient": "--lenient", "period_ns": "--period-s",
+                       "point_layout": "--point-layout"}
 
 
 #: why a format may not take a source option, added to the refusal
