@@ -88,7 +88,28 @@ def render() -> str:
         if params:
             lines += ["| parameter | kind | default | meaning |", "|---|---|---|---|"]
             lines += [_param_row(p) for p in params]
+    lines += _option_matrix_lines()
     return "\n".join(lines).rstrip() + "\n"
+
+
+def _option_matrix_lines() -> list[str]:
+    """Which source flags and depth settings each format takes (``build`` and ``convert``; the depth settings are
+    ``build``'s): generated from the readers' declarations, as the commands check them."""
+    from driftmap.pipeline.source_options import option_matrix
+
+    matrix = option_matrix()
+    columns = list(next(iter(matrix.values())))
+    lines = ["", "## Source options by format", "",
+             "Generated from each reader's declared options (`driftmap.pipeline.source_options.option_matrix`): `yes` "
+             "where `build` / `convert` pass the option to the format, `-` where they refuse it with "
+             "`FLAG: does not apply to PATH (format F, which takes ...)` (exit 1) before reading anything. The depth "
+             "settings are `build`'s (`--depth-scale`, `--intrinsics`, the `[depth]` table or `DRIFTMAP_DEPTH__*`). "
+             "tests/test_option_matrix.py runs every cell through the command line.", "",
+             "| format | " + " | ".join(f"`{c}`" for c in columns) + " |",
+             "|---|" + "---|" * len(columns)]
+    for fmt in sorted(matrix):
+        lines.append(f"| {fmt} | " + " | ".join("yes" if matrix[fmt][c] else "-" for c in columns) + " |")
+    return lines
 
 
 def main(argv: list[str] | None = None) -> int:

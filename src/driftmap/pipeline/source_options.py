@@ -116,3 +116,19 @@ def require_frames(src: FrameSource, path: Path, fmt: str | None, frames: str | 
     total = len(open_source(path, fmt, **options))
     raise ConfigError(f"--frames {frames} selects no frame of {path} (the source has {total} frames"
                       + (f", indices 0..{total - 1})" if total else ")"))
+
+
+def option_matrix() -> dict[str, dict[str, bool]]:
+    """For every registered format, which command-line source flags (:data:`SOURCE_OPTION_FLAGS`, keyed by flag)
+    and depth settings (:data:`DEPTH_OPTION_SETTINGS`, keyed by setting) ``build`` / ``convert`` pass to it: the
+    readers' own declarations (:func:`~driftmap.sources.base.accepted_options`), exactly what
+    :func:`check_source_options` and :func:`open_build_source` check. docs/cli.md shows it; tests/test_option_matrix.py
+    runs every cell through the command line."""
+    out: dict[str, dict[str, bool]] = {}
+    for name, spec in registered_formats().items():
+        params = accepted_options(spec.open)
+        row = {flag: key in params for key, flag in SOURCE_OPTION_FLAGS.items()}
+        row.update({setting: key in params for key, setting in DEPTH_OPTION_SETTINGS.items()})
+        out[name] = row
+    return out
+
