@@ -31,7 +31,7 @@ from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.diagnose_config import DiagnoseConfig
 from driftmap.diagnostics.entropy import MapEntropy, map_entropy
 from driftmap.diagnostics.ground_truth import MIN_GT_FRAMES, ground_truth_errors
-from driftmap.diagnostics.noise import NoiseModel
+from driftmap.preprocess.noise import NoiseModel
 from driftmap.diagnostics.samples import DiagnosticCloud, PlacedCloud
 from driftmap.diagnostics.verify import RegionCheck, verification_summary
 from driftmap.diagnostics.wall_results import DoubleWallResult

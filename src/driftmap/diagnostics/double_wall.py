@@ -36,7 +36,7 @@ Method (see ``docs/diagnostics.md`` for the reasoning and the measured numbers):
 This module is the front door: the work is done in one module per step, all re-exported here (import from
 here or from the step's module):
 
-* :mod:`driftmap.diagnostics.noise`: the sensor noise model (1, the noise along the normal);
+* :mod:`driftmap.preprocess.noise`: the sensor noise model (1, the noise along the normal);
 * :mod:`driftmap.diagnostics.samples`: the samples and their placement (1);
 * :mod:`driftmap.diagnostics.surfaces`: surface groups and lateral cells (2);
 * :mod:`driftmap.diagnostics.layers`: the per-voxel two-layer test, separation, purity and smearing (2-5);
@@ -49,7 +49,7 @@ from __future__ import annotations
 
 from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.entropy import MapEntropy, map_entropy
-from driftmap.diagnostics.noise import NoiseModel, NoiseModelKind
+from driftmap.preprocess.noise import NoiseModel, NoiseModelKind
 from driftmap.diagnostics.samples import (
     UNIT_NORMAL_TOLERANCE,
     DiagnosticCloud,

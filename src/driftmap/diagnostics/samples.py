@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
-from driftmap.diagnostics.noise import NoiseModel
+from driftmap.preprocess.noise import NoiseModel
 from driftmap.errors import GeometryError
 from driftmap.frame import Frame, SensorKind
 from driftmap.preprocess.cloud import estimate_normals

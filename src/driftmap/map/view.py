@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from driftmap import geometry
 from driftmap.errors import ConfigError, EmptyExportError, EmptyStoreError, StoreError
 from driftmap.frame import Frame
-from driftmap.map._kernels import (
+from driftmap.kernels.points import (
     INF_KEY,
     PIECE_IN,
     QUERY_BALL,
@@ -719,7 +719,7 @@ class MapView:
     # ------------------------------------------------------------------------------------------ queries
 
     def _select(self, kind: int, q: NDArray[np.float64]) -> QueryResult:
-        """The points that match the query ``kind``/``q`` (see ``_kernels``), in map order: the pieces are sorted
+        """The points that match the query ``kind``/``q`` (see :mod:`driftmap.kernels.points`), in map order: the pieces are sorted
         out by their boxes, then the pieces partly inside are counted and all are copied (two compiled passes)."""
         index = self._piece_index.update(self)
         cls = np.empty(index.n_pieces, np.int8)

@@ -25,7 +25,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.errors import DepthError, DepthScaleError
-from driftmap.map._kernels import backproject_uint16
 from driftmap.frame import (
     Frame,
     FrameQuality,
@@ -36,6 +35,7 @@ from driftmap.frame import (
     SensorKind,
     adopt_readonly,
 )
+from driftmap.kernels.points import backproject_uint16
 
 logger = logging.getLogger(__name__)
 

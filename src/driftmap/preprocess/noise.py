@@ -1,5 +1,5 @@
 """Sensor noise along a surface normal: how far a single measured point scatters around its surface (the
-double-wall detector's and the attribution's noise floor)."""
+double-wall detector's and the attribution's noise floor, the volumetric layers' range for a depth camera)."""
 
 from __future__ import annotations
 
@@ -53,3 +53,12 @@ class NoiseModel(BaseModel):
         ray = p / np.maximum(np.linalg.norm(p, axis=1, keepdims=True), 1e-9)
         cos = np.abs(np.einsum("ij,ij->i", ray, np.asarray(normals_sensor, dtype=np.float64)))
         return self.sigma_ray_m(p) * np.maximum(np.nan_to_num(cos, nan=1.0), self.min_incidence_cos)
+
+    def depth_for_sigma_m(self, sigma_m: float) -> float:
+        """The depth (m) beyond which the quadratic model's ray sigma exceeds ``sigma_m`` (infinity for a constant
+        model within it, 0 when even the best depth is noisier)."""
+        if self.kind is NoiseModelKind.CONSTANT_RANGE:
+            return float("inf") if self.range_sigma_m <= sigma_m else 0.0
+        if sigma_m < self.a_m or self.b_per_m == 0:
+            return 0.0 if sigma_m < self.a_m else float("inf")
+        return float(self.z0_m + np.sqrt((sigma_m - self.a_m) / self.b_per_m))

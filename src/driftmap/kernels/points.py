@@ -1,4 +1,4 @@
-"""Compiled hot loops of the map (numba): per-frame rigid transforms and bounds, and the map queries (below).
+"""Compiled hot loops of the points (numba): depth back-projection,: per-frame rigid transforms and bounds, and the map queries (below).
 
 Each point is transformed with its frame's pose in float64 arithmetic and rounded to float32 once, so the
 result equals ``geometry.transform_points`` (numpy, float64) to float32 rounding. The work is cut into
@@ -12,18 +12,12 @@ buffer (:func:`read_transform_pieces`), so no sensor page stays mapped in the pr
 
 from __future__ import annotations
 
-import os
-
 import numba
 import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
-
-if "NUMBA_THREADING_LAYER" not in os.environ:
-    # numba's own work queue is always available (the TBB layer warns about old TBB builds)
-    numba.config.THREADING_LAYER = "workqueue"
 
 #: ``ssize_t pread(int fd, void *buf, size_t count, off_t offset)`` from the C library (POSIX, 64-bit off_t).
 _pread = types.ExternalFunction("pread", types.intp(types.intc, types.uintp, types.uintp, types.int64))

@@ -1,0 +1,456 @@
+"""The volumetric layers of a store's revision -- occupancy evidence (occupied / free / unknown), a TSDF and the
+frames behind each occupied voxel -- kept true when a pose correction arrives.
+
+:class:`VolumeLayers` integrates every frame of a revision (:mod:`driftmap.volume.kernels`). When a revision changes
+poses, :meth:`VolumeLayers.apply` takes out the old contribution of exactly the frames whose points moved (the map
+view's :class:`~driftmap.map.view.ChangeSet`, deskewed neighbours included) and puts in the new one; as every layer
+is an integer sum, the result is bit for bit the layers a rebuild of that revision gives (tests/test_volume.py).
+The distance field and the mesh are derived from these on demand (:mod:`driftmap.volume.distance`,
+:mod:`driftmap.volume.mesh`); the queries a navigation stack asks live in :mod:`driftmap.volume.queries`.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+from numpy.typing import NDArray
+
+from driftmap.errors import ConfigError, StoreError
+from driftmap.frame import SensorKind
+from driftmap.kernels import volume as kernels
+from driftmap.volume.config import VolumeConfig
+from driftmap.volume.grid import BLOCK_RESOLUTION, GridSpec
+from driftmap.volume.observation import Observation, observe
+
+if TYPE_CHECKING:
+    from driftmap.map.view import MapView
+    from driftmap.store.frame_store import FrameStore
+
+logger = logging.getLogger(__name__)
+
+UNKNOWN, FREE, OCCUPIED = np.int8(-1), np.int8(0), np.int8(1)
+"""Voxel states as :meth:`VolumeLayers.states` returns them."""
+STATE_NAMES = {-1: "unknown", 0: "free", 1: "occupied"}
+
+ProgressCallback = Callable[[str, int, int | None], None]
+
+
+@dataclass
+class VolumeChange:
+    """What :meth:`VolumeLayers.apply` changed: the frames re-integrated, the region they cover before and after,
+    and the voxels whose occupancy state changed (flat grid indices and their world centres)."""
+
+    revision_from: int
+    revision_to: int
+    frame_ids: NDArray[np.int64]
+    boxes_m: NDArray[np.float64]
+    """(K, 2, 3) the boxes of the frames' old and new rays (min, max)"""
+    changed_flats: NDArray[np.int64]
+    changed_centers_m: NDArray[np.float64]
+    seconds: float = 0.0
+    rebuilt: bool = False
+    """True when the update fell back to a rebuild (a frame changed that the update could not take out)"""
+
+    @property
+    def n_state_changed(self) -> int:
+        return int(len(self.changed_flats))
+
+
+@dataclass
+class VolumeStats:
+    """Counts of the voxel states and the memory of the layers."""
+
+    occupied: int
+    free: int
+    unknown: int
+    n_voxels: int
+    nbytes: int
+
+    @property
+    def observed(self) -> int:
+        return self.occupied + self.free
+
+    @property
+    def bytes_per_observed_voxel(self) -> float:
+        return self.nbytes / max(self.observed, 1)
+
+
+@dataclass
+class _Arrays:
+    hits: NDArray[np.int32]
+    misses: NDArray[np.int32]
+    mark: NDArray[np.int32]
+    tsdf_sum: NDArray[np.int64]
+    tsdf_count: NDArray[np.int32]
+
+    @classmethod
+    def zeros(cls, n: int) -> _Arrays:
+        return cls(np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.int64),
+                   np.zeros(n, np.int32))
+
+
+@dataclass
+class VolumeLayers:
+    """Occupancy counts and TSDF sums of one revision on a dense grid, with the hit voxels of every frame."""
+
+    config: VolumeConfig
+    grid: GridSpec
+    sensor_kind: SensorKind
+    revision: int
+    arrays: _Arrays
+    frame_hits: dict[int, NDArray[np.int64]] = field(default_factory=dict)
+    """per frame, the lattice keys (flat on the world lattice, see :meth:`_lattice_flat`) of its hit voxels"""
+    view: MapView | None = None
+    hit_batches: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = field(default_factory=list)
+    """(lattice keys, fixed-point coordinate sums (M, 3), point counts) of hit points, per integrated or removed frame
+    (removed: negated), summed by :meth:`hit_means`"""
+    version: int = 0
+    """incremented by every frame integrated or taken out (derived layers are cached per version)"""
+    cache: dict = field(default_factory=dict)
+    _token: int = 0
+    _observers: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
+
+    # --------------------------------------------------------------------------------------------- building
+    @classmethod
+    def from_store(cls, store: FrameStore, revision: int | None = None, config: VolumeConfig | None = None, *,
+                   progress: ProgressCallback | None = None) -> VolumeLayers:
+        """Integrate every frame of ``revision`` (default: the head) of ``store``: the rays of each frame from its
+        sensor origin at that revision's pose (the map view's points: deskewed where frames carry point times)."""
+        from driftmap.map.view import MapView
+        from driftmap.volume.defaults import resolve_config
+
+        if len(store) == 0:
+            raise StoreError(f"{store.path}: the store has no frames: no volumetric layers")
+        rev = store.head if revision is None else revision
+        store.ledger.revision(rev)  # a revision that does not exist: a StoreError naming it, before any work
+        cfg = resolve_config(store, config or VolumeConfig())
+        view = MapView.from_store(store, rev)
+        return cls.from_view(view, store, cfg, progress=progress)
+
+    @classmethod
+    def from_view(cls, view: MapView, store: FrameStore, config: VolumeConfig, *,
+                  progress: ProgressCallback | None = None) -> VolumeLayers:
+        """Layers of the frames of a map view (``config`` resolved)."""
+        tick = progress or (lambda stage, done, total: None)
+        ids = [int(f) for f in view.frame_ids]
+        first = store.frame(ids[0])
+        observations = _observations(view, store, ids, config)
+        lo, hi = _bounds(observations, config)
+        pad = config.padding_m + float(config.truncation_m or 0.0)
+        grid = GridSpec.covering(lo, hi, float(config.voxel_size_m), padding_m=pad, budget_mb=config.memory_budget_mb)
+        layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
+        logger.info("volume: %s for revision %d (%d frames)", grid.describe(), view.revision, len(ids))
+        for n, obs in enumerate(observations):
+            layers._integrate(obs, +1)
+            tick("volume", n + 1, len(ids))
+        return layers
+
+    # ------------------------------------------------------------------------------------------ integration
+    def _next_token(self) -> int:
+        self._token += 1
+        if 2 * self._token + 1 >= 2**31 - 1:
+            self.arrays.mark[:] = 0
+            self._token = 1
+        return self._token
+
+    def _integrate(self, obs: Observation, sign: int) -> None:
+        """Add (``sign`` 1) or take out (-1) one observation; the grid must hold it."""
+        a, g, c = self.arrays, self.grid, self.config
+        origin_index = np.asarray(g.origin_index, dtype=np.int64)
+        shape = np.asarray(g.shape, dtype=np.int64)
+        ends = g.lattice_units(obs.ends_m)
+        hit_flats = np.empty(len(ends), dtype=np.int64)
+        n_hit, _ = kernels.occupancy_update(g.lattice_units(obs.origin_m), ends, obs.is_hit, origin_index, shape,
+                                            a.hits, a.misses, a.mark, self._next_token(), sign, hit_flats)
+        if sign > 0:
+            self.frame_hits[obs.frame_id] = self._lattice_flat(hit_flats[:n_hit])
+        else:
+            self.frame_hits.pop(obs.frame_id, None)
+        self.hit_batches.append(_hit_sums(ends[obs.is_hit], sign))
+        self._observers = None
+        self.version += 1
+        if obs.depth_m is not None and obs.intrinsics is not None:
+            fx, fy, cx, cy = obs.intrinsics
+            blocks = tsdf_blocks(obs, g.voxel_size_m, float(c.truncation_m), c.max_range_m)
+            kernels.tsdf_projective(obs.depth_m, fx, fy, cx, cy, np.linalg.inv(obs.T_world_sensor), blocks,
+                                    BLOCK_RESOLUTION, origin_index, shape, g.voxel_size_m, float(c.truncation_m),
+                                    float(c.max_range_m if c.max_range_m is not None else np.inf), a.tsdf_sum,
+                                    a.tsdf_count, sign)
+        else:
+            hits = ends[obs.is_hit]
+            kernels.tsdf_rays(g.lattice_units(obs.origin_m), hits, origin_index, shape,
+                              float(c.truncation_m) / g.voxel_size_m, a.tsdf_sum, a.tsdf_count, sign)
+
+    def _lattice_flat(self, grid_flats: NDArray[np.int64]) -> NDArray[np.int64]:
+        """Grid flat indices -> lattice keys that survive the grid growing (a 21-bit signed packing per axis)."""
+        idx = self.grid.unflat(grid_flats) + np.asarray(self.grid.origin_index)
+        return _pack(idx)
+
+    def _grid_flat_of_keys(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        idx = _unpack(keys) - np.asarray(self.grid.origin_index)
+        inside = np.all((idx >= 0) & (idx < np.asarray(self.grid.shape)), axis=1)
+        return self.grid.flat(np.where(inside[:, None], idx, 0)), inside
+
+    def _grow_to(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> None:
+        """Reallocate the grid to also hold ``lo .. hi`` (counts copied to their lattice voxels)."""
+        pad = self.config.padding_m + float(self.config.truncation_m or 0.0)
+        new = self.grid.union(lo - pad, hi + pad, budget_mb=self.config.memory_budget_mb)
+        if new == self.grid:
+            return
+        old, arrays = self.grid, _Arrays.zeros(new.n_voxels)
+        off = [a - b for a, b in zip(old.origin_index, new.origin_index)]
+        sl = tuple(slice(o, o + n) for o, n in zip(off, old.shape))
+        for name in ("hits", "misses", "tsdf_sum", "tsdf_count"):
+            getattr(arrays, name).reshape(new.shape)[sl] = getattr(self.arrays, name).reshape(old.shape)
+        logger.info("volume: grid grown from %s to %s", old.describe(), new.describe())
+        self.grid, self.arrays, self._token = new, arrays, 0
+
+    # ------------------------------------------------------------------------------------------- corrections
+    def apply(self, revision: int, store: FrameStore | None = None) -> VolumeChange:
+        """Update the layers to ``revision`` of the store they were built from: the old contribution of every frame
+        whose points move is taken out and the new one put in (a rollback is a revision like any other). Returns the
+        :class:`VolumeChange`; the layers then equal a rebuild of ``revision`` bit for bit."""
+        if self.view is None or store is None:
+            raise ConfigError("VolumeLayers.apply needs the layers' map view and store (build them with from_store)")
+        t0 = time.perf_counter()
+        store.ledger.revision(revision)
+        old_rev = self.revision
+        before = {int(f): self.view.pose(int(f)) for f in self.view.frame_ids}
+        after = store.poses(revision)
+        moved = [int(f) for f, T in zip(store.frame_ids, after) if int(f) in before and not np.array_equal(before[int(f)], T)]
+        candidates = _with_neighbours(moved, [int(f) for f in self.view.frame_ids])
+        old_obs = {fid: self._observe(store, fid) for fid in candidates}
+        changes = self.view.apply(revision)
+        changed = [int(f) for f in changes.frame_ids]
+        missing = [f for f in changed if f not in old_obs]
+        if missing:
+            logger.warning("volume: frames %s changed beyond the moved frames and their neighbours; rebuilding the "
+                           "layers of revision %d", missing[:5], revision)
+            rebuilt = VolumeLayers.from_view(self.view, store, self.config)
+            self.__dict__.update(rebuilt.__dict__)
+            return VolumeChange(old_rev, revision, np.asarray(changed, np.int64), np.zeros((0, 2, 3)),
+                                np.zeros(0, np.int64), np.zeros((0, 3)), time.perf_counter() - t0, rebuilt=True)
+        new_obs = {fid: self._observe(store, fid) for fid in changed}
+        boxes = np.array([[*old_obs[f].bounds_m] for f in changed] + [[*new_obs[f].bounds_m] for f in changed]).reshape(-1, 2, 3)
+        if len(changed):
+            self._grow_to(boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0))
+        region = _region(self.grid, boxes, float(self.config.truncation_m or 0.0))
+        states_before = self.states_flat(region)
+        for fid in changed:
+            self._integrate(old_obs[fid], -1)
+        for fid in changed:
+            self._integrate(new_obs[fid], +1)
+        self.revision = revision
+        states_after = self.states_flat(region)
+        flips = region[states_before != states_after]
+        return VolumeChange(old_rev, revision, np.asarray(changed, np.int64), boxes, flips, self.grid.centers_m(flips),
+                            time.perf_counter() - t0)
+
+    def _observe(self, store: FrameStore, frame_id: int) -> Observation:
+        assert self.view is not None
+        return observe(store.frame(frame_id), self.view.pose(frame_id), self.view.frame_points_world(frame_id), self.config)
+
+    # ------------------------------------------------------------------------------------------------ reading
+    def log_odds_flat(self, flats: NDArray[np.int64]) -> NDArray[np.float64]:
+        """The clamped log-odds of grid voxels (0 where unobserved)."""
+        c = self.config
+        L = self.arrays.hits[flats] * c.log_odds_hit + self.arrays.misses[flats] * c.log_odds_miss
+        return np.clip(L, c.log_odds_min, c.log_odds_max)
+
+    def states_flat(self, flats: NDArray[np.int64]) -> NDArray[np.int8]:
+        """:data:`OCCUPIED` / :data:`FREE` / :data:`UNKNOWN` of grid voxels (flat indices)."""
+        flats = np.asarray(flats, dtype=np.int64)
+        seen = (self.arrays.hits[flats] + self.arrays.misses[flats]) > 0
+        occ = self.log_odds_flat(flats) >= self.config.log_odds_threshold
+        return np.where(seen, np.where(occ, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
+
+    def states(self, points_m: NDArray[np.floating]) -> NDArray[np.int8]:
+        """The state of the voxel holding each world point (outside the grid: unknown)."""
+        idx, inside = self.grid.grid_index(np.atleast_2d(np.asarray(points_m, dtype=np.float64)))
+        out = np.full(len(idx), UNKNOWN, dtype=np.int8)
+        out[inside] = self.states_flat(self.grid.flat(idx[inside]))
+        return out
+
+    def state_grid(self) -> NDArray[np.int8]:
+        """Every voxel's state, shaped as the grid (x, y, z)."""
+        return self.states_flat(np.arange(self.grid.n_voxels, dtype=np.int64)).reshape(self.grid.shape)
+
+    def tsdf_flat(self, flats: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
+        """The TSDF (normalised, -1..1; NaN where unobserved) and its observation count at grid voxels."""
+        count = self.arrays.tsdf_count[flats]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            tsdf = (self.arrays.tsdf_sum[flats] / kernels.TSDF_QUANTUM / count).astype(np.float32)
+        return np.where(count > 0, tsdf, np.float32(np.nan)), count
+
+    def stats(self) -> VolumeStats:
+        s = self.state_grid().ravel()
+        counts = np.bincount(s.astype(np.int64) + 1, minlength=3)
+        return VolumeStats(int(counts[2]), int(counts[1]), int(counts[0]), self.grid.n_voxels, self.grid.nbytes)
+
+    def observers(self, points_m: NDArray[np.floating]) -> list[NDArray[np.int64]]:
+        """For each world point, the frames whose rays ended in its voxel (the frames behind an occupied voxel)."""
+        if self._observers is None:
+            fids = np.concatenate([np.full(len(k), f, np.int64) for f, k in self.frame_hits.items()] or [np.zeros(0, np.int64)])
+            keys = np.concatenate(list(self.frame_hits.values()) or [np.zeros(0, np.int64)])
+            order = np.lexsort((fids, keys))
+            self._observers = (keys[order], fids[order])
+        keys, fids = self._observers
+        q = _pack(self.grid.lattice_index(np.atleast_2d(np.asarray(points_m, dtype=np.float64))))
+        lo, hi = np.searchsorted(keys, q, "left"), np.searchsorted(keys, q, "right")
+        return [fids[a:b] for a, b in zip(lo, hi)]
+
+    def hit_means(self) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+        """Per voxel that a point ended in: its lattice key, the mean of those points (metres) and how many there
+        were (integer sums over the frames, so equal after corrections to a rebuild)."""
+        cached = self.cache.get("hit_means")
+        if cached is not None and cached[0] == self.version:
+            return cached[1]
+        keys = np.concatenate([b[0] for b in self.hit_batches] or [np.zeros(0, np.int64)])
+        sums = np.concatenate([b[1] for b in self.hit_batches] or [np.zeros((0, 3), np.int64)])
+        counts = np.concatenate([b[2] for b in self.hit_batches] or [np.zeros(0, np.int64)])
+        uniq, inv = np.unique(keys, return_inverse=True)
+        total = np.zeros((len(uniq), 3), np.int64)
+        np.add.at(total, inv, sums)
+        n = np.bincount(inv, weights=counts, minlength=len(uniq)).astype(np.int64)
+        keep = n > 0
+        uniq, total, n = uniq[keep], total[keep], n[keep]
+        self.hit_batches = [(uniq, total, n)]  # consolidated
+        means = total / HIT_FIXED_POINT / n[:, None] * self.grid.voxel_size_m
+        self.cache["hit_means"] = (self.version, (uniq, means, n))
+        return uniq, means, n
+
+    # --------------------------------------------------------------------------------- derived layers, queries
+    def mesh(self, weight_threshold: float | None = None):  # noqa: ANN201 - an open3d.geometry.TriangleMesh
+        """The TSDF's triangle mesh (:func:`driftmap.volume.mesh.triangle_mesh`)."""
+        from driftmap.volume.mesh import DEFAULT_WEIGHT_THRESHOLD, triangle_mesh
+
+        return triangle_mesh(self, DEFAULT_WEIGHT_THRESHOLD if weight_threshold is None else weight_threshold)
+
+    def clearance_m(self, points_m: NDArray[np.floating], unknown_is: str | None = None) -> NDArray[np.float64]:
+        """Distance to the nearest obstacle at each point (:func:`driftmap.volume.queries.clearance_m`)."""
+        from driftmap.volume.queries import clearance_m
+
+        return clearance_m(self, points_m, unknown_is)
+
+    def sweep(self, path_m: NDArray[np.floating], **footprint: object):  # noqa: ANN201 - a SweepResult
+        """The first contact or unknown voxel of a footprint along a path (:func:`driftmap.volume.queries.sweep`)."""
+        from driftmap.volume.queries import sweep
+
+        return sweep(self, path_m, **footprint)  # type: ignore[arg-type]
+
+    def equals(self, other: VolumeLayers) -> bool:
+        """Bit-for-bit equal layers over the union of both grids (voxels outside a grid count as unobserved)."""
+        lo = np.minimum(self.grid.min_m, other.grid.min_m)
+        hi = np.maximum(self.grid.max_m, other.grid.max_m) - 0.5 * self.grid.voxel_size_m
+        common = GridSpec.covering(lo, hi, self.grid.voxel_size_m)
+        return all(np.array_equal(_on(self, common, n), _on(other, common, n))
+                   for n in ("hits", "misses", "tsdf_sum", "tsdf_count"))
+
+
+# ---------------------------------------------------------------------------------------------------- helpers
+def _observations(view: MapView, store: FrameStore, ids: Iterable[int], config: VolumeConfig) -> list[Observation]:
+    return [observe(store.frame(f), view.pose(f), view.frame_points_world(f), config) for f in ids]
+
+
+def _bounds(observations: list[Observation], config: VolumeConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    lo = np.min([o.bounds_m[0] for o in observations], axis=0)
+    hi = np.max([o.bounds_m[1] for o in observations], axis=0)
+    return lo, hi
+
+
+def tsdf_blocks(obs: Observation, voxel_size_m: float, truncation_m: float, max_range_m: float | None) -> NDArray[np.int32]:
+    """The lattice blocks a depth image's TSDF touches: Open3D's ``compute_unique_block_coordinates`` of the image
+    (every block within ``truncation_m`` of a measured depth along its ray), so that the samples updated are
+    Open3D's."""
+    assert obs.depth_m is not None and obs.intrinsics is not None
+    fx, fy, cx, cy = obs.intrinsics
+    K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+    E = o3c.Tensor(np.linalg.inv(obs.T_world_sensor))
+    depth_max = float(max_range_m) if max_range_m is not None else float(np.max(obs.depth_m)) + 1.0
+    blocks = _block_finder(voxel_size_m).compute_unique_block_coordinates(
+        o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(obs.depth_m))), K, E, 1.0, depth_max,
+        truncation_m / voxel_size_m)
+    return blocks.numpy()  # int32 (N, 3), as Open3D gives them
+
+
+@functools.lru_cache(maxsize=8)
+def _block_finder(voxel_size_m: float) -> o3d.t.geometry.VoxelBlockGrid:
+    """An empty Open3D grid of this voxel size, used only for its block selection."""
+    return o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
+                                         attr_channels=((1), (1)), voxel_size=voxel_size_m,
+                                         block_resolution=BLOCK_RESOLUTION, block_count=1, device=o3c.Device("CPU:0"))
+
+
+def _with_neighbours(moved: list[int], order: list[int]) -> set[int]:
+    """The moved frames and their neighbours in frame order (a deskewed frame moves with its neighbour's pose)."""
+    pos = {f: k for k, f in enumerate(order)}
+    out = set(moved)
+    for f in moved:
+        k = pos.get(f)
+        if k is not None:
+            out.update(order[max(0, k - 1):k + 2])
+    return out
+
+
+def _region(grid: GridSpec, boxes: NDArray[np.float64], margin_m: float) -> NDArray[np.int64]:
+    """Flat indices of the grid voxels inside any of ``boxes`` (grown by ``margin_m``)."""
+    if len(boxes) == 0:
+        return np.zeros(0, np.int64)
+    mask = np.zeros(grid.shape, dtype=bool)
+    for lo, hi in boxes:
+        a, _ = grid.grid_index((lo - margin_m)[None])
+        b, _ = grid.grid_index((hi + margin_m)[None])
+        a, b = np.clip(a[0], 0, np.asarray(grid.shape) - 1), np.clip(b[0], 0, np.asarray(grid.shape) - 1)
+        mask[a[0]:b[0] + 1, a[1]:b[1] + 1, a[2]:b[2] + 1] = True
+    return np.flatnonzero(mask.ravel())
+
+
+HIT_FIXED_POINT = float(2**16)
+"""Hit coordinates are summed in lattice units times this, as int64 (exact, order-free sums)."""
+
+
+def _hit_sums(ends_lattice: NDArray[np.float64], sign: int) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Per lattice voxel of the hit points (lattice units): key, fixed-point coordinate sum, count (times ``sign``)."""
+    if len(ends_lattice) == 0:
+        return np.zeros(0, np.int64), np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    keys = _pack(np.floor(ends_lattice).astype(np.int64))
+    fixed = np.rint(ends_lattice * HIT_FIXED_POINT).astype(np.int64)
+    uniq, inv = np.unique(keys, return_inverse=True)
+    sums = np.zeros((len(uniq), 3), np.int64)
+    np.add.at(sums, inv, fixed)
+    return uniq, sign * sums, sign * np.bincount(inv, minlength=len(uniq)).astype(np.int64)
+
+
+_KEY_BITS = 21
+_KEY_OFFSET = 1 << (_KEY_BITS - 1)
+
+
+def _pack(idx: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(N, 3) lattice voxels -> one int64 each (21 bits per axis, +-2^20 voxels)."""
+    u = np.asarray(idx, dtype=np.int64) + _KEY_OFFSET
+    if len(u) and (u.min() < 0 or u.max() >= (1 << _KEY_BITS)):
+        raise ConfigError("volume: lattice index beyond +-2^20 voxels (voxel_size_m too small for the map extent)")
+    return (u[:, 0] << (2 * _KEY_BITS)) | (u[:, 1] << _KEY_BITS) | u[:, 2]
+
+
+def _unpack(keys: NDArray[np.int64]) -> NDArray[np.int64]:
+    mask = (1 << _KEY_BITS) - 1
+    k = np.asarray(keys, dtype=np.int64)
+    return np.stack([(k >> (2 * _KEY_BITS)) & mask, (k >> _KEY_BITS) & mask, k & mask], axis=-1) - _KEY_OFFSET
+
+
+def _on(layers: VolumeLayers, grid: GridSpec, name: str) -> NDArray:
+    """One array of ``layers`` placed on ``grid`` (zeros outside its own grid)."""
+    src = getattr(layers.arrays, name).reshape(layers.grid.shape)
+    out = np.zeros(grid.shape, dtype=src.dtype)
+    off = [a - b for a, b in zip(layers.grid.origin_index, grid.origin_index)]
+    out[tuple(slice(o, o + n) for o, n in zip(off, layers.grid.shape))] = src
+    return out

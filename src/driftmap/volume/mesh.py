@@ -1,0 +1,66 @@
+"""The TSDF's triangle mesh, extracted by Open3D's marching cubes.
+
+driftmap's TSDF (:mod:`driftmap.volume.kernels`) is Open3D's, summed in integers so that frames can be taken out;
+its values are loaded into an Open3D ``VoxelBlockGrid`` (the blocks that hold an observation) and the library
+extracts the mesh, as it would from a grid it had integrated itself.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import open3d as o3d
+import open3d.core as o3c
+
+from driftmap.kernels.volume import TSDF_QUANTUM
+from driftmap.volume.grid import BLOCK_RESOLUTION
+
+if TYPE_CHECKING:
+    from driftmap.volume.layers import VolumeLayers
+
+DEFAULT_WEIGHT_THRESHOLD = 3.0
+"""Marching cubes uses samples observed at least this many times (Open3D's default for ``extract_triangle_mesh``)."""
+
+
+def to_voxel_block_grid(layers: VolumeLayers) -> o3d.t.geometry.VoxelBlockGrid:
+    """An Open3D ``VoxelBlockGrid`` (``tsdf``, ``weight``; 8^3 blocks) holding the layers' TSDF: the blocks with an
+    observation, each sample's TSDF and its observation count as weight."""
+    g = layers.grid
+    R = BLOCK_RESOLUTION
+    count = layers.arrays.tsdf_count.reshape(g.shape)
+    nb = tuple(s // R for s in g.shape)
+    # (bx, by, bz, x, y, z) view of the grid: which blocks hold an observation
+    blocked = count.reshape(nb[0], R, nb[1], R, nb[2], R)
+    active = np.argwhere(blocked.max(axis=(1, 3, 5)) > 0)
+    vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight"), attr_dtypes=(o3c.float32, o3c.float32),
+                                        attr_channels=((1), (1)), voxel_size=g.voxel_size_m, block_resolution=R,
+                                        block_count=max(len(active), 1), device=o3c.Device("CPU:0"))
+    if len(active) == 0:
+        return vbg
+    keys = active + np.asarray(g.origin_index, dtype=np.int64) // R
+    buf, _ = vbg.hashmap().activate(o3c.Tensor(keys.astype(np.int32)))
+    tsdf_sum = layers.arrays.tsdf_sum.reshape(nb[0], R, nb[1], R, nb[2], R)
+    counts = blocked
+    bx, by, bz = active.T
+    # per block (x, y, z) -> Open3D's (z, y, x) layout inside a block
+    block_counts = counts[bx, :, by, :, bz, :].astype(np.float32)           # (M, R, R, R) as (x, y, z)
+    block_sums = tsdf_sum[bx, :, by, :, bz, :]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        block_tsdf = np.where(block_counts > 0, block_sums / TSDF_QUANTUM / np.maximum(block_counts, 1), 0.0).astype(np.float32)
+    tsdf_attr = vbg.attribute("tsdf").numpy()
+    weight_attr = vbg.attribute("weight").numpy()
+    slots = buf.numpy().astype(np.int64)
+    tsdf_attr[slots] = np.transpose(block_tsdf, (0, 3, 2, 1))[..., None]
+    weight_attr[slots] = np.transpose(block_counts, (0, 3, 2, 1))[..., None]
+    vbg.attribute("tsdf")[:] = o3c.Tensor(tsdf_attr)
+    vbg.attribute("weight")[:] = o3c.Tensor(weight_attr)
+    return vbg
+
+
+def triangle_mesh(layers: VolumeLayers, weight_threshold: float = DEFAULT_WEIGHT_THRESHOLD) -> o3d.geometry.TriangleMesh:
+    """The TSDF's zero surface as a triangle mesh (world frame, metres); empty when nothing was observed."""
+    vbg = to_voxel_block_grid(layers)
+    if vbg.hashmap().size() == 0:
+        return o3d.geometry.TriangleMesh()
+    return vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()

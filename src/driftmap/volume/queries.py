@@ -1,0 +1,181 @@
+"""What a navigation stack asks the volumetric layers: the state of points, their clearance, and a swept check of a
+footprint along a path.
+
+Clearance is the Euclidean distance (metres) to the nearest obstacle: the nearest *observed surface* -- the mean of
+the points that ended in an occupied voxel (sub-voxel: a voxel centre is up to 0.87 voxel from the surface in it)
+that at least ``surface_min_hits`` points ended in --
+and, with ``unknown_is = occupied`` (the default), the nearest never-observed voxel too (its nearest face: centre
+distance minus half a voxel), so that a planner does not route through what nobody saw. Surfaces are found with a
+KD-tree (SciPy), unknown space with SciPy's exact EDT (``scipy.ndimage.distance_transform_edt``); both are cached
+until the layers change. :func:`distance_field` evaluates it at every voxel (for exports and views).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from driftmap.errors import ConfigError
+from driftmap.volume.config import UnknownIs
+
+if TYPE_CHECKING:
+    from driftmap.volume.layers import VolumeLayers
+
+OCCUPIED, FREE, UNKNOWN = 1, 0, -1
+
+
+def _policy(layers: VolumeLayers, unknown_is: UnknownIs | str | None) -> UnknownIs:
+    return UnknownIs(unknown_is) if unknown_is is not None else layers.config.unknown_is
+
+
+def _cached(layers: VolumeLayers, name: str, build):  # noqa: ANN001, ANN202 - a small memo per layers version
+    hit = layers.cache.get(name)
+    if hit is not None and hit[0] == layers.version:
+        return hit[1]
+    value = build()
+    layers.cache[name] = (layers.version, value)
+    return value
+
+
+def surface_tree(layers: VolumeLayers) -> cKDTree | None:
+    """A KD-tree of the observed surface: the mean point of every occupied voxel at least ``surface_min_hits``
+    points ended in (None when there is none)."""
+    def build() -> cKDTree | None:
+        keys, means, n = layers.hit_means()
+        if len(keys) == 0:
+            return None
+        occupied = (layers.states(means) == OCCUPIED) & (n >= layers.config.surface_min_hits)
+        return cKDTree(means[occupied]) if occupied.any() else None
+    return _cached(layers, "surface_tree", build)
+
+
+def unknown_distance_grid(layers: VolumeLayers) -> NDArray[np.float32]:
+    """Per grid voxel, the distance (metres) from its centre to the nearest face of a never-observed voxel (0 in one)."""
+    def build() -> NDArray[np.float32]:
+        unknown = layers.state_grid() == UNKNOWN
+        if not unknown.any():
+            return np.full(layers.grid.shape, np.inf, dtype=np.float32)
+        d = ndimage.distance_transform_edt(~unknown, sampling=layers.grid.voxel_size_m)
+        return np.where(unknown, 0.0, np.maximum(d - 0.5 * layers.grid.voxel_size_m, 0.0)).astype(np.float32)
+    return _cached(layers, "unknown_distance", build)
+
+
+def clearance_m(layers: VolumeLayers, points_m: ArrayLike, unknown_is: UnknownIs | str | None = None) -> NDArray[np.float64]:
+    """Clearance (metres) at each world point: the distance to the nearest observed surface and, when unknown space
+    is an obstacle, to the nearest unknown voxel (outside the grid: 0); with ``unknown_is = free`` unknown space
+    does not count (infinity where nothing was ever occupied)."""
+    pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+    if pts.shape[1:] != (3,) or not np.all(np.isfinite(pts)):
+        raise ConfigError(f"clearance_m: points must be finite (N, 3), got shape {pts.shape}")
+    tree = surface_tree(layers)
+    out = tree.query(pts)[0] if tree is not None else np.full(len(pts), np.inf)
+    if _policy(layers, unknown_is) is UnknownIs.OCCUPIED:
+        idx, inside = layers.grid.grid_index(pts)
+        unknown = np.zeros(len(pts))
+        unknown[inside] = unknown_distance_grid(layers)[tuple(idx[inside].T)]
+        out = np.minimum(out, unknown)
+    return out
+
+
+@dataclass
+class DistanceField:
+    """Clearance of every grid voxel centre (metres) under an unknown-space policy."""
+
+    clearance_m: NDArray[np.float32]
+    """shaped as the grid"""
+    unknown_is: UnknownIs
+    revision: int
+
+
+def distance_field(layers: VolumeLayers, unknown_is: UnknownIs | str | None = None) -> DistanceField:
+    """:func:`clearance_m` at every voxel centre of the grid (cached per policy until the layers change)."""
+    policy = _policy(layers, unknown_is)
+
+    def build() -> DistanceField:
+        centres = layers.grid.centers_m(np.arange(layers.grid.n_voxels, dtype=np.int64))
+        values = clearance_m(layers, centres, policy).astype(np.float32).reshape(layers.grid.shape)
+        return DistanceField(values, policy, layers.revision)
+    return _cached(layers, f"distance_field_{policy.value}", build)
+
+
+@dataclass
+class SweepResult:
+    """The first voxel a footprint swept along a path meets that is occupied (``contact``) or never observed
+    (``unknown``), or ``clear``."""
+
+    outcome: str
+    """clear | contact | unknown"""
+    distance_m: float | None
+    """along the path, to where the footprint first met the voxel"""
+    voxel_center_m: NDArray[np.float64] | None
+    frames: NDArray[np.int64]
+    """the frames whose rays ended in that voxel (empty for unknown space)"""
+
+
+def sweep(layers: VolumeLayers, path_m: ArrayLike, *, radius_m: float | None = None,
+          box_m: ArrayLike | None = None, step_m: float | None = None) -> SweepResult:
+    """Move a sphere (``radius_m``) or an axis-aligned box (``box_m``: edge lengths x, y, z) along the polyline
+    ``path_m`` (K >= 2 points) in steps of ``step_m`` (default half a voxel) and return the first voxel inside the
+    footprint that is occupied or unknown (whichever comes first along the path)."""
+    path = np.asarray(path_m, dtype=np.float64)
+    if path.ndim != 2 or path.shape[1] != 3 or len(path) < 2 or not np.all(np.isfinite(path)):
+        raise ConfigError(f"sweep: the path must be K >= 2 finite points (K, 3), got shape {path.shape}")
+    offsets = _footprint_offsets(layers.grid.voxel_size_m, radius_m, box_m)
+    step = step_m if step_m is not None else 0.5 * layers.grid.voxel_size_m
+    if not step > 0:
+        raise ConfigError(f"sweep: step_m must be positive, got {step}")
+    samples, along = _samples(path, step)
+    for s, d in zip(samples, along):
+        cells = s + offsets
+        states = layers.states(cells)
+        hit = np.flatnonzero(states != FREE)
+        if len(hit):
+            k = hit[np.argmax(states[hit] == OCCUPIED)] if np.any(states[hit] == OCCUPIED) else hit[0]
+            idx, inside = layers.grid.grid_index(cells[k][None])
+            centre = layers.grid.centers_m(layers.grid.flat(idx))[0] if inside[0] else cells[k]
+            outcome = "contact" if states[k] == OCCUPIED else "unknown"
+            frames = layers.observers(cells[k][None])[0] if outcome == "contact" else np.zeros(0, np.int64)
+            return SweepResult(outcome, float(d), np.asarray(centre, dtype=np.float64), frames)
+    return SweepResult("clear", None, None, np.zeros(0, np.int64))
+
+
+def _footprint_offsets(voxel_size_m: float, radius_m: float | None, box_m: ArrayLike | None) -> NDArray[np.float64]:
+    """World offsets, one per voxel of the footprint, on the voxel lattice around the sample point."""
+    if (radius_m is None) == (box_m is None):
+        raise ConfigError("sweep: give either radius_m (a sphere) or box_m (a box), not both")
+    if radius_m is not None:
+        if not (np.isfinite(radius_m) and radius_m >= 0):
+            raise ConfigError(f"sweep: radius_m must be finite and >= 0, got {radius_m}")
+        half = np.full(3, float(radius_m))
+    else:
+        box = np.asarray(box_m, dtype=np.float64)
+        if box.shape != (3,) or not np.all(np.isfinite(box)) or np.any(box < 0):
+            raise ConfigError(f"sweep: box_m must be three finite edge lengths >= 0, got {box_m!r}")
+        half = 0.5 * box
+    n = np.ceil(half / voxel_size_m).astype(int)
+    grid = np.stack(np.meshgrid(*[np.arange(-k, k + 1) for k in n], indexing="ij"), axis=-1).reshape(-1, 3)
+    offsets = grid * voxel_size_m
+    if radius_m is not None:
+        offsets = offsets[np.linalg.norm(offsets, axis=1) <= radius_m + 1e-9]
+    else:
+        offsets = offsets[np.all(np.abs(offsets) <= half + 1e-9, axis=1)]
+    return offsets
+
+
+def _samples(path: NDArray[np.float64], step_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points every ``step_m`` along the polyline (its vertices included) and their distance along it."""
+    pts, dist = [path[0]], [0.0]
+    travelled = 0.0
+    for a, b in zip(path[:-1], path[1:]):
+        seg = float(np.linalg.norm(b - a))
+        n = max(1, int(np.ceil(seg / step_m)))
+        for k in range(1, n + 1):
+            pts.append(a + (b - a) * (k / n))
+            dist.append(travelled + seg * k / n)
+        travelled += seg
+    return np.asarray(pts), np.asarray(dist)
