@@ -18,7 +18,8 @@ from driftmap.demo import embedded_log_path
 from driftmap.diagnostics import perturb
 from driftmap.diagnostics.attribution import AttributionConfig, FrameAlignment, attribute, drift_rate, segment_errors
 from driftmap.diagnostics.double_wall import DiagnosticCloud, DoubleWallConfig, SamplingConfig, detect_double_walls, map_entropy
-from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth
+from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+from driftmap.pipeline.pose_files import read_ground_truth
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame, PoseEstimate, SensorKind

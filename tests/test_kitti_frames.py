@@ -24,7 +24,8 @@ from driftmap import geometry
 from driftmap.cli import app
 from driftmap.errors import ConfigError
 from driftmap.pipeline.build import build
-from driftmap.sources.kitti import kitti_origin_of_store, read_calib_tr, velo_poses_from_cam0
+from driftmap.pipeline.pose_files import kitti_origin_of_store
+from driftmap.sources.kitti import read_calib_tr, velo_poses_from_cam0
 from driftmap.store.frame_store import FrameStore
 from driftmap.trajectory import Trajectory, read_kitti, write_kitti
 

@@ -284,7 +284,8 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
     nothing revisited: smearing 0 for the drifting odometry and for the ground truth alike. Scans that reach
     < 25 m are diagnosed with the indoor lengths: the drifting odometry's loop wall and its 3 cm step at frame
     30 show, the ground-truth map is clean, and a KITTI store keeps the outdoor settings."""
-    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store, read_ground_truth
+    from driftmap.diagnostics.report import DiagnoseConfig, diagnose_store
+    from driftmap.pipeline.pose_files import import_pose_file, read_ground_truth
     from driftmap.pipeline.build import build
     from driftmap.store.frame_store import FrameStore
     from driftmap.trajectory import write_tum
@@ -301,7 +302,7 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
     convert(lidar_log, tmp_path / "lidar.mcap", sensor="lidar")  # through an MCAP: the log is still known
     build(tmp_path / "lidar.mcap", tmp_path / "via_mcap", loop_closure=False)
     with FrameStore.open(tmp_path / "via_mcap", "a") as store:
-        store.import_poses(lidar_log / "groundtruth.txt", format="tum")
+        import_pose_file(store, lidar_log / "groundtruth.txt", format="tum")
         np.testing.assert_allclose(store.poses(1), log.ground_truth().poses, rtol=0, atol=1e-6)
     write_tum(tmp_path / "gt.tum", log.ground_truth())  # the LiDAR's own poses in a file: taken as they are
     build(lidar_log, tmp_path / "gt2", poses_file=tmp_path / "gt.tum", loop_closure=False, source_options={"sensor": "lidar"})
@@ -309,7 +310,7 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
         np.testing.assert_allclose(store.poses(0), log.ground_truth().poses, rtol=0, atol=1e-6)
     build(lidar_log, tmp_path / "odo", poses_from_source=True, loop_closure=False, source_options={"sensor": "lidar"})
     with FrameStore.open(tmp_path / "odo", "a") as store:  # correct / diagnose --gt convert the file as well
-        store.import_poses(lidar_log / "groundtruth.txt", format="tum")
+        import_pose_file(store, lidar_log / "groundtruth.txt", format="tum")
         np.testing.assert_allclose(store.poses(1), log.ground_truth().poses, rtol=0, atol=1e-6)
         store.rollback(0)  # the head is the odometry again
         ids, poses = read_ground_truth(store, lidar_log / "groundtruth.txt")

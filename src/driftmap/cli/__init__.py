@@ -14,9 +14,11 @@ import sys
 from rich.text import Text
 
 # the command modules register their commands on import, in the order --help lists them
-from driftmap.cli import build_cmds  # noqa: F401, I001
-from driftmap.cli import store_cmds  # noqa: F401, I001
-from driftmap.cli import diagnose_cmds  # noqa: F401, I001
+# isort: off
+from driftmap.cli import build_cmds  # noqa: F401
+from driftmap.cli import store_cmds  # noqa: F401
+from driftmap.cli import diagnose_cmds  # noqa: F401
+# isort: on
 from driftmap.cli.common import app, err_console, state
 from driftmap.errors import DriftmapError
 

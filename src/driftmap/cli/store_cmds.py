@@ -38,13 +38,14 @@ def correct(
 ) -> None:
     """Import a pose file as a new revision (a correction); nothing is overwritten."""
     from driftmap.frame import PoseSource
+    from driftmap.pipeline.pose_files import import_pose_file
     from driftmap.store.frame_store import TrajectoryFormat
 
     format = choice(format, tuple(f.value for f in TrajectoryFormat), "--format")
     match = None if match is None else choice(match, ("stamp", "index"), "--match")
     source = choice(source, tuple(s.value for s in PoseSource if s is not PoseSource.NONE), "--source")
     with open_store(store_path, "a") as store:
-        revision, matched = store.import_poses(poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
+        revision, matched = import_pose_file(store, poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
                                                source=source, propagate=not no_propagate, kitti_frame=kitti_frame,
                                                calib_file=calib)
         d = store.diff(revision.parent_id, revision.revision_id)

@@ -185,7 +185,7 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
                    noise: NoiseModel | None = None) -> Diagnosis:
     """Diagnose a store's map in ``revision`` (default: head): sample it (unless ``cloud`` reuses samples across
     revisions), then :func:`diagnose_cloud` with the revision's poses. ``ground_truth`` is ``(frame_ids, poses)``
-    as from :func:`~driftmap.diagnostics.ground_truth.read_ground_truth`."""
+    as from :func:`~driftmap.pipeline.pose_files.read_ground_truth`."""
     rev = store.head if revision is None else int(revision)
     store.ledger.revision(rev)  # raises for an unknown revision
     if len(store) == 0:

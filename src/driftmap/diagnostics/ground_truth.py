@@ -1,24 +1,18 @@
-"""Ground truth for a diagnosis: reading a ground-truth trajectory for a store's frames, and how far poses are
-from it (ATE, RPE, KITTI segment errors). Only a diagnosis with ``--gt`` uses this; every other measure of
+"""Ground truth for a diagnosis: how far poses are from it (ATE, RPE, KITTI segment errors); reading a ground-truth
+file for a store's frames is :func:`driftmap.pipeline.pose_files.read_ground_truth`. Only a diagnosis with ``--gt`` uses this; every other measure of
 :mod:`driftmap.diagnostics` works without ground truth."""
 
 from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
 from driftmap.diagnostics.trajectory_metrics import project_rotations, relative_pose_errors, trajectory_errors
-from driftmap.errors import ConfigError, StoreError
-from driftmap.trajectory import Trajectory, has_stamps, read_trajectory
-
-if TYPE_CHECKING:
-    from driftmap.store.frame_store import FrameStore
+from driftmap.errors import ConfigError
 
 logger = logging.getLogger(__name__)
 
@@ -27,41 +21,6 @@ MIN_GT_FRAMES = 3
 
 #: formats of ``diagnose --gt`` (``--gt-format``)
 GT_FORMATS = ("tum", "kitti", "redwood", "4x4")
-
-
-def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,
-                      max_dt_ns: int = 10_000_000, kitti_frame: str = "auto",
-                      calib_file: str | Path | None = None) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
-    """Ground-truth poses for the store's frames: TUM rows (and 4x4 blocks with stamps) matched by stamp, KITTI
-    rows (and 4x4 blocks without stamps) row i = ``frame_id`` i, Redwood ``.log`` blocks by the frame id they name.
-
-    Returns the matched frame ids and their poses; the file must hold ``T_world_sensor`` of the same sensor
-    frame, except that on a store of KITTI Velodyne scans a KITTI data set's own cam0 ``poses.txt`` is
-    converted to the Velodyne frame (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0`` and ``calib_file`` as
-    in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne`).
-    """
-    from driftmap.store.ledger import PoseMatchMode, match_pose_rows, stamp_ranges_text
-
-    fmt = format.lower()
-    if fmt not in GT_FORMATS:
-        raise ConfigError(f"--gt-format must be one of {', '.join(GT_FORMATS)}, got {format!r}")
-    if fmt != "kitti" and (kitti_frame != "auto" or calib_file is not None):
-        raise ConfigError(f"{path}: --kitti-frame / --calib apply to KITTI ground truth only (--gt-format kitti)")
-    traj: Trajectory = read_trajectory(path, fmt)
-    traj = store.pose_rows_in_sensor_frame(path, traj, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
-    mode = PoseMatchMode.STAMP if has_stamps(traj, fmt) else PoseMatchMode.INDEX
-    matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
-    if not matched.poses:
-        why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
-        raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")
-    if len(matched.poses) < MIN_GT_FRAMES:  # found before the costly diagnosis, not after it
-        raise StoreError(f"{path}: ground truth matched only {len(matched.poses)} of the {len(store.ledger.frame_ids)} "
-                         f"stored frames (by {mode.value}); ATE/RPE need at least {MIN_GT_FRAMES}")
-    if matched.unmatched_frames:
-        logger.warning("%s: %d stored frames have no ground-truth pose; they are left out of ATE/RPE", path,
-                       len(matched.unmatched_frames))
-    ids = np.array(sorted(matched.poses), dtype=np.int64)
-    return ids, np.array([matched.poses[int(i)] for i in ids])
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,8 @@ This module is the front door; the work is done in (and re-exported from):
 * :mod:`driftmap.diagnostics.diagnose_config`: :class:`DiagnoseConfig` and its per-sensor / per-scene defaults;
 * :mod:`driftmap.diagnostics.diagnosis`: the run (:func:`diagnose_store`, :func:`diagnose_cloud`) and its result
   :class:`Diagnosis` with the JSON contract; no file is written there;
-* :mod:`driftmap.diagnostics.ground_truth`: :func:`read_ground_truth` and the ATE / RPE / segment errors;
+* :mod:`driftmap.diagnostics.ground_truth`: the ATE / RPE / segment errors (reading a ground-truth file:
+  :func:`driftmap.pipeline.pose_files.read_ground_truth`);
 * :mod:`driftmap.diagnostics.figures`: the PNG figures (:func:`write_report`).
 """
 
@@ -24,7 +25,7 @@ from driftmap.diagnostics.diagnose_config import DiagnoseConfig, EntropyConfig
 from driftmap.diagnostics.diagnosis import Diagnosis, diagnose_cloud, diagnose_store
 from driftmap.diagnostics.entropy import MapEntropy
 from driftmap.diagnostics.figures import plot_double_walls, plot_frame_disagreement, plot_score_comparison, write_report
-from driftmap.diagnostics.ground_truth import GT_FORMATS, MIN_GT_FRAMES, read_ground_truth
+from driftmap.diagnostics.ground_truth import GT_FORMATS, MIN_GT_FRAMES
 from driftmap.preprocess.noise import NoiseModel
 from driftmap.diagnostics.samples import DiagnosticCloud, PlacedCloud, SamplingConfig
 from driftmap.diagnostics.verify import RegionCheck
@@ -54,6 +55,5 @@ __all__ = [  # the run, its config, figures, ground truth, and the types of its 
     "plot_double_walls",
     "plot_frame_disagreement",
     "plot_score_comparison",
-    "read_ground_truth",
     "write_report",
 ]

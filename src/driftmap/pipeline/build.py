@@ -53,8 +53,9 @@ from driftmap.pipeline.source_options import (
 )
 from driftmap.preprocess.scene import lidar_frames, sample_positions, scene_reach
 from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, OdometryConfig, make_odometry
-from driftmap.sources.base import BUILD_SOURCE_FILE, FrameSource
+from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
+from driftmap.store.layout import BUILD_SOURCE_FILE
 
 __all__ = [  # the names other modules and users take from here (several live in the sibling modules now)
     "BUILD_SOURCE_FILE", "DEFAULT_POSES_MAX_DT_NS", "SOURCE_OPTION_FLAGS", "BuildConfig", "BuildResult",

@@ -21,10 +21,10 @@ from driftmap.diagnostics.report import (
     DiagnoseConfig,
     Diagnosis,
     diagnose_store,
-    read_ground_truth,
     write_report,
 )
 from driftmap.errors import ConfigError, DriftmapError
+from driftmap.pipeline.pose_files import read_ground_truth
 from driftmap.store.frame_store import FrameStore
 
 ProgressCallback = Callable[[str, int, int | None], None]

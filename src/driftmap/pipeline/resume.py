@@ -13,8 +13,9 @@ from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import PoseSource
 from driftmap.pipeline.source_options import DEPTH_OPTION_SETTINGS, show_source_option
 from driftmap.registration.odometry import OdometryConfig
-from driftmap.sources.base import BUILD_SOURCE_FILE, FrameSource
+from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
+from driftmap.store.layout import BUILD_SOURCE_FILE
 
 logger = logging.getLogger(__name__)
 

@@ -12,7 +12,6 @@ and contents (or ``format=``) and names every format it tried when none fits.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from collections.abc import Callable, Iterator
@@ -20,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from driftmap.errors import DriftmapError, SourceError
+from driftmap.errors import SourceError
 from driftmap.frame import Frame
 from driftmap.trajectory import Trajectory
 
@@ -166,50 +165,6 @@ def same_file_or_copy(a: str | Path, b: str | Path) -> bool:
         return a.resolve() == b.resolve() or (a.stat().st_size == b.stat().st_size and a.read_bytes() == b.read_bytes())
     except OSError:
         return False
-
-
-#: beside a store: what it was built from (path, format, options), written by ``build``
-BUILD_SOURCE_FILE = "build_source.json"
-
-
-def store_origin(store_dir: str | Path) -> dict[str, Any] | None:
-    """The data set a store's frames come from, ``{"format", "path", "options"}``: the source in its
-    ``build_source.json``, or, when that is a log converted from another data set (an MCAP ``driftmap convert``
-    wrote), the data set it names. ``None`` without a (readable) record."""
-    try:
-        record = json.loads((Path(store_dir) / BUILD_SOURCE_FILE).read_text())
-        fmt = registered_formats().get(str(record.get("format")))
-        path = Path(record["path"])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
-        return None
-    if fmt is not None and fmt.origin_of is not None:
-        named = fmt.origin_of(path)
-        if named is not None:
-            return named
-    return {"format": str(record.get("format")), "path": str(path), "options": record.get("source_options") or {}}
-
-
-def pose_file_in_store_sensor_frame(store_dir: str | Path, poses_file: str | Path, trajectory: Trajectory) -> Trajectory:
-    """:meth:`FrameSource.pose_file_in_sensor_frame` for a store's frames (``correct --poses``, ``diagnose
-    --gt``): asked of the data set the store's frames come from (:func:`store_origin`), when its format
-    converts pose files and it can still be opened; otherwise the rows as they are."""
-    origin = store_origin(store_dir)
-    fmt = registered_formats().get(origin["format"]) if origin else None
-    if origin is None or fmt is None or not fmt.converts_pose_files:
-        return trajectory
-    try:
-        source = fmt.open(Path(origin["path"]), **(origin.get("options") or {}))
-    except (OSError, KeyError, TypeError, DriftmapError) as exc:
-        logger.warning("%s: rows taken as they are; the data set %s (%s) that store %s comes from could not be opened "
-                       "to check whether the file holds another of its sensors' poses (%s)", poses_file,
-                       origin.get("path"), fmt.name, store_dir, exc)
-        return trajectory
-    try:
-        return source.pose_file_in_sensor_frame(Path(poses_file), trajectory)
-    finally:
-        close = getattr(source, "close", None)
-        if callable(close):
-            close()
 
 
 _REGISTRY: dict[str, SourceFormat] = {}

@@ -238,10 +238,10 @@ def kitti_origin_of_source(source: object) -> KittiOrigin | None:
         return KittiOrigin(source.path, source.poses_file,
                            source.path / "calib.txt" if (source.path / "calib.txt").is_file() else None)
     export_origin = getattr(source, "export_origin", None)
-    return _kitti_origin_named(export_origin() if callable(export_origin) else None, getattr(source, "uri", source))
+    return kitti_origin_named(export_origin() if callable(export_origin) else None, getattr(source, "uri", source))
 
 
-def _kitti_origin_named(origin: dict[str, Any] | None, what: object) -> KittiOrigin | None:
+def kitti_origin_named(origin: dict[str, Any] | None, what: object) -> KittiOrigin | None:
     """The KITTI sequence an origin record (``{"format", "path", ...}``) names, if it is still there."""
     if not origin or origin.get("format") != "kitti":
         return None
@@ -269,24 +269,6 @@ def kitti_origin_of_frame_infos(infos: list[dict[str, Any]]) -> KittiOrigin | No
     if len(folders) != 1:
         return None
     return KittiOrigin.of_folder(folders.pop())
-
-
-def kitti_origin_of_store(store: Any) -> KittiOrigin | None:
-    """The KITTI sequence a :class:`~driftmap.store.frame_store.FrameStore`'s frames come from (their
-    provenance), or that the log it was built from was converted from
-    (:func:`driftmap.sources.base.store_origin`), or ``None``."""
-    origin = kitti_origin_of_frame_infos([store.frame_info(int(f)) for f in store.frame_ids])
-    if origin is not None or not store_holds_lidar_scans(store):
-        return origin
-    from driftmap.sources.base import store_origin
-
-    return _kitti_origin_named(store_origin(store.path), f"store {store.path}")
-
-
-def store_holds_lidar_scans(store: Any) -> bool:
-    """Every frame of a :class:`~driftmap.store.frame_store.FrameStore` is a LiDAR scan (and there is one)."""
-    ids = store.frame_ids
-    return len(ids) > 0 and all(store.frame_info(int(f)).get("sensor_kind") == "lidar" for f in ids)
 
 
 def kitti_rows_as_velodyne(poses_file: str | Path, T_world_x: NDArray[np.float64],

@@ -43,7 +43,7 @@ import shutil
 import time
 import uuid
 import zlib
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -1123,27 +1123,11 @@ class FrameStore:
     def diff(self, a: int, b: int) -> PoseDiff:
         return self.ledger.diff(a, b)
 
-    def pose_rows_in_sensor_frame(self, file: str | Path, trajectory: Trajectory, format: str, *,
-                                  kitti_frame: str = "auto", calib_file: str | Path | None = None) -> Trajectory:
-        """The rows of a pose file read for this store's frames (``correct``, ``diagnose --gt``) as their
-        ``T_world_sensor``: KITTI rows by :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (a KITTI data
-        set's cam0 ``poses.txt`` on its Velodyne scans), the rows of other formats by the data set the frames come from
-        (:func:`driftmap.sources.base.pose_file_in_store_sensor_frame`: the synthetic log's camera files on its
-        LiDAR scans); anything else as it is."""
-        if parse_enum(TrajectoryFormat, format, f"{file}: format") is not TrajectoryFormat.KITTI:
-            from driftmap.sources.base import pose_file_in_store_sensor_frame
-
-            return pose_file_in_store_sensor_frame(self.path, file, trajectory)
-        from driftmap.sources.kitti import kitti_origin_of_store, kitti_rows_as_velodyne, store_holds_lidar_scans
-
-        rows = kitti_rows_as_velodyne(file, trajectory.poses, lambda: kitti_origin_of_store(self), kitti_frame=kitti_frame,
-                                      calib_file=calib_file, lidar_frames=store_holds_lidar_scans(self))
-        return Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
-
     def import_poses(self, file: str | Path, *, format: TrajectoryFormat | str = TrajectoryFormat.TUM,
                      match: PoseMatchMode | str | None = None, max_dt_ns: int = 10_000_000,
                      source: PoseSource | str = PoseSource.EXTERNAL_FILE, propagate: bool = True,
-                     kitti_frame: str = "auto", calib_file: str | Path | None = None) -> tuple[Revision, PoseMatch]:
+                     kitti_frame: str = "auto", calib_file: str | Path | None = None,
+                     rows_in_sensor_frame: Callable[[Trajectory, str], Trajectory] | None = None) -> tuple[Revision, PoseMatch]:
         """Import a TUM, KITTI, Redwood ``.log`` or ``4x4`` pose file as a new revision.
 
         Files with stamps (TUM, 4x4 blocks with stamps) match by stamp (``max_dt_ns`` tolerance) unless
@@ -1152,12 +1136,11 @@ class FrameStore:
         reported in the returned :class:`PoseMatch`; stored frames without a row are propagated from the
         matched ones (``propagate``) or keep their pose.
 
-        KITTI rows on a store of KITTI Velodyne scans: ``kitti_frame`` (``auto`` | ``velodyne`` | ``cam0``) and
-        ``calib_file`` as in :func:`driftmap.sources.kitti.kitti_rows_as_velodyne` (``auto`` converts the data
-        set's own cam0 ``poses.txt`` to the Velodyne frame). A TUM file that belongs to another sensor of the data
-        set the store was built from is converted by that source
-        (:func:`driftmap.sources.base.pose_file_in_store_sensor_frame`: the synthetic log's camera files on a
-        store of its LiDAR).
+        The rows are taken as the frames' ``T_world_sensor``, or converted to it by ``rows_in_sensor_frame(trajectory,
+        format)``: the store does not know the data sets its frames come from, so the rules for a KITTI sequence's
+        cam0 ``poses.txt`` on its Velodyne scans (``kitti_frame`` ``auto`` | ``velodyne`` | ``cam0``, ``calib_file``)
+        or the synthetic log's camera files on its LiDAR live above it:
+        :func:`driftmap.pipeline.pose_files.import_pose_file` (``driftmap correct``) passes them.
         """
         fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
         source = parse_enum(PoseSource, source, f"{file}: source")
@@ -1183,8 +1166,8 @@ class FrameStore:
                 f"as frame_id i and the stored ids are {_id_sample(ids)}, not 0..{len(ids) - 1}: the rows look like one "
                 f"per stored frame. Use a TUM file matched by stamp (driftmap export --format tum writes one), or match "
                 f"by index explicitly if row i really is frame_id i")
-        trajectory = self.pose_rows_in_sensor_frame(file, trajectory, fmt.value, kitti_frame=kitti_frame,
-                                                    calib_file=calib_file)
+        if rows_in_sensor_frame is not None:
+            trajectory = rows_in_sensor_frame(trajectory, fmt.value)
         matched = match_pose_rows(trajectory, fmt.value, self.ledger.frame_ids, self.ledger.stamps_ns, match=mode,
                                   max_dt_ns=max_dt_ns)
         if not matched.poses:
