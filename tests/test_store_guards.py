@@ -31,6 +31,7 @@ import pytest
 from test_store import assert_frames_identical
 
 from driftmap import Frame, PointAttributes, PoseEstimate, PoseSource
+from driftmap.diagnostics.perturb import PosePerturbation, perturb_pose_file
 from driftmap.errors import (
     DriftmapError,
     EmptyExportError,
@@ -46,7 +47,7 @@ from driftmap.sources.mcap_export import ExportError
 from driftmap.store import refuse_inside_store
 from driftmap.store import segment as segment_module
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import Trajectory, read_tum, write_kitti, write_tum
+from driftmap.trajectory import Trajectory, read_tum, write_tum
 
 # ---------------------------------------------------------------------------------------------------- helpers
 
@@ -275,10 +276,11 @@ def test_library_writers_refuse_to_write_into_a_store(store3: tuple[Path, list[F
         with pytest.raises(OutputInsideStoreError):
             store.map(0).write(path / "segment-000000.ply")
         traj = Trajectory(store.ledger.stamps_ns.copy(), store.poses(0), store.frame_ids.copy())
+    write_tum(tmp := path.parent / "t.tum", traj)  # the pose-file writers sit below the store: their callers check
     with pytest.raises(OutputInsideStoreError):
-        write_tum(path / "t.tum", traj)
+        perturb_pose_file(tmp, path / "t.tum", PosePerturbation(drift_percent_per_m=1.0))
     with pytest.raises(OutputInsideStoreError):
-        write_kitti(path / "t.txt", traj)
+        perturb_pose_file(tmp, path / "t.txt", PosePerturbation(drift_percent_per_m=1.0))
     assert files_of(path) == before
     assert FrameStore.recover(path) == []
     assert_store_holds(path, frames)

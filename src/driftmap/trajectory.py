@@ -198,15 +198,16 @@ def _format_number(value: float) -> str:
 
 
 def _write_text_atomically(path: str | Path, text: str, what: str, trajectory: Trajectory) -> None:
-    """Write a pose file: refused when empty (its readers refuse a file without poses) or inside a store folder;
-    written under a temporary name in the same folder and renamed into place when complete, so a failed write
-    leaves no partial file and an existing file survives a failed overwrite."""
+    """Write a pose file: refused when empty (its readers refuse a file without poses); written under a temporary
+    name in the same folder and renamed into place when complete (:func:`driftmap.files.atomic_write`), so a failed
+    write leaves no partial file and an existing file survives a failed overwrite. Callers that take the path from a
+    user refuse one inside a store folder first (:func:`driftmap.store.refuse_inside_store`)."""
     from driftmap.errors import EmptyExportError
-    from driftmap.store.guards import atomic_output
+    from driftmap.files import atomic_write
 
     if len(trajectory) == 0:
         raise EmptyExportError(f"{path}: no poses to write ({what}); nothing written")
-    with atomic_output(path, f"{what} file") as tmp:
+    with atomic_write(path, f"{what} file") as tmp:
         tmp.write_text(text)
 
 
@@ -215,7 +216,7 @@ def write_tum(path: str | Path, trajectory: Trajectory) -> None:
     written with the shortest digits that read back exactly, so :func:`read_tum` returns the same poses.
 
     The file appears complete or not at all (temporary file renamed into place); an empty trajectory is an
-    :class:`~driftmap.errors.EmptyExportError` and a path inside a store folder is refused."""
+    :class:`~driftmap.errors.EmptyExportError`."""
     quat = Rotation.from_matrix(trajectory.poses[:, :3, :3]).as_quat() if len(trajectory) else np.zeros((0, 4))
     lines = ["# timestamp tx ty tz qx qy qz qw"]
     for stamp, T, q in zip(trajectory.stamps_ns, trajectory.poses, quat, strict=True):
@@ -273,7 +274,7 @@ def read_kitti(path: str | Path) -> Trajectory:
 
 def write_kitti(path: str | Path, trajectory: Trajectory) -> None:
     """Write one 3x4 row-major line per pose, with the shortest digits that read back exactly (atomically, never
-    empty, never inside a store folder: as :func:`write_tum`)."""
+    empty: as :func:`write_tum`)."""
     rows = trajectory.poses[:, :3, :].reshape(-1, 12)
     _write_text_atomically(path, "".join(" ".join(_format_number(v) for v in row) + "\n" for row in rows),
                            "KITTI trajectory", trajectory)

@@ -36,6 +36,7 @@ from scipy.spatial.transform import Rotation
 
 from driftmap.errors import ConfigError, GeometryError, parse_enum
 from driftmap.frame import Frame, PointAttributes
+from driftmap.store.guards import refuse_inside_store
 from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
 from driftmap.voxels import dense_ids
 
@@ -160,6 +161,7 @@ def perturb_pose_file(path_in: str | Path, path_out: str | Path, perturbation: P
     frame_id i), for TUM the row index too (rows in file order; the rows are sorted by stamp first).
     """
     fmt = parse_enum(PoseFileFormat, format, f"{path_in}: format")
+    refuse_inside_store(path_out, "perturbed pose file")
     traj = read_tum(path_in) if fmt is PoseFileFormat.TUM else read_kitti(path_in)
     order = np.argsort(traj.stamps_ns, kind="stable")
     if step_frame is not None:

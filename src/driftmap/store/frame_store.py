@@ -67,6 +67,7 @@ from driftmap.store.guards import (
     RECOVER_HINT,
     RESUME_HINT,
     SEGMENT_FILE,
+    refuse_inside_store,
     store_io_error,
 )
 from driftmap.store.ledger import (
@@ -1213,8 +1214,8 @@ class FrameStore:
         poses = self.poses(rev)
         traj = Trajectory(self.ledger.stamps_ns.copy(), poses, ids.copy())
         file = Path(file)
-        # written under a temporary name and renamed into place (write_tum / write_kitti); a path inside a store
-        # folder is refused
+        refuse_inside_store(file, "trajectory export")  # never into a store folder (any store)
+        # written under a temporary name and renamed into place (write_tum / write_kitti)
         (write_tum if fmt is TrajectoryFormat.TUM else write_kitti)(file, traj)
         return file
 

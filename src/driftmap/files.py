@@ -1,0 +1,59 @@
+"""Writing an output file so that it appears complete or not at all (a bottom layer: every writer uses it).
+
+:func:`atomic_write` writes under a temporary name in the same folder and renames into place only when the file is
+complete and flushed: a failed export leaves no partial file, and an existing file survives a failed overwrite.
+Outputs that must not land inside a store folder are refused above this layer
+(:func:`driftmap.store.refuse_inside_store`, which :func:`driftmap.store.guards.atomic_output` adds).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import errno as errno_codes
+import os
+import secrets
+from collections.abc import Iterator
+from pathlib import Path
+
+from driftmap.errors import OutputWriteError
+
+
+def fsync_dir(folder: Path) -> None:
+    """Flush a folder's entries (a rename into it) to disk, where the OS allows it."""
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+@contextlib.contextmanager
+def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
+    """Yield a temporary path (same folder, same suffix, so format detection by extension still works) for the body
+    to write; when it returns, the file is flushed and renamed over ``path``. If the body raises, the temporary file
+    is removed and ``path`` is untouched. ``what`` names the output in errors (a CLI flag or the function); an
+    ``OSError`` becomes :class:`~driftmap.errors.OutputWriteError` naming ``path``."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        yield tmp
+        if not tmp.exists():
+            raise OutputWriteError(f"{path}: the writer produced no file ({what})", path=path, errno=None)
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+        fsync_dir(path.parent)
+    except OSError as exc:
+        raise OutputWriteError(
+            f"{path}: could not be written ({what}): {exc.strerror or exc}"
+            + (" (no space left on the device)" if exc.errno == errno_codes.ENOSPC else "")
+            + "; nothing was written under that name (an existing file is unchanged)",
+            path=path, errno=exc.errno) from exc
+    finally:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
