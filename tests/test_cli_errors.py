@@ -276,3 +276,22 @@ def test_messages_for_a_file_that_is_not_what_the_command_wants(store_path: Path
     bag = datasets_dir / "bags" / "nav2_turtlebot.mcap"
     line = _one_line_error(_cli("info", bag))
     assert "is a file, not a driftmap store" in line and "recover" not in line
+
+
+def test_synth_keeps_an_earlier_log_unless_overwrite(tmp_path: Path) -> None:
+    """``synth`` into an earlier synthetic log is refused (nothing touched) unless ``--overwrite``, which leaves no
+    stale frame behind; a folder holding anything else is refused either way."""
+    out = tmp_path / "log"
+    small = ("--frames", "4", "--seed", "3")
+    assert _cli("synth", out, *small).returncode == 0
+    before = sorted(p.name for p in (out / "depth").iterdir())
+    line = _one_line_error(_cli("synth", out, "--frames", "3"))
+    assert "a synthetic log exists" in line and "--overwrite" in line
+    assert sorted(p.name for p in (out / "depth").iterdir()) == before
+    assert _cli("synth", out, "--frames", "3", "--overwrite").returncode == 0
+    assert sorted(p.name for p in (out / "depth").iterdir()) == before[:3]
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("mine")
+    line = _one_line_error(_cli("synth", other, "--overwrite"))
+    assert "holds no synthetic log" in line and [p.name for p in other.iterdir()] == ["notes.txt"]

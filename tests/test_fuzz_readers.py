@@ -108,8 +108,19 @@ def finite_rows(xyz: np.ndarray) -> np.ndarray:
     return xyz[np.isfinite(xyz).all(axis=1)]
 
 
+SENSOR_RANGE_M = 10_000.0
+"""Points farther from the sensor are no measurement: every point reader drops them (a flipped exponent bit gives
+1e30 m), as it drops NaN / inf (:data:`driftmap.sources.point_fields.MAX_POINT_RANGE_M`)."""
+
+
+def measured_rows(xyz: np.ndarray) -> np.ndarray:
+    """The rows a reader keeps: finite, and within :data:`SENSOR_RANGE_M` of the sensor."""
+    rows = finite_rows(xyz)
+    return rows[np.linalg.norm(rows.astype(np.float64), axis=1) <= SENSOR_RANGE_M]
+
+
 def same_points(frame: Frame, expected_xyz: np.ndarray) -> None:
-    expected = finite_rows(expected_xyz)
+    expected = measured_rows(expected_xyz)
     assert frame.points_sensor.shape == expected.shape, (frame.points_sensor.shape, expected.shape)
     assert frame.points_sensor.tobytes() == expected.tobytes()
 
@@ -881,6 +892,12 @@ def _reference_cloud_xyz(msg: dict) -> np.ndarray | None:
 # ---------------------------------------------------------------------------------------------------------------
 # the harness itself catches what it must
 # ---------------------------------------------------------------------------------------------------------------
+
+
+def test_the_oracle_range_is_the_readers() -> None:
+    from driftmap.sources.point_fields import MAX_POINT_RANGE_M
+
+    assert SENSOR_RANGE_M == MAX_POINT_RANGE_M
 
 
 def test_the_memory_bound_catches_an_allocation_far_beyond_the_input() -> None:

@@ -42,7 +42,7 @@ def test_generator_is_deterministic(tmp_path: Path) -> None:
 def test_regenerating_into_an_earlier_log_leaves_no_stale_frames(tmp_path: Path) -> None:
     out = tmp_path / "log"
     generate_synthetic_log(out, replace(SMALL, n_frames=5, lidar=True))
-    generate_synthetic_log(out, replace(SMALL, n_frames=3))
+    generate_synthetic_log(out, replace(SMALL, n_frames=3), overwrite=True)
     fresh = generate_synthetic_log(tmp_path / "fresh", replace(SMALL, n_frames=3))
     assert _digest(out) == _digest(fresh)  # frames 3-4 and the LiDAR scans of the earlier log are gone
     other = tmp_path / "other"

@@ -32,6 +32,7 @@ from driftmap.cli.common import (
 )
 from driftmap.errors import DriftmapError
 from driftmap.store import refuse_inside_store
+from driftmap.store.layout import MANIFEST
 
 
 @app.command()
@@ -140,6 +141,7 @@ def synth(
     lidar_pattern: Annotated[str, typer.Option("--lidar-pattern", help="spinning (beams x azimuths) | rosette (a Livox-like non-repetitive scanner: 70 deg circular field of view along x, the pattern rotating from scan to scan).")] = "spinning",
     points_per_scan: Annotated[Optional[int], typer.Option("--points-per-scan", min=1, help="Points per rosette scan (default: 24000).")] = None,
     point_times: Annotated[bool, typer.Option("--point-times/--no-point-times", help="Per-point capture times: each LiDAR point is rendered from the moving sensor's pose at its time, stored in lidar/NNNNNN.time.bin (int64 ns after the scan's start stamp).")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier synthetic log in OUT (its stale frame files are removed); without it an existing log is refused. A folder holding anything else is always refused.")] = False,
 ) -> None:
     """Generate a synthetic drifting-robot log (deterministic for a given seed)."""
     from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
@@ -174,7 +176,7 @@ def synth(
         cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
     refuse_inside_store(out, "OUT")
     with console.status(f"ray-casting the synthetic {scene}"):
-        path = generate_synthetic_log(out, cfg)
+        path = generate_synthetic_log(out, cfg, overwrite=overwrite)
     console.print(bold("synthetic log: ", path.resolve()))
     console.print(f"{cfg.n_frames} frames, {cfg.frame_period_ns / 1e9:g} s apart")
 
@@ -300,6 +302,9 @@ def build(
 
     format = _source_format(source, format)
     refuse_inside_store(out, "--out", output_is_store=True)  # --resume continues a store; none is made inside one
+    if out.is_dir() and not (out / MANIFEST).exists() and any(out.iterdir()):
+        raise ConfigError(f"--out {out}: exists and is not a driftmap store (it is not empty: no {MANIFEST}); "
+                          f"choose another --out, or empty the folder")
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     problems = []  # every problem of the config file and the environment at once
     try:

@@ -12,6 +12,11 @@ file the frames carry no estimate (``PoseSource.NONE``); with one, row ``k`` of 
 ``k``-th cloud (``PoseSource.LOG``). Where the stamps come from is :class:`CloudFolder`'s precedence
 (docs/sources-datasets.md); normals and per-point times are checked by :mod:`driftmap.sources.point_fields`.
 
+Files that are not frames are never read nor counted, in this folder or any folder of frames a source here reads
+(:func:`is_ignored_file`): hidden files (names starting with ``.``) and temporary files (``*.tmp.*``, as the
+``.map.pcd.297cc9cf.tmp.pcd`` an interrupted ``driftmap export`` leaves behind); they are logged at debug level and
+listed by ``describe()["ignored_files"]``.
+
 This module also holds the small helpers every folder-of-numbered-files source here shares: numbering,
 stamp-order checks and option validation.
 """
@@ -34,12 +39,13 @@ from driftmap.errors import ConfigError, SourceError, TransformError
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_headers import CloudHeader, NotACloudFile, check_cloud_file
-from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, point_time_offsets_ns
+from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, far_points, point_time_offsets_ns
 from driftmap.sources.stamps import (
     MAX_STAMP_NS,
     STAMP_FILE_NAMES,
     check_increasing_stamps,
     check_pose_file_stamps,
+    check_seconds_period,
     name_stamp_ns,
     nominal_stamp_ns,
     period_problem,
@@ -69,12 +75,34 @@ def frame_number(name: str | Path) -> int | None:
     return int(found[-1]) if found else None
 
 
+def is_ignored_file(name: str | Path) -> bool:
+    """A file in a folder of frames that is not a frame: a hidden file (the name starts with ``.``) or a temporary
+    file (``*.tmp.*``: driftmap writes files under ``.<name>.<random>.tmp<suffix>`` and renames them when complete;
+    a killed run leaves them behind)."""
+    name = Path(name).name
+    return name.startswith(".") or ".tmp." in name.lower()
+
+
+def without_ignored(paths: Sequence[Path], what: str, ignored: list[Path] | None = None) -> list[Path]:
+    """``paths`` without the files :func:`is_ignored_file` leaves out (logged at debug level naming ``what``, and
+    appended to ``ignored`` when given)."""
+    left_out = [p for p in paths if is_ignored_file(p)]
+    if not left_out:
+        return list(paths)
+    logger.debug("%s: %d hidden or temporary file(s) are not frames and are ignored: %s", what, len(left_out),
+                 ", ".join(sorted(p.name for p in left_out)))
+    if ignored is not None:
+        ignored.extend(p for p in left_out if p not in ignored)
+    return [p for p in paths if not is_ignored_file(p)]
+
+
 def numbered_files(
     folder: Path, what: str, *, pattern: str | None = None, suffixes: Sequence[str] | None = None,
-    lenient: bool = False,
+    lenient: bool = False, ignored: list[Path] | None = None,
 ) -> list[tuple[int, Path]]:
     """``(frame number, path)`` of the files in ``folder`` matching a glob ``pattern`` or ending in one of
-    ``suffixes`` (case-insensitive), ordered by number.
+    ``suffixes`` (case-insensitive), ordered by number. Hidden and temporary files (:func:`is_ignored_file`) are
+    left out (and appended to ``ignored``).
 
     Raises :class:`SourceError` when the folder is missing, has no such file, a name has no number (or one too
     large for a frame id) or two files carry the same number. A name that matches but is a symlink loop or a
@@ -87,7 +115,7 @@ def numbered_files(
     else:
         lowered = tuple(s.lower() for s in suffixes or ())
         matching = [f for f in folder.iterdir() if f.name.lower().endswith(lowered)]
-    candidates = frame_files(matching, what, lenient=lenient)
+    candidates = frame_files(without_ignored(matching, f"{folder} ({what})", ignored), what, lenient=lenient)
     found: dict[int, Path] = {}
     for file in candidates:
         number = frame_number(file.name)
@@ -183,17 +211,19 @@ def pose_or_none(T_world_sensor: NDArray[np.float64] | None, source: PoseSource)
 _POSE_FILE_SUFFIXES = (".csv", ".txt", ".log")
 
 
-def _cloud_paths(folder: Path, *, lenient: bool = False) -> list[Path]:
+def _cloud_paths(folder: Path, *, lenient: bool = False, ignored: list[Path] | None = None) -> list[Path]:
     if not folder.is_dir():
         return []
-    return sorted(frame_files([f for f in folder.iterdir() if f.name.lower().endswith(CLOUD_SUFFIXES)],
-                              "point-cloud folder", lenient=lenient))
+    clouds = [f for f in folder.iterdir() if f.name.lower().endswith(CLOUD_SUFFIXES)]
+    return sorted(frame_files(without_ignored(clouds, f"{folder} (point-cloud folder)", ignored), "point-cloud folder",
+                              lenient=lenient))
 
 
-def _read_checked_cloud(file: Path, frame_id: int) -> Any:
+def _read_checked_cloud(file: Path, frame_id: int) -> tuple[Any, CloudHeader]:
     """The Open3D tensor cloud of a PCD / PLY file whose header was checked against its bytes first
     (:func:`driftmap.sources.cloud_headers.check_cloud_file`), and whose point count is then checked against the
-    header: a header that lies about sizes never reaches Open3D's reader (which trusts it)."""
+    header: a header that lies about sizes never reaches Open3D's reader (which trusts it). Returns the cloud and the
+    checked header."""
     if not file.is_file():
         raise SourceError(f"{file}: cloud of frame {frame_id} not found")
     try:
@@ -218,7 +248,7 @@ def _read_checked_cloud(file: Path, frame_id: int) -> Any:
                           f"{header.n_points}: corrupt data")
     if header.dtype is not None and header.encoding in ("binary", "binary_little_endian", "binary_big_endian"):
         _check_positions_match_bytes(file, frame_id, header, cloud.point["positions"].numpy())
-    return cloud
+    return cloud, header
 
 
 def _check_positions_match_bytes(file: Path, frame_id: int, header: CloudHeader, positions: NDArray) -> None:
@@ -308,11 +338,15 @@ class CloudFolder(FrameSource):
         if period_ns is not None and int(period_ns) <= 0:
             raise SourceError(f"{self.path}: period_ns must be positive, got {period_ns}")
         self._nominal_period_ns: int | None = None
-        named = stamps_from_file_names(_cloud_paths(self.path, lenient=lenient), f"{self.path} (point-cloud folder)")
+        self.ignored_files: list[Path] = []
+        """Hidden and temporary files among the clouds, not read (:func:`is_ignored_file`)."""
+        named = stamps_from_file_names(_cloud_paths(self.path, lenient=lenient, ignored=self.ignored_files),
+                                       f"{self.path} (point-cloud folder)")
         if named is not None:
             files = [(k, file) for k, (_, file) in enumerate(named[0])]
         else:
-            files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES, lenient=lenient)
+            files = numbered_files(self.path, "point-cloud folder", suffixes=CLOUD_SUFFIXES, lenient=lenient,
+                                   ignored=self.ignored_files)
         ids = [n for n, _ in files]
         self.poses_path = None if poses is None else Path(poses)
         self._poses: Trajectory | None = None
@@ -409,12 +443,8 @@ class CloudFolder(FrameSource):
         if fit is None:
             raise SourceError(f"{file}: {len(times)} stamps for {len(ids)} clouds (frames {ids[0]}..{ids[-1]}); a stamp "
                               f"file needs one line per cloud, or one per frame number of the whole sequence")
+        check_seconds_period(times, file, f"its {len(times)} rows (for the {len(ids)} clouds)")
         stamps = [times[r] for r in fit[0]]
-        if all(b > a for a, b in zip(stamps, stamps[1:])):
-            problem = period_problem(stamps)
-            if problem is not None:
-                raise SourceError(f"{file}: read as seconds, the stamps of the {len(ids)} clouds do not fit a sensor: "
-                                  f"{problem} (is the file in seconds?)")
         return stamps, file.name, f"{file} ({fit[1]})"
 
     def _pose_file_stamps(self, ids: list[int]) -> tuple[list[int], str, str] | None:
@@ -423,6 +453,7 @@ class CloudFolder(FrameSource):
         usable: list[tuple[list[int], str, str]] = []
         for file in sorted(self.path.iterdir()):
             if (not file.name.lower().endswith(_POSE_FILE_SUFFIXES) or file.name in STAMP_FILE_NAMES
+                    or is_ignored_file(file)
                     or not file.is_file() or (self.poses_path is not None and same_file_or_copy(file, self.poses_path))):
                 continue
             try:
@@ -470,12 +501,17 @@ class CloudFolder(FrameSource):
         at ``index``; normals and times only when they pass :mod:`driftmap.sources.point_fields`' checks."""
         frame_id, file, stamp_ns, _ = self._entries[index]
         what = f"{file} (frame {frame_id})"
-        cloud = _read_checked_cloud(file, frame_id)
-        points = cloud.point["positions"].numpy().astype(np.float32, copy=False)
-        finite = np.all(np.isfinite(points), axis=1)
+        cloud, header = _read_checked_cloud(file, frame_id)
+        self._note_viewpoint(header)
+        positions = cloud.point["positions"].numpy()
+        points = positions.astype(np.float32, copy=False)
+        finite = np.all(np.isfinite(positions), axis=1)
         if not finite.all():
             logger.warning("%s: dropping %d points with NaN/inf coordinates (frame %d)", file,
                            int(np.count_nonzero(~finite)), frame_id)
+        far = far_points(positions, what)  # as written (float64 data is checked before the cast to float32)
+        if far is not None:
+            finite &= ~far
 
         def kept(values: NDArray) -> NDArray:
             return values if finite.all() else values[finite]
@@ -500,6 +536,18 @@ class CloudFolder(FrameSource):
                 logger.warning("%s: per-point time property %r not used: Open3D's PLY reader skips its type "
                                "(it reads int, uchar, uint8, uint16, float, double; not uint / uint32)", what, dropped[0])
         return kept(points), PointAttributes(**attrs)
+
+    def _note_viewpoint(self, header: CloudHeader) -> None:
+        """Warn once per folder about a PCD whose ``VIEWPOINT`` is not the identity: it is not applied (the points
+        are taken as they are written, in the sensor's frame; docs/sources-datasets.md)."""
+        if header.viewpoint is None or "viewpoint" in self._warned:
+            return
+        self._warned.add("viewpoint")
+        logger.warning("%s: VIEWPOINT %s is not the identity (0 0 0 1 0 0 0); it is not applied: the points are "
+                       "taken in the frame they are written in, as the sensor's. If they are in another frame (a map "
+                       "frame, the viewpoint being the sensor's pose in it), transform them into the sensor's frame "
+                       "first (other files of %s alike are not warned about)", header.file,
+                       " ".join(header.viewpoint), self.path)
 
     def _load(self, index: int) -> Frame:
         frame_id, file, stamp_ns, row = self._entries[index]
@@ -535,13 +583,17 @@ class CloudFolder(FrameSource):
         )
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "sensor_kind": self.sensor_kind.value,
-                "poses": None if self.poses_path is None else str(self.poses_path), "stamps": self.stamps_origin}
+        out = {**super().describe(), "sensor_kind": self.sensor_kind.value,
+               "poses": None if self.poses_path is None else str(self.poses_path), "stamps": self.stamps_origin}
+        if self.ignored_files:
+            out["ignored_files"] = sorted(f.name for f in self.ignored_files)
+        return out
 
 
 def _has_cloud_files(path: Path) -> bool:
     with os.scandir(path) as it:
-        return any(entry.name.lower().endswith(CLOUD_SUFFIXES) and entry.is_file() for entry in it)
+        return any(entry.name.lower().endswith(CLOUD_SUFFIXES) and not is_ignored_file(entry.name) and entry.is_file()
+                   for entry in it)
 
 
 def _detect(path: Path) -> bool:

@@ -73,6 +73,9 @@ class CloudHeader:
     data_offset: int
     dtype: np.dtype | None
     """Layout of one point in the binary data (PCD ``binary``; PLY binary with fixed-size vertex rows)."""
+    viewpoint: tuple[str, ...] | None = None
+    """A PCD's ``VIEWPOINT`` as written (``tx ty tz qw qx qy qz``) when it is not the identity ``0 0 0 1 0 0 0``
+    (or not 7 numbers); ``None`` for the identity, a PCD without one, and PLY files."""
 
 
 def check_cloud_file(file: Path) -> CloudHeader:
@@ -195,7 +198,7 @@ def _check_pcd(file: Path, head: bytes, size: int) -> CloudHeader:
     if encoding not in _PCD_DATA:
         raise SourceError(f"{file}:{lineno}: header field DATA is {encoding!r}; expected one of {', '.join(_PCD_DATA)}")
     dtype = _pcd_dtype(names, types, sizes, counts)
-    header = CloudHeader(file, "pcd", encoding, n_points, tuple(names), offset, dtype)
+    header = CloudHeader(file, "pcd", encoding, n_points, tuple(names), offset, dtype, _viewpoint(found))
     remaining = size - offset
     if encoding == "binary":
         _check_binary_size(file, "POINTS", n_points, dtype.itemsize, remaining)
@@ -204,6 +207,21 @@ def _check_pcd(file: Path, head: bytes, size: int) -> CloudHeader:
     else:
         _check_ascii_rows(file, offset, [(n_points, "POINTS", list(zip(types, sizes, counts, strict=True)))])
     return header
+
+
+_IDENTITY_VIEWPOINT = (0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0)
+
+
+def _viewpoint(found: dict[str, tuple[int, list[str]]]) -> tuple[str, ...] | None:
+    """The ``VIEWPOINT`` words when they are not the identity (:attr:`CloudHeader.viewpoint`)."""
+    if "VIEWPOINT" not in found:
+        return None
+    words = tuple(found["VIEWPOINT"][1])
+    try:
+        values = tuple(float(w) for w in words)
+    except ValueError:
+        return words or ("(empty)",)
+    return None if values == _IDENTITY_VIEWPOINT else words or ("(empty)",)
 
 
 def _check_binary_size(file: Path, field: str, n: int, row_bytes: int, remaining: int) -> None:

@@ -13,7 +13,10 @@ write, ``x, y, z`` only) is decided once for the whole folder (:func:`decide_poi
 Ground truth is converted to the Velodyne frame:
 ``T_world_velo = inv(Tr) @ T_cam0 @ Tr`` (so the world is the Velodyne frame of frame 0). Frames carry no
 estimate (``PoseSource.NONE``) unless ``poses_from_ground_truth=True``. Points are the raw scan (no range
-filtering); intensity is a per-point attribute.
+filtering; points with a NaN / inf coordinate or farther than
+:data:`~driftmap.sources.point_fields.MAX_POINT_RANGE_M` are dropped and counted); intensity is a per-point
+attribute. ``times.txt`` must step like a sensor (seconds: :func:`~driftmap.sources.stamps.check_seconds_period`).
+Hidden and temporary files in ``velodyne/`` are not scans (:func:`~driftmap.sources.cloud_folder.is_ignored_file`).
 """
 
 from __future__ import annotations
@@ -34,8 +37,15 @@ from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
-from driftmap.sources.stamps import check_increasing_stamps, nominal_stamp_ns, read_pose_file, read_times
-from driftmap.trajectory import Trajectory, _read_lines, read_kitti
+from driftmap.sources.point_fields import far_points
+from driftmap.sources.stamps import (
+    check_increasing_stamps,
+    check_seconds_period,
+    nominal_stamp_ns,
+    read_pose_file,
+    read_times,
+)
+from driftmap.trajectory import Trajectory, read_kitti, read_lines
 
 logger = logging.getLogger(__name__)
 
@@ -153,7 +163,7 @@ def read_calib_tr(file: Path) -> NDArray[np.float64]:
     """``T_cam0_velo`` from the ``Tr:`` line of a KITTI odometry ``calib.txt``."""
     if not file.is_file():
         raise SourceError(f"{file}: calibration not found (needed for the Velodyne ground truth)")
-    lines = _read_lines(file, "calibration")  # SourceError naming the file (and line) for unreadable / non-UTF-8 text
+    lines = read_lines(file, "calibration")  # SourceError naming the file (and line) for unreadable / non-UTF-8 text
     for lineno, line in enumerate(lines, start=1):
         key, _, rest = line.partition(":")
         if key.strip() != "Tr":
@@ -396,7 +406,10 @@ class KittiOdometry(FrameSource):
         super().__init__(str(path), frames=frames, lenient=lenient)
         self.path = Path(path)
         self.poses_from_ground_truth = poses_from_ground_truth
-        scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin", lenient=lenient)
+        self.ignored_files: list[Path] = []
+        """Hidden and temporary files among the scans, not read (:func:`~driftmap.sources.cloud_folder.is_ignored_file`)."""
+        scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin", lenient=lenient,
+                               ignored=self.ignored_files)
         ids = [n for n, _ in scans]
         layout = parse_enum(PointLayout, point_layout, f"{self.path}: point_layout", SourceError)
         if layout is PointLayout.AUTO:
@@ -411,6 +424,7 @@ class KittiOdometry(FrameSource):
         times_file = self.path / "times.txt"
         if times_file.is_file():
             times = read_times(times_file)
+            check_seconds_period(times, times_file, f"its {len(times)} rows")
             stamp_of = {}
             for n in ids:
                 if n < len(times):
@@ -520,6 +534,10 @@ class KittiOdometry(FrameSource):
         if not finite.all():  # as the cloud-folder and PointCloud2 readers: dropped and counted
             logger.warning("%s: frame %d: %d of %d points have a NaN or infinite coordinate and are left out",
                            file, frame_id, int(len(scan) - finite.sum()), len(scan))
+        far = far_points(scan[:, :3], f"{file} (frame {frame_id})")
+        if far is not None:
+            finite &= ~far
+        if not finite.all():
             scan = scan[finite]
         if len(scan) < MIN_SCAN_POINTS:
             logger.warning("%s: frame %d has only %d points (a full HDL-64 scan has ~120k): a truncated or "
@@ -549,8 +567,11 @@ class KittiOdometry(FrameSource):
         )
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "ground_truth": None if self.poses_file is None else str(self.poses_file),
-                "estimate": None, "point_layout": self.point_layout.value}
+        out = {**super().describe(), "ground_truth": None if self.poses_file is None else str(self.poses_file),
+               "estimate": None, "point_layout": self.point_layout.value}
+        if self.ignored_files:
+            out["ignored_files"] = sorted(f.name for f in self.ignored_files)
+        return out
 
 
 MIN_SCAN_POINTS = 1000

@@ -258,6 +258,16 @@ def _ground_truth_lookup(ground_truth: Trajectory | None) -> tuple[dict[int, NDA
     return by_id, by_stamp
 
 
+def _compression_type(compression: str) -> Any:
+    """The ``mcap`` writer's compression for ``"zstd"``, ``"lz4"`` or ``"none"``."""
+    from mcap.writer import CompressionType
+
+    compressions = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+    if compression not in compressions:
+        raise ExportError(f"compression must be one of {', '.join(compressions)}, got {compression!r}")
+    return compressions[compression]
+
+
 def export_mcap(
     source_or_frames: FrameSource | Iterable[Frame],
     out_path: str | Path,
@@ -279,141 +289,148 @@ def export_mcap(
 
     Returns a summary: frames and points written, per-sensor topics, poses and ground-truth poses written.
     """
-    from mcap.writer import CompressionType
     from mcap_ros2.writer import Writer
 
     out_path = Path(out_path)
-    compressions = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-    if compression not in compressions:
-        raise ExportError(f"compression must be one of {', '.join(compressions)}, got {compression!r}")
+    compression_type = _compression_type(compression)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     partial = out_path.with_name(out_path.name + ".partial")
     gt_by_id, gt_by_stamp = _ground_truth_lookup(ground_truth)
-    sensors: dict[str, _SensorState] = {}
-    static_edges: dict[str, dict[str, Any]] = {}
-    n_frames = n_poses = n_gt = 0
     try:
         with open(partial, "wb") as stream:
-            writer = Writer(stream, chunk_size=chunk_size, compression=compressions[compression])
-            schemas = _Schemas(writer)
+            export = _FrameExport(Writer(stream, chunk_size=chunk_size, compression=compression_type), gt_by_id,
+                                  gt_by_stamp)
             for frame in source_or_frames:
-                what = f"frame {frame.frame_id} ({frame.sensor_name})"
-                state = sensors.get(frame.sensor_name)
-                if state is None:
-                    state = _new_sensor(frame, sensors, what)
-                    sensors[frame.sensor_name] = state
-                    if state.base_frame != state.sensor_frame:
-                        static_edges[state.sensor_frame] = _transform_stamped(
-                            frame.stamp_ns, state.base_frame, state.sensor_frame, state.T_base_sensor, what
-                        )
-                        writer.write_message(
-                            TOPIC_TF_STATIC,
-                            schemas[TF_MESSAGE],
-                            {"transforms": list(static_edges.values())},
-                            log_time=frame.stamp_ns,
-                            publish_time=frame.stamp_ns,
-                        )
-                _check_consistent(state, frame, what)
-                if frame.sensor_kind is SensorKind.DEPTH_CAMERA and frame.intrinsics is not None:
-                    assert state.camera_info_topic is not None
-                    writer.write_message(
-                        state.camera_info_topic,
-                        schemas[CAMERA_INFO],
-                        camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.sensor_frame, what),
-                        log_time=frame.stamp_ns,
-                        publish_time=frame.stamp_ns,
-                    )
-                cloud, time_field = pointcloud2_msg(frame, what)
-                if time_field:
-                    state.time_fields.add(time_field)
-                writer.write_message(
-                    state.topic, schemas[POINTCLOUD2], cloud, log_time=frame.stamp_ns, publish_time=frame.stamp_ns
-                )
-                if frame.pose.source is not PoseSource.NONE:
-                    T_world_base = frame.pose.T_world_sensor @ geometry.invert(frame.T_base_sensor)
-                    child = state.base_frame
-                    writer.write_message(
-                        TOPIC_TF,
-                        schemas[TF_MESSAGE],
-                        {
-                            "transforms": [
-                                _transform_stamped(
-                                    frame.stamp_ns,
-                                    state.world_frame or frame.pose.world_frame,
-                                    child,
-                                    T_world_base,
-                                    what,
-                                )
-                            ]
-                        },
-                        log_time=frame.stamp_ns,
-                        publish_time=frame.stamp_ns,
-                    )
-                    n_poses += 1
-                T_gt = gt_by_id.get(frame.frame_id) if gt_by_id else gt_by_stamp.get(frame.stamp_ns)
-                if T_gt is not None and state.ground_truth_topic is None:
-                    state.ground_truth_topic = _topic_base(frame.sensor_name) + "/ground_truth"
-                if T_gt is not None:
-                    t, q = geometry.to_tum(np.asarray(T_gt, dtype=np.float64))
-                    writer.write_message(
-                        state.ground_truth_topic,
-                        schemas[POSE_STAMPED],
-                        {
-                            "header": _header(frame.stamp_ns, frame.pose.world_frame, what),
-                            "pose": {
-                                "position": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
-                                "orientation": {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])},
-                            },
-                        },
-                        log_time=frame.stamp_ns,
-                        publish_time=frame.stamp_ns,
-                    )
-                    state.ground_truth_frame_ids.append(frame.frame_id)
-                    n_gt += 1
-                state.frame_ids.append(frame.frame_id)
-                state.pose_sources.append(frame.pose.source.value)
-                state.n_points += frame.n_points
-                state.last_stamp_ns = frame.stamp_ns
-                n_frames += 1
-            if n_frames == 0:
+                export.write(frame)
+            if export.n_frames == 0:
                 uri = getattr(source_or_frames, "uri", "the frames")
-                raise ExportError(f"{uri}: no frame to write to {out_path} (an empty --frames selection?); nothing written")
-            writer.add_metadata(
-                EXPORT_METADATA_NAME,
-                {
-                    "version": EXPORT_FORMAT_VERSION,
-                    "driftmap_version": __version__,
-                    "sensors": json.dumps([_sensor_metadata(s) for s in sensors.values()]),
-                    **_origin_metadata(source_or_frames, origin),
-                },
-            )
-            writer.finish()
+                raise ExportError(
+                    f"{uri}: no frame to write to {out_path} (an empty --frames selection?); nothing written"
+                )
+            export.finish(_origin_metadata(source_or_frames, origin))
         os.replace(partial, out_path)
     except BaseException:
         partial.unlink(missing_ok=True)
         raise
-    summary = {
-        "out": str(out_path),
-        "frames": n_frames,
-        "points": sum(s.n_points for s in sensors.values()),
-        "poses_written": n_poses,
-        "ground_truth_poses": n_gt,
-        "bytes": out_path.stat().st_size,
-        "sensors": {
-            name: {
-                "topic": s.topic,
-                "camera_info_topic": s.camera_info_topic,
-                "ground_truth_topic": s.ground_truth_topic,
-                "frames": len(s.frame_ids),
-                "sensor_frame": s.sensor_frame,
-                "base_frame": s.base_frame,
-                "world_frame": s.world_frame,
-            }
-            for name, s in sensors.items()
-        },
-    }
-    logger.info("%s: wrote %d frames (%d points, %d poses)", out_path, n_frames, summary["points"], n_poses)
+    summary = export.summary(out_path)
+    logger.info("%s: wrote %d frames (%d points, %d poses)", out_path, export.n_frames, summary["points"],
+                export.n_poses)
     return summary
+
+
+class _FrameExport:
+    """The messages of :func:`export_mcap`, frame by frame: per frame, in this order, ``/tf_static`` (a sensor's
+    first frame), ``camera_info``, ``points``, ``/tf`` (frames with a pose), ``ground_truth`` (frames that have
+    one); then the ``driftmap.export`` metadata. Log time = publish time = the frame's stamp."""
+
+    def __init__(self, writer: Any, gt_by_id: dict[int, NDArray], gt_by_stamp: dict[int, NDArray]):
+        self._writer = writer
+        self._schemas = _Schemas(writer)
+        self._gt_by_id, self._gt_by_stamp = gt_by_id, gt_by_stamp
+        self.sensors: dict[str, _SensorState] = {}
+        self._static_edges: dict[str, dict[str, Any]] = {}
+        self.n_frames = self.n_poses = self.n_gt = 0
+
+    def _message(self, topic: str, typename: str, msg: dict[str, Any], stamp_ns: int) -> None:
+        self._writer.write_message(topic, self._schemas[typename], msg, log_time=stamp_ns, publish_time=stamp_ns)
+
+    def write(self, frame: Frame) -> None:
+        what = f"frame {frame.frame_id} ({frame.sensor_name})"
+        state = self.sensors.get(frame.sensor_name)
+        if state is None:
+            state = self._add_sensor(frame, what)
+        _check_consistent(state, frame, what)
+        if frame.sensor_kind is SensorKind.DEPTH_CAMERA and frame.intrinsics is not None:
+            assert state.camera_info_topic is not None
+            self._message(state.camera_info_topic, CAMERA_INFO,
+                          camera_info_msg(frame.intrinsics, frame.stamp_ns, frame.sensor_frame, what), frame.stamp_ns)
+        cloud, time_field = pointcloud2_msg(frame, what)
+        if time_field:
+            state.time_fields.add(time_field)
+        self._message(state.topic, POINTCLOUD2, cloud, frame.stamp_ns)
+        if frame.pose.source is not PoseSource.NONE:
+            self._write_pose(state, frame, what)
+        T_gt = self._gt_by_id.get(frame.frame_id) if self._gt_by_id else self._gt_by_stamp.get(frame.stamp_ns)
+        if T_gt is not None:
+            self._write_ground_truth(state, frame, T_gt, what)
+        state.frame_ids.append(frame.frame_id)
+        state.pose_sources.append(frame.pose.source.value)
+        state.n_points += frame.n_points
+        state.last_stamp_ns = frame.stamp_ns
+        self.n_frames += 1
+
+    def _add_sensor(self, frame: Frame, what: str) -> _SensorState:
+        """The state of a new sensor; its ``base_frame -> sensor_frame`` edge joins ``/tf_static`` (every static
+        edge so far is repeated, like a tf2 static broadcaster)."""
+        state = _new_sensor(frame, self.sensors, what)
+        self.sensors[frame.sensor_name] = state
+        if state.base_frame != state.sensor_frame:
+            self._static_edges[state.sensor_frame] = _transform_stamped(
+                frame.stamp_ns, state.base_frame, state.sensor_frame, state.T_base_sensor, what
+            )
+            self._message(TOPIC_TF_STATIC, TF_MESSAGE, {"transforms": list(self._static_edges.values())},
+                          frame.stamp_ns)
+        return state
+
+    def _write_pose(self, state: _SensorState, frame: Frame, what: str) -> None:
+        """``/tf`` ``world_frame -> base_frame`` = ``T_world_sensor @ inv(T_base_sensor)`` at the frame's stamp."""
+        T_world_base = frame.pose.T_world_sensor @ geometry.invert(frame.T_base_sensor)
+        world = state.world_frame or frame.pose.world_frame
+        transform = _transform_stamped(frame.stamp_ns, world, state.base_frame, T_world_base, what)
+        self._message(TOPIC_TF, TF_MESSAGE, {"transforms": [transform]}, frame.stamp_ns)
+        self.n_poses += 1
+
+    def _write_ground_truth(self, state: _SensorState, frame: Frame, T_gt: NDArray, what: str) -> None:
+        """``PoseStamped`` ``T_world_sensor`` on the sensor's ground-truth topic (made at its first pose)."""
+        if state.ground_truth_topic is None:
+            state.ground_truth_topic = _topic_base(frame.sensor_name) + "/ground_truth"
+        t, q = geometry.to_tum(np.asarray(T_gt, dtype=np.float64))
+        msg = {
+            "header": _header(frame.stamp_ns, frame.pose.world_frame, what),
+            "pose": {
+                "position": {"x": float(t[0]), "y": float(t[1]), "z": float(t[2])},
+                "orientation": {"x": float(q[0]), "y": float(q[1]), "z": float(q[2]), "w": float(q[3])},
+            },
+        }
+        self._message(state.ground_truth_topic, POSE_STAMPED, msg, frame.stamp_ns)
+        state.ground_truth_frame_ids.append(frame.frame_id)
+        self.n_gt += 1
+
+    def finish(self, origin_metadata: dict[str, str]) -> None:
+        """The ``driftmap.export`` metadata record, then the MCAP summary and footer."""
+        self._writer.add_metadata(
+            EXPORT_METADATA_NAME,
+            {
+                "version": EXPORT_FORMAT_VERSION,
+                "driftmap_version": __version__,
+                "sensors": json.dumps([_sensor_metadata(s) for s in self.sensors.values()]),
+                **origin_metadata,
+            },
+        )
+        self._writer.finish()
+
+    def summary(self, out_path: Path) -> dict[str, Any]:
+        """What :func:`export_mcap` returns."""
+        return {
+            "out": str(out_path),
+            "frames": self.n_frames,
+            "points": sum(s.n_points for s in self.sensors.values()),
+            "poses_written": self.n_poses,
+            "ground_truth_poses": self.n_gt,
+            "bytes": out_path.stat().st_size,
+            "sensors": {
+                name: {
+                    "topic": s.topic,
+                    "camera_info_topic": s.camera_info_topic,
+                    "ground_truth_topic": s.ground_truth_topic,
+                    "frames": len(s.frame_ids),
+                    "sensor_frame": s.sensor_frame,
+                    "base_frame": s.base_frame,
+                    "world_frame": s.world_frame,
+                }
+                for name, s in self.sensors.items()
+            },
+        }
 
 
 def _new_sensor(frame: Frame, sensors: dict[str, _SensorState], what: str) -> _SensorState:
@@ -526,18 +543,15 @@ def write_depth_image_mcap(
     millimetres, ``32FC1`` for float32 metres) + ``CameraInfo`` per image on ``frame_id``, ``/tf_static``
     ``base_frame -> frame_id`` and, with ``T_world_sensor``, ``/tf`` ``world_frame -> base_frame`` per image.
     """
-    from mcap.writer import CompressionType
     from mcap_ros2.writer import Writer
 
     out_path = Path(out_path)
-    compressions = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
-    if compression not in compressions:
-        raise ExportError(f"compression must be one of {', '.join(compressions)}, got {compression!r}")
+    compression_type = _compression_type(compression)
     camera_info_topic = camera_info_topic or topic.rsplit("/", 1)[0] + "/camera_info"
     T_base_sensor = np.eye(4) if T_base_sensor is None else geometry.as_rigid(T_base_sensor, "T_base_sensor")
     n = 0
     with open(out_path, "wb") as stream:
-        writer = Writer(stream, chunk_size=chunk_size, compression=compressions[compression])
+        writer = Writer(stream, chunk_size=chunk_size, compression=compression_type)
         schemas = _Schemas(writer)
         for k, depth in enumerate(depths):
             stamp = int(stamps_ns[k])

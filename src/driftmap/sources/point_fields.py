@@ -1,5 +1,15 @@
-"""Per-point fields a reader takes from a file -- normals and per-point times -- checked against the data before
-they are used. One owner of these rules, shared by the cloud-folder (PCD / PLY) and the ROS PointCloud2 readers.
+"""Per-point fields a reader takes from a file -- coordinates, normals and per-point times -- checked against the
+data before they are used. One owner of these rules, shared by the cloud-folder (PCD / PLY), KITTI ``.bin`` and ROS
+PointCloud2 readers.
+
+**Coordinates.** A point farther than :data:`MAX_POINT_RANGE_M` from the sensor (the origin of the cloud's frame)
+is no measurement: the readers drop and count it as they drop points with a NaN / inf coordinate
+(:func:`far_points`), with one warning per cloud naming the file / message and the count; a cloud more than
+:data:`MAX_ABSURD_FRACTION` of whose points are that far is refused (:class:`SourceError`): its bytes are not read
+as they were meant (a wrong byte order, a wrong layout) or it is not a sensor's scan. A coordinate of 1e30 m would
+otherwise pass every reader and fail every later command (a voxel grid too large to index). A cloud within the
+range is returned as read, bit for bit. Depth back-projection cannot produce such points (depth is bounded by the
+depth range kept, the intrinsics by :func:`driftmap.sources.depth_folder.intrinsics_problem`).
 
 **Normals.** A normal field is kept only when *every* normal of the cloud is finite and unit length within
 :data:`NORMAL_UNIT_TOLERANCE`. Otherwise the cloud's normals are dropped, all of them, with one warning naming the
@@ -40,6 +50,53 @@ POINT_TIME_FIELDS = ("t", "offset_time", "time", "timestamp", "time_stamp")
 MAX_SCAN_SPAN_NS = 1_000_000_000
 """Per-point times of one scan span at most this (1 s: a 10 Hz spinning LiDAR spans 0.1 s, a 1 Hz scan 1 s)
 and lie within it of the frame stamp; anything else is not a time field of this scan (or not in its unit)."""
+
+MAX_POINT_RANGE_M = 10_000.0
+"""No sensor driftmap reads measures farther than this (10 km; long-range LiDARs reach 1-2 km): a point farther
+from the sensor is a reader's or a writer's error, dropped and counted as invalid (:func:`far_points`)."""
+MAX_ABSURD_FRACTION = 0.5
+"""A cloud with more than this fraction of its points beyond :data:`MAX_POINT_RANGE_M` is refused as a whole."""
+_BOX_M = MAX_POINT_RANGE_M / 3**0.5
+"""Points with every coordinate within this are within :data:`MAX_POINT_RANGE_M` (the check's fast path)."""
+
+
+def far_points(points: NDArray, what: str, *, hint: str = "") -> NDArray[np.bool_] | None:
+    """Which points of a cloud (N, 3), in its sensor's frame, lie farther than :data:`MAX_POINT_RANGE_M` from the
+    sensor; ``None`` when none does (the cloud is used as it is, bit for bit). NaN / inf coordinates are not this
+    check's (each reader drops and counts them itself) and are never in the mask.
+
+    The points found are to be dropped and counted (``"beyond_max"``, as
+    :class:`driftmap.preprocess.depth.InvalidReason`) by the caller; one warning names ``what`` (the file or
+    message, and the frame) and the count. When more than :data:`MAX_ABSURD_FRACTION` of the finite points are that
+    far, :class:`SourceError` names ``what``, the count and ``hint`` (what may be wrong, e.g. a PointCloud2's
+    ``is_bigendian``): the cloud is refused."""
+    xyz = np.asarray(points)
+    if len(xyz) == 0:
+        return None
+    with np.errstate(invalid="ignore"):
+        inside = np.abs(xyz) <= _BOX_M  # False for NaN: those rows are looked at below
+    if bool(np.all(inside)):
+        return None
+    rows = np.flatnonzero(~inside.all(axis=1))
+    with np.errstate(over="ignore", invalid="ignore"):  # (signalling NaNs of byte-swapped data, squares of 1e300)
+        coords = xyz[rows].astype(np.float64)
+        finite_rows = np.isfinite(coords).all(axis=1)
+        ranges = np.sqrt(np.einsum("ij,ij->i", coords, coords))
+    beyond = finite_rows & (ranges > MAX_POINT_RANGE_M)
+    n_far = int(np.count_nonzero(beyond))
+    if not n_far:
+        return None
+    n_finite = len(xyz) - int(np.count_nonzero(~finite_rows))
+    largest = float(np.max(ranges[beyond]))
+    if n_far > MAX_ABSURD_FRACTION * n_finite:
+        raise SourceError(f"{what}: {n_far} of the {n_finite} finite points lie farther than {MAX_POINT_RANGE_M:g} m "
+                          f"from the sensor (up to {largest:.3g} m): no sensor measures that far, so the data is not "
+                          f"read as it was meant{hint}; the cloud is refused")
+    far = np.zeros(len(xyz), dtype=bool)
+    far[rows[beyond]] = True
+    logger.warning("%s: dropping %d of %d points farther than %g m from the sensor (up to %.3g m): no sensor "
+                   "measures that far%s", what, n_far, len(xyz), MAX_POINT_RANGE_M, largest, hint)
+    return far
 
 
 class PointTimeReference(enum.Enum):

@@ -25,18 +25,15 @@ from numpy.typing import NDArray
 
 from driftmap import geometry
 from driftmap.errors import SourceError, TransformError
-from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
-from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
-from driftmap.sources.base import FrameSource, register_source
+from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, PoseSource
+from driftmap.sources.base import register_source
 from driftmap.sources.cloud_folder import frame_number, numbered_files, opener_for, pose_or_none
-from driftmap.sources.redwood import (
+from driftmap.sources.depth_folder import (
     KINECT_RANGE_M,
     NOMINAL_30HZ_PERIOD_NS,
-    check_sensor_range,
-    frame_errors_named,
+    DepthFolderSource,
     intrinsics_from_option,
     intrinsics_named,
-    read_depth_png,
 )
 from driftmap.sources.stamps import nominal_stamp_ns
 from driftmap.trajectory import Trajectory
@@ -81,7 +78,7 @@ def _read_intrinsics_txt(file: Path) -> PinholeIntrinsics:
     return intrinsics_named(file, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
 
 
-class SevenScenes(FrameSource):
+class SevenScenes(DepthFolderSource):
     """A 7-Scenes sequence folder (see the module docstring for the layout).
 
     Options:
@@ -111,18 +108,13 @@ class SevenScenes(FrameSource):
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
-        super().__init__(str(path), frames=frames, lenient=lenient)
-        self.pixel_stride = int(pixel_stride)
-        self.path = Path(path)
+        super().__init__(path, pixel_stride=pixel_stride, frames=frames, lenient=lenient)
         if color:
             raise SourceError(
                 f"{self.path}: 7-Scenes colour images are not registered to the depth images (different camera, "
                 f"no extrinsics), so they cannot colour the points; open without color=True"
             )
-        self.min_depth_m = min_depth_m
-        self.max_depth_m = max_depth_m
-        self.depth_scale = float(depth_scale)
-        self.sensor_range_m = sensor_range_m
+        self._set_depth_units(depth_scale, min_depth_m, max_depth_m, sensor_range_m)
         self.poses_from_ground_truth = poses_from_ground_truth
         intrinsics_file = self.path / INTRINSICS_FILE
         if intrinsics is not None:
@@ -135,7 +127,6 @@ class SevenScenes(FrameSource):
         self._frames = numbered_files(self.path, "7-Scenes depth", pattern="frame-*.depth.png", lenient=lenient)
         for frame_id, file in self._frames:  # nominal 30 Hz stamps of the file numbers must be stamps
             nominal_stamp_ns(frame_id, NOMINAL_30HZ_PERIOD_NS, str(file))
-        self._monitor = InvalidFractionMonitor()
         self.missing_depth: list[tuple[int, Path]] = self._find_missing_depth()
         """``(frame_id, depth file)`` of frames the sequence numbers (a gap in the numbering, or a pose / colour
         file) without a depth image: they are not frames of this source (``--frames`` counts the others);
@@ -177,37 +168,15 @@ class SevenScenes(FrameSource):
     def pose_file(self, frame_id: int) -> Path:
         return self.path / f"frame-{frame_id:06d}.pose.txt"
 
-    def read_depth(self, index: int) -> NDArray[np.uint16]:
+    def _depth_entry(self, index: int) -> tuple[int, int, Path]:
         frame_id, file = self._frames[index]
-        return read_depth_png(file, frame_id)
+        return frame_id, frame_id * NOMINAL_30HZ_PERIOD_NS, file
 
-    def _load(self, index: int) -> Frame:
-        frame_id, file = self._frames[index]
-        if self.poses_from_ground_truth:
-            pose = pose_or_none(read_pose_txt(self.pose_file(frame_id), frame_id), PoseSource.GROUND_TRUTH)
-        else:
-            pose = pose_or_none(None, PoseSource.NONE)
-        depth = read_depth_png(file, frame_id)
-        check_sensor_range(depth, self.depth_scale, self.sensor_range_m, what=f"frame {frame_id} ({file})")
-        with frame_errors_named(file, frame_id):
-            return self._depth_frame(depth, frame_id, file, pose)
-
-    def _depth_frame(self, depth: NDArray[np.uint16], frame_id: int, file: Path, pose: Any) -> Frame:
-        return depth_frame(
-            depth,
-            self.intrinsics,
-            frame_id=frame_id,
-            stamp_ns=frame_id * NOMINAL_30HZ_PERIOD_NS,
-            pose=pose,
-            sensor_name="kinect_depth",
-            sensor_frame="camera_depth_optical_frame",
-            depth_scale=self.depth_scale,
-            min_depth_m=self.min_depth_m,
-            max_depth_m=self.max_depth_m,
-            provenance=Provenance(str(file.resolve()), frame_id),
-            monitor=self._monitor,
-            pixel_stride=self.pixel_stride,
-        )
+    def _pose_estimate(self, index: int) -> PoseEstimate:
+        if not self.poses_from_ground_truth:
+            return pose_or_none(None, PoseSource.NONE)
+        frame_id = self._frames[index][0]
+        return pose_or_none(read_pose_txt(self.pose_file(frame_id), frame_id), PoseSource.GROUND_TRUTH)
 
     def ground_truth(self) -> Trajectory:
         """``pose.txt`` poses ``T_world_camera`` of the selected frames (``frame_ids`` set).
@@ -230,8 +199,7 @@ class SevenScenes(FrameSource):
         return Trajectory(frame_ids * NOMINAL_30HZ_PERIOD_NS, np.array(poses).reshape(-1, 4, 4), frame_ids)
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale,
-                "ground_truth": True, "estimate": None}
+        return {**super().describe(), "ground_truth": True, "estimate": None}
 
 
 def _detect(path: Path) -> bool:

@@ -4,7 +4,9 @@ carries (stamps as file names, stamp files such as ``times.txt``).
 Every stamp that becomes a frame's ``stamp_ns`` passes through here: :func:`parse_stamp_s` (text in seconds, as
 ``times.txt``, TUM's ``depth.txt``), :func:`check_stamp_ns` (a stamp read some other way: a ROS header, a pose file's
 rows, a file name), :func:`nominal_stamp_ns` (``frame_id * period`` for data without stamps) and
-:func:`check_increasing_stamps` (frames need strictly increasing stamps). A stamp must be a finite number, ``>= 0``
+:func:`check_increasing_stamps` (frames need strictly increasing stamps). A file of stamps in seconds must also step
+like a sensor (:func:`check_seconds_period`: a median step within 1 ms .. 10 s), else it is refused as a file in
+another unit. A stamp must be a finite number, ``>= 0``
 and within the int64 nanoseconds the frame store keeps (:data:`MAX_STAMP_NS`, the year 2262); anything else is a
 :class:`SourceError` naming the file and the line (or the message), never a traceback at store time.
 
@@ -23,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from driftmap.errors import SourceError
-from driftmap.trajectory import Trajectory, _read_lines, _stamp_s_to_ns
+from driftmap.trajectory import Trajectory, read_lines, stamp_s_to_ns
 
 logger = logging.getLogger(__name__)
 
@@ -68,9 +70,12 @@ def parse_stamp_s(text: str, where: str) -> int:
     if not _SECONDS_TEXT.fullmatch(stripped):
         raise SourceError(f"{where}: {stripped!r} is not a number of seconds")
     try:
-        value = _stamp_s_to_ns(stripped)
-    except (ValueError, OverflowError) as exc:
+        value = stamp_s_to_ns(stripped)
+    except ValueError as exc:
         raise SourceError(f"{where}: {stripped!r} is not a finite number of seconds") from exc
+    except OverflowError as exc:
+        raise SourceError(f"{where}: stamp {stripped!r} s is beyond the largest stamp a frame can carry "
+                          f"({MAX_STAMP_NS} ns)") from exc
     return check_stamp_ns(value, where, shown=f"{stripped!r} s")
 
 
@@ -120,7 +125,7 @@ def name_stamp_ns(name: str | Path) -> tuple[int, str] | None:
     text = found[-1]
     if "." in text:
         whole = int(text.partition(".")[0])
-        return (_stamp_s_to_ns(text), "s") if EPOCH_MIN_S <= whole <= EPOCH_MAX_S else None
+        return (stamp_s_to_ns(text), "s") if EPOCH_MIN_S <= whole <= EPOCH_MAX_S else None
     value = int(text)
     for unit, ns in NAME_STAMP_UNITS.items():
         per_s = 1_000_000_000 // ns
@@ -138,6 +143,27 @@ def period_problem(stamps_ns: Sequence[int]) -> str | None:
         return None
     return (f"their median step is {median / 1e9:.6g} s, outside the {MIN_PERIOD_NS / 1e9:g} .. "
             f"{MAX_PERIOD_NS / 1e9:g} s of a sensor's frames")
+
+
+def check_seconds_period(stamps_ns: Sequence[int], file: Path | str, what: str) -> None:
+    """Stamps read as seconds from ``file`` (a stamp file such as KITTI's ``times.txt``, a TUM ``depth.txt``) whose
+    median step no sensor has (outside :data:`MIN_PERIOD_NS` .. :data:`MAX_PERIOD_NS`): :class:`SourceError`
+    naming the file and ``what`` the stamps are of ("the 16 clouds"), asking whether the file is in seconds (a file
+    in milliseconds steps ~100 s at 10 Hz, one in microseconds ~1e5 s).
+
+    Only the steps forward are judged (a duplicate or a step back is :func:`check_increasing_stamps`' to report);
+    fewer than one step forward is not judged. The one check of the period of stamps read in seconds, shared by the
+    cloud-folder source, KITTI and TUM."""
+    steps = np.diff(np.asarray(stamps_ns, dtype=np.int64))
+    steps = steps[steps > 0]
+    if steps.size == 0:
+        return
+    median = float(np.median(steps))
+    if MIN_PERIOD_NS <= median <= MAX_PERIOD_NS:
+        return
+    raise SourceError(f"{file}: read as seconds, the stamps of {what} do not fit a sensor: their median step is "
+                      f"{median / 1e9:.6g} s, outside {MIN_PERIOD_NS / 1e9:g} .. {MAX_PERIOD_NS / 1e9:g} s "
+                      f"(is the file in seconds?)")
 
 
 def stamps_from_file_names(files: Sequence[Path], what: str) -> tuple[list[tuple[int, Path]], str] | None:
@@ -180,7 +206,7 @@ def read_times(file: Path) -> list[int]:
 def read_times_with_lines(file: Path) -> list[tuple[int, int]]:
     """:func:`read_times` with the 1-based line of each stamp: ``[(stamp_ns, line)]``."""
     out = []
-    for lineno, line in enumerate(_read_lines(file, "stamp file"), start=1):
+    for lineno, line in enumerate(read_lines(file, "stamp file"), start=1):
         if line.strip():
             out.append((parse_stamp_s(line, f"{file}:{lineno}"), lineno))
     return out
@@ -226,7 +252,7 @@ def pose_file_stamp_lines(file: Path, format: str) -> list[int]:
     """The 1-based line of each row's stamp in a pose file with stamps (TUM and EuRoC: every data line; ``4x4``:
     the last line of every block), for messages about a row; empty when the file cannot be read."""
     try:
-        lines = _read_lines(file, "pose file")
+        lines = read_lines(file, "pose file")
     except SourceError:
         return []
     data = [k for k, line in enumerate(lines, start=1) if line.partition("#")[0].strip()]

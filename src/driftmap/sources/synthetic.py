@@ -20,7 +20,9 @@ On-disk layout (a folder)::
     lidar/NNNNNN.time.bin with lidar_point_times: int64 ns per point after the frame's stamp (the scan's start)
 
 A LiDAR may spin (beams x azimuths) or draw a rosette (:mod:`driftmap.sources.synthetic_lidar`); the robot may
-stand, stop and turn in place on its way (:mod:`driftmap.sources.synthetic_motion`).
+stand, stop and turn in place on its way (:mod:`driftmap.sources.synthetic_motion`). The scene's boxes are in
+:mod:`driftmap.sources.synthetic_scene` (:func:`build_scene` makes the ray-casting scene of a config), the sensors'
+rendering in :mod:`driftmap.sources.synthetic_render`; this module re-exports their names.
 """
 
 from __future__ import annotations
@@ -32,7 +34,6 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from PIL import Image
 from scipy.spatial.transform import Rotation
@@ -42,14 +43,15 @@ from driftmap.errors import ConfigError, DriftmapError, SourceError, parse_enum
 from driftmap.frame import Frame, PinholeIntrinsics, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
-from driftmap.sources.redwood import frame_errors_named, intrinsics_named, read_depth_png
-from driftmap.sources.stamps import check_increasing_stamps, check_stamp_ns, read_pose_file
-from driftmap.sources.synthetic_lidar import LidarPattern, cast_lidar, lidar_rays
+from driftmap.sources.depth_folder import frame_errors_named, intrinsics_named, read_depth_png
+from driftmap.sources.point_fields import far_points
+from driftmap.sources.stamps import MAX_STAMP_NS, check_increasing_stamps, check_stamp_ns, read_pose_file
+from driftmap.sources.synthetic_lidar import LidarPattern, cast_lidar, lidar_rays  # noqa: F401 (re-exported)
 from driftmap.sources.synthetic_motion import (  # re-exported: STREET_CORNER_RADIUS_M, STREET_PERIMETER_M, street_path
     STREET_CORNER_RADIUS_M,  # noqa: F401
-    STREET_HALF_SIZE_M,
+    STREET_HALF_SIZE_M,  # noqa: F401
     STREET_PERIMETER_M,  # noqa: F401
-    MotionSchedule,
+    MotionSchedule,  # noqa: F401
     ScanMotion,
     base_poses_at,
     frame_base_poses,
@@ -59,6 +61,26 @@ from driftmap.sources.synthetic_motion import (  # re-exported: STREET_CORNER_RA
     non_moving_scans,
     path_length_m,
     street_path,  # noqa: F401
+)
+from driftmap.sources.synthetic_render import (  # re-exported: T_base_camera, render_depth, render_lidar, ...
+    T_base_camera,
+    T_base_lidar,
+    render_depth,
+    render_lidar,  # noqa: F401
+    render_scan,
+)
+from driftmap.sources.synthetic_scene import (  # re-exported: the scene's boxes and sizes
+    BOARD_THICKNESS_M,  # noqa: F401
+    DOOR_RECESS_M,  # noqa: F401
+    ROOM_MAX_M,  # noqa: F401
+    ROOM_MIN_M,  # noqa: F401
+    STREET_FACADE_OFFSET_M,  # noqa: F401
+    WALL_THICKNESS_M,  # noqa: F401
+    SceneBox,  # noqa: F401
+    boxes_of,
+    build_scene,
+    scene_boxes,  # noqa: F401
+    street_boxes,  # noqa: F401
 )
 from driftmap.trajectory import Trajectory, read_tum, write_tum
 
@@ -151,13 +173,14 @@ class SyntheticLogConfig:
     (``lidar/NNNNNN.time.bin``, int64 ns after the scan's stamp: the scan's start)."""
 
     def __post_init__(self) -> None:
+        """Every field checked before anything is computed from it (:func:`check_config_fields`): a value out of its
+        range raises :class:`ConfigError` naming the field, never an ``OverflowError`` or a 20 GB allocation later."""
         object.__setattr__(self, "lidar_pattern", parse_enum(LidarPattern, self.lidar_pattern, "lidar_pattern"))
+        check_config_fields(self)
         object.__setattr__(self, "turn_in_place_at", tuple(float(f) for f in self.turn_in_place_at))
         for name in ("stationary_start_frames", "stops", "stop_frames", "turn_in_place_frames", "turns_in_place"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"{name}: must be >= 0, got {getattr(self, name)}")
-        if self.frame_period_ns <= 0:
-            raise ConfigError(f"frame_period_ns: must be > 0, got {self.frame_period_ns}")
         if self.stops and self.stop_frames < 1:
             raise ConfigError(f"stop_frames: {self.stops} stops need stop_frames >= 1")
         turning = bool(self.turns_in_place or self.turn_in_place_at)
@@ -180,6 +203,8 @@ class SyntheticLogConfig:
             if not self.speed_m_per_s > 0.0:
                 raise ConfigError(f"speed_m_per_s: must be > 0, got {self.speed_m_per_s}")
             object.__setattr__(self, "n_frames", frames_for_speed(self, self.speed_m_per_s))
+            check_frame_count(self, f" (the frames speed_m_per_s={self.speed_m_per_s:g} needs at a period of "
+                                    f"{self.frame_period_ns / 1e9:g} s)")
         elif moving_scans(self) < 1:
             raise ConfigError(f"n_frames: {self.n_frames} frames leave no moving scan after the "
                               f"{non_moving_scans(self)} stationary, stop and turn scans (give more, or speed_m_per_s)")
@@ -204,152 +229,107 @@ class SyntheticLogConfig:
         return path_length_m(default) / ((default.n_frames - 1) * default.frame_period_ns * 1e-9)
 
 
-@dataclass(frozen=True)
-class SceneBox:
-    name: str
-    min_m: tuple[float, float, float]
-    max_m: tuple[float, float, float]
-    glass: bool = False
+MIN_FRAME_PERIOD_NS = 1_000_000
+MAX_FRAME_PERIOD_NS = 3_600_000_000_000
+"""``frame_period_ns`` lies within 1 ms .. 1 h (sensors run at 1 kHz .. a frame an hour)."""
+MAX_FRAMES = 1_000_000
+"""At most this many frames (and stationary, stop and turn scans): a million depth images, ~10 GB on disk."""
+MAX_IMAGE_SIDE = 8192
+MAX_DEPTH_PIXELS = 4096 * 2048
+"""Depth images of at most this many pixels (each side at most :data:`MAX_IMAGE_SIDE`): ray-casting one takes ~200
+bytes a pixel, ~1.7 GB at this size."""
+MAX_LIDAR_RAYS = 2_000_000
+"""At most this many rays per LiDAR scan (``lidar_points_per_scan``, ``lidar_beams * lidar_azimuth_steps``):
+casting one with per-point times takes ~1 kB a ray, ~2 GB at this size."""
+MAX_SEED = 2**63 - 1
+"""numpy's seeds are integers >= 0; this bound keeps them in the int64 a JSON reader gives back."""
 
 
-ROOM_MIN_M = (-3.0, -2.5, 0.0)
-ROOM_MAX_M = (3.0, 2.5, 2.6)
-WALL_THICKNESS_M = 0.1
-DOOR_RECESS_M = 0.05
-BOARD_THICKNESS_M = 0.02
+def _integer(config: SyntheticLogConfig, name: str, lo: int, hi: int, why: str = "") -> int:
+    value = getattr(config, name)
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise ConfigError(f"{name}: must be an integer, got {value!r}")
+    if not lo <= value <= hi:
+        raise ConfigError(f"{name}: must be within {lo} .. {hi}{why}, got {value}")
+    return int(value)
 
 
-def scene_boxes() -> list[SceneBox]:
-    """The room as axis-aligned boxes (world frame, z up, floor at z = 0)."""
-    (x0, y0, z0), (x1, y1, z1) = ROOM_MIN_M, ROOM_MAX_M
-    w = WALL_THICKNESS_M
-    door_y, door_h = (-0.45, 0.45), 2.0
-    boxes = [
-        SceneBox("floor", (x0 - w, y0 - w, z0 - w), (x1 + w, y1 + w, z0)),
-        SceneBox("ceiling", (x0 - w, y0 - w, z1), (x1 + w, y1 + w, z1 + w)),
-        SceneBox("wall_-x", (x0 - w, y0 - w, z0), (x0, y1 + w, z1)),
-        SceneBox("wall_-y", (x0 - w, y0 - w, z0), (x1 + w, y0, z1)),
-        SceneBox("wall_+y", (x0 - w, y1, z0), (x1 + w, y1 + w, z1)),
-        # +x wall with a door opening; the door panel sits DOOR_RECESS_M behind the wall face
-        SceneBox("wall_+x_left", (x1, y0 - w, z0), (x1 + w, door_y[0], z1)),
-        SceneBox("wall_+x_right", (x1, door_y[1], z0), (x1 + w, y1 + w, z1)),
-        SceneBox("wall_+x_top", (x1, door_y[0], door_h), (x1 + w, door_y[1], z1)),
-        SceneBox("door_panel", (x1 + DOOR_RECESS_M, door_y[0], z0), (x1 + DOOR_RECESS_M + 0.04, door_y[1], door_h)),
-        # a glass pane just in front of the -x wall: the depth camera gets no reading there
-        SceneBox("glass", (x0, -1.0, 0.8), (x0 + 0.01, 0.0, 1.8), glass=True),
-        # table near the +y wall
-        SceneBox("table_top", (-0.6, 1.4, 0.72), (0.6, 2.2, 0.76)),
-        *[
-            SceneBox(f"table_leg_{i}", (lx, ly, 0.0), (lx + 0.05, ly + 0.05, 0.72))
-            for i, (lx, ly) in enumerate([(-0.6, 1.4), (0.55, 1.4), (-0.6, 2.15), (0.55, 2.15)])
-        ],
-        # chair near the -y wall: thin legs (2.4 cm) and a seat
-        SceneBox("chair_seat", (0.8, -2.0, 0.45), (1.25, -1.55, 0.48)),
-        *[
-            SceneBox(f"chair_leg_{i}", (lx, ly, 0.0), (lx + 0.024, ly + 0.024, 0.45))
-            for i, (lx, ly) in enumerate([(0.8, -2.0), (1.226, -2.0), (0.8, -1.574), (1.226, -1.574)])
-        ],
-        # a 2 cm board standing half a metre in front of the -y wall
-        SceneBox("thin_board", (-1.8, -2.0 - BOARD_THICKNESS_M, 0.0), (-0.8, -2.0, 1.2)),
-        # furniture along the walls: every view sees structure in all directions, so registration is
-        # well-posed (a bare wall plus floor leaves the slide along the wall unobservable)
-        SceneBox("shelf_-x", (x0, 1.0, 0.0), (x0 + 0.4, 2.0, 1.8)),
-        SceneBox("crate_-x", (x0, -2.3, 0.0), (x0 + 0.3, -1.6, 0.9)),
-        SceneBox("cabinet_+x", (x1 - 0.45, 1.2, 0.0), (x1, 2.2, 0.9)),
-        SceneBox("locker_+x", (x1 - 0.4, -2.4, 0.0), (x1, -1.6, 2.0)),
-        SceneBox("wall_shelf_-y", (1.8, y0, 1.2), (2.6, y0 + 0.3, 1.6)),
-        SceneBox("pillar_-y", (-2.2, y0, 0.0), (-1.95, y0 + 0.25, z1)),
-        SceneBox("sideboard_+y", (1.0, y1 - 0.4, 0.0), (2.2, y1, 0.85)),
-        SceneBox("pillar_+y", (x0 + 0.05, y1 - 0.3, 0.0), (x0 + 0.3, y1, z1)),
-        SceneBox("lamp", (-0.3, -0.3, z1 - 0.3), (0.3, 0.3, z1)),
-    ]
-    return boxes
+def _number(config: SyntheticLogConfig, name: str, lo: float = -math.inf, hi: float = math.inf, *,
+            open_lo: bool = False, value: object = None, why: str = "") -> float:
+    value = getattr(config, name) if value is None else value
+    try:
+        number = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(f"{name}: must be a number, got {value!r}") from None
+    inside = (lo < number if open_lo else lo <= number) and number <= hi
+    if not math.isfinite(number) or not inside:
+        bounds = f"{'(' if open_lo else '['}{lo:g}, {hi:g}]" if math.isfinite(hi) else (
+            f"{'>' if open_lo else '>='} {lo:g}" if math.isfinite(lo) else "finite")
+        raise ConfigError(f"{name}: must be {'finite and ' if bounds != 'finite' else ''}{bounds}{why}, got {value!r}")
+    return number
 
 
-STREET_FACADE_OFFSET_M = 7.0
-"""Building facades stand this far from the road's centreline (+- 1 m per building)."""
+def check_config_fields(config: SyntheticLogConfig) -> None:
+    """Check every field of a :class:`SyntheticLogConfig` that can be wrong alone: :class:`ConfigError` naming the
+    field and its range. Sizes are bounded so that no log needs more than a few GB of memory
+    (:data:`MAX_DEPTH_PIXELS`, :data:`MAX_LIDAR_RAYS`, :data:`MAX_FRAMES`) and stamps stay within the int64 ns a frame
+    carries (``frame_period_ns`` within :data:`MIN_FRAME_PERIOD_NS` .. :data:`MAX_FRAME_PERIOD_NS`, the last stamp
+    at most :data:`~driftmap.sources.stamps.MAX_STAMP_NS`)."""
+    _integer(config, "seed", 0, MAX_SEED, " (numpy's seeds are >= 0)")
+    _integer(config, "frame_period_ns", MIN_FRAME_PERIOD_NS, MAX_FRAME_PERIOD_NS, " (1 ms .. 1 h)")
+    _integer(config, "start_stamp_ns", 0, MAX_STAMP_NS)
+    for name in ("stationary_start_frames", "stops", "stop_frames", "turn_in_place_frames", "turns_in_place"):
+        _integer(config, name, 0, MAX_FRAMES)
+    if len(config.turn_in_place_at) > MAX_FRAMES:
+        raise ConfigError(f"turn_in_place_at: at most {MAX_FRAMES} turns, got {len(config.turn_in_place_at)}")
+    if config.speed_m_per_s is None:
+        check_frame_count(config)
+    _integer(config, "step_frame", -MAX_FRAMES, MAX_FRAMES)
+    width = _integer(config, "width", 1, MAX_IMAGE_SIDE)
+    height = _integer(config, "height", 1, MAX_IMAGE_SIDE)
+    if width * height > MAX_DEPTH_PIXELS:
+        raise ConfigError(f"width, height: a {width}x{height} depth image has {width * height} pixels, more than the "
+                          f"{MAX_DEPTH_PIXELS} a synthetic log renders (a few GB of memory)")
+    for name in ("fx", "fy", "depth_scale", "max_range_m", "circle_radius_m", "loop_turns", "lidar_max_range_m",
+                 "lidar_fov_deg"):
+        _number(config, name, 0.0, open_lo=True)
+    for name in ("cx", "cy", "camera_height_m", "camera_pitch_down_deg", "yaw_drift_deg_per_m", "scale_drift_percent",
+                 "lidar_rosette_k", "turn_in_place_deg_per_frame"):
+        _number(config, name)
+    for name in ("odometry_noise_m", "odometry_noise_deg", "lidar_range_sigma_m"):
+        _number(config, name, 0.0)
+    _number(config, "dropout_fraction", 0.0, 1.0)
+    for name, size in (("step_m", 3), ("lidar_elevation_deg", 2)):
+        values = getattr(config, name)
+        if not isinstance(values, (tuple, list)) or len(values) != size:
+            raise ConfigError(f"{name}: must be {size} numbers, got {values!r}")
+        for v in values:
+            _number(config, name, *((-90.0, 90.0) if name == "lidar_elevation_deg" else ()), value=v)
+    if config.lidar_elevation_deg[0] > config.lidar_elevation_deg[1]:
+        raise ConfigError(f"lidar_elevation_deg: (lowest, highest) beam elevation, got {config.lidar_elevation_deg}")
+    for f in config.turn_in_place_at:
+        _number(config, "turn_in_place_at", value=f)
+    beams = _integer(config, "lidar_beams", 1, MAX_LIDAR_RAYS)
+    steps = _integer(config, "lidar_azimuth_steps", 1, MAX_LIDAR_RAYS)
+    if beams * steps > MAX_LIDAR_RAYS:
+        raise ConfigError(f"lidar_beams, lidar_azimuth_steps: {beams} x {steps} = {beams * steps} rays a scan, more "
+                          f"than the {MAX_LIDAR_RAYS} a synthetic LiDAR casts (a few GB of memory)")
+    _integer(config, "lidar_points_per_scan", 1, MAX_LIDAR_RAYS)
+    if config.speed_m_per_s is not None:
+        _number(config, "speed_m_per_s", 0.0, open_lo=True)
+    if config.scene not in ("room", "street"):
+        raise ConfigError(f"scene: must be 'room' or 'street', got {config.scene!r}")
 
 
-def street_boxes(seed: int) -> list[SceneBox]:
-    """The city block of ``scene="street"`` (world frame, z up, ground at z = 0): buildings of random width, depth
-    and height inside and outside the road loop, with gaps between them, poles on both sides and parked cars,
-    all drawn from ``seed`` (so the same seed gives the same town)."""
-    rng = np.random.default_rng([seed, 20261123])
-    a, b = STREET_HALF_SIZE_M
-    d = STREET_FACADE_OFFSET_M
-    boxes = [SceneBox("ground", (-a - 60, -b - 60, -0.2), (a + 60, b + 60, 0.0))]
-
-    def along(side: str, t0: float, t1: float, off0: float, off1: float, z1: float) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
-        """A box spanning ``t0..t1`` along a side of the loop and ``off0..off1`` outwards from its centreline."""
-        lo, hi = min(off0, off1), max(off0, off1)
-        if side == "-y":
-            return (t0, -b - hi, 0.0), (t1, -b - lo, z1)
-        if side == "+y":
-            return (t0, b + lo, 0.0), (t1, b + hi, z1)
-        if side == "-x":
-            return (-a - hi, t0, 0.0), (-a - lo, t1, z1)
-        return (a + lo, t0, 0.0), (a + hi, t1, z1)
-
-    for side, half in (("-y", a), ("+y", a), ("-x", b), ("+x", b)):
-        # outside the loop: a row of buildings past the corners; inside: a row up to the block's inner corners
-        for where, t_lo, t_hi, sign in (("out", -half - 15.0, half + 15.0, 1.0), ("in", -half + d, half - d, -1.0)):
-            t = t_lo + rng.uniform(0.0, 4.0)
-            n = 0
-            while t < t_hi - 3.0:
-                width = min(rng.uniform(6.0, 16.0), t_hi - t)
-                facade = d + rng.uniform(-1.0, 1.0)
-                depth = rng.uniform(8.0, 12.0)
-                lo, hi = along(side, t, t + width, sign * facade, sign * (facade + depth), rng.uniform(5.0, 18.0))
-                boxes.append(SceneBox(f"building_{side}_{where}_{n}", lo, hi))
-                t += width + rng.uniform(1.5, 5.0)
-                n += 1
-        # poles on both sides of the road, parked cars on the outer side
-        for sign in (1.0, -1.0):
-            t = -half + rng.uniform(2.0, 8.0)
-            n = 0
-            while t < half - 2.0:
-                lo, hi = along(side, t, t + 0.3, sign * 4.5, sign * 4.8, rng.uniform(3.5, 6.0))
-                boxes.append(SceneBox(f"pole_{side}_{'out' if sign > 0 else 'in'}_{n}", lo, hi))
-                if sign > 0 and rng.random() < 0.5:
-                    lo, hi = along(side, t + 2.0, t + 6.3, 2.6, 4.4, rng.uniform(1.4, 1.8))
-                    boxes.append(SceneBox(f"car_{side}_{n}", lo, hi))
-                t += rng.uniform(8.0, 15.0)
-                n += 1
-    return boxes
-
-
-def boxes_of(config: SyntheticLogConfig) -> list[SceneBox]:
-    """The scene of a log: :func:`scene_boxes` (``room``) or :func:`street_boxes` (``street``)."""
-    if config.scene == "room":
-        return scene_boxes()
-    if config.scene == "street":
-        return street_boxes(config.seed)
-    raise SourceError(f"synthetic log: scene must be 'room' or 'street', got {config.scene!r}")
-
-
-def _build_scene(config: SyntheticLogConfig) -> tuple[o3d.t.geometry.RaycastingScene, set[int]]:
-    scene = o3d.t.geometry.RaycastingScene()
-    glass_ids: set[int] = set()
-    for box in boxes_of(config):
-        size = np.subtract(box.max_m, box.min_m)
-        mesh = o3d.geometry.TriangleMesh.create_box(*size)
-        mesh.translate(box.min_m)
-        gid = scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        if box.glass:
-            glass_ids.add(int(gid))
-    return scene, glass_ids
-
-
-def T_base_camera(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    """Depth camera (optical frame: x right, y down, z forward) on the robot base (x forward, z up)."""
-    R_base_optical = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    R_pitch = Rotation.from_euler("y", config.camera_pitch_down_deg, degrees=True).as_matrix()
-    return geometry.make_transform(R_pitch @ R_base_optical, (0.1, 0.0, config.camera_height_m))
-
-
-def T_base_lidar(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    """LiDAR frame (x forward, z up) on the robot base: 1.3 m up in the room, 1.73 m (KITTI's) on the street."""
-    return geometry.make_transform(None, (0.0, 0.0, 1.73 if config.scene == "street" else 1.3))
+def check_frame_count(config: SyntheticLogConfig, why: str = "") -> None:
+    """``n_frames`` within 2 .. :data:`MAX_FRAMES`, and the log's stamps (``start_stamp_ns + n_frames *
+    frame_period_ns``, one period past the last frame) within the int64 ns a frame carries."""
+    n = _integer(config, "n_frames", 2, MAX_FRAMES, why)
+    end = config.start_stamp_ns + n * config.frame_period_ns
+    if end > MAX_STAMP_NS:
+        raise ConfigError(f"n_frames, frame_period_ns: {n} frames {config.frame_period_ns / 1e9:g} s apart from "
+                          f"start_stamp_ns {config.start_stamp_ns} end at {end} ns{why}, beyond the largest stamp a "
+                          f"frame can carry ({MAX_STAMP_NS} ns, the year 2262)")
 
 
 def ground_truth_base_poses(config: SyntheticLogConfig) -> NDArray[np.float64]:
@@ -383,64 +363,9 @@ def drifting_base_poses(config: SyntheticLogConfig, gt: NDArray[np.float64], rng
     return odom
 
 
-def _camera_rays(config: SyntheticLogConfig) -> NDArray[np.float64]:
-    u, v = np.meshgrid(np.arange(config.width, dtype=np.float64), np.arange(config.height, dtype=np.float64))
-    return np.stack([(u - config.cx) / config.fx, (v - config.cy) / config.fy, np.ones_like(u)], axis=-1).reshape(-1, 3)
-
-
-def render_depth(
-    scene: o3d.t.geometry.RaycastingScene,
-    glass_ids: set[int],
-    T_world_camera: NDArray[np.float64],
-    config: SyntheticLogConfig,
-    rng: np.random.Generator,
-) -> NDArray[np.uint16]:
-    """One noisy uint16 depth image (``config.depth_scale`` units per metre, 0 = no reading)."""
-    rays_cam = _camera_rays(config)
-    dirs = rays_cam @ T_world_camera[:3, :3].T  # z-component 1 in the camera => t_hit is the depth z
-    origins = np.broadcast_to(T_world_camera[:3, 3], dirs.shape)
-    ans = scene.cast_rays(o3d.core.Tensor(np.hstack([origins, dirs]).astype(np.float32)))
-    z = ans["t_hit"].numpy().astype(np.float64)
-    gid = ans["geometry_ids"].numpy()
-    sigma = 0.0012 + 0.0019 * (z - 0.4) ** 2
-    noisy = z + rng.normal(0.0, 1.0, z.shape) * np.where(np.isfinite(sigma), sigma, 0.0)
-    invalid = ~np.isfinite(z) | (z > config.max_range_m) | (rng.random(z.shape) < config.dropout_fraction)
-    for g in glass_ids:
-        invalid |= gid == g
-    codes = np.where(invalid, 0.0, np.rint(noisy * config.depth_scale))
-    return np.clip(codes, 0, 65534).astype(np.uint16).reshape(config.height, config.width)
-
-
-def render_lidar(
-    scene: o3d.t.geometry.RaycastingScene,
-    T_world_lidar: NDArray[np.float64],
-    config: SyntheticLogConfig,
-    rng: np.random.Generator,
-    *,
-    scan_index: int = 0,
-) -> NDArray[np.float32]:
-    """One LiDAR scan in the LiDAR frame: (N, 4) float32 x, y, z, intensity, of ``config.lidar_pattern`` (the
-    rosette's part of the pattern depends on ``scan_index``), seen from one pose ``T_world_lidar`` (4, 4) or from
-    one pose per ray of :func:`~driftmap.sources.synthetic_lidar.lidar_rays` (N, 4, 4)."""
-    dirs_l, _ = lidar_rays(config, scan_index)
-    return cast_lidar(scene, T_world_lidar, dirs_l, config, rng)[0]
-
-
-def _render_scan(scene: o3d.t.geometry.RaycastingScene, config: SyntheticLogConfig, schedule: MotionSchedule,
-                 T_world_lidar: NDArray[np.float64], k: int, stamp_ns: int,
-                 rng: np.random.Generator) -> tuple[NDArray[np.float32], NDArray[np.int64] | None]:
-    """Scan ``k``: its points and, with ``lidar_point_times``, their times after ``stamp_ns`` (each ray cast from
-    the ground-truth pose at its capture time)."""
-    dirs_l, offsets_ns = lidar_rays(config, k)
-    if not config.lidar_point_times:
-        return cast_lidar(scene, T_world_lidar, dirs_l, config, rng)[0], None
-    poses = base_poses_at(config, np.int64(stamp_ns) + offsets_ns, schedule) @ T_base_lidar(config)
-    scan, ok = cast_lidar(scene, poses, dirs_l, config, rng)
-    return scan, offsets_ns[ok]
-
-
-def _clear_earlier_log(out: Path) -> None:
-    """Remove the frame files of an earlier synthetic log in ``out``; refuse a folder that holds anything else."""
+def _clear_earlier_log(out: Path, overwrite: bool) -> None:
+    """Check that ``out`` may be written (a new or empty folder; with ``overwrite`` an earlier synthetic log) and
+    remove the files of an earlier synthetic log; refuse anything else before touching it."""
     if not out.exists():
         return
     if not out.is_dir():
@@ -453,22 +378,27 @@ def _clear_earlier_log(out: Path) -> None:
         earlier = False
     if not earlier:
         raise SourceError(f"{out}: is not empty and holds no synthetic log ({METADATA_FILE}); give a new or empty folder")
+    if not overwrite:
+        raise ConfigError(f"{out}: a synthetic log exists: pass overwrite=True / --overwrite to replace it (or give "
+                          f"a new or empty folder)")
     stale = [*out.glob("depth/[0-9]*.png"), *out.glob("lidar/[0-9]*.bin")]
     for f in stale:
         f.unlink()
     logger.info("%s: replacing an earlier synthetic log (%d frame files removed)", out, len(stale))
 
 
-def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | None = None) -> Path:
-    """Write a synthetic log to ``out_dir``: a new or empty folder, or an earlier synthetic log, which is replaced
-    (its frame files that the new log does not have are removed, so no stale frame stays behind). Any other
-    non-empty folder is refused with :class:`SourceError` (nothing of it is touched)."""
+def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | None = None, *,
+                           overwrite: bool = False) -> Path:
+    """Write a synthetic log to ``out_dir``, a new or empty folder. An existing synthetic log there is refused with
+    :class:`ConfigError` unless ``overwrite`` (``driftmap synth --overwrite``), which replaces it (its frame files
+    that the new log does not have are removed, so no stale frame stays behind). Any other non-empty folder is
+    refused with :class:`SourceError`, with or without ``overwrite`` (nothing of it is touched)."""
     config = config or SyntheticLogConfig()
     out = Path(out_dir)
-    _clear_earlier_log(out)
+    _clear_earlier_log(out, overwrite)
     (out / "depth").mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(config.seed)
-    scene, glass_ids = _build_scene(config)
+    scene, glass_ids = build_scene(config)
     T_bc = T_base_camera(config)
     schedule = motion_schedule(config)
     gt_base = frame_base_poses(config, schedule)
@@ -483,8 +413,8 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
         Image.fromarray(depth).save(out / name, optimize=True)
         entry = {"frame_id": k, "stamp_ns": int(stamps[k]), "depth": name}
         if config.lidar:
-            scan, offsets_ns = _render_scan(scene, config, schedule, gt_base[k] @ T_base_lidar(config), k,
-                                            int(stamps[k]), rng)
+            scan, offsets_ns = render_scan(scene, config, schedule, gt_base[k] @ T_base_lidar(config), k,
+                                           int(stamps[k]), rng)
             entry["lidar"] = f"lidar/{k:06d}.bin"
             scan.tofile(out / entry["lidar"])
             if offsets_ns is not None:
@@ -649,6 +579,11 @@ class SyntheticLog(FrameSource):
             if len(offsets_ns) != len(scan):
                 raise SourceError(f"{time_file}: {len(offsets_ns)} point times for the {len(scan)} points of {file}")
             attributes = PointAttributes(time_offset_ns=offsets_ns)
+        far = far_points(scan[:, :3], f"{file} (frame {entry['frame_id']})")  # as every point reader
+        if far is not None:
+            scan = scan[~far]
+            if attributes.time_offset_ns is not None:
+                attributes = PointAttributes(time_offset_ns=attributes.time_offset_ns[~far])
         T_base_lidar = np.asarray(self.meta["T_base_lidar"], dtype=np.float64)
         T_world_lidar = self._odometry.poses[index] @ self._T_camera_lidar()
         return Frame(

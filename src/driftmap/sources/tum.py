@@ -24,20 +24,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.errors import SourceError
-from driftmap.frame import Frame, PinholeIntrinsics, PoseSource, Provenance
-from driftmap.preprocess.depth import InvalidFractionMonitor, depth_frame
-from driftmap.sources.base import FrameSource, register_source
+from driftmap.frame import PinholeIntrinsics, PoseEstimate, PoseSource
+from driftmap.sources.base import register_source
 from driftmap.sources.cloud_folder import opener_for, pose_or_none
-from driftmap.sources.redwood import (
-    KINECT_RANGE_M,
-    check_sensor_range,
-    frame_errors_named,
-    intrinsics_from_option,
-    read_color_image,
-    read_depth_png,
-)
-from driftmap.sources.stamps import check_increasing_stamps, parse_stamp_s, read_pose_file
-from driftmap.trajectory import Trajectory, _read_lines, read_tum
+from driftmap.sources.depth_folder import KINECT_RANGE_M, DepthFolderSource, intrinsics_from_option, read_color_image
+from driftmap.sources.stamps import check_increasing_stamps, check_seconds_period, parse_stamp_s, read_pose_file
+from driftmap.trajectory import Trajectory, read_lines, read_tum
 
 logger = logging.getLogger(__name__)
 
@@ -65,10 +57,11 @@ def tum_setup(name: str) -> str | None:
 
 def read_file_list(file: Path) -> list[tuple[int, str, int]]:
     """``(stamp_ns, relative path, line number)`` of a TUM ``depth.txt`` / ``rgb.txt``; stamps checked by
-    :func:`driftmap.sources.stamps.parse_stamp_s` (errors name ``file:line``)."""
+    :func:`driftmap.sources.stamps.parse_stamp_s` (errors name ``file:line``), and their steps by
+    :func:`driftmap.sources.stamps.check_seconds_period` (a list in milliseconds is refused)."""
     if not file.is_file():
         raise SourceError(f"{file}: not found")
-    lines = _read_lines(file, "TUM file list")  # SourceError for unreadable or non-UTF-8 text, naming the line
+    lines = read_lines(file, "TUM file list")  # SourceError for unreadable or non-UTF-8 text, naming the line
     out = []
     for lineno, line in enumerate(lines, start=1):
         line = line.strip()
@@ -80,6 +73,7 @@ def read_file_list(file: Path) -> list[tuple[int, str, int]]:
         out.append((parse_stamp_s(parts[0], f"{file}:{lineno}"), parts[1], lineno))
     if not out:
         raise SourceError(f"{file}: no entries")
+    check_seconds_period([stamp for stamp, _, _ in out], file, f"its {len(out)} entries")
     return out
 
 
@@ -100,7 +94,7 @@ def associate_nearest(
     return np.where(np.abs(ref[pick] - query) <= tolerance_ns, pick, -1)
 
 
-class TumRgbd(FrameSource):
+class TumRgbd(DepthFolderSource):
     """A TUM RGB-D sequence folder (see the module docstring).
 
     Options:
@@ -117,6 +111,7 @@ class TumRgbd(FrameSource):
     """
 
     format_name = "tum"
+    depth_sensor_frame = "camera_rgb_optical_frame"  # depth is registered to the colour camera
 
     def __init__(
         self,
@@ -134,15 +129,10 @@ class TumRgbd(FrameSource):
         frames: str | slice | None = None,
         lenient: bool = False,
     ):
-        super().__init__(str(path), frames=frames, lenient=lenient)
-        self.pixel_stride = int(pixel_stride)
-        self.path = Path(path)
+        super().__init__(path, pixel_stride=pixel_stride, frames=frames, lenient=lenient)
         if not self.path.is_dir():
             raise SourceError(f"{self.path}: no such folder")
-        self.depth_scale = float(depth_scale)
-        self.min_depth_m = min_depth_m
-        self.max_depth_m = max_depth_m
-        self.sensor_range_m = sensor_range_m
+        self._set_depth_units(depth_scale, min_depth_m, max_depth_m, sensor_range_m)
         self.gt_tolerance_ns = int(gt_tolerance_ns)
         self.color = color
         self.poses_from_ground_truth = poses_from_ground_truth
@@ -156,7 +146,15 @@ class TumRgbd(FrameSource):
                                        skipped=self.skipped)
         self._entries: list[tuple[int, int, Path]] = [(k, listed[k][0], self.path / listed[k][1]) for k in keep]
         frame_stamps = np.array([e[1] for e in self._entries], dtype=np.int64)
+        self._associate_ground_truth(frame_stamps, listed, lenient)
+        self._rgb: list[Path | None] = [None] * len(self._entries)
+        if color:
+            self._associate_colour(frame_stamps)
 
+    def _associate_ground_truth(self, frame_stamps: NDArray[np.int64], listed: list[tuple[int, str, int]],
+                                lenient: bool) -> None:
+        """The ground-truth pose nearest each frame's stamp within ``gt_tolerance_ns`` (``groundtruth.txt``);
+        the frames without one are listed (:attr:`frames_without_ground_truth`) and logged."""
         self.groundtruth_file = self.path / "groundtruth.txt"
         self._gt_pose: list[NDArray[np.float64] | None] = [None] * len(self._entries)
         self.frames_without_ground_truth: list[int] = []
@@ -178,20 +176,19 @@ class TumRgbd(FrameSource):
                     self.groundtruth_file, len(self.frames_without_ground_truth), len(self._entries),
                     self.gt_tolerance_ns / 1e6, first, listed[first][0],
                 )
-        elif poses_from_ground_truth:
+        elif self.poses_from_ground_truth:
             raise SourceError(f"{self.groundtruth_file}: ground truth not found (poses_from_ground_truth=True, build --poses-from-source)")
         else:
             self.frames_without_ground_truth = [e[0] for e in self._entries]
 
-        self._rgb: list[Path | None] = [None] * len(self._entries)
-        if color:
-            rgb_list = self.path / "rgb.txt"
-            rgb = read_file_list(rgb_list)
-            rgb_stamps = np.array([s for s, _, _ in rgb], dtype=np.int64)
-            order = np.argsort(rgb_stamps, kind="stable")
-            match = associate_nearest(frame_stamps, rgb_stamps[order], self.gt_tolerance_ns)
-            self._rgb = [None if m < 0 else self.path / rgb[order[m]][1] for m in match]
-        self._monitor = InvalidFractionMonitor()
+    def _associate_colour(self, frame_stamps: NDArray[np.int64]) -> None:
+        """The colour image (``rgb.txt``) nearest each frame's stamp within ``gt_tolerance_ns``."""
+        rgb_list = self.path / "rgb.txt"
+        rgb = read_file_list(rgb_list)
+        rgb_stamps = np.array([s for s, _, _ in rgb], dtype=np.int64)
+        order = np.argsort(rgb_stamps, kind="stable")
+        match = associate_nearest(frame_stamps, rgb_stamps[order], self.gt_tolerance_ns)
+        self._rgb = [None if m < 0 else self.path / rgb[order[m]][1] for m in match]
 
     def _resolve_intrinsics(self, value: Any) -> PinholeIntrinsics:
         if isinstance(value, str) and value.lower() in (*TUM_INTRINSICS, "generic"):
@@ -217,53 +214,33 @@ class TumRgbd(FrameSource):
     def _stamp_ns(self, index: int) -> int:
         return self._entries[index][1]
 
-    def read_depth(self, index: int) -> NDArray[np.uint16]:
-        frame_id, _, file = self._entries[index]
-        return read_depth_png(file, frame_id)
-
-    def _load(self, index: int) -> Frame:
+    def _depth_entry(self, index: int) -> tuple[int, int, Path]:
         frame_id, stamp_ns, file = self._entries[index]
-        if self.poses_from_ground_truth:
-            T = self._gt_pose[index]
-            if T is None:
-                raise SourceError(
-                    f"{self.groundtruth_file}: no ground-truth pose within {self.gt_tolerance_ns / 1e6:g} ms of "
-                    f"frame {frame_id} (stamp_ns {stamp_ns})"
-                )
-            pose = pose_or_none(T, PoseSource.GROUND_TRUTH)
-        else:
-            pose = pose_or_none(None, PoseSource.NONE)
-        depth = read_depth_png(file, frame_id)
-        check_sensor_range(depth, self.depth_scale, self.sensor_range_m, what=f"frame {frame_id} ({file})")
-        color = None
-        if self.color:
-            if self._rgb[index] is None:
-                raise SourceError(
-                    f"{self.path / 'rgb.txt'}: no colour image within {self.gt_tolerance_ns / 1e6:g} ms of frame "
-                    f"{frame_id} (stamp_ns {stamp_ns})"
-                )
-            color = read_color_image(self._rgb[index], frame_id)
-        with frame_errors_named(file, frame_id):
-            return self._depth_frame(depth, frame_id, stamp_ns, file, pose, color)
+        return frame_id, stamp_ns, file
 
-    def _depth_frame(self, depth: NDArray[np.uint16], frame_id: int, stamp_ns: int, file: Path, pose: Any,
-                     color: NDArray[np.uint8] | None) -> Frame:
-        return depth_frame(
-            depth,
-            self.intrinsics,
-            frame_id=frame_id,
-            stamp_ns=stamp_ns,
-            pose=pose,
-            sensor_name="kinect_depth",
-            sensor_frame="camera_rgb_optical_frame",  # depth is registered to the colour camera
-            depth_scale=self.depth_scale,
-            min_depth_m=self.min_depth_m,
-            max_depth_m=self.max_depth_m,
-            provenance=Provenance(str(file.resolve()), frame_id),
-            monitor=self._monitor,
-            pixel_stride=self.pixel_stride,
-            color_rgb=color,
-        )
+    def _pose_estimate(self, index: int) -> PoseEstimate:
+        if not self.poses_from_ground_truth:
+            return pose_or_none(None, PoseSource.NONE)
+        T = self._gt_pose[index]
+        if T is None:
+            frame_id, stamp_ns, _ = self._entries[index]
+            raise SourceError(
+                f"{self.groundtruth_file}: no ground-truth pose within {self.gt_tolerance_ns / 1e6:g} ms of "
+                f"frame {frame_id} (stamp_ns {stamp_ns})"
+            )
+        return pose_or_none(T, PoseSource.GROUND_TRUTH)
+
+    def _color(self, index: int) -> NDArray[np.uint8] | None:
+        if not self.color:
+            return None
+        rgb = self._rgb[index]
+        if rgb is None:
+            frame_id, stamp_ns, _ = self._entries[index]
+            raise SourceError(
+                f"{self.path / 'rgb.txt'}: no colour image within {self.gt_tolerance_ns / 1e6:g} ms of frame "
+                f"{frame_id} (stamp_ns {stamp_ns})"
+            )
+        return read_color_image(rgb, self._entries[index][0])
 
     def ground_truth(self) -> Trajectory | None:
         """Associated ground truth ``T_world_camera`` of the selected frames that have a match, at the
@@ -278,8 +255,7 @@ class TumRgbd(FrameSource):
         )
 
     def describe(self) -> dict[str, Any]:
-        return {**super().describe(), "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale,
-                "ground_truth": self.groundtruth_file.is_file(),
+        return {**super().describe(), "ground_truth": self.groundtruth_file.is_file(),
                 "frames_without_ground_truth": len(self.frames_without_ground_truth), "estimate": None}
 
 
