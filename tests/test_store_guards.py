@@ -502,7 +502,7 @@ def test_disk_full_when_closing_the_segment(tmp_path: Path, monkeypatch: pytest.
 
 def test_disk_full_when_starting_a_segment_or_writing_the_manifest(store3: tuple[Path, list[Frame]],
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
-    from driftmap.store import frame_store
+    from driftmap.store import manifest as frame_store  # the manifest is written there
 
     path, frames = store3
 
@@ -568,7 +568,7 @@ def test_io_errors_when_opening_name_the_file_and_are_not_called_damage(store3: 
     def eio_scan(file: Path, **kwargs: object):
         raise OSError(errno.EIO, os.strerror(errno.EIO))
 
-    from driftmap.store import frame_store
+    from driftmap.store import opening as frame_store  # opening scans the segments there
 
     monkeypatch.setattr(frame_store, "scan_segment", eio_scan)
     with pytest.raises(StoreIOError, match=r"segment-000000.mcap: reading the segment failed: Input/output error"):

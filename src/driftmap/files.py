@@ -18,6 +18,10 @@ from pathlib import Path
 from driftmap.errors import OutputWriteError
 
 
+MAX_NAME_IN_TEMP = 200
+"""The temporary file's name repeats at most this much of the output's name (names are limited to 255 bytes)."""
+
+
 def fsync_dir(folder: Path) -> None:
     """Flush a folder's entries (a rename into it) to disk, where the OS allows it."""
     with contextlib.suppress(OSError):
@@ -35,7 +39,8 @@ def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     is removed and ``path`` is untouched. ``what`` names the output in errors (a CLI flag or the function); an
     ``OSError`` becomes :class:`~driftmap.errors.OutputWriteError` naming ``path``."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    stem = path.name if len(path.name) <= MAX_NAME_IN_TEMP else path.name[:MAX_NAME_IN_TEMP]
+    tmp = path.with_name(f".{stem}.{secrets.token_hex(4)}.tmp{path.suffix[:16]}")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         yield tmp

@@ -17,20 +17,15 @@ import errno as errno_codes
 import json
 import logging
 import os
-import re
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
 from driftmap.errors import OutputInsideStoreError, OutputWriteError, StoreIOError
+from driftmap.store.layout import FORMAT_NAME, LOCK_FILE, MANIFEST, SEGMENT_FILE
 
 logger = logging.getLogger(__name__)
 
-FORMAT_NAME = "driftmap-store"
-MANIFEST = "store.json"
-LOCK_FILE = "writer.lock"
-SEGMENT_FILE = re.compile(r"segment-\d{6,}\.mcap")
-"""The name of a segment file (``segment-000000.mcap``); manifests naming anything else are refused."""
 _MAX_MANIFEST_PROBE_BYTES = 64 << 20
 
 

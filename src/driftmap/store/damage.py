@@ -1,0 +1,116 @@
+"""How a store reports damage: :class:`StoreCorruptError` (a file is truncated or damaged), :class:`DataLoss`
+(what damage took from the frames and revisions, as ``recover`` declared it) and :class:`RecoveryEvent` (what
+opening or recovering a store dropped or repaired)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from driftmap.errors import StoreError
+from driftmap.store.revision import Revision
+from driftmap.store.segment_format import EVENT_DATA_LOST
+from driftmap.store.values import preview
+
+
+class StoreCorruptError(StoreError):
+    """A store file is truncated or damaged; names the file and the byte offset."""
+
+    def __init__(self, message: str, *, path: Path, offset: int | None):
+        super().__init__(message)
+        self.path = path
+        self.offset = offset
+
+
+@dataclass(frozen=True)
+class DataLoss:
+    """What damage took from a store's frames and revisions (declared by ``recover``), and what it did to the
+    revisions that survived.
+
+    ``frame_ids``: the lost frames (named by a stored revision, held by no segment; a lost frame that nothing
+    names cannot be identified once its bytes are gone). ``revision_ids``: the revisions whose record is gone; a
+    stand-in without poses of its own (parent: the revision before it) holds each one's id. ``trimmed``: revision
+    -> the lost frames whose poses it no longer holds (it keeps all its other poses). ``orphaned``: revision ->
+    its lost parent (the frames it does not set now take the stand-in's poses, those of the revision before).
+    """
+
+    frame_ids: tuple[int, ...] = ()
+    revision_ids: tuple[int, ...] = ()
+    trimmed: Mapping[int, tuple[int, ...]] = field(default_factory=dict, hash=False)
+    orphaned: Mapping[int, int] = field(default_factory=dict, hash=False)
+
+    def __bool__(self) -> bool:
+        return bool(self.frame_ids or self.revision_ids)
+
+    def only(self, frame_ids: set[int], revision_ids: set[int]) -> DataLoss:
+        """The part of this loss that concerns ``frame_ids`` and ``revision_ids``."""
+        trimmed = {r: mine for r, lost in self.trimmed.items() if (mine := tuple(f for f in lost if f in frame_ids))}
+        return DataLoss(tuple(f for f in self.frame_ids if f in frame_ids),
+                        tuple(r for r in self.revision_ids if r in revision_ids), trimmed,
+                        {r: p for r, p in self.orphaned.items() if p in revision_ids})
+
+    def __str__(self) -> str:
+        parts = []
+        if self.frame_ids:
+            parts.append(f"frames {preview(self.frame_ids)} are lost")
+        parts += [f"revision {r} lost the poses of {preview(lost)}" for r, lost in sorted(self.trimmed.items())]
+        if self.revision_ids:
+            parts.append(f"the records of revisions {preview(self.revision_ids)} are lost (a stand-in with the poses of "
+                         f"the revision before holds each one's place)")
+        for r, p in sorted(self.orphaned.items()):
+            base = p - 1
+            while base in self.revision_ids:
+                base -= 1
+            parts.append(f"revision {r}: its parent {p} is lost, the frames it does not set take revision {base}'s poses")
+        return "; ".join(parts) or "nothing lost"
+
+
+@dataclass(frozen=True)
+class RecoveryEvent:
+    """What opening or recovering a store had to drop or repair.
+
+    For a segment: the frames and revision records it kept and the bytes that were not carried over (an
+    unfinished tail, damaged chunks). For ``store.json`` and for the ``data_lost`` record: the frames and
+    revisions (revision 0 included, as ``driftmap revisions`` lists them) of the recovered store. ``loss``: the
+    frames and revisions this recovery found lost (see :class:`DataLoss`).
+    """
+
+    segment: str
+    action: str
+    frames_kept: int
+    revisions_kept: int
+    dropped_bytes: int
+    detail: str
+    loss: DataLoss | None = None
+
+    def __str__(self) -> str:
+        text = f"{self.segment}: {self.action}: kept {self.frames_kept} frames and {self.revisions_kept} revisions"
+        if self.dropped_bytes:
+            text += f", dropped {self.dropped_bytes} bytes"
+        if self.loss:
+            text += f"; {self.loss}"
+        return f"{text} ({self.detail})"
+
+
+def without_frames(rev: Revision, lost: list[int]) -> Revision:
+    """``rev`` without the poses of the lost frames (every other field and pose unchanged)."""
+    gone = set(lost)
+    note = f"{rev.note} " if rev.note else ""
+    return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns,
+                    f"{note}[recovery: poses of {len(gone)} lost frame(s) removed]",
+                    {k: v for k, v in rev.set_directly.items() if k not in gone},
+                    {k: v for k, v in rev.propagated.items() if k not in gone}, rev.restores)
+
+
+def lost_ids(event: dict[str, Any], file: Path) -> tuple[set[int], set[int]]:
+    """The frame and revision ids a ``data_lost`` event declares lost."""
+    ids = []
+    for key in ("frame_ids", "revision_ids"):
+        value = event.get(key)
+        if not isinstance(value, list) or any(isinstance(i, bool) or not isinstance(i, int) for i in value):
+            raise StoreCorruptError(f"{file}: malformed {EVENT_DATA_LOST} record ({key} must be a list of integers)",
+                                    path=file, offset=None)
+        ids.append(set(value))
+    return ids[0], ids[1]

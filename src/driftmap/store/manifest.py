@@ -1,0 +1,187 @@
+"""The manifest (``store.json``): reading and validating it, rebuilding it from the segments, and writing it
+(atomically: a complete file renamed over the old one); and the segment files of a store folder."""
+
+from __future__ import annotations
+
+import json
+import mmap
+import os
+import time
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from driftmap import __version__
+from driftmap.errors import StoreError
+from driftmap.store.damage import StoreCorruptError
+from driftmap.store.guards import READ_HINT, store_io_error
+from driftmap.store.layout import FORMAT_NAME, MANIFEST, SEGMENT_FILE, SEGMENT_GLOB, TMP_SUFFIX, segment_index
+from driftmap.store.segment_scan import SegmentScan, scan_segment
+
+FORMAT_VERSION = 1
+
+
+@dataclass
+class SegmentEntry:
+    """A segment the manifest lists (its name, ``open`` / ``closed`` and its size when closed), with what this
+    process holds of it: its scan and its memory map."""
+
+    name: str
+    state: str
+    bytes: int | None
+    scan: SegmentScan | None = None
+    mm: mmap.mmap | None = None
+
+
+def entries_of(manifest: dict[str, Any]) -> list[SegmentEntry]:
+    """The segments a (validated) manifest lists, in its order."""
+    return [SegmentEntry(s["name"], s["state"], s.get("bytes")) for s in manifest["segments"]]
+
+
+def lost_segments(manifest: dict[str, Any]) -> list[str]:
+    """The names of the segments an earlier recovery recorded as lost."""
+    return [n for n in manifest.get("lost_segments", []) if isinstance(n, str)]
+
+
+def new_manifest() -> dict[str, Any]:
+    """The manifest of a new, empty store."""
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "store_uuid": uuid.uuid4().hex,
+        "created_ns": time.time_ns(),
+        "driftmap_version": __version__,
+        "segments": [],
+    }
+
+
+def read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
+    """The manifest; a missing or unreadable one is a StoreCorruptError (``hint``: saying how to rebuild it)."""
+    file = path / MANIFEST
+    if path.is_file():
+        raise StoreError(f"{path}: is a file, not a driftmap store (a store is a folder holding {MANIFEST} and "
+                         f"segment-NNNNNN.mcap files)")
+    fix = f"; run `driftmap recover {path}` to rebuild it from the segments" if hint else ""
+    try:
+        manifest = json.loads(file.read_bytes())
+    except FileNotFoundError as exc:
+        segments = sorted(path.glob(SEGMENT_GLOB)) if path.is_dir() else []
+        if segments:
+            raise StoreCorruptError(f"{file}: missing, but {path} holds {len(segments)} segment file(s){fix}",
+                                    path=file, offset=None) from exc
+        raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
+    except IsADirectoryError as exc:
+        raise StoreCorruptError(f"{file}: is a folder, not the manifest{fix}", path=file, offset=None) from exc
+    except OSError as exc:  # permissions, an I/O error: the file may be fine
+        raise store_io_error(exc, file, "reading the manifest", path, READ_HINT) from exc
+    except (ValueError, RecursionError) as exc:  # not JSON, not UTF-8, absurd numbers or nesting
+        raise StoreCorruptError(f"{file}: unreadable manifest ({exc}){fix}", path=file, offset=None) from exc
+    if not isinstance(manifest, dict):
+        raise StoreCorruptError(f"{file}: unreadable manifest (a JSON {type(manifest).__name__}, not an object){fix}",
+                                path=file, offset=None)
+    if manifest.get("format") != FORMAT_NAME:
+        segments = sorted(path.glob(SEGMENT_GLOB))
+        if segments:  # a store's segments beside a manifest that is not one (emptied, overwritten): damaged
+            raise StoreCorruptError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}, but {path} "
+                                    f"holds {len(segments)} segment file(s){fix}", path=file, offset=None)
+        raise StoreError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise StoreError(f"{file}: store format version {manifest.get('version')} is not supported "
+                         f"(this driftmap reads version {FORMAT_VERSION})")
+    segments = manifest.get("segments")
+    shape_ok = (isinstance(manifest.get("store_uuid"), str) and isinstance(segments, list)
+                and all(isinstance(seg, dict) and isinstance(seg.get("name"), str) and isinstance(seg.get("state"), str)
+                        and isinstance(seg.get("bytes"), (int, type(None))) for seg in segments))
+    if not shape_ok:
+        raise StoreCorruptError(f"{file}: unreadable manifest (store_uuid or the segment list is missing or malformed){fix}",
+                                path=file, offset=None)
+    names = [seg["name"] for seg in segments]
+    for seg in segments:
+        # a name is joined to the store folder: only segment-NNNNNN.mcap (no "/", no "..") may be used
+        size = seg.get("bytes")
+        if (not SEGMENT_FILE.fullmatch(seg["name"]) or seg["state"] not in ("open", "closed")
+                or isinstance(size, bool) or (size is not None and size < 0)):
+            raise StoreCorruptError(f"{file}: unreadable manifest (segment entry {seg!r} is malformed){fix}",
+                                    path=file, offset=None)
+    if len(set(names)) != len(names):
+        raise StoreCorruptError(f"{file}: unreadable manifest (a segment is listed twice){fix}", path=file, offset=None)
+    indexes = [segment_index(n) for n in names]
+    if indexes != sorted(indexes):  # segments are replayed in this order: a revision follows the frames it names
+        raise StoreCorruptError(f"{file}: unreadable manifest (segments listed out of order: {names}){fix}",
+                                path=file, offset=None)
+    if not isinstance(manifest.get("lost_segments", []), list):
+        raise StoreCorruptError(f"{file}: unreadable manifest (lost_segments is not a list){fix}", path=file, offset=None)
+    return manifest
+
+
+def manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None = None) -> dict[str, Any]:
+    """A manifest for the ``segment-NNNNNN.mcap`` files of ``path``; every readable one must name the same store.
+
+    A segment that was not closed cleanly is listed as open, so recovery rewrites it. ``lost_segments``: the
+    names an earlier recovery recorded as lost (kept)."""
+    files = segment_files(path)
+    if not files:
+        raise StoreError(f"{why}; no segment files in {path} to rebuild it from")
+    uuids: dict[str, list[str]] = {}
+    segments = []
+    for file in files:
+        scan = scan_segment(file, verify=True, stop_on_error=False)
+        if scan.store_uuid is not None:
+            uuids.setdefault(scan.store_uuid, []).append(file.name)
+        clean = scan.complete and not scan.problem and not scan.damaged_chunks
+        segments.append({"name": file.name, "state": "closed" if clean else "open", "bytes": scan.size if clean else None})
+    if len(uuids) != 1:
+        found = "; ".join(f"{u}: {', '.join(n)}" for u, n in uuids.items()) or "none"
+        raise StoreError(f"{why}; cannot rebuild it: the segments of {path} must name exactly one store (found {found})")
+    (store_uuid,) = uuids
+    return {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "store_uuid": store_uuid,
+        "created_ns": min(f.stat().st_mtime_ns for f in files),
+        "driftmap_version": __version__,
+        "segments": segments,
+        "rebuilt_ns": time.time_ns(),
+        "rebuilt_because": why,
+        **({"lost_segments": list(lost_segments)} if lost_segments else {}),
+    }
+
+
+def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[SegmentEntry]) -> None:
+    """Record ``segments`` in ``manifest`` and write it to ``folder`` (atomically: an ``OSError`` leaves the manifest
+    on disk as it was)."""
+    manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes} for s in segments]
+    _atomic_write_json(folder / MANIFEST, manifest)
+
+
+def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(path.name + TMP_SUFFIX)
+    with open(tmp, "w") as fh:
+        json.dump(data, fh, indent=1)
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+    fsync_dir(path.parent)
+
+
+def fsync_dir(path: Path) -> None:
+    """Flush a folder's entries (a rename into it) to disk."""
+    dir_fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def segment_files(folder: Path) -> list[Path]:
+    """The ``segment-NNNNNN.mcap`` files of a store folder, in index order."""
+    files = [f for f in folder.iterdir() if SEGMENT_FILE.fullmatch(f.name)] if folder.is_dir() else []
+    return sorted(files, key=lambda f: segment_index(f.name))
+
+
+def unlisted_segments(folder: Path, segments: list[SegmentEntry]) -> list[str]:
+    """Segment files in the folder that the manifest does not list: a manifest that is damaged or was replaced
+    by an older copy, or a segment recorded as lost that is back (opening would silently miss their frames)."""
+    known = {s.name for s in segments}
+    return [f.name for f in segment_files(folder) if f.name not in known]

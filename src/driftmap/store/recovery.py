@@ -1,0 +1,357 @@
+"""Recovery: salvaging every intact frame and revision of a damaged store (``FrameStore.recover``, ``driftmap
+recover``), and rewriting the segment a crashed writer left open when the next writer opens the store.
+
+Every step is a complete file written beside the old one and renamed into place, with the manifest written after
+it, so an interrupted recovery is finished by running it again. See :mod:`driftmap.store.frame_store` ("Losses")
+for what recovery declares about the frames and revisions that damage took.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import mmap
+import os
+import shutil
+import time
+import zlib
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from driftmap.errors import DriftmapError, StoreError
+from driftmap.store.chunk_scan import StoredFrameRef
+from driftmap.store.damage import RecoveryEvent, StoreCorruptError
+from driftmap.store.frame_codec import frame_from_info, unpack_attributes
+from driftmap.store.guards import RECOVER_HINT, store_io_error
+from driftmap.store.layout import (
+    DAMAGED_SUFFIX,
+    MANIFEST,
+    RECOVERING_SUFFIX,
+    TMP_SUFFIX,
+    dropped_tail_name,
+    segment_name,
+)
+from driftmap.store.ledger import PoseLedger
+from driftmap.store.lock import acquire_writer_lock, release_writer_lock, writer_alive
+from driftmap.store.manifest import (
+    SegmentEntry,
+    entries_of,
+    fsync_dir,
+    lost_segments,
+    manifest_from_segments,
+    read_manifest,
+    unlisted_segments,
+    write_manifest,
+)
+from driftmap.store.opening import load_segments, replay
+from driftmap.store.reading import decode_frame
+from driftmap.store.segment import SegmentWriter
+from driftmap.store.segment_format import EVENT_DATA_LOST
+from driftmap.store.segment_scan import SegmentScan, iter_payload_bytes, read_store_uuid, scan_segment
+from driftmap.store.values import preview
+from driftmap.store.writing import next_segment_index, start_segment
+
+logger = logging.getLogger(__name__)
+
+
+def recover_store(path: Path) -> list[RecoveryEvent]:
+    """:meth:`FrameStore.recover <driftmap.store.frame_store.FrameStore.recover>` (an ``OSError`` of a step names
+    the file it was working on)."""
+    manifest, rebuilt_because = _manifest_to_recover(path)
+    run = _Recovery(path, manifest)
+    lock = acquire_writer_lock(path)
+    try:
+        if rebuilt_because is not None:
+            run.replace_manifest()
+        for index, seg in enumerate(run.segments):
+            run.check_segment(index, seg)
+        run.forget_missing_segments()
+        run.declare_loss()
+    except OSError as exc:
+        raise store_io_error(exc, exc.filename or run.current, "recovering the store", path, RECOVER_HINT) from exc
+    finally:
+        release_writer_lock(lock)
+    n_frames, n_revisions = _reopened(path)
+    if rebuilt_because is not None:
+        run.events.insert(0, RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{run.kept_manifest}",
+                                           n_frames, n_revisions, 0, rebuilt_because))
+    for event in run.events:
+        logger.info("recover %s: %s", path, event)  # returned to the caller, who reports them
+    return run.events
+
+
+def _manifest_to_recover(path: Path) -> tuple[dict[str, Any], str | None]:
+    """The manifest recovery works from, and why it was rebuilt from the segments (None: it was not): it is
+    unreadable, does not list every segment file, or names another store than its segments."""
+    try:
+        manifest = read_manifest(path, hint=False)
+    except StoreCorruptError as exc:
+        because = str(exc)
+        return manifest_from_segments(path, because), because
+    segments = entries_of(manifest)
+    unlisted = unlisted_segments(path, segments)
+    strangers = [s.name for s in segments if (path / s.name).exists()
+                 and read_store_uuid(path / s.name) not in (None, manifest["store_uuid"])]
+    if not (unlisted or strangers):
+        return manifest, None
+    because = (f"{path / MANIFEST}: " + (f"does not list {preview(unlisted)}" if unlisted else
+               f"names store {manifest['store_uuid']}, its segments {preview(strangers)} another"))
+    return manifest_from_segments(path, because, lost_segments(manifest)), because
+
+
+def _reopened(path: Path) -> tuple[int, int]:
+    """The frames and revisions of the recovered store, read as opening it reads them (a StoreCorruptError if it
+    still does not open)."""
+    try:
+        manifest = read_manifest(path)
+        ledger = PoseLedger()
+        load_segments(path, manifest["store_uuid"], entries_of(manifest), ledger, {}, verify=False,
+                      live_writer=writer_alive(path))
+    except StoreError as exc:
+        raise StoreCorruptError(f"{path}: recovery could not make the store readable: {exc}",
+                                path=path, offset=getattr(exc, "offset", None)) from exc
+    return ledger.n_frames, len(ledger.revisions)
+
+
+class _Recovery:
+    """One run of :func:`recover_store`: the manifest and segments it rewrites, what it found and did, and the file
+    it is working on (named by an ``OSError``)."""
+
+    def __init__(self, path: Path, manifest: dict[str, Any]) -> None:
+        self.path, self.manifest = path, manifest
+        self.segments = entries_of(manifest)
+        self.events: list[RecoveryEvent] = []
+        self.damage: list[str] = []
+        self.scans: list[SegmentScan] = []
+        self.known_frames: set[int] = set()
+        self.current = path / MANIFEST
+        self.kept_manifest = ""
+
+    def write_manifest(self) -> None:
+        write_manifest(self.path, self.manifest, self.segments)
+
+    def replace_manifest(self) -> None:
+        """Write the rebuilt manifest; the damaged one is kept as ``store.json.damaged``."""
+        file = self.path / MANIFEST
+        if file.exists():
+            damaged_manifest = free_name(self.path / (MANIFEST + DAMAGED_SUFFIX))
+            os.replace(file, damaged_manifest)
+            self.kept_manifest = f" (damaged original kept as {damaged_manifest.name})"
+        self.write_manifest()
+
+    def check_segment(self, index: int, seg: SegmentEntry) -> None:
+        """Rewrite segment ``index`` if it is damaged, was left open, or holds frames an earlier one holds."""
+        file = self.current = self.path / seg.name
+        if not file.exists():
+            self.events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0,
+                                             "file not found: its frames and revisions are lost"))
+            self.damage.append(f"{seg.name} missing")
+            seg.state = "missing"
+            return
+        scan = scan_segment(file, verify=True, stop_on_error=False)
+        twice = [r.frame_id for r in scan.frames if r.frame_id in self.known_frames]
+        unreadable = unreadable_frames(scan)
+        healthy = (seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
+                   and scan.size == seg.bytes and not twice and not unreadable)
+        if not healthy:
+            scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
+        self.known_frames.update(r.frame_id for r in scan.frames)
+        self.scans.append(scan)
+
+    def rewrite_segment(self, index: int, seg: SegmentEntry, scan: SegmentScan, twice: list[int],
+                        unreadable: list[tuple[int, str]]) -> SegmentScan:
+        """Rewrite a segment from its intact chunks (the damaged file is kept beside it); returns its new scan."""
+        file = self.path / seg.name
+        was_open = seg.state != "closed"
+        dropped = {f for f, _ in unreadable}  # never copied: a fresh CRC would make them look intact
+        scan.frames = [r for r in scan.frames if r.frame_id not in self.known_frames and r.frame_id not in dropped]
+        tmp = self.current = file.with_name(file.name + RECOVERING_SUFFIX)
+        tmp.unlink(missing_ok=True)
+        writer = SegmentWriter(tmp, index, self.manifest["store_uuid"], fsync=True)
+        try:
+            skipped = unreadable + copy_scan_into(scan, writer)
+            for event in scan.data_lost:
+                writer.append_event(event, int(event.get("recovered_ns", 0)))
+            size = writer.close()
+        except BaseException:
+            writer.abandon()
+            raise
+        if skipped:
+            lost = {f for f, _ in skipped}
+            scan.frames = [r for r in scan.frames if r.frame_id not in lost]
+        self.current = file
+        damaged = free_name(file.with_name(file.name + DAMAGED_SUFFIX))
+        keep_copy(file, damaged)
+        os.replace(tmp, file)  # atomic: the segment is never missing, whenever recovery stops
+        fsync_dir(self.path)
+        seg.state, seg.bytes = "closed", size
+        self.write_manifest()
+        detail = _damage_detail(scan, twice, skipped, was_open)
+        self.damage.append(f"{seg.name}: {detail}")
+        tail = 0 if scan.complete else scan.size - scan.valid_bytes
+        self.events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
+                                         len(scan.frames), len(scan.revisions), tail + scan.damaged_bytes, detail))
+        return scan_segment(file, verify=False)  # the frames now live in the rewritten file
+
+    def forget_missing_segments(self) -> None:
+        """Take the missing segments off the manifest (recorded as ``lost_segments``)."""
+        missing = [s.name for s in self.segments if s.state == "missing"]
+        if missing:
+            self.segments[:] = [s for s in self.segments if s.state != "missing"]
+            self.manifest["lost_segments"] = lost_segments(self.manifest) + missing
+            self.write_manifest()
+
+    def declare_loss(self) -> None:
+        """What the damage took from the revisions that survived: declared in a ``data_lost`` event of its own, in a
+        new segment."""
+        ledger = PoseLedger()
+        loss, new_frames, new_revisions = replay(self.path, ledger, {}, self.scans, strict=False)
+        if not (new_frames or new_revisions):
+            return
+        because = "; ".join(self.damage) or "stored revisions name frames or follow revisions that no segment holds"
+        now = time.time_ns()
+        self.current = self.path / segment_name(next_segment_index(self.path, self.manifest, self.segments))
+        writer = start_segment(self.path, self.manifest, self.segments, fsync=True, what="appending")
+        try:
+            writer.append_event({"event": EVENT_DATA_LOST, "recovered_ns": now, "frame_ids": sorted(new_frames),
+                                 "revision_ids": sorted(new_revisions), "because": because}, now)
+        except BaseException:
+            writer.abandon()
+            raise
+        self.segments[-1].state, self.segments[-1].bytes = "closed", writer.close()
+        self.write_manifest()
+        self.events.append(RecoveryEvent(self.segments[-1].name, f"recorded the loss in a {EVENT_DATA_LOST} event",
+                                         ledger.n_frames, len(ledger.revisions), 0, because,
+                                         loss.only(new_frames, new_revisions)))
+
+
+def _damage_detail(scan: SegmentScan, twice: list[int], skipped: list[tuple[int, str]], was_open: bool) -> str:
+    """What was wrong with a rewritten segment, for its recovery event."""
+    problems = [f"{why} at offset {off}" for off, why in scan.damaged_chunks]
+    if scan.problem:
+        problems.append(f"{scan.problem} at offset {scan.problem_offset}")
+    if twice:
+        problems.append(f"frames {preview(twice)} are stored in an earlier segment too (the later copies were dropped)")
+    problems += [f"frame {f}: {why}" for f, why in skipped]
+    return "; ".join(problems) or ("segment was not closed" if was_open else "size differs from the manifest")
+
+
+def recover_open_segments(path: Path, manifest: dict[str, Any], segments: list[SegmentEntry],
+                          refs: dict[int, StoredFrameRef]) -> list[RecoveryEvent]:
+    """Rewrite the segments a crashed writer left open (each scanned by opening) into clean, closed segments,
+    updating ``refs`` to the rewritten files. Frames that cannot be read back are not what a crash leaves behind:
+    they are never repaired behind the user's back (a StoreCorruptError asking for ``driftmap recover``)."""
+    events = []
+    for index, seg in enumerate(segments):
+        if seg.state != "open":
+            continue
+        file = path / seg.name
+        scan = seg.scan
+        assert scan is not None
+        bad = unreadable_frames(scan)
+        if bad:
+            raise StoreCorruptError(f"{file}: frames {preview(f for f, _ in bad)} cannot be read back ({bad[0][1]}); "
+                                    f"run `driftmap recover {path}`", path=file, offset=None)
+        tmp = file.with_name(file.name + RECOVERING_SUFFIX)
+        tmp.unlink(missing_ok=True)
+        writer = SegmentWriter(tmp, index, manifest["store_uuid"], fsync=True)
+        try:
+            copy_scan_into(scan, writer)
+            size = writer.close()
+        except BaseException:
+            writer.abandon()
+            tmp.unlink(missing_ok=True)
+            raise
+        if scan.valid_bytes < scan.size:
+            with open(file, "rb") as src, open(path / dropped_tail_name(seg.name), "wb") as dst:
+                src.seek(scan.valid_bytes)
+                dst.write(src.read())
+        os.replace(tmp, file)
+        seg.state, seg.bytes = "closed", size
+        seg.scan = scan_segment(file, verify=False)
+        refs.update({ref.frame_id: ref for ref in seg.scan.frames})
+        write_manifest(path, manifest, segments)
+        logger.info("%s: recovered %d frames and %d revisions into a closed segment", file, len(scan.frames), len(scan.revisions))
+        events.append(RecoveryEvent(seg.name, "rewritten as a closed segment", len(scan.frames), len(scan.revisions),
+                                    scan.size - scan.valid_bytes, scan.problem or "writer did not close the segment"))
+    return events
+
+
+def copy_scan_into(scan: SegmentScan, writer: SegmentWriter) -> list[tuple[int, str]]:
+    """Copy the scanned frames (bit for bit) and revisions into ``writer``; returns (frame id, reason) of the
+    frames whose stored metadata cannot be read back (they are not copied)."""
+    skipped: list[tuple[int, str]] = []
+    with open(scan.path, "rb") as fh:
+        mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if scan.size else None
+        try:
+            items: list[tuple[int, str, Any]] = [(r.payload_offset, "frame", r) for r in scan.frames]
+            for rev in scan.revisions:
+                items.append((-1, "revision", rev))
+            # frames keep their file order; revisions go after the frames they may refer to
+            for _, kind, item in sorted(items, key=lambda x: (x[1] == "revision", x[0])):
+                if kind == "frame":
+                    frame = decode_frame(item, mm)
+                    if isinstance(frame, str):
+                        logger.warning("%s: frame %d: %s: not copied", scan.path, item.frame_id, frame)
+                        skipped.append((item.frame_id, frame))
+                        continue
+                    writer.append_frame(frame, check=False)  # as stored, bit for bit
+                else:
+                    writer.append_revision(item, int(item["created_ns"]))
+        finally:
+            if mm is not None:
+                mm.close()
+    return skipped
+
+
+def unreadable_frames(scan: SegmentScan) -> list[tuple[int, str]]:
+    """(frame id, reason) of the scanned frames that cannot be read back as stored: metadata that does not
+    rebuild a :class:`Frame`, or a point payload whose CRC32 is not the one the metadata recorded. (Opening
+    checks only what it needs and the chunk CRCs; this is the rest, run by ``recover``.)"""
+    bad: list[tuple[int, str]] = []
+    if not scan.frames:
+        return bad
+    with open(scan.path, "rb") as fh:
+        mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ)
+    try:
+        for ref in scan.frames:
+            try:
+                frame_from_info(ref.info, np.zeros((0, 3), np.float32),
+                                unpack_attributes(np.zeros(0, np.uint8), 0, ref.point_stride, ref.info["points"]["fields"]))
+            except (DriftmapError, KeyError, TypeError, ValueError, ArithmeticError, AttributeError) as exc:
+                bad.append((ref.frame_id, f"unreadable metadata ({type(exc).__name__}: {exc})"))
+                continue
+            payload = iter_payload_bytes(ref, mm)
+            problem = ("the point payload is cut short" if len(payload) != ref.n_points * ref.point_stride else
+                       "the point payload's CRC32 is not the one its metadata recorded"
+                       if zlib.crc32(payload) != ref.info["points"]["crc32"] else None)
+            del payload
+            if problem is not None:
+                bad.append((ref.frame_id, problem))
+    finally:
+        with contextlib.suppress(BufferError):
+            mm.close()
+    return bad
+
+
+def keep_copy(file: Path, copy: Path) -> None:
+    """Keep ``file``'s bytes as ``copy`` (a hard link, else a copy) while ``file`` itself stays in place."""
+    try:
+        os.link(file, copy)
+    except OSError:
+        tmp = copy.with_name(copy.name + TMP_SUFFIX)
+        shutil.copyfile(file, tmp)
+        with open(tmp, "rb+") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, copy)
+
+
+def free_name(path: Path) -> Path:
+    """``path``, or ``path.1``, ``path.2``, ... : the first that does not exist (never overwrite a kept file)."""
+    candidate, n = path, 0
+    while candidate.exists():
+        n += 1
+        candidate = path.with_name(f"{path.name}.{n}")
+    return candidate

@@ -1,0 +1,179 @@
+"""Issue 22's second hostile-input trial (about 230 cases): each silent wrong answer, lost output or crash it found in
+the command line, the pipeline and the settings, through the path the user took. (Readers and the synthetic-log
+generator: tests/test_bad_input_readers.py; the store: tests/test_store_guards.py.)"""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.errors import ConfigError
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import read_tum
+
+LOG = Path(__file__).resolve().parents[1] / "datasets" / "synthetic-loop"
+
+
+def _cli(*args: object, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600, cwd=cwd, env={"COLUMNS": "200", **__import__("os").environ})
+
+
+def _line(out: subprocess.CompletedProcess, rc: int = 1) -> str:
+    assert out.returncode == rc, (out.returncode, out.stdout, out.stderr)
+    assert "Traceback" not in out.stderr
+    return " ".join(out.stderr.split())
+
+
+@pytest.fixture(scope="module")
+def sevens(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> dict[str, Path]:
+    """Six 7-Scenes frames, a store of them with the data set's poses, its TUM trajectory and the same shifted."""
+    root = tmp_path_factory.mktemp("hostile")
+    folder = root / "7s"
+    folder.mkdir()
+    for k in range(6):
+        for ext in ("depth.png", "pose.txt"):
+            shutil.copy(sevenscenes_dir / f"frame-{k:06d}.{ext}", folder)
+    shutil.copy(sevenscenes_dir / "camera-intrinsics.txt", folder)
+    assert _cli("build", folder, "--out", root / "st", "--poses-from-source", "--no-loop-closure").returncode == 0
+    assert _cli("export", root / "st", "--trajectory", root / "gt.tum").returncode == 0
+    lines = [line.split() for line in (root / "gt.tum").read_text().splitlines() if not line.startswith("#")]
+    shifted = [" ".join([row[0], *(str(float(v) + d) for v, d in zip(row[1:4], (1, 2, 3))), *row[4:]]) for row in lines]
+    (root / "shift.tum").write_text("\n".join(shifted) + "\n")
+    return {"root": root, "folder": folder, "store": root / "st", "gt": root / "gt.tum", "shift": root / "shift.tum"}
+
+
+def test_b7_resume_refuses_a_pose_file_changed_in_place(sevens: dict, tmp_path: Path) -> None:
+    """A build stopped by a short pose file, the file fixed in place, then --resume: the first frames stood in the
+    old file's frame, the new ones would stand in the new file's (x 0.66 then 50.66, no warning)."""
+    poses = tmp_path / "p.tum"
+    rows = sevens["shift"].read_text().splitlines()
+    poses.write_text("\n".join(rows[:3]) + "\n")
+    assert _cli("build", sevens["folder"], "--out", tmp_path / "s", "--poses", poses, "--no-loop-closure").returncode == 1
+    moved = [" ".join([r.split()[0], str(float(r.split()[1]) + 50), *r.split()[2:]]) for r in rows]
+    poses.write_text("\n".join(moved) + "\n")
+    line = _line(_cli("build", sevens["folder"], "--out", tmp_path / "s", "--poses", poses, "--no-loop-closure", "--resume"))
+    assert "changed since the stored frames were placed with it" in line and "p.tum" in line, line
+    with FrameStore.open(tmp_path / "s") as store:
+        assert len(store) == 3
+
+
+def test_b8_a_pose_row_is_the_pose_of_its_nearest_frame_only(sevens: dict, tmp_path: Path) -> None:
+    """A 10 Hz pose file for 30 Hz frames with --max-dt-ms 50 gave two or three frames one pose (a stair-step
+    trajectory, no warning); each row is now the pose of its nearest frame only, as TUM's associate.py pairs them."""
+    rows = [r for r in sevens["gt"].read_text().splitlines() if not r.startswith("#")]
+    sparse = tmp_path / "tenhz.tum"
+    sparse.write_text("\n".join(rows[k] for k in (0, 3, 5)) + "\n")
+    line = _line(_cli("build", sevens["folder"], "--out", tmp_path / "s", "--poses", sparse, "--max-dt-ms", "50",
+                      "--no-loop-closure"))
+    assert "no pose of its own for frame 1" in line and "driftmap correct" in line, line
+    exact = _cli("build", sevens["folder"], "--out", tmp_path / "e", "--poses", sevens["gt"], "--no-loop-closure")
+    assert exact.returncode == 0, exact.stderr
+
+
+def test_b10_a_map_written_to_a_full_disk_is_an_error_not_a_truncated_file(sevens: dict, tmp_path: Path) -> None:
+    """Open3D reports success when its write fails on a full disk: `export --map` exited 0 with a 1 MB file of a
+    9.9 MB map. The map is read back before it is renamed into place."""
+    if shutil.which("unshare") is None or subprocess.run(["unshare", "-m", "true"], capture_output=True).returncode:
+        pytest.skip("needs root and unshare -m (a private tmpfs that really fills up)")
+    full = tmp_path / "full"
+    full.mkdir()
+    script = (f"mount -t tmpfs -o size=1M tmpfs {full} && {sys.executable} -m driftmap.cli export {sevens['store']} "
+              f"--map {full}/map.ply; echo rc=$?; ls -A {full}")
+    out = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=300)
+    assert "rc=1" in out.stdout, (out.stdout, out.stderr)
+    assert "map.ply" in out.stderr and "Traceback" not in out.stderr
+    assert out.stdout.strip().endswith("rc=1")  # nothing left in the folder
+
+
+def test_b11_diagnose_never_replaces_its_input_or_a_file_that_is_not_a_diagnosis(sevens: dict, tmp_path: Path) -> None:
+    gt = tmp_path / "mygt.tum"
+    shutil.copy(sevens["gt"], gt)
+    line = _line(_cli("diagnose", sevens["store"], "--json", gt, "--gt", gt))
+    assert "--json and --gt name the same file" in " ".join(line.split()), line
+    assert gt.read_text() == sevens["gt"].read_text()
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"mine": 1}\n')
+    line = _line(_cli("diagnose", sevens["store"], "--json", notes))
+    assert "--overwrite" in line and notes.read_text() == '{"mine": 1}\n'
+    first = _cli("diagnose", sevens["store"], "--json", tmp_path / "d.json")
+    assert first.returncode == 0, first.stderr
+    again = _cli("diagnose", sevens["store"], "--json", tmp_path / "d.json")  # an earlier diagnosis is replaced
+    assert again.returncode == 0, again.stderr
+
+
+def test_b12_two_outputs_naming_one_file_are_refused(sevens: dict, tmp_path: Path) -> None:
+    for args in (("--map", tmp_path / "same.ply", "--trajectory", tmp_path / "same.ply"),
+                 ("--mcap", tmp_path / "x.mcap", "--trajectory", tmp_path / "x.mcap", "--no-volume")):
+        line = _line(_cli("export", sevens["store"], *args))
+        assert "name the same file" in line, line
+    assert not list(tmp_path.iterdir())
+
+
+def test_b17_true_is_not_a_number_in_a_config_file(tmp_path: Path) -> None:
+    """`min_depth_m = true` read as 1.0 m (a build that dropped every point closer than a metre)."""
+    from driftmap.config import DriftmapConfig
+    from driftmap.pipeline.build import BuildConfig
+
+    cfg = tmp_path / "b.toml"
+    cfg.write_text("[depth]\nmin_depth_m = true\n")
+    with pytest.raises(ConfigError, match="min_depth_m"):
+        DriftmapConfig.load(cfg)
+    cfg.write_text("[build]\nnum_threads = true\n")
+    with pytest.raises(ConfigError, match="num_threads"):
+        BuildConfig.load(cfg)
+    cfg.write_text("[build.odometry]\ndeskew = true\n")  # a real switch still takes true
+    assert BuildConfig.load(cfg).odometry.deskew is True
+    (tmp_path / "c.toml").write_text("[depth]\nmax_depth_m = false\n")
+    assert "max_depth_m" in _line(_cli("config", "--file", tmp_path / "c.toml"))
+
+
+def test_b18_b19_diagnose_settings_that_would_exhaust_memory_or_time_are_refused(sevens: dict, tmp_path: Path) -> None:
+    for table, key in (("[diagnose.entropy]\nmax_neighbors = 100000000\n", "max_neighbors"),
+                       ("[diagnose.double_wall]\nkmeans_iterations = 1000000000\n", "kmeans_iterations"),
+                       ("[diagnose.double_wall]\nvoxel_sizes_m = []\n", "voxel_sizes_m")):
+        cfg = tmp_path / "d.toml"
+        cfg.write_text(table)
+        line = _line(_cli("diagnose", sevens["store"], "--json", tmp_path / "d.json", "--config", cfg))
+        assert key in line and "d.toml" in line, line
+    assert not (tmp_path / "d.json").exists()
+
+
+def test_weak_spots_name_the_flag(sevens: dict, tmp_path: Path) -> None:
+    """W1 an absurd voxel, W2 a zero drift direction, W5 an --out folder that is not a store, W11 a config file
+    with a byte-order mark, W13 an output name near the length limit."""
+    assert "--voxel-size-m" in _line(_cli("export", sevens["store"], "--map", tmp_path / "m.ply", "--voxel-size-m",
+                                          "1e300"), 2)
+    assert "--drift-direction" in _line(_cli("perturb", sevens["gt"], tmp_path / "p.tum", "--drift-percent-per-m", "1",
+                                             "--drift-direction", "0,0,0"))
+    line = _line(_cli("build", sevens["folder"], "--out", sevens["folder"], "--no-loop-closure"))
+    assert "--out" in line and "not a driftmap store" in line, line
+    bom = tmp_path / "bom.toml"
+    bom.write_bytes("\ufeff[depth]\nmax_depth_m = 3.5\n".encode())
+    assert _cli("config", "--file", bom).returncode == 0
+    long = tmp_path / ("t" * 246 + ".tum")
+    assert _cli("export", sevens["store"], "--trajectory", long).returncode == 0
+    assert read_tum(long).poses.shape == (6, 4, 4) and np.isfinite(read_tum(long).poses).all()
+
+
+def test_b9_an_emptied_manifest_beside_segments_is_damage_that_recover_repairs(sevens: dict, tmp_path: Path) -> None:
+    """``store.json`` overwritten with ``{}``: the folder still holds the store's segments, so it is a damaged store
+    (every command says to run recover, and recover rebuilds it with every frame), not "not a driftmap store"; a
+    folder with no segment is still refused as not a store, and recover writes nothing into it."""
+    store = tmp_path / "store"
+    shutil.copytree(sevens["store"], store)
+    n = len(FrameStore.open(store))
+    (store / "store.json").write_text("{}")
+    assert "run `driftmap recover" in _line(_cli("info", store))
+    assert _cli("recover", store).returncode == 0
+    assert len(FrameStore.open(store)) == n and (store / "store.json.damaged").read_text() == "{}"
+    stranger = tmp_path / "stranger"
+    stranger.mkdir()
+    (stranger / "store.json").write_text("{}")
+    assert "is not 'driftmap-store'" in _line(_cli("recover", stranger))
+    assert sorted(p.name for p in stranger.iterdir()) == ["store.json"]
