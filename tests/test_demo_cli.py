@@ -117,6 +117,67 @@ def test_demo_report_and_figures(demo_run) -> None:
     assert str(out_dir.resolve()) in cli.stdout.replace("\n", "")
 
 
+def test_demo_volume_layers_before_and_after_the_loop_closure(demo_run) -> None:
+    """The volumetric layers of revision 0, updated (not rebuilt) to the loop closure's revision: the summary's
+    counts add up, the TSDF mesh is written, and the two top views (one extent: pixel-aligned) differ where the loop
+    wall was doubled far more than in the room's interior."""
+    import open3d as o3d
+
+    from driftmap.demo import DEMO_VOLUME_VOXEL_M, LOOP_WALL, LOOP_WALL_STRIP_M
+    from driftmap.diagnostics.figures import STATE_TOP_VIEW_RGB, top_view_layout
+
+    _, s, cli = demo_run
+    files = s["files"]
+    assert s["volume_voxel_size_m"] == DEMO_VOLUME_VOXEL_M
+    assert s["volume_revision_before"] == 0 and s["volume_revision_after"] == s["loop_revision"]
+    # every voxel of the grid is in one state; the grid never shrinks in an update
+    assert s["volume_occupied_after"] + s["volume_free_after"] + s["volume_unknown_after"] == s["volume_n_voxels"]
+    assert s["volume_occupied_before"] + s["volume_free_before"] + s["volume_unknown_before"] <= s["volume_n_voxels"]
+    assert s["volume_unknown_fraction"] == pytest.approx(s["volume_unknown_after"] / s["volume_n_voxels"])
+    assert 0.0 < s["volume_unknown_fraction"] < 1.0 and s["volume_occupied_after"] > 10_000
+    # the update took out and put back the frames the correction moved (those the map view re-transformed)
+    assert s["volume_update_rebuilt"] is False
+    assert s["volume_frames_reintegrated"] == s["frames_retransformed"]
+    assert s["volume_state_changed"] > 0
+    assert s["volume_build_s"] == s["seconds_per_stage"]["volume: build revision 0"] > 0 and s["volume_update_s"] > 0
+    # the doubled wall is thicker from above and holds more occupied voxels than the single one
+    assert s["volume_occupied_before"] > s["volume_occupied_after"]
+    assert s["volume_loop_wall_thickness_before_m"] >= s["volume_loop_wall_thickness_after_m"] + DEMO_VOLUME_VOXEL_M
+    mesh = o3d.io.read_triangle_mesh(files["volume_mesh_ply"])
+    assert len(mesh.triangles) == s["volume_mesh_triangles"] > 10_000
+    assert Path(files["volume_mesh_ply"]).name == f"volume_mesh_rev{s['loop_revision']}.ply"
+    # the two top views: the layout of their extent, every state's colour drawn
+    layout = top_view_layout(s["volume_top_view_extent_m"])
+    before, after = (np.asarray(Image.open(files[f"volume_top_view_{k}_png"]).convert("RGB")).astype(int)
+                     for k in ("before", "after"))
+    assert before.shape == after.shape == (layout.height_px, layout.width_px, 3)
+    for image in (before, after):
+        for rgb in STATE_TOP_VIEW_RGB.values():
+            assert np.all(image == rgb, axis=2).sum() > 5_000
+    differs = np.any(before != after, axis=2)
+
+    def share_differing(x_m: tuple[float, float], y_m: tuple[float, float]) -> float:
+        x, y = np.meshgrid(np.arange(*x_m, 0.01), np.arange(*y_m, 0.01))
+        px = layout.pixels(np.c_[x.ravel(), y.ravel()]).astype(int)
+        return float(differs[px[:, 1], px[:, 0]].mean())
+
+    wall_y = LOOP_WALL["offset_m"]
+    along = LOOP_WALL["tangent_range_m"]
+    at_wall = share_differing(along, (wall_y - LOOP_WALL_STRIP_M, wall_y + LOOP_WALL_STRIP_M))
+    interior = share_differing(along, (-2.0, 2.0))
+    assert at_wall > 0.1 and at_wall > 4 * interior, (at_wall, interior)
+    near_wall = [r["center_m"] for r in s["diagnosis_before"]["regions"] if abs(r["center_m"][1] - wall_y) < 0.3]
+    assert near_wall
+    for x, y, _ in near_wall:  # around every double wall the diagnosis found at the loop wall
+        assert share_differing((x - 0.15, x + 0.15), (y - 0.15, y + 0.15)) > 2 * interior
+    # the reports show both views, the CLI prints the rows
+    md, html = Path(files["report_md"]).read_text(), Path(files["report_html"]).read_text()
+    for key in ("volume_top_view_before_png", "volume_top_view_after_png"):
+        name = Path(files[key]).name
+        assert f"]({name})" in md and f"src='{name}'" in html
+    assert "volume: loop wall thickness from above" in cli.stdout
+
+
 def test_demo_without_a_loop_still_reports(tmp_path: Path) -> None:
     """8 frames never revisit anything: no loop closure, no corrected revision, and the demo says so."""
     out = _cli("demo", "--frames", "8", "--out", str(tmp_path / "d"))
@@ -125,7 +186,42 @@ def test_demo_without_a_loop_still_reports(tmp_path: Path) -> None:
     summary = json.loads((tmp_path / "d" / "summary.json").read_text())
     assert summary["n_frames"] == 8 and summary["loop_revision"] is None and summary["diagnosis_after"] is None
     assert Path(summary["files"]["report_md"]).exists()
+    # the volumetric layers of revision 0 only: one top view, no update
+    assert Path(summary["files"]["volume_top_view_before_png"]).exists()
+    assert "volume_top_view_after_png" not in summary["files"]
+    assert summary["volume_revision_after"] is None and summary["volume_update_s"] is None
+    assert summary["volume_occupied_before"] > 0
     assert str((tmp_path / "d").resolve()) in out.stdout.replace("\n", "")
+    # the same folder again: the earlier demo's results (and its store) are replaced
+    again = _cli("demo", "--frames", "6", "--out", str(tmp_path / "d"))
+    assert again.returncode == 0, again.stderr
+    assert json.loads((tmp_path / "d" / "summary.json").read_text())["n_frames"] == 6
+
+
+def test_demo_never_replaces_what_it_did_not_write(tmp_path: Path) -> None:
+    """--out on a frame store, on a folder of other files, or on a results folder whose store/ is not a store: refused
+    with one line naming the folder, and nothing in it touched (the demo used to delete OUT/store whatever it was)."""
+    from driftmap.demo import embedded_log_path
+    from driftmap.store.frame_store import FrameStore
+
+    store = tmp_path / "store"
+    _cli("build", str(embedded_log_path()), "--out", str(store), "--frames", "0:3", "--no-loop-closure")
+    assert FrameStore.open(store).frame_ids.tolist() == [0, 1, 2]
+    other = tmp_path / "other"
+    (other / "store").mkdir(parents=True)
+    (other / "store" / "mine.txt").write_text("keep me")
+    fake = tmp_path / "fake"
+    (fake / "store").mkdir(parents=True)
+    (fake / "store" / "mine.txt").write_text("keep me")
+    (fake / "summary.json").write_text(json.dumps({"files": {"store": str(fake / "store")}}))
+    for out_dir, words in ((store, "frame store"), (other, "holds no earlier demo result"),
+                           (fake, "is not a frame store the demo wrote")):
+        before = sorted(str(p) for p in out_dir.rglob("*"))
+        out = _cli("demo", "--frames", "4", "--out", str(out_dir))
+        assert out.returncode == 1 and "Traceback" not in out.stderr, out.stderr
+        assert words in out.stderr.strip().splitlines()[-1], out.stderr
+        assert sorted(str(p) for p in out_dir.rglob("*")) == before
+    assert FrameStore.open(store).frame_ids.tolist() == [0, 1, 2]
 
 
 def test_cli_error_is_one_line_without_traceback(tmp_path: Path) -> None:
@@ -220,7 +316,9 @@ def test_config_shows_only_settings_that_take_effect() -> None:
     rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") >= 3}
     assert rows["depth.min_depth_m"] == rows["depth.max_depth_m"] == rows["depth.depth_scale"] == "None"
     assert rows["map.export_voxel_size_m"] == "None" and not any(k.startswith("preprocess.") for k in rows)
-    assert set(DriftmapConfig.model_fields) == {"depth", "map"}
+    # [volume] takes effect in `export --mesh/--octomap/--grid2d` and in the demo's volumetric layers
+    assert set(DriftmapConfig.model_fields) == {"depth", "map", "volume"}
+    assert rows["volume.voxel_size_m"] == "None"
 
 
 def test_demo_applies_the_depth_settings(tmp_path: Path) -> None:

@@ -269,3 +269,61 @@ def test_cli_view_headless_writes_png_views(tmp_path: Path) -> None:
     bad = subprocess.run([sys.executable, "-m", "driftmap.cli", "view", str(store), "--color", "rainbow", "--out",
                           str(tmp_path / "v2")], capture_output=True, text=True, timeout=300, env=env)
     assert bad.returncode == 2 and "rainbow" in bad.stderr and "Traceback" not in bad.stderr  # a usage error
+
+
+# ---------------------------------------------------------------------------------------------- volumetric layers
+
+
+def test_cli_view_state_renders_the_volumetric_layers(store: FrameStore, tmp_path: Path) -> None:
+    """`driftmap view STORE --color state --out DIR --headless`: the occupied voxels of the revision's volumetric
+    layers as points coloured by height (the usual PNG views), and free / occupied / unknown from above in one more
+    PNG, each state in its own colour and every cell where the layers put it."""
+    import os
+    import sys
+
+    from driftmap.diagnostics.figures import STATE_TOP_VIEW_RGB, sensor_band_m
+    from driftmap.volume import OCCUPIED
+    from driftmap.volume.export import GRID_FREE, GRID_OCCUPIED, occupancy_grid2d
+
+    env = {**os.environ, "COLUMNS": "200", "DISPLAY": "", "WAYLAND_DISPLAY": ""}
+    out = subprocess.run([sys.executable, "-m", "driftmap.cli", "view", str(store.path), "--revision", "1", "--color",
+                          "state", "--out", str(tmp_path / "cli"), "--headless"], capture_output=True, text=True,
+                         timeout=600, env=env)
+    assert out.returncode == 0, out.stderr
+    assert "colour state" in out.stdout and "occupied voxels" in out.stdout
+    views = ("top", "oblique-a", "oblique-b", "overview", "states-top")
+    assert {p.name for p in (tmp_path / "cli").glob("*.png")} == {f"{v}_rev1_state.png" for v in views}
+    # the same view through the library: what was drawn
+    result = view_store(store, revision=1, color="state", out_dir=tmp_path / "lib", headless=True, backend="software",
+                        width_px=W, height_px=H)
+    cm, layers = result.colored, result.colored.layers
+    assert result.voxel_size_m == layers.grid.voxel_size_m == 0.02  # the depth camera's default voxel
+    # every occupied voxel, once, at its centre; nothing else
+    assert np.all(layers.states(cm.points_world) == OCCUPIED)
+    assert cm.n_points == result.n_points_map == result.volume_counts["occupied"] == layers.stats().occupied > 10_000
+    assert sum(result.volume_counts.values()) == layers.grid.n_voxels
+    # coloured by height along the up axis: the lowest and the highest tenth in far apart colours
+    np.testing.assert_allclose(cm.values, cm.points_world.astype(np.float64) @ cm.up, atol=1e-5)
+    low, high = cm.values <= np.percentile(cm.values, 10), cm.values >= np.percentile(cm.values, 90)
+    assert np.linalg.norm(cm.colors[low].mean(axis=0) - cm.colors[high].mean(axis=0)) > 100
+    assert all(drawn(load(result.files[c.name])).mean() > 0.1 for c in result.cameras)
+    # free / occupied / unknown from above: the CLI drew the same picture
+    top = np.asarray(Image.open(result.files["states-top"]).convert("RGB")).astype(int)
+    cli_top = np.asarray(Image.open(tmp_path / "cli" / "states-top_rev1_state.png").convert("RGB")).astype(int)
+    assert np.array_equal(top, cli_top)
+    figure = result.state_top_view
+    assert top.shape == (figure.layout.height_px, figure.layout.width_px, 3)
+    colours = np.array(list(STATE_TOP_VIEW_RGB.values()))
+    assert min(np.linalg.norm(a - b) for k, a in enumerate(colours) for b in colours[k + 1:]) > 80
+    # its cells are the 2-D occupancy map of the same band (volume.export, z up), each drawn in its state's colour
+    view = figure.view
+    assert view.axes == (0, 1) and view.band_m == sensor_band_m(cm.sensor_origins_world, cm.up)
+    grid2d = occupancy_grid2d(layers, view.band_m)
+    expected = np.where(grid2d.cells == GRID_OCCUPIED, 1, np.where(grid2d.cells == GRID_FREE, 0, -1))
+    assert np.array_equal(view.cells, expected)
+    for state, rgb in STATE_TOP_VIEW_RGB.items():
+        ij = np.argwhere(view.cells == state)
+        assert len(ij) > 1000, state
+        centres = np.asarray(view.min_m) + (ij + 0.5) * view.voxel_size_m
+        px = figure.layout.pixels(centres).astype(int)
+        assert np.mean(np.all(top[px[:, 1], px[:, 0]] == rgb, axis=1)) > 0.9, state  # the sensor path covers a few

@@ -110,7 +110,8 @@ def _true_observed(gt_store: FrameStore, layers: VolumeLayers, scene) -> np.ndar
         far = d > r_max
         ends[far] = T[:3, 3] + (ends[far] - T[:3, 3]) * (r_max / d[far])[:, None]
         kernels.occupancy_update(T[:3, 3] / vs, ends / vs, ~far, np.asarray(layers.grid.origin_index),
-                                 np.asarray(layers.grid.shape), hits, misses, mark, k + 1, 1, np.empty(len(ends), np.int64))
+                                 np.asarray(layers.grid.shape), hits, misses, mark, k + 1, 1, np.empty(len(ends), np.int64),
+                                 np.empty(0, np.int64))
     return (hits + misses) > 0
 
 

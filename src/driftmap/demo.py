@@ -7,7 +7,10 @@
 4. **diagnose revision 1** (and the ground-truth placement as a reference): the double walls are gone,
    the smearing score drops;
 5. **export**: PLY maps, TUM trajectories, an MCAP that opens in Foxglove;
-6. **report**: PNG figures and a Markdown + HTML page in the results folder.
+6. **volume**: the volumetric layers (free / occupied / unknown space, :mod:`driftmap.volume`) of revision 0,
+   updated to the loop closure's revision with :meth:`~driftmap.volume.VolumeLayers.apply` (not rebuilt), drawn
+   from above before and after, and the TSDF mesh of the corrected revision;
+7. **report**: PNG figures and a Markdown + HTML page in the results folder.
 
 The CLI (``driftmap demo``) shows progress and prints the summary; this module only computes and writes.
 """
@@ -29,9 +32,18 @@ import numpy as np
 from driftmap.config import DriftmapConfig
 from driftmap.datasets import embedded_dir
 from driftmap.diagnostics.double_wall import DiagnosticCloud
-from driftmap.diagnostics.report import Diagnosis, DiagnoseConfig, diagnose_cloud, diagnose_store, write_report
+from driftmap.diagnostics.figures import (
+    StateTopView,
+    plot_state_top_view,
+    sensor_band_m,
+    sensor_up,
+    state_top_view,
+    union_extent,
+)
+from driftmap.diagnostics.report import DiagnoseConfig, Diagnosis, diagnose_cloud, diagnose_store, write_report
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.diagnostics.walls import WallSpread, wall_spread
+from driftmap.errors import ConfigError, EmptyExportError
 from driftmap.map.foxglove_export import export_foxglove_mcap
 from driftmap.map.fusion import FusedCloud
 from driftmap.pipeline.build import BuildConfig, BuildResult, build
@@ -39,6 +51,10 @@ from driftmap.registration.loops import LoopClosureConfig
 from driftmap.report import top_view
 from driftmap.sources.synthetic import ROOM_MAX_M, ROOM_MIN_M, SyntheticLog, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
+from driftmap.store.guards import is_store_folder
+from driftmap.volume import VolumeConfig, VolumeLayers, VolumeStats
+from driftmap.volume.export import write_mesh
+from driftmap.volume.grid import GridSpec
 
 if TYPE_CHECKING:
     from driftmap.map.view import MapView
@@ -54,6 +70,13 @@ LOOP_WALL = {"normal": (0.0, 1.0, 0.0), "offset_m": ROOM_MAX_M[1], "tangent": (1
 #: The synthetic log is short (60 frames at 5 Hz): loops may be 20 frames apart, keyframes every 20 cm.
 DEMO_MAP_VOXEL_M = 0.01
 """Voxel size of the demo's map exports unless ``map.export_voxel_size_m`` is set (m)."""
+DEMO_VOLUME_VOXEL_M = 0.04
+"""Voxel of the demo's volumetric layers unless ``volume.voxel_size_m`` is set (m): twice a depth camera's default
+2 cm, to keep the demo fast (the cost is in carving the rays, about 60 ms a frame here: building revision 0 takes
+~10 s and the update to the loop closure, which takes out and puts back every moved frame, ~15 s); the loop wall's
+double wall (~5 cm apart) still shows as a thicker wall from above."""
+LOOP_WALL_STRIP_M = 0.25
+"""The loop wall's thickness from above is measured within this distance of its true plane (m)."""
 DEMO_BUILD_CONFIG = BuildConfig(loop_closure=LoopClosureConfig(min_gap_frames=20, keyframe_distance_m=0.2, keyframe_angle_deg=15))
 
 #: (stage, done, total) -- the same shape as the build's progress callback
@@ -101,6 +124,46 @@ class DiagnosisSummary:
 
 
 @dataclass(frozen=True)
+class VolumeSummary:
+    """The demo's volumetric layers: revision 0 built, then updated to the loop closure's revision (``*_after``:
+    None without one). ``summary.json`` holds every field with a ``volume_`` prefix."""
+
+    voxel_size_m: float
+    revision_before: int
+    occupied_before: int
+    free_before: int
+    unknown_before: int
+    n_voxels: int
+    """voxels of the grid (after the update: it may grow)"""
+    unknown_fraction: float
+    """never-observed share of the grid's voxels, of the last revision the layers hold"""
+    build_s: float
+    """building the layers of revision 0 from its frames"""
+    top_view_band_m: tuple[float, float]
+    """the height band (z, metres) the top views show"""
+    top_view_extent_m: tuple[float, float, float, float]
+    """x min, x max, y min, y max (metres) both top views show (:func:`~driftmap.diagnostics.figures.top_view_layout`)"""
+    loop_wall_thickness_before_m: float | None
+    """median extent across the loop wall of its occupied cells from above (a double wall is thicker)"""
+    revision_after: int | None = None
+    occupied_after: int | None = None
+    free_after: int | None = None
+    unknown_after: int | None = None
+    update_s: float | None = None
+    """:meth:`VolumeLayers.apply` to the loop closure's revision (every moved frame taken out and put back)"""
+    update_rebuilt: bool | None = None
+    frames_reintegrated: int | None = None
+    state_changed: int | None = None
+    """voxels whose state (occupied / free / unknown) the update changed"""
+    loop_wall_thickness_after_m: float | None = None
+    mesh_triangles: int | None = None
+    """triangles of the TSDF mesh of the last revision (None: nothing to mesh)"""
+
+    def to_json(self) -> dict[str, Any]:
+        return {f"volume_{k}": (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
 class DemoResult:
     out_dir: Path
     n_frames: int
@@ -126,6 +189,7 @@ class DemoResult:
     diagnosis_after: DiagnosisSummary | None = None
     diagnosis_ground_truth: DiagnosisSummary | None = None
     seconds_per_stage: dict[str, float] = field(default_factory=dict)
+    volume: VolumeSummary | None = None
 
     @property
     def double_walls_before(self) -> int:
@@ -138,6 +202,9 @@ class DemoResult:
     def to_json(self) -> dict:
         d = asdict(self)
         d["out_dir"] = str(self.out_dir)
+        d.pop("volume")
+        if self.volume is not None:
+            d.update(self.volume.to_json())
         d["double_walls_before"] = self.double_walls_before
         d["double_walls_after"] = self.double_walls_after
         return d
@@ -237,10 +304,12 @@ def run_demo(
     before = _diagnose_before(run, built)
     closed = _close_the_loop(run)
     after = _diagnose_after(run, before, closed)
-    # 5. figures, diagnosis JSON and the report
+    volume = _volume(run, demo_volume_config(config), closed.loop_revision)
+    # 7. figures, diagnosis JSON and the report
     run.files.update(run.stages.run("figures", lambda: _figures(run.out, before, after)))
     diag_files = _export_diagnoses_and_config(run, config, before.diagnosis, after.diagnosis)
     result = _demo_result(run, before, after, diag_files, seconds=time.perf_counter() - t0)
+    result = replace(result, volume=volume)
     return _write_report(run, result, t0)
 
 
@@ -249,17 +318,43 @@ def _prepare(out_dir: str | Path, log_path: str | Path | None, max_frames: int |
     """The results folder (its store emptied), the log, and the build settings both builds share."""
     stages = _Stages(progress)
     out = Path(out_dir)
+    _check_results_folder(out)
     out.mkdir(parents=True, exist_ok=True)
     log = SyntheticLog(Path(log_path) if log_path else embedded_log_path())
     # the map exports: map.export_voxel_size_m when set, else the demo's own 1 cm
     map_voxel_m = config.map.export_voxel_size_m if config.map.export_voxel_size_m is not None else DEMO_MAP_VOXEL_M
     n = len(log) if max_frames is None else min(max_frames, len(log))
     store_dir = out / "store"
-    if store_dir.exists():
+    if store_dir.exists():  # an earlier demo's store (checked above): the demo rebuilds it
         shutil.rmtree(store_dir)
     build_kwargs = dict(poses_from_source=True, frames=f"0:{n}", config=DEMO_BUILD_CONFIG, progress=stages.tick,
                         depth=config.depth)
     return _DemoRun(out, log, store_dir, map_voxel_m, build_kwargs, stages, {"store": str(store_dir)})
+
+
+def _check_results_folder(out: Path) -> None:
+    """The demo writes into a new or empty folder, or over an earlier demo's results (its ``summary.json`` and, if
+    there, its ``store/`` frame store); anything else -- a frame store, a file, a folder of other files -- is refused
+    with :class:`ConfigError` before anything is touched (the demo replaces its own store, never someone else's)."""
+    if not out.exists():
+        return
+    if not out.is_dir():
+        raise ConfigError(f"{out}: is a file, not a results folder (--out); give a new or empty folder")
+    if is_store_folder(out):
+        raise ConfigError(f"{out}: is a frame store, not a results folder (--out): the demo writes its own store into "
+                          f"OUT/store; give a new or empty folder")
+    if not any(out.iterdir()):
+        return
+    try:
+        earlier = "store" in json.loads((out / "summary.json").read_text()).get("files", {})
+    except (OSError, ValueError, AttributeError):
+        earlier = False
+    if not earlier:
+        raise ConfigError(f"{out}: is not empty and holds no earlier demo result (summary.json); give a new or empty "
+                          f"folder (--out)")
+    store_dir = out / "store"
+    if store_dir.exists() and not is_store_folder(store_dir):
+        raise ConfigError(f"{store_dir}: is not a frame store the demo wrote; move it away or give a new folder (--out)")
 
 
 def _build(run: _DemoRun) -> BuildResult:
@@ -342,6 +437,112 @@ def _ground_truth_reference(run: _DemoRun, store: FrameStore, view: MapView,
     gt_points = view.points_world.copy()
     run.files["map_ground_truth_ply"] = str(view.export(run.out / "map_ground_truth.ply", voxel_size_m=run.map_voxel_m))
     return diag_gt, gt_points
+
+
+def demo_volume_config(config: DriftmapConfig) -> VolumeConfig:
+    """The ``[volume]`` settings with the demo's voxel (:data:`DEMO_VOLUME_VOXEL_M`) unless one is set."""
+    volume = config.volume
+    if volume.voxel_size_m is None:
+        volume = volume.model_copy(update={"voxel_size_m": DEMO_VOLUME_VOXEL_M})
+    return volume
+
+
+@dataclass(frozen=True)
+class _VolumeState:
+    """One revision of the layers as the top view needs it (copied: the update changes the layers in place)."""
+
+    revision: int
+    states: np.ndarray
+    grid: GridSpec
+    stats: VolumeStats
+    sensor_origins_m: np.ndarray
+
+    @classmethod
+    def of(cls, layers: VolumeLayers, store: FrameStore) -> _VolumeState:
+        return cls(layers.revision, layers.state_grid(), layers.grid, layers.stats(),
+                   store.poses(layers.revision)[:, :3, 3].copy())
+
+
+def _volume(run: _DemoRun, config: VolumeConfig, rev: int | None) -> VolumeSummary:
+    """6. The volumetric layers of revision 0, updated to the loop closure's revision ``rev`` with
+    :meth:`VolumeLayers.apply` (not rebuilt); their top views before and after, and the TSDF mesh of the last
+    revision."""
+    with FrameStore.open(run.store_dir) as store:
+        layers = run.stages.run("volume: build revision 0", lambda: VolumeLayers.from_store(store, 0, config))
+        build_s = run.stages.seconds["volume: build revision 0"]
+        states = [_VolumeState.of(layers, store)]
+        change = None
+        if rev is not None:
+            change = run.stages.run(f"volume: update to revision {rev}", lambda: layers.apply(rev, store))
+            states.append(_VolumeState.of(layers, store))
+        up = sensor_up(store.poses(0), layers.sensor_kind)
+        n_triangles = run.stages.run("volume: TSDF mesh", lambda: _write_volume_mesh(run, layers))
+    views, extent = run.stages.run("volume: top views", lambda: _volume_top_views(run, states, up))
+    b, a = states[0], states[-1]
+    summary = VolumeSummary(
+        voxel_size_m=b.grid.voxel_size_m, revision_before=b.revision, occupied_before=b.stats.occupied,
+        free_before=b.stats.free, unknown_before=b.stats.unknown, n_voxels=a.stats.n_voxels,
+        unknown_fraction=a.stats.unknown / a.stats.n_voxels, build_s=build_s,
+        top_view_band_m=(round(views[0].band_m[0], 6), round(views[0].band_m[1], 6)),
+        top_view_extent_m=extent, loop_wall_thickness_before_m=loop_wall_thickness_m(views[0]),
+        mesh_triangles=n_triangles)
+    if change is None:
+        return summary
+    return replace(summary, revision_after=a.revision, occupied_after=a.stats.occupied, free_after=a.stats.free,
+                   unknown_after=a.stats.unknown, update_s=round(change.seconds, 3), update_rebuilt=change.rebuilt,
+                   frames_reintegrated=len(change.frame_ids), state_changed=change.n_state_changed,
+                   loop_wall_thickness_after_m=loop_wall_thickness_m(views[1]))
+
+
+def _write_volume_mesh(run: _DemoRun, layers: VolumeLayers) -> int | None:
+    """The TSDF mesh of the layers' revision as PLY; None (logged) when there is no surface to mesh."""
+    try:
+        mesh = write_mesh(layers, run.out / f"volume_mesh_rev{layers.revision}.ply")
+    except EmptyExportError as exc:
+        logger.warning("demo: no TSDF mesh: %s", exc)
+        return None
+    run.files["volume_mesh_ply"] = str(mesh.path)
+    return mesh.n_triangles
+
+
+def _volume_top_views(run: _DemoRun, states: list[_VolumeState],
+                      up: np.ndarray) -> tuple[list[StateTopView], tuple[float, float, float, float]]:
+    """The top views of every revision in ``states`` over one extent and height band (pixel-aligned PNGs):
+    ``(views, extent)``."""
+    band = sensor_band_m(states[0].sensor_origins_m, up)
+    extent = union_extent(*(state_top_view(s.states, s.grid, band, up).extent_m for s in states))
+    labels = ["revision 0 (drifting odometry)", "revision {rev} (loop closure, layers updated, not rebuilt)"]
+    views = []
+    for key, label, s in zip(("before", "after"), labels, states):
+        title = (f"{label.format(rev=s.revision)}: free / occupied / unknown from above, z {band[0]:.1f} .. "
+                 f"{band[1]:.1f} m, voxel {100 * s.grid.voxel_size_m:g} cm")
+        figure = plot_state_top_view(run.out / f"volume_top_view_rev{s.revision}.png", s.states, s.grid, band_m=band,
+                                     up=up, sensor_origins_m=s.sensor_origins_m, extent_m=extent, title=title)
+        run.files[f"volume_top_view_{key}_png"] = str(figure.path)
+        views.append(figure.view)
+    return views, extent
+
+
+def loop_wall_thickness_m(view: StateTopView) -> float | None:
+    """The loop wall (:data:`LOOP_WALL`) from above: per cell along it, the extent across it of its occupied cells
+    within :data:`LOOP_WALL_STRIP_M` of its true plane; their median (metres). None: not seen, or not a z-up view."""
+    normal_axis = int(np.argmax(np.abs(LOOP_WALL["normal"])))
+    tangent_axis = int(np.argmax(np.abs(LOOP_WALL["tangent"])))
+    if set(view.axes) != {normal_axis, tangent_axis}:
+        return None
+    t_i, n_i = view.axes.index(tangent_axis), view.axes.index(normal_axis)
+    cells = view.cells if t_i == 0 else view.cells.T  # [along the wall, across it]
+    vs = view.voxel_size_m
+    along = view.min_m[t_i] + (np.arange(cells.shape[0]) + 0.5) * vs
+    across = view.min_m[n_i] + (np.arange(cells.shape[1]) + 0.5) * vs
+    lo, hi = LOOP_WALL["tangent_range_m"]
+    occupied = cells[np.ix_((along >= lo) & (along <= hi), np.abs(across - LOOP_WALL["offset_m"]) <= LOOP_WALL_STRIP_M)] == 1
+    seen = occupied.any(axis=1)
+    if not seen.any():
+        return None
+    first = np.argmax(occupied, axis=1)
+    last = occupied.shape[1] - 1 - np.argmax(occupied[:, ::-1], axis=1)
+    return float(np.median((last - first + 1)[seen]) * vs)
 
 
 def _figures(out: Path, before: _Revision0, after: _Corrected) -> dict[str, str]:
@@ -468,8 +669,25 @@ def summary_rows(r: DemoResult) -> list[tuple[str, str]]:
     rows.append(("loop wall spread (median): odometry -> corrected (ground truth)",
                  f"{_cm(r.wall_spread_odometry_m)} -> {_cm(r.wall_spread_corrected_m)} ({_cm(r.wall_spread_ground_truth_m)})"))
     rows.append(("ATE vs ground truth: odometry -> corrected", f"{_cm(r.ate_odometry_m)} -> {_cm(r.ate_corrected_m)}"))
+    if r.volume is not None:
+        rows += volume_rows(r.volume)
     rows.append(("time", f"{r.seconds:.1f} s"))
     return rows
+
+
+def volume_rows(v: VolumeSummary) -> list[tuple[str, str]]:
+    """The volumetric layers' rows of the summary table."""
+    after = "-" if v.occupied_after is None else f"{v.occupied_after:,}"
+    update = ("-" if v.update_s is None else
+              f"{v.update_s:.1f} s ({v.frames_reintegrated} frames re-integrated, {v.state_changed:,} voxels changed "
+              f"state{', fell back to a rebuild' if v.update_rebuilt else ''})")
+    return [
+        (f"volume ({100 * v.voxel_size_m:g} cm voxels): occupied voxels, revision 0 -> corrected",
+         f"{v.occupied_before:,} -> {after} ({100 * v.unknown_fraction:.0f} % of the grid unknown)"),
+        ("volume: loop wall thickness from above, revision 0 -> corrected",
+         f"{_cm(v.loop_wall_thickness_before_m)} -> {_cm(v.loop_wall_thickness_after_m)}"),
+        ("volume: update to the correction vs build of revision 0", f"{update} vs {v.build_s:.1f} s"),
+    ]
 
 
 def region_lines(s: DiagnosisSummary) -> list[str]:
@@ -485,6 +703,11 @@ _FIGURES = [
     ("smearing_before_after_png", "Smearing score per voxel scale before and after the correction, and for the ground-truth placement."),
     ("double_walls_rev1_png", "After loop closure: map coloured by double-wall separation."),
     ("frame_disagreement_rev1_png", "After loop closure: per-frame disagreement."),
+    ("volume_top_view_before_png", ("Volumetric layers of revision 0 from above (free white, occupied black, never "
+                                    "observed grey, the sensor path blue): the loop wall is doubled, a thick or "
+                                    "stepped line.")),
+    ("volume_top_view_after_png", ("The same layers updated to the loop closure's revision (the moved frames taken "
+                                   "out and put back, not rebuilt): the loop wall is a single line.")),
 ]
 
 

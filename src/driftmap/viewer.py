@@ -1,5 +1,7 @@
 """The map viewer behind ``driftmap view``: a store's map in one revision, coloured by frame, by how far a
-correction moved each point, or by double-wall separation.
+correction moved each point, or by double-wall separation; or (``state``) the revision's volumetric layers
+(:mod:`driftmap.volume`): every occupied voxel coloured by its height, and free / occupied / unknown space from
+above in one more PNG (``states-top``).
 
 Backends (``backend=``):
 
@@ -41,6 +43,7 @@ from matplotlib.colors import ListedColormap, Normalize  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 from PIL import Image  # noqa: E402
 
+from driftmap.diagnostics.figures import TopViewFigure, plot_state_top_view, sensor_band_m, sensor_up  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
 from driftmap.map.view import POSE_EPSILON  # noqa: E402
@@ -50,10 +53,11 @@ from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E
 if TYPE_CHECKING:
     from driftmap.diagnostics.wall_results import DoubleWallResult
     from driftmap.store.frame_store import FrameStore
+    from driftmap.volume import VolumeLayers
 
 logger = logging.getLogger(__name__)
 
-COLOR_MODES = ("frame", "revision", "double-wall")
+COLOR_MODES = ("frame", "revision", "double-wall", "state")
 BACKENDS = ("auto", "window", "open3d", "software", "rerun")
 #: Display voxel size per sensor kind (m).
 DEFAULT_VOXEL_SIZE_M = {SensorKind.DEPTH_CAMERA: 0.02, SensorKind.LIDAR: 0.2}
@@ -63,7 +67,8 @@ BACKGROUND_RGB = (20, 20, 24)
 GREY_RGB = (120, 120, 120)
 """Points without a value: unchanged by the correction, or not on a flagged double wall."""
 # (colormap, lower, upper end used): both ends stay visible on the dark background
-_PALETTES = {"frame": ("turbo", 0.08, 0.95), "revision": ("inferno", 0.3, 1.0), "double-wall": ("inferno", 0.3, 1.0)}
+_PALETTES = {"frame": ("turbo", 0.08, 0.95), "revision": ("inferno", 0.3, 1.0), "double-wall": ("inferno", 0.3, 1.0),
+             "state": ("viridis", 0.15, 1.0)}
 _OPEN3D_TIMEOUT_S = 300.0
 
 
@@ -110,8 +115,10 @@ class ViewCamera:
 class ColoredMap:
     """The voxel-downsampled map of one revision with one colour per point.
 
-    ``values`` is what the colour encodes (frame id, displacement in m, double-wall separation in m); NaN
-    where a point is grey. ``frame_ids`` is the frame each kept point came from (one real point per voxel).
+    ``values`` is what the colour encodes (frame id, displacement in m, double-wall separation in m, height in
+    m); NaN where a point is grey. ``frame_ids`` is the frame each kept point came from (one real point per voxel).
+    Colour ``state``: the points are the centres of the occupied voxels of ``layers``, ``frame_ids`` the first frame
+    whose rays ended in each (-1: none), ``n_points_map`` the number of occupied voxels.
     """
 
     revision: int
@@ -130,6 +137,7 @@ class ColoredMap:
     sensor_origins_world: NDArray[np.float64]
     reference_revision: int | None = None
     double_walls: DoubleWallResult | None = None
+    layers: VolumeLayers | None = None
 
     @property
     def n_points(self) -> int:
@@ -157,6 +165,10 @@ class ViewResult:
     seconds: dict[str, float] = field(default_factory=dict)
     colored: ColoredMap | None = field(default=None, repr=False)
     """The points, frame ids, values and colours that were drawn."""
+    volume_counts: dict[str, int] | None = None
+    """Colour ``state``: the layers' voxels by state (occupied / free / unknown)."""
+    state_top_view: TopViewFigure | None = field(default=None, repr=False)
+    """Colour ``state`` with an output folder: the free / occupied / unknown top view (``files["states-top"]``)."""
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -249,10 +261,7 @@ def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_point
 
 def _up_axis(poses: NDArray[np.float64], kind: SensorKind) -> NDArray[np.float64]:
     """World 'up': the mean sensor z axis for LiDAR, minus the mean camera y axis (image down) otherwise."""
-    R = poses[:, :3, :3]
-    up = R[:, :, 2].mean(axis=0) if kind is SensorKind.LIDAR else -R[:, :, 1].mean(axis=0)
-    norm = np.linalg.norm(up)
-    return up / norm if norm > 1e-6 else np.array([0.0, 0.0, 1.0])
+    return sensor_up(poses, kind)
 
 
 def _palette(color: str) -> ListedColormap:
@@ -323,9 +332,12 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
       correction did not move are grey. Revision 0 has no parent: give ``reference_revision``.
     - ``double-wall``: the separation of the flagged double-wall voxel (finest scale) the point lies in,
       from the same detector and configuration as ``driftmap diagnose``; every other point grey.
+    - ``state``: not the map's points but the revision's volumetric layers (:func:`state_map`).
     """
     color = _check_color(color)
     rev = _check_revision(store, revision)
+    if color == "state":
+        return state_map(store, rev, voxel_size_m=voxel_size_m, max_points=max_points, seed=seed)
     kind = store_sensor_kind(store)
     vs = DEFAULT_VOXEL_SIZE_M[kind] if voxel_size_m is None else float(voxel_size_m)
     if not vs > 0 or not math.isfinite(vs):
@@ -366,6 +378,56 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     colors = _apply_palette(values, value_range, cmap)
     return ColoredMap(rev, color, points, frame_ids, colors, values, label, value_range, cmap, n_map, vs, kind,
                       _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls)
+
+
+def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: float | None = None,
+              max_points: int = 3_000_000, seed: int = 0) -> ColoredMap:
+    """The volumetric layers of ``revision`` (:meth:`VolumeLayers.from_store`; ``voxel_size_m`` None: the sensor's
+    default, 2 cm for a depth camera) as a :class:`ColoredMap`: the centre of every occupied voxel (a random
+    ``max_points`` of them when there are more), coloured by its height along the up axis; the layers themselves,
+    free and unknown space included, in :attr:`ColoredMap.layers`."""
+    from driftmap.volume import OCCUPIED, VolumeConfig, VolumeLayers
+
+    rev = _check_revision(store, revision)
+    if voxel_size_m is not None and not (math.isfinite(voxel_size_m) and voxel_size_m > 0):
+        raise ConfigError(f"--voxel-size-m must be positive, got {voxel_size_m}")
+    if max_points < 1:
+        raise ConfigError(f"max_points must be positive, got {max_points}")
+    kind = store_sensor_kind(store)
+    layers = VolumeLayers.from_store(store, rev, VolumeConfig(voxel_size_m=voxel_size_m))
+    occupied = np.flatnonzero(layers.state_grid().ravel() == OCCUPIED)
+    if len(occupied) == 0:
+        raise StoreError(f"{store.path}: revision {rev} has no occupied voxel to show ({layers.grid.describe()})")
+    n_occupied = len(occupied)
+    if n_occupied > max_points:
+        logger.info("view: %d occupied voxels; showing a random %d of them", n_occupied, max_points)
+        occupied = np.sort(np.random.default_rng(seed).choice(occupied, max_points, replace=False))
+    centres = layers.grid.centers_m(occupied)
+    poses = store.poses(rev)
+    up = _up_axis(poses, kind)
+    heights = centres @ up
+    lo, hi = (float(v) for v in np.percentile(heights, [1.0, 99.0]))
+    value_range = (lo, hi if hi > lo else lo + layers.grid.voxel_size_m)
+    cmap = _palette("state")
+    first_frame = np.array([f.min() if len(f) else -1 for f in layers.observers(centres)], dtype=np.int64)
+    logger.info("view: revision %d, %d occupied voxels of %g m (%s)", rev, n_occupied, layers.grid.voxel_size_m,
+                layers.grid.describe())
+    return ColoredMap(rev, "state", np.ascontiguousarray(centres, np.float32), first_frame,
+                      _apply_palette(heights, value_range, cmap), heights, "height of occupied voxels (m)", value_range,
+                      cmap, n_occupied, layers.grid.voxel_size_m, kind, up, poses[:, :3, 3].copy(), layers=layers)
+
+
+def write_state_top_view(cmap: ColoredMap, out_dir: Path) -> TopViewFigure:
+    """Free / occupied / unknown space of ``cmap.layers`` from above (:func:`~driftmap.diagnostics.figures.
+    plot_state_top_view`, the height band around the sensors): ``states-top_rev<N>_state.png`` in ``out_dir``."""
+    if cmap.layers is None:
+        raise ConfigError("a top view of free / occupied / unknown space needs the volumetric layers (--color state)")
+    layers = cmap.layers
+    band = sensor_band_m(cmap.sensor_origins_world, cmap.up)
+    return plot_state_top_view(out_dir / f"states-top_rev{cmap.revision}_{cmap.color}.png", layers.state_grid(),
+                               layers.grid, band_m=band, up=cmap.up, sensor_origins_m=cmap.sensor_origins_world,
+                               title=f"revision {cmap.revision}: free / occupied / unknown from above (heights "
+                                     f"{band[0]:.2f} .. {band[1]:.2f} m, voxel {cmap.voxel_size_m:g} m)")
 
 
 # ---------------------------------------------------------------------------------------------- cameras
@@ -574,7 +636,7 @@ def write_overview(path: Path, images: list[NDArray[np.uint8]], cameras: list[Vi
         ax.set_axis_off()
     sm = plt.cm.ScalarMappable(norm=Normalize(*cmap.value_range), cmap=cmap.colormap)
     bar = fig.colorbar(sm, ax=list(axes[0]), shrink=0.9, fraction=0.02, pad=0.01)
-    bar.set_label(cmap.value_label + ("" if cmap.color == "frame" else "; grey: none"), fontsize=8)
+    bar.set_label(cmap.value_label + ("" if cmap.color in ("frame", "state") else "; grey: none"), fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -586,6 +648,8 @@ def _show_window(cmap: ColoredMap, title: str, width_px: int, height_px: int) ->
 
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(cmap.points_world.astype(np.float64)))
     cloud.colors = o3d.utility.Vector3dVector(cmap.colors.astype(np.float64) / 255.0)
+    if cmap.color == "state":  # occupied voxels as cubes (their centres lie on the voxel lattice)
+        cloud = o3d.geometry.VoxelGrid.create_from_point_cloud(cloud, cmap.voxel_size_m)
     path = o3d.geometry.LineSet(o3d.utility.Vector3dVector(cmap.sensor_origins_world),
                                 o3d.utility.Vector2iVector(np.c_[np.arange(len(cmap.sensor_origins_world) - 1),
                                                                  np.arange(1, len(cmap.sensor_origins_world))]))
@@ -622,21 +686,10 @@ def _log_rerun(cmap: ColoredMap, out_dir: Path | None, headless: bool, title: st
 # ---------------------------------------------------------------------------------------------- entry point
 
 
-def view_store(store: FrameStore, *, revision: int | None = None, color: str = "frame", out_dir: Path | None = None,
-               voxel_size_m: float | None = None, headless: bool | None = None, backend: str = "auto",
-               reference_revision: int | None = None, width_px: int = 1024, height_px: int = 768, point_size_px: int = 2,
-               top_view_clip_m: float | None | str = "auto", max_points: int = 3_000_000,
-               double_wall_points_budget: int | None = None) -> ViewResult:
-    """Show (window) or render (PNG views in ``out_dir``) the map of ``revision`` coloured by ``color``.
-
-    ``headless=None`` detects it (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux). ``voxel_size_m=None``: 2 cm
-    for depth cameras, 20 cm for LiDAR. See the module docstring for the backends and :func:`colored_map`
-    for the colour modes. PNG files: ``<view>_rev<N>_<color>.png`` per view and ``overview_rev<N>_<color>.png``.
-    """
+def _resolve_backend(backend: str, headless: bool | None, out_dir: Path | None, point_size_px: int) -> tuple[str, bool]:
+    """The backend to use and whether to render headless, or a :class:`ConfigError` for what does not fit."""
     if backend not in BACKENDS:
         raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    _check_color(color)
-    _check_revision(store, revision)
     has_display = display_available()
     if headless is None:
         headless = not has_display
@@ -654,6 +707,38 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
             raise ConfigError("the rerun backend without a display writes a .rrd file: give an output folder")
     if point_size_px < 1:
         raise ConfigError(f"point size must be at least 1 pixel, got {point_size_px}")
+    return backend, headless
+
+
+def _state_outputs(cmap: ColoredMap, out_dir: Path | None) -> tuple[dict[str, Path], TopViewFigure | None, dict | None]:
+    """Colour ``state``: the free / occupied / unknown top view (with an output folder) and the voxel counts."""
+    if cmap.layers is None:
+        return {}, None, None
+    stats = cmap.layers.stats()
+    counts = {"occupied": stats.occupied, "free": stats.free, "unknown": stats.unknown}
+    if out_dir is None:
+        return {}, None, counts
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    figure = write_state_top_view(cmap, Path(out_dir))
+    return {"states-top": figure.path}, figure, counts
+
+
+def view_store(store: FrameStore, *, revision: int | None = None, color: str = "frame", out_dir: Path | None = None,
+               voxel_size_m: float | None = None, headless: bool | None = None, backend: str = "auto",
+               reference_revision: int | None = None, width_px: int = 1024, height_px: int = 768, point_size_px: int = 2,
+               top_view_clip_m: float | None | str = "auto", max_points: int = 3_000_000,
+               double_wall_points_budget: int | None = None) -> ViewResult:
+    """Show (window) or render (PNG views in ``out_dir``) the map of ``revision`` coloured by ``color``.
+
+    ``headless=None`` detects it (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux). ``voxel_size_m=None``: 2 cm
+    for depth cameras, 20 cm for LiDAR (``state``: the volumetric layers' default). See the module docstring for
+    the backends and :func:`colored_map` for the colour modes. PNG files: ``<view>_rev<N>_<color>.png`` per view and
+    ``overview_rev<N>_<color>.png``; colour ``state`` also ``states-top_rev<N>_state.png`` (free / occupied /
+    unknown from above), with every backend when ``out_dir`` is given.
+    """
+    _check_color(color)
+    _check_revision(store, revision)
+    backend, headless = _resolve_backend(backend, headless, out_dir, point_size_px)
     seconds: dict[str, float] = {}
     t = time.perf_counter()
     cmap = colored_map(store, revision=revision, color=color, voxel_size_m=voxel_size_m, reference_revision=reference_revision,
@@ -661,19 +746,22 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     seconds["colour"] = time.perf_counter() - t
     title = (f"{store.path.name}: revision {cmap.revision}, colour {color}"
              + (f" (from revision {cmap.reference_revision})" if cmap.reference_revision is not None else "")
-             + f", {cmap.n_points:,} of {cmap.n_points_map:,} points (voxel {cmap.voxel_size_m:g} m)")
+             + f", {cmap.n_points:,} of {cmap.n_points_map:,} {'occupied voxels' if color == 'state' else 'points'}"
+             + f" (voxel {cmap.voxel_size_m:g} m)")
     n_walls = cmap.double_walls.voxels_flagged if cmap.double_walls is not None else None
+    state_files, state_figure, counts = _state_outputs(cmap, out_dir)
     common = dict(revision=cmap.revision, color=color, n_points_map=cmap.n_points_map, n_points_shown=cmap.n_points,
                   voxel_size_m=cmap.voxel_size_m, value_label=cmap.value_label, value_range=cmap.value_range,
-                  reference_revision=cmap.reference_revision, n_double_wall_voxels=n_walls, colored=cmap)
+                  reference_revision=cmap.reference_revision, n_double_wall_voxels=n_walls, colored=cmap,
+                  volume_counts=counts, state_top_view=state_figure)
     if backend == "window":
         logger.info("view: backend window (Open3D), %d points", cmap.n_points)
         t = time.perf_counter()
         _show_window(cmap, title, width_px, height_px)
         seconds["window"] = time.perf_counter() - t
-        return ViewResult(backend="window", files={}, cameras=[], seconds=seconds, **common)
+        return ViewResult(backend="window", files=state_files, cameras=[], seconds=seconds, **common)
     if backend == "rerun":
-        files = _log_rerun(cmap, out_dir, headless, title)
+        files = {**_log_rerun(cmap, out_dir, headless, title), **state_files}
         logger.info("view: backend rerun, %d points", cmap.n_points)
         return ViewResult(backend="rerun", files=files, cameras=[], seconds=seconds, **common)
     assert out_dir is not None
@@ -697,5 +785,6 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     files = {cam.name: path for cam, path in zip(cameras, paths)}
     files["overview"] = write_overview(out_dir / f"overview_rev{cmap.revision}_{color}.png", images, cameras, cmap,
                                        f"{title}; {used} renderer")
+    files.update(state_files)
     logger.info("view: backend %s wrote %d PNG views of %d points to %s", used, len(cameras), cmap.n_points, out_dir)
     return ViewResult(backend=used, files=files, cameras=cameras, fallback_reason=fallback, seconds=seconds, **common)

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Optional
 
@@ -21,6 +22,7 @@ from driftmap.cli.common import (
     open_store,
     progress_bar,
     refuse_existing,
+    refuse_same_output,
 )
 
 
@@ -94,18 +96,26 @@ def export(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
-    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, max=1000.0, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
     trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
     mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
-    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [map] table sets map.export_voxel_size_m (DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M overrides it, --voxel-size-m both).")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [map] table sets map.export_voxel_size_m (DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M overrides it, --voxel-size-m both) and whose [volume] table the volumetric layers (--mesh, --octomap, --grid2d, --mcap).")] = None,
+    mesh_path: Annotated[Optional[Path], typer.Option("--mesh", help="Write the TSDF mesh of the revision's volumetric layers: OUT.ply, .obj or .stl.")] = None,
+    octomap_path: Annotated[Optional[Path], typer.Option("--octomap", help="Write the occupancy as an OctoMap binary tree OUT.bt (octovis, ROS octomap_server).")] = None,
+    grid2d_path: Annotated[Optional[Path], typer.Option("--grid2d", help="Write a 2-D occupancy map OUT.yaml + OUT.pgm (ROS map_server format, trinary free / occupied / unknown) of the --band-m height band.")] = None,
+    band_m: Annotated[Optional[str], typer.Option("--band-m", metavar="ZMIN,ZMAX", help="World-z band of --grid2d and of the MCAP's 2-D grid (m; default: every observed height).")] = None,
+    no_volume: Annotated[bool, typer.Option("--no-volume", help="--mcap without the volumetric layers (the TSDF mesh and the 2-D grid are otherwise added).")] = False,
 ) -> None:
-    """Export the map (world frame of a revision), the trajectory and/or a Foxglove MCAP."""
+    """Export the map (world frame of a revision), the trajectory, a Foxglove MCAP and the volumetric layers (TSDF
+    mesh, OctoMap tree, 2-D occupancy map)."""
     from driftmap.config import DriftmapConfig
 
-    if map_path is None and trajectory is None and mcap_path is None:
-        raise typer.BadParameter("nothing to export: give --map, --trajectory and/or --mcap")
+    outputs_given = (map_path, trajectory, mcap_path, mesh_path, octomap_path, grid2d_path)
+    if all(p is None for p in outputs_given):
+        raise typer.BadParameter("nothing to export: give --map, --trajectory, --mcap, --mesh, --octomap and/or --grid2d")
+    band = _band(band_m)
     format = choice(format, ("tum", "kitti"), "--format")
     if voxel_size_m is not None and not voxel_size_m > 0:
         raise typer.BadParameter(f"must be positive, got {voxel_size_m}", param_hint="--voxel-size-m")
@@ -114,11 +124,15 @@ def export(
         voxel_size_m = settings.map.export_voxel_size_m
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
-    for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")):
+    volume_outputs = [(mesh_path, "--mesh"), (octomap_path, "--octomap"), (grid2d_path, "--grid2d")]
+    if grid2d_path is not None:
+        volume_outputs.append((grid2d_path.with_suffix(".pgm"), "--grid2d (its PGM image)"))
+    for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap"), *volume_outputs):
         check_output(path, flag)
-    outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap")]
+    outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap"), *volume_outputs]
     if map_path is not None and voxel_size_m is not None:
         outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
+    refuse_same_output([(p, f) for p, f in outputs if p is not None])
     for path, flag in outputs:  # every output checked before anything is written
         if path is not None:
             refuse_existing(path, flag, overwrite)
@@ -133,6 +147,10 @@ def export(
             _, n_written = view.write(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
             detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
             console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
+        volume = None
+        if any(p is not None for p, _ in volume_outputs) or (mcap_path is not None and not no_volume):
+            volume = _volume_layers(store, rev, settings.volume)
+            _write_volume(volume, mesh_path, octomap_path, grid2d_path, band)
         if mcap_path is not None:
             from driftmap.map.foxglove_export import export_foxglove_mcap
 
@@ -141,11 +159,65 @@ def export(
                 summary = export_foxglove_mcap(
                     store, mcap_path, revision=rev,
                     map_voxel_size_m=voxel_size_m if voxel_size_m is not None else 0.02,
-                    overwrite=overwrite,
+                    overwrite=overwrite, volume=volume,
+                    grid2d_band_m=None if volume is None else (band or _observed_band(volume)),
                     progress=lambda stage, done, total: progress.update(task, description=f"foxglove mcap: {stage}", completed=done, total=total),
                 )
             console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
                           f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
+
+
+def _band(text: Optional[str]) -> Optional[tuple[float, float]]:
+    """``--band-m ZMIN,ZMAX`` -> two finite numbers, ZMIN < ZMAX (a usage error otherwise)."""
+    if text is None:
+        return None
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise typer.BadParameter(f"expected ZMIN,ZMAX (two numbers, metres), got {text!r}", param_hint="--band-m") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+        raise typer.BadParameter(f"expected finite ZMIN < ZMAX, got {text!r}", param_hint="--band-m")
+    return lo, hi
+
+
+def _observed_band(volume) -> tuple[float, float]:  # noqa: ANN001 - a VolumeLayers
+    """Every height the layers observed (the default band of the 2-D grid)."""
+    import numpy as np
+
+    g = volume.grid
+    observed = np.flatnonzero((volume.state_grid() >= 0).any(axis=(0, 1)))
+    z = (np.asarray(g.origin_index[2]) + observed + 0.5) * g.voxel_size_m
+    return (float(z.min()), float(z.max())) if len(z) else (float(g.min_m[2]), float(g.max_m[2]))
+
+
+def _volume_layers(store, revision: int, config):  # noqa: ANN001, ANN202
+    """The revision's volumetric layers, with a progress bar over the frames."""
+    from driftmap.volume import VolumeLayers
+
+    with progress_bar() as progress:
+        task = progress.add_task("volumetric layers", total=len(store))
+        layers = VolumeLayers.from_store(store, revision, config,
+                                         progress=lambda stage, done, total: progress.update(task, completed=done))
+    stats = layers.stats()
+    console.print(f"volumetric layers (revision {revision}): {layers.grid.describe()}; {stats.occupied:,} occupied, "
+                  f"{stats.free:,} free, {stats.unknown:,} unknown voxels", highlight=False)
+    return layers
+
+
+def _write_volume(layers, mesh_path: Optional[Path], octomap_path: Optional[Path], grid2d_path: Optional[Path],  # noqa: ANN001
+                  band: Optional[tuple[float, float]]) -> None:
+    from driftmap.volume.export import write_grid2d, write_mesh, write_octomap
+
+    if mesh_path is not None:
+        m = write_mesh(layers, mesh_path)
+        console.print(f"mesh ({m.n_vertices:,} vertices, {m.n_triangles:,} triangles): {mesh_path}", highlight=False)
+    if octomap_path is not None:
+        o = write_octomap(layers, octomap_path)
+        console.print(f"octomap ({o.n_occupied:,} occupied, {o.n_free:,} free voxels, resolution "
+                      f"{o.resolution_m:g} m): {octomap_path}", highlight=False)
+    if grid2d_path is not None:
+        g = write_grid2d(layers, grid2d_path, band or _observed_band(layers))
+        console.print(f"2-D map ({g.band_m[0]:g}..{g.band_m[1]:g} m): {grid2d_path} + {g.pgm_path.name}", highlight=False)
 
 
 @app.command()

@@ -26,10 +26,10 @@ from driftmap.diagnostics.diagnosis import Diagnosis, diagnose_cloud, diagnose_s
 from driftmap.diagnostics.entropy import MapEntropy
 from driftmap.diagnostics.figures import plot_double_walls, plot_frame_disagreement, plot_score_comparison, write_report
 from driftmap.diagnostics.ground_truth import GT_FORMATS, MIN_GT_FRAMES
-from driftmap.preprocess.noise import NoiseModel
 from driftmap.diagnostics.samples import DiagnosticCloud, PlacedCloud, SamplingConfig
 from driftmap.diagnostics.verify import RegionCheck
 from driftmap.diagnostics.wall_results import DoubleWallConfig, DoubleWallResult
+from driftmap.preprocess.noise import NoiseModel
 
 __all__ = [  # the run, its config, figures, ground truth, and the types of its results
     "GT_FORMATS",

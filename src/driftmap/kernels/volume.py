@@ -33,13 +33,14 @@ def _flat(ix: int, iy: int, iz: int, ny: int, nz: int) -> int:
 @numba.njit(cache=True, nogil=True)
 def occupancy_update(origin: np.ndarray, ends: np.ndarray, is_hit: np.ndarray, origin_index: np.ndarray,
                      shape: np.ndarray, hits: np.ndarray, misses: np.ndarray, mark: np.ndarray, token: int, sign: int,
-                     hit_flats: np.ndarray) -> tuple[int, int]:
+                     hit_flats: np.ndarray, miss_flats: np.ndarray) -> tuple[int, int]:
     """Add (``sign`` 1) or remove (-1) one frame's occupancy evidence, OctoMap's ``insertPointCloud`` semantics
     (``computeUpdate``): the voxel of every end with ``is_hit`` gets one hit; every voxel a ray passes through from
     the origin's voxel up to (not including) its end's voxel gets one miss, unless the frame hits it; each voxel counts
     at most once per frame (``mark`` holds ``2 token`` for this frame's hits, ``2 token + 1`` for its misses: a fresh
     ``token`` per call). A ray whose end is not a hit (beyond the max range: its end is the truncated end) carves
-    only. Voxels outside the grid are skipped. The hit voxels are written to ``hit_flats``; returns
+    only. Voxels outside the grid are skipped. The hit voxels are written to ``hit_flats``, the missed ones to
+    ``miss_flats`` as far as it has room (the caller finds the rest by ``mark``); returns
     ``(n_hit_voxels, n_miss_voxels)``."""
     nx, ny, nz = shape[0], shape[1], shape[2]
     gx0, gy0, gz0 = origin_index[0], origin_index[1], origin_index[2]
@@ -97,6 +98,8 @@ def occupancy_update(origin: np.ndarray, ends: np.ndarray, is_hit: np.ndarray, o
                 if m != hit_tag and m != miss_tag:
                     mark[f] = miss_tag
                     misses[f] += sign
+                    if n_miss < miss_flats.shape[0]:
+                        miss_flats[n_miss] = f
                     n_miss += 1
             if tmx < tmy:
                 if tmx < tmz:

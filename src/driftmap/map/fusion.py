@@ -16,8 +16,9 @@ import open3d as o3d
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.errors import ConfigError, DriftmapError, EmptyExportError
+from driftmap.errors import ConfigError, DriftmapError, EmptyExportError, OutputWriteError, SourceError
 from driftmap.frame import Frame
+from driftmap.sources.cloud_headers import check_cloud_file
 from driftmap.store.guards import atomic_output
 from driftmap.voxels import first_point_per_voxel
 
@@ -79,5 +80,17 @@ def write_cloud(path: str | Path, points_world: NDArray[np.floating], colors_rgb
     with atomic_output(path, "map export path") as tmp:
         if not o3d.io.write_point_cloud(str(tmp), pcd, write_ascii=False, compressed=False):
             raise DriftmapError(f"{path}: Open3D could not write the point cloud")
+        # Open3D reports success when its writes fail on a full disk (and reads a truncated file back at full
+        # length): the written header is checked against the bytes on disk before the file is renamed into place,
+        # so a truncated map never appears under the requested name
+        try:
+            written = check_cloud_file(tmp).n_points
+        except SourceError as exc:
+            written, why = -1, str(exc)
+        else:
+            why = f"{written} of {len(pcd.points)} points"
+        if written != len(pcd.points):
+            raise OutputWriteError(f"{path}: the map was not written completely ({why}; a full disk?); nothing was "
+                                   f"written under that name", path=path, errno=None)
     logger.info("wrote %d points to %s", len(pcd.points), path)
     return path

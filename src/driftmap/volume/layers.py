@@ -23,7 +23,7 @@ import open3d as o3d
 import open3d.core as o3c
 from numpy.typing import NDArray
 
-from driftmap.errors import ConfigError, StoreError
+from driftmap.errors import ConfigError, EmptyStoreError
 from driftmap.frame import SensorKind
 from driftmap.kernels import volume as kernels
 from driftmap.volume.config import VolumeConfig
@@ -109,6 +109,9 @@ class VolumeLayers:
     frame_hits: dict[int, NDArray[np.int64]] = field(default_factory=dict)
     """per frame, the lattice keys (flat on the world lattice, see :meth:`_lattice_flat`) of its hit voxels"""
     view: MapView | None = None
+    frame_misses: dict[int, tuple[GridSpec, NDArray[np.integer]]] = field(default_factory=dict)
+    """per frame (``keep_frame_voxels``), the grid voxels its rays passed through, on the grid they were counted on:
+    taking the frame out decrements them instead of tracing its rays again"""
     hit_batches: list[tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]] = field(default_factory=list)
     """(lattice keys, fixed-point coordinate sums (M, 3), point counts) of hit points, per integrated or removed frame
     (removed: negated), summed by :meth:`hit_means`"""
@@ -127,9 +130,10 @@ class VolumeLayers:
         from driftmap.map.view import MapView
         from driftmap.volume.defaults import resolve_config
 
-        if len(store) == 0:
-            raise StoreError(f"{store.path}: the store has no frames: no volumetric layers")
         rev = store.head if revision is None else revision
+        if len(store) == 0:
+            raise EmptyStoreError(f"store {store.path} has no frames in revision {rev}: no volumetric layers",
+                                  store=store.path, revision=rev)
         store.ledger.revision(rev)  # a revision that does not exist: a StoreError naming it, before any work
         cfg = resolve_config(store, config or VolumeConfig())
         view = MapView.from_store(store, rev)
@@ -138,17 +142,19 @@ class VolumeLayers:
     @classmethod
     def from_view(cls, view: MapView, store: FrameStore, config: VolumeConfig, *,
                   progress: ProgressCallback | None = None) -> VolumeLayers:
-        """Layers of the frames of a map view (``config`` resolved)."""
+        """Layers of the frames of a map view (``config`` resolved), streamed: the grid is sized from the view's
+        frame boxes (cut to the max range around each sensor), then each frame is observed and integrated in turn."""
         tick = progress or (lambda stage, done, total: None)
         ids = [int(f) for f in view.frame_ids]
         first = store.frame(ids[0])
-        observations = _observations(view, store, ids, config)
-        lo, hi = _bounds(observations, config)
+        lo, hi = _view_bounds(view, ids, config.max_range_m)
         pad = config.padding_m + float(config.truncation_m or 0.0)
         grid = GridSpec.covering(lo, hi, float(config.voxel_size_m), padding_m=pad, budget_mb=config.memory_budget_mb)
         layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
         logger.info("volume: %s for revision %d (%d frames)", grid.describe(), view.revision, len(ids))
-        for n, obs in enumerate(observations):
+        for n, fid in enumerate(ids):
+            obs = layers._observe(store, fid)
+            layers._grow_to(*obs.bounds_m)  # a no-op unless deskewing moved points beyond the frame's box
             layers._integrate(obs, +1)
             tick("volume", n + 1, len(ids))
         return layers
@@ -162,18 +168,32 @@ class VolumeLayers:
         return self._token
 
     def _integrate(self, obs: Observation, sign: int) -> None:
-        """Add (``sign`` 1) or take out (-1) one observation; the grid must hold it."""
+        """Add (``sign`` 1) or take out (-1) one observation; the grid must hold it. Taking out a frame whose voxels
+        were kept (:attr:`frame_misses`) decrements them instead of tracing its rays again."""
         a, g, c = self.arrays, self.grid, self.config
         origin_index = np.asarray(g.origin_index, dtype=np.int64)
         shape = np.asarray(g.shape, dtype=np.int64)
         ends = g.lattice_units(obs.ends_m)
-        hit_flats = np.empty(len(ends), dtype=np.int64)
-        n_hit, _ = kernels.occupancy_update(g.lattice_units(obs.origin_m), ends, obs.is_hit, origin_index, shape,
-                                            a.hits, a.misses, a.mark, self._next_token(), sign, hit_flats)
-        if sign > 0:
-            self.frame_hits[obs.frame_id] = self._lattice_flat(hit_flats[:n_hit])
+        if sign < 0 and obs.frame_id in self.frame_misses and obs.frame_id in self.frame_hits:
+            hit_flats, inside = self._grid_flat_of_keys(self.frame_hits.pop(obs.frame_id))
+            a.hits[hit_flats[inside]] -= 1  # a frame's voxels are distinct: one decrement each
+            a.misses[self._cached_misses(obs.frame_id)] -= 1
         else:
-            self.frame_hits.pop(obs.frame_id, None)
+            hit_flats = np.empty(len(ends), dtype=np.int64)
+            miss_flats = np.empty(MISS_CAPACITY_PER_RAY * len(ends) if sign > 0 and c.keep_frame_voxels else 0, np.int64)
+            token = self._next_token()
+            n_hit, n_miss = kernels.occupancy_update(g.lattice_units(obs.origin_m), ends, obs.is_hit, origin_index,
+                                                     shape, a.hits, a.misses, a.mark, token, sign, hit_flats, miss_flats)
+            if sign > 0:
+                self.frame_hits[obs.frame_id] = self._lattice_flat(hit_flats[:n_hit])
+                if c.keep_frame_voxels:
+                    misses = (miss_flats[:n_miss] if n_miss <= len(miss_flats)
+                              else np.flatnonzero(a.mark == 2 * token + 1))  # the buffer overflowed: this frame's marks
+                    self.frame_misses[obs.frame_id] = (g, misses.astype(np.int32 if g.n_voxels < 2**31 else np.int64))
+            else:
+                self.frame_hits.pop(obs.frame_id, None)
+        if sign < 0:
+            self.frame_misses.pop(obs.frame_id, None)
         self.hit_batches.append(_hit_sums(ends[obs.is_hit], sign))
         self._observers = None
         self.version += 1
@@ -188,6 +208,14 @@ class VolumeLayers:
             hits = ends[obs.is_hit]
             kernels.tsdf_rays(g.lattice_units(obs.origin_m), hits, origin_index, shape,
                               float(c.truncation_m) / g.voxel_size_m, a.tsdf_sum, a.tsdf_count, sign)
+
+    def _cached_misses(self, frame_id: int) -> NDArray[np.int64]:
+        """A frame's kept miss voxels as flat indices of the current grid (moved over if the grid grew since)."""
+        grid, flats = self.frame_misses[frame_id]
+        if grid == self.grid:
+            return flats
+        lattice = grid.unflat(flats.astype(np.int64)) + np.asarray(grid.origin_index)
+        return self.grid.flat(lattice - np.asarray(self.grid.origin_index))
 
     def _lattice_flat(self, grid_flats: NDArray[np.int64]) -> NDArray[np.int64]:
         """Grid flat indices -> lattice keys that survive the grid growing (a 21-bit signed packing per axis)."""
@@ -226,7 +254,9 @@ class VolumeLayers:
         before = {int(f): self.view.pose(int(f)) for f in self.view.frame_ids}
         after = store.poses(revision)
         moved = [int(f) for f, T in zip(store.frame_ids, after) if int(f) in before and not np.array_equal(before[int(f)], T)]
-        candidates = _with_neighbours(moved, [int(f) for f in self.view.frame_ids])
+        # a deskewed scan moves with its neighbours' poses (LiDAR with point times); a depth frame only with its own
+        candidates = (_with_neighbours(moved, [int(f) for f in self.view.frame_ids])
+                      if self.sensor_kind is SensorKind.LIDAR else set(moved))
         old_obs = {fid: self._observe(store, fid) for fid in candidates}
         changes = self.view.apply(revision)
         changed = [int(f) for f in changes.frame_ids]
@@ -252,6 +282,36 @@ class VolumeLayers:
         states_after = self.states_flat(region)
         flips = region[states_before != states_after]
         return VolumeChange(old_rev, revision, np.asarray(changed, np.int64), boxes, flips, self.grid.centers_m(flips),
+                            time.perf_counter() - t0)
+
+    def refresh(self, store: FrameStore) -> VolumeChange:
+        """Integrate the frames stored since the layers last looked (a live robot appending frames), placed in the
+        layers' revision: the map view takes them in (:meth:`MapView.refresh`), the grid grows to their rays, and a
+        frame whose deskewed points moved with its new neighbour is taken out and put back. The result equals a
+        rebuild bit for bit; returns the :class:`VolumeChange` (the new frames, their boxes, the flipped voxels)."""
+        if self.view is None:
+            raise ConfigError("VolumeLayers.refresh needs the layers' map view (build them with from_store)")
+        t0 = time.perf_counter()
+        view, rev = self.view, self.revision
+        last = int(view.frame_ids[-1]) if len(view.frame_ids) else None
+        last_points = view.frame_points_world(last).copy() if last is not None else None
+        new_ids = [int(f) for f in view.refresh()]
+        if not new_ids:
+            return VolumeChange(rev, rev, np.zeros(0, np.int64), np.zeros((0, 2, 3)), np.zeros(0, np.int64),
+                                np.zeros((0, 3)), time.perf_counter() - t0)
+        redo = [last] if last is not None and not np.array_equal(view.frame_points_world(last), last_points) else []
+        old = [observe(store.frame(f), view.pose(f), last_points, self.config) for f in redo]
+        new = [self._observe(store, f) for f in redo + new_ids]
+        boxes = np.array([o.bounds_m for o in old + new], dtype=np.float64)
+        self._grow_to(boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0))
+        region = _region(self.grid, boxes, float(self.config.truncation_m or 0.0))
+        before = self.states_flat(region)
+        for obs in old:
+            self._integrate(obs, -1)
+        for obs in new:
+            self._integrate(obs, +1)
+        flips = region[before != self.states_flat(region)]
+        return VolumeChange(rev, rev, np.asarray(redo + new_ids, np.int64), boxes, flips, self.grid.centers_m(flips),
                             time.perf_counter() - t0)
 
     def _observe(self, store: FrameStore, frame_id: int) -> Observation:
@@ -334,11 +394,12 @@ class VolumeLayers:
 
         return triangle_mesh(self, DEFAULT_WEIGHT_THRESHOLD if weight_threshold is None else weight_threshold)
 
-    def clearance_m(self, points_m: NDArray[np.floating], unknown_is: str | None = None) -> NDArray[np.float64]:
+    def clearance_m(self, points_m: NDArray[np.floating], unknown_is: str | None = None,
+                    max_m: float | None = None) -> NDArray[np.float64]:
         """Distance to the nearest obstacle at each point (:func:`driftmap.volume.queries.clearance_m`)."""
         from driftmap.volume.queries import clearance_m
 
-        return clearance_m(self, points_m, unknown_is)
+        return clearance_m(self, points_m, unknown_is, max_m=max_m)
 
     def sweep(self, path_m: NDArray[np.floating], **footprint: object):  # noqa: ANN201 - a SweepResult
         """The first contact or unknown voxel of a footprint along a path (:func:`driftmap.volume.queries.sweep`)."""
@@ -360,9 +421,16 @@ def _observations(view: MapView, store: FrameStore, ids: Iterable[int], config: 
     return [observe(store.frame(f), view.pose(f), view.frame_points_world(f), config) for f in ids]
 
 
-def _bounds(observations: list[Observation], config: VolumeConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    lo = np.min([o.bounds_m[0] for o in observations], axis=0)
-    hi = np.max([o.bounds_m[1] for o in observations], axis=0)
+def _view_bounds(view: MapView, ids: list[int], max_range_m: float | None) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The box of every frame's points and sensor origin, each frame's cut to its max range around the origin."""
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    for fid in ids:
+        origin = view.pose(fid)[:3, 3]
+        box = np.asarray(view.frame_box_m(fid), dtype=np.float64).reshape(2, 3)
+        if max_range_m is not None:
+            box = np.clip(box, origin - max_range_m, origin + max_range_m)
+        lo = np.minimum(lo, np.minimum(box[0], origin))
+        hi = np.maximum(hi, np.maximum(box[1], origin))
     return lo, hi
 
 
@@ -413,6 +481,8 @@ def _region(grid: GridSpec, boxes: NDArray[np.float64], margin_m: float) -> NDAr
     return np.flatnonzero(mask.ravel())
 
 
+MISS_CAPACITY_PER_RAY = 8
+"""Room for this many missed voxels per ray when a frame's misses are kept (its rays cross more: found by ``mark``)."""
 HIT_FIXED_POINT = float(2**16)
 """Hit coordinates are summed in lattice units times this, as int64 (exact, order-free sums)."""
 

@@ -61,6 +61,11 @@ def to_voxel_block_grid(layers: VolumeLayers) -> o3d.t.geometry.VoxelBlockGrid:
 def triangle_mesh(layers: VolumeLayers, weight_threshold: float = DEFAULT_WEIGHT_THRESHOLD) -> o3d.geometry.TriangleMesh:
     """The TSDF's zero surface as a triangle mesh (world frame, metres); empty when nothing was observed."""
     vbg = to_voxel_block_grid(layers)
-    if vbg.hashmap().size() == 0:
+    if vbg.hashmap().size() == 0 or not np.any(layers.arrays.tsdf_count >= weight_threshold):
         return o3d.geometry.TriangleMesh()
-    return vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+    try:
+        return vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
+    except RuntimeError as exc:  # Open3D fails to colour a mesh without a triangle instead of returning it empty
+        if "shape {0}" not in str(exc):
+            raise
+        return o3d.geometry.TriangleMesh()

@@ -39,9 +39,12 @@ class Observation:
 
     @property
     def bounds_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """The box of the origin and every ray end."""
-        pts = np.vstack([self.ends_m, self.origin_m[None]])
-        return pts.min(axis=0), pts.max(axis=0)
+        """The box of the origin and every ray end (column by column: no copy of the ends)."""
+        if len(self.ends_m) == 0:
+            return self.origin_m.copy(), self.origin_m.copy()
+        lo = np.array([min(self.ends_m[:, k].min(), self.origin_m[k]) for k in range(3)])
+        hi = np.array([max(self.ends_m[:, k].max(), self.origin_m[k]) for k in range(3)])
+        return lo, hi
 
 
 def observe(frame: Frame, T_world_sensor: NDArray[np.float64], points_world_m: NDArray[np.floating] | None,

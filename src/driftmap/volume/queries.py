@@ -65,21 +65,26 @@ def unknown_distance_grid(layers: VolumeLayers) -> NDArray[np.float32]:
     return _cached(layers, "unknown_distance", build)
 
 
-def clearance_m(layers: VolumeLayers, points_m: ArrayLike, unknown_is: UnknownIs | str | None = None) -> NDArray[np.float64]:
+def clearance_m(layers: VolumeLayers, points_m: ArrayLike, unknown_is: UnknownIs | str | None = None, *,
+                max_m: float | None = None) -> NDArray[np.float64]:
     """Clearance (metres) at each world point: the distance to the nearest observed surface and, when unknown space
     is an obstacle, to the nearest unknown voxel (outside the grid: 0); with ``unknown_is = free`` unknown space
-    does not count (infinity where nothing was ever occupied)."""
+    does not count (infinity where nothing was ever occupied). ``max_m``: distances are only needed up to this (a
+    costmap's inflation radius): larger ones are reported as ``max_m``, and far queries are much cheaper."""
     pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
     if pts.shape[1:] != (3,) or not np.all(np.isfinite(pts)):
         raise ConfigError(f"clearance_m: points must be finite (N, 3), got shape {pts.shape}")
+    if max_m is not None and not (np.isfinite(max_m) and max_m > 0):
+        raise ConfigError(f"clearance_m: max_m must be a positive number of metres, got {max_m}")
     tree = surface_tree(layers)
-    out = tree.query(pts)[0] if tree is not None else np.full(len(pts), np.inf)
+    bound = np.inf if max_m is None else float(max_m)
+    out = tree.query(pts, distance_upper_bound=bound)[0] if tree is not None else np.full(len(pts), np.inf)
     if _policy(layers, unknown_is) is UnknownIs.OCCUPIED:
         idx, inside = layers.grid.grid_index(pts)
         unknown = np.zeros(len(pts))
         unknown[inside] = unknown_distance_grid(layers)[tuple(idx[inside].T)]
         out = np.minimum(out, unknown)
-    return out
+    return out if max_m is None else np.minimum(out, max_m)
 
 
 @dataclass
