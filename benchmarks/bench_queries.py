@@ -171,7 +171,7 @@ def run(quick: bool = False) -> list[dict]:
     ours = timings.pop("driftmap")
     results.append({
         "name": "query_radius",
-        "description": f"MapView.query_radius (1 m around a map point) on the same map",
+        "description": "MapView.query_radius (1 m around a map point) on the same map",
         "unit": "query",
         "ours": ours,
         "anchors": timings,

@@ -499,8 +499,14 @@ def test_cli_diagnose_writes_the_json_contract_and_figures(kitchen: FrameStore, 
     assert {"ate_rmse_m", "rpe_trans_rmse_m", "rpe_rot_rmse_deg"} <= tr.keys()
     assert tr["rpe_trans_rmse_m"] == pytest.approx(0.03 / np.sqrt(79), rel=1e-3)  # one 3 cm step among 79 increments
     assert data["comparison"]["revision"] == 0 and isinstance(data["comparison"]["smearing_score_m"], float)
-    for name in ("double_walls_rev1.png", "frame_disagreement_rev1.png", "smearing_before_after.png"):
+    for name in ("double_walls_rev1.png", "frame_disagreement_rev1.png", "smearing_before_after.png",
+                 "volume_top_view_rev1.png"):
         assert (report / name).stat().st_size > 10_000
+    # with --report the diagnosed revision's volumetric layers: their voxels by state, all of the grid
+    volume = data["volume"]
+    assert volume["revision"] == 1 and volume["voxel_size_m"] == 0.02  # the depth camera's default voxel
+    assert volume["occupied"] > 0 and volume["free"] > 0
+    assert volume["occupied"] + volume["free"] + volume["unknown"] == volume["n_voxels"]
     # without --gt there is no trajectory block; a bad revision is one error line and exit code 1
     small_cfg = DiagnoseConfig(sampling=SamplingConfig(points_per_frame=1000))
     diagnosis = diagnose_store(FrameStore.open(store_path), 0, config=small_cfg)
@@ -518,3 +524,53 @@ def test_double_wall_config_rejects_nonsense() -> None:
         DoubleWallConfig(voxel_sizes_m=(0.1,), min_layer_fraction=0.7)
     with pytest.raises(ValueError):
         DoubleWallConfig(cell_fraction=0.0)
+
+
+def test_diagnose_report_draws_the_volume_from_above_and_only_adds_to_the_json(tmp_path: Path) -> None:
+    """run_diagnose with a report folder: the diagnosed revision's volumetric layers from above (one PNG, every state
+    in its colour where the layers put it), and the JSON of a run without a report plus a "volume" block."""
+    from PIL import Image
+
+    from driftmap.diagnostics.figures import STATE_TOP_VIEW_RGB, plot_state_top_view, sensor_up, top_view_layout
+    from driftmap.pipeline.build import build
+    from driftmap.pipeline.diagnose import run_diagnose
+    from driftmap.volume import VolumeConfig
+
+    path = tmp_path / "store"
+    build(embedded_log_path(), path, poses_from_source=True, loop_closure=False, frames="0:60:2")
+    with FrameStore.open(path) as store:
+        plain = run_diagnose(store, tmp_path / "plain.json", points_per_frame=1000)
+        report = run_diagnose(store, tmp_path / "report.json", report_dir=tmp_path / "report", points_per_frame=1000,
+                              volume_config=VolumeConfig(voxel_size_m=0.05))
+        poses = store.poses(0)
+    without, with_report = (json.loads((tmp_path / f"{n}.json").read_text()) for n in ("plain", "report"))
+    assert set(with_report) == set(without) | {"volume"}
+    timings = ("seconds",)
+    assert {k: v for k, v in with_report.items() if k not in (*timings, "volume")} == \
+        {k: v for k, v in without.items() if k not in timings}
+    assert plain.volume is None and plain.files == {}
+    layers, volume = report.volume, with_report["volume"]
+    stats = layers.stats()
+    assert volume["revision"] == layers.revision == 0 and volume["voxel_size_m"] == 0.05
+    assert (volume["occupied"], volume["free"], volume["unknown"], volume["n_voxels"]) == \
+        (stats.occupied, stats.free, stats.unknown, stats.n_voxels)
+    assert volume["occupied"] > 10_000 and volume["free"] > volume["occupied"]
+    # the top view: its counts in the JSON, its PNG in the report folder, each cell in its state's colour
+    png = report.files["volume_top_view"]
+    assert png == tmp_path / "report" / "volume_top_view_rev0.png"
+    redrawn = plot_state_top_view(tmp_path / "again.png", layers.state_grid(), layers.grid,
+                                  up=sensor_up(poses, layers.sensor_kind), sensor_origins_m=poses[:, :3, 3])
+    view = redrawn.view
+    assert view.axes == (0, 1)  # the synthetic room: z up
+    top = volume["top_view"]
+    assert top["band_m"] == [round(v, 6) for v in view.band_m]
+    assert {k: top[k] for k in ("occupied", "free", "unknown")} == view.counts()
+    assert sum(view.counts().values()) == view.cells.size
+    image = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    layout = top_view_layout(view.extent_m)
+    assert image.shape == (layout.height_px, layout.width_px, 3)
+    for state, rgb in STATE_TOP_VIEW_RGB.items():
+        ij = np.argwhere(view.cells == state)
+        assert len(ij) > 200, state
+        px = layout.pixels(np.asarray(view.min_m) + (ij + 0.5) * view.voxel_size_m).astype(int)
+        assert np.mean(np.all(image[px[:, 1], px[:, 0]] == rgb, axis=1)) > 0.9, state

@@ -4,7 +4,6 @@ default build of each must stay within 2x the ATE of the same log without the di
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import numpy as np
 import pytest

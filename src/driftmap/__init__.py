@@ -4,6 +4,7 @@ Every frame is kept in its sensor frame with the pose estimate that produced it,
 correction re-transforms old points instead of discarding them.
 """
 
+from driftmap._version import __version__
 from driftmap.errors import (
     ConfigError,
     DepthError,
@@ -25,7 +26,6 @@ from driftmap.frame import (
     Provenance,
     SensorKind,
 )
-from driftmap._version import __version__
 
 #: Heavier entry points, imported on first use (``driftmap.FrameStore``, ``driftmap.backproject`` etc.) so that
 #: ``import driftmap`` and ``import driftmap.store`` stay light (no numba, Open3D, GTSAM or KISS-ICP).

@@ -50,7 +50,7 @@ class Trajectory:
         return self.poses[:, :3, 3]
 
 
-def _stamp_s_to_ns(text: str) -> int:
+def stamp_s_to_ns(text: str) -> int:
     """Seconds as written in a file -> int ns, exactly (no float rounding of the decimal digits)."""
     text = text.strip()
     if "_" in text or not text:  # int() would read "1_000"
@@ -77,7 +77,7 @@ def _format_stamp_ns(stamp_ns: int) -> str:
     return f"{sign}{s}.{ns:09d}"
 
 
-def _read_lines(path: Path, what: str) -> list[str]:
+def read_lines(path: Path, what: str) -> list[str]:
     """The lines of a text file (split at ``\\n`` only, so line numbers are the ones an editor shows).
 
     A file that cannot be read, or is not UTF-8, raises :class:`SourceError` naming it (and the line of the
@@ -165,7 +165,7 @@ def read_tum(path: str | Path) -> Trajectory:
     rows: list[list[float]] = []
     linenos: list[int] = []
     stamp_texts: list[str] = []
-    for lineno, line in enumerate(_read_lines(path, "TUM trajectory"), start=1):
+    for lineno, line in enumerate(read_lines(path, "TUM trajectory"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -176,7 +176,7 @@ def read_tum(path: str | Path) -> Trajectory:
                                           "--gt-format 4x4)") if len(parts) == 4 else ""
             raise SourceError(f"{path}:{lineno}: expected 8 columns 'stamp tx ty tz qx qy qz qw', got {len(parts)}{hint}")
         try:
-            stamps.append(_stamp_s_to_ns(parts[0]))
+            stamps.append(stamp_s_to_ns(parts[0]))
             rows.append([float(p) for p in parts[1:]])
         except ValueError as exc:
             raise SourceError(f"{path}:{lineno}: not a number ({exc})") from exc
@@ -242,7 +242,7 @@ def read_kitti(path: str | Path) -> Trajectory:
     path = Path(path)
     rows: list[list[float]] = []
     linenos: list[int] = []
-    for lineno, line in enumerate(_read_lines(path, "KITTI poses"), start=1):
+    for lineno, line in enumerate(read_lines(path, "KITTI poses"), start=1):
         parts = line.partition("#")[0].split()
         if not parts:
             continue
@@ -314,7 +314,7 @@ def read_euroc(path: str | Path) -> Trajectory:
     rows: list[list[float]] = []
     linenos: list[int] = []
     stamp_texts: list[str] = []
-    for lineno, line in enumerate(_read_lines(path, "EuRoC trajectory"), start=1):
+    for lineno, line in enumerate(read_lines(path, "EuRoC trajectory"), start=1):
         line = line.strip()
         if not line or line.startswith("#"):
             continue
@@ -352,7 +352,7 @@ def read_redwood_log(path: str | Path) -> Trajectory:
     :func:`driftmap.geometry.as_rigid`, which also projects it onto SO(3)).
     """
     path = Path(path)
-    raw = _read_lines(path, "Redwood .log trajectory")
+    raw = read_lines(path, "Redwood .log trajectory")
     lines = [(n, line.split()) for n, line in enumerate(raw, start=1) if line.strip()]
     if not lines:
         raise SourceError(f"{path}: no poses in Redwood .log file")
@@ -422,7 +422,7 @@ def read_matrix4x4(path: str | Path) -> Trajectory:
     linenos: list[int] = []
     stamp_texts: list[str] = []
     blank_in_block: int | None = None  # a blank line after 1-3 rows of a block: an error if the block goes on
-    for lineno, line in enumerate(_read_lines(path, "4x4 pose file"), start=1):
+    for lineno, line in enumerate(read_lines(path, "4x4 pose file"), start=1):
         line = line.partition("#")[0].strip()
         if not line:
             if len(rows) % 4 and blank_in_block is None:
@@ -473,9 +473,11 @@ def read_matrix4x4(path: str | Path) -> Trajectory:
     stamps: list[int] = []
     for k, text in enumerate(stamp_texts):
         try:
-            stamps.append(_stamp_s_to_ns(text))
-        except (ValueError, OverflowError) as exc:
+            stamps.append(stamp_s_to_ns(text))
+        except ValueError as exc:
             raise SourceError(f"{path}:{linenos[4 * k + 3]}: stamp {text!r} is not a number of seconds") from exc
+        except OverflowError as exc:
+            raise SourceError(f"{path}:{linenos[4 * k + 3]}: stamp {text!r} is not a usable time ({exc})") from exc
     stamp_lines = linenos[3::4]
     _check_stamp_order(path, stamps, stamp_lines, stamp_texts)
     return Trajectory(np.asarray(stamps, dtype=np.int64), poses)
@@ -514,7 +516,7 @@ def detect_trajectory_format(path: str | Path) -> str:
     except OSError as exc:
         raise SourceError(f"{path}: cannot read trajectory file ({exc})") from exc
     except UnicodeDecodeError as exc:
-        _read_lines(path, "trajectory file")  # raises naming the line of the first byte that is not UTF-8
+        read_lines(path, "trajectory file")  # raises naming the line of the first byte that is not UTF-8
         raise SourceError(f"{path}: not UTF-8 text ({exc}); cannot read trajectory file") from exc
     tried = "; ".join(f"{name}: {what}" for name, what in TRAJECTORY_FORMATS.items())
     if not head:

@@ -118,6 +118,18 @@ def finite(value: Any) -> Any:
     return value
 
 
+def refuse_same_output(outputs: list[tuple[Path, str]]) -> None:
+    """Two output options naming one file (one would replace the other): a one-line error naming both."""
+    from driftmap.errors import ConfigError
+
+    seen: dict[Path, str] = {}
+    for path, flag in outputs:
+        key = Path(os.path.abspath(path)).resolve()
+        if key in seen:
+            raise ConfigError(f"{path}: {seen[key]} and {flag} name the same file; give each output its own path")
+        seen[key] = flag
+
+
 def refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
     """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
     from driftmap.errors import ConfigError

@@ -23,6 +23,7 @@ from driftmap.cli.common import (
     open_store,
     progress_bar,
     refuse_existing,
+    refuse_same_output,
 )
 
 if TYPE_CHECKING:
@@ -51,12 +52,17 @@ def diagnose(
     calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
     verify: Annotated[bool, typer.Option("--verify", help="Re-measure every double-wall region from the stored full-resolution frames with Open3D (adds \"verification\" per region and double_wall.verified).")] = False,
     config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [diagnose] table (or the whole file without one) sets diagnose's own lengths over the scene's defaults: [diagnose.double_wall] voxel_sizes_m, visit_gap_m, ..., [diagnose.attribution], [diagnose.sampling], [diagnose.entropy] (the JSON's \"config\" lists every field); a build config's other tables are ignored.")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --json file that is not an earlier diagnosis (an earlier diagnosis is replaced without it).")] = False,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
     disagreement and change points; with --gt also ATE/RPE."""
-    from driftmap.pipeline.diagnose import GT_FORMATS, run_diagnose
+    from driftmap.pipeline.diagnose import GT_FORMATS, is_diagnosis_file, run_diagnose
 
     gt_format = None if gt_format is None else choice(gt_format, GT_FORMATS, "--gt-format")
+    refuse_same_output([(p, f) for p, f in ((json_path, "--json"), (gt, "--gt"), (config, "--config"), (calib, "--calib"))
+                        if p is not None])  # an output never replaces an input
+    if json_path.is_file() and not is_diagnosis_file(json_path):
+        refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it
     check_output(report, "--report", folder=True)
     with open_store(store_path) as store, progress_bar() as progress:
@@ -154,7 +160,7 @@ def view(
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation)")] = "frame",
     out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
-    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, max=1000.0, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
     backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
     headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
     reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
@@ -209,6 +215,10 @@ def perturb(
         raise ConfigError("--step-frame needs --step-m and/or --step-deg")
     if step_m is None and step_deg is None and not drift_percent_per_m and not drift_deg_per_m:
         raise ConfigError("nothing to perturb: give a step (--step-frame with --step-m/--step-deg) or a drift")
+    for text, flag, used in ((drift_direction, "--drift-direction", drift_percent_per_m),
+                             (drift_axis, "--drift-axis", drift_deg_per_m)):
+        if used and not any(parse_vector(text, flag)):
+            raise ConfigError(f"{flag}: a drift needs a non-zero direction, got {text!r}")
     perturbation = PosePerturbation(
         step_index=step_frame,
         step_m=None if step_m is None else parse_vector(step_m, "--step-m"),

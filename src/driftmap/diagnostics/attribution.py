@@ -33,8 +33,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from driftmap.config import SettingsModel
 from driftmap.diagnostics.ground_truth import SegmentErrors, ground_truth_errors, segment_errors
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.diagnostics.surfaces import SurfaceGroups, surface_groups
@@ -43,7 +44,7 @@ from driftmap.voxels import dense_ids
 logger = logging.getLogger(__name__)
 
 
-class AttributionConfig(BaseModel):
+class AttributionConfig(SettingsModel):
     """Parameters of the per-frame disagreement, change points and drift rate (indoor RGB-D defaults)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

@@ -26,8 +26,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from driftmap.config import SettingsModel
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.diagnostics.wall_results import DoubleWallResult, ScaleResult
 from driftmap.voxels import keys_on_bounding_grid, voxel_coords
@@ -38,7 +39,7 @@ NOT_EVALUATED = ("too_few_frames", "not_a_surface", "too_sparse", "no_normals")
 """Why an occupied voxel was not evaluated, in the order the reasons are tried."""
 
 
-class CoverageConfig(BaseModel):
+class CoverageConfig(SettingsModel):
     """When the diagnosis has seen enough of the map to judge it."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

@@ -8,8 +8,9 @@ import math
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from driftmap.config import SettingsModel
 from driftmap.diagnostics.attribution import AttributionConfig
 from driftmap.diagnostics.coverage import CoverageConfig
 from driftmap.diagnostics.samples import SamplingConfig
@@ -30,17 +31,17 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
-class EntropyConfig(BaseModel):
+class EntropyConfig(SettingsModel):
     """Neighbourhood rules of MME / MPV (values only compare within one rule set and one data set)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     radius_m: float = Field(0.1, gt=0.0, description="neighbours within this radius (m)")
     min_neighbors: int = Field(10, ge=4, description="points with fewer neighbours are skipped")
-    max_neighbors: int = Field(64, ge=4, description="at most this many nearest neighbours")
+    max_neighbors: int = Field(64, ge=4, le=128, description="at most this many nearest neighbours (up to 128: the neighbourhoods of every sampled point are held at once)")
     max_query_points: int = Field(50_000, ge=100, description="random query points (neighbours come from every sample)")
 
 
-class DiagnoseConfig(BaseModel):
+class DiagnoseConfig(SettingsModel):
     """Everything ``diagnose`` uses; :meth:`for_sensor` gives indoor RGB-D or outdoor LiDAR defaults."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
@@ -116,7 +117,13 @@ class DiagnoseConfig(BaseModel):
         ...) are merged field by field. Problems are :class:`ConfigError`, one line each, naming the file and key."""
         from pydantic import ValidationError
 
-        from driftmap.config import BUILD_TABLE, DIAGNOSE_TABLE, GENERAL_TABLES, read_config_file, validation_problems
+        from driftmap.config import (
+            BUILD_TABLE,
+            DIAGNOSE_TABLE,
+            GENERAL_TABLES,
+            read_config_file,
+            validation_problems,
+        )
 
         data = read_config_file(path)
         prefix: tuple[str, ...] = ()

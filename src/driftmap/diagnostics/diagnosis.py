@@ -31,11 +31,11 @@ from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.diagnose_config import DiagnoseConfig
 from driftmap.diagnostics.entropy import MapEntropy, map_entropy
 from driftmap.diagnostics.ground_truth import MIN_GT_FRAMES, ground_truth_errors
-from driftmap.preprocess.noise import NoiseModel
 from driftmap.diagnostics.samples import DiagnosticCloud, PlacedCloud
 from driftmap.diagnostics.verify import RegionCheck, verification_summary
 from driftmap.diagnostics.wall_results import DoubleWallResult
 from driftmap.errors import ConfigError, StoreError
+from driftmap.preprocess.noise import NoiseModel
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore

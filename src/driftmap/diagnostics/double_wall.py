@@ -49,7 +49,6 @@ from __future__ import annotations
 
 from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.entropy import MapEntropy, map_entropy
-from driftmap.preprocess.noise import NoiseModel, NoiseModelKind
 from driftmap.diagnostics.samples import (
     UNIT_NORMAL_TOLERANCE,
     DiagnosticCloud,
@@ -59,6 +58,7 @@ from driftmap.diagnostics.samples import (
 )
 from driftmap.diagnostics.surfaces import SurfaceGroups, surface_groups
 from driftmap.diagnostics.wall_results import DoubleWallConfig, DoubleWallRegion, DoubleWallResult, ScaleResult
+from driftmap.preprocess.noise import NoiseModel, NoiseModelKind
 
 __all__ = [
     "UNIT_NORMAL_TOLERANCE",

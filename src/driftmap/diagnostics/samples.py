@@ -17,12 +17,13 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
-from driftmap.preprocess.noise import NoiseModel
+from driftmap.config import SettingsModel
 from driftmap.errors import GeometryError
 from driftmap.frame import Frame, SensorKind
 from driftmap.preprocess.cloud import estimate_normals
+from driftmap.preprocess.noise import NoiseModel
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -33,7 +34,7 @@ UNIT_NORMAL_TOLERANCE = 0.05
 """A stored normal is used only when its length is within this of 1 (zero or NaN normal fields are not normals)."""
 
 
-class SamplingConfig(BaseModel):
+class SamplingConfig(SettingsModel):
     """How many points of each frame the diagnostics look at, and how their own-frame normals are made.
 
     The work is bounded per store: ``points_budget`` samples in total, shared by the frames (at least

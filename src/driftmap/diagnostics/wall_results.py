@@ -6,17 +6,20 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
+
+from driftmap.config import SettingsModel
 
 
-class DoubleWallConfig(BaseModel):
+class DoubleWallConfig(SettingsModel):
     """Parameters of the double-wall detector and the smearing score (indoor RGB-D defaults)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    voxel_sizes_m: tuple[float, ...] = Field((0.1, 0.2, 0.4), description="voxel sizes evaluated (m); use ~0.25..2 m outdoors")
+    voxel_sizes_m: tuple[Annotated[float, Field(gt=0.0)], ...] = Field((0.1, 0.2, 0.4), min_length=1, max_length=8, description="voxel sizes evaluated (m, 1 to 8 of them); use ~0.25..2 m outdoors")
     cell_fraction: float = Field(0.25, gt=0.0, le=1.0, description="lateral cell size as a fraction of the voxel size")
     max_cell_m: float | None = Field(None, gt=0.0, description="upper bound of the lateral cell size (m); relief finer than a cell is not removed")
     normal_max_angle_deg: float = Field(20.0, gt=0.0, lt=90.0, description="own-frame normals within this angle of the voxel's dominant normal")
@@ -35,7 +38,7 @@ class DoubleWallConfig(BaseModel):
     min_purity: float = Field(0.85, ge=0.0, le=1.5, description="noise-normalised time purity (1: every frame on one layer; 0: as mixed as chance)")
     min_overlap: float = Field(0.25, ge=0.0, le=1.0, description="share of the smaller layer's points in lateral cells both layers saw")
     min_shared_cells: int = Field(2, ge=1, description="lateral cells seen by both layers")
-    kmeans_iterations: int = Field(8, ge=1, description="Lloyd iterations of the 1-D two-layer split")
+    kmeans_iterations: int = Field(8, ge=1, le=100, description="Lloyd iterations of the 1-D two-layer split (a 1-D split converges in a few)")
     visit_gap_m: float = Field(1.0, gt=0.0, description="a surface seen again after this much travel without seeing it is a new visit (m)")
     merge_angle_deg: float = Field(25.0, gt=0.0, description="flagged voxels merge into one region when their normals agree within this")
 

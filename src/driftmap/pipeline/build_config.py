@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
-from driftmap.config import Threads
+from driftmap.config import SettingsModel, Threads
 from driftmap.errors import ConfigError
 from driftmap.posegraph import Optimizer, RobustKernel
 from driftmap.registration.loops import (
@@ -28,7 +28,7 @@ DEFAULT_POSES_MAX_DT_NS = 20_000_000
 """A ``--poses`` TUM row matches a frame within this (20 ms, as TUM's ``associate.py``)."""
 
 
-class BuildConfig(BaseModel):
+class BuildConfig(SettingsModel):
     """Everything ``build`` decides; saved next to the store as ``build_config.json``."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

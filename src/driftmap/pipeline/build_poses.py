@@ -109,15 +109,41 @@ def pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: s
             return rows[frame.frame_id]
         return by_index
     stamps = traj.stamps_ns
+    frame_stamps = _source_stamps(source)
 
     def by_stamp(frame: Frame) -> np.ndarray:
-        i = int(np.clip(np.searchsorted(stamps, frame.stamp_ns), 1, len(stamps) - 1))
-        j = i - 1 if abs(stamps[i - 1] - frame.stamp_ns) <= abs(stamps[i] - frame.stamp_ns) else i
+        j = _nearest(stamps, frame.stamp_ns)
         if abs(int(stamps[j]) - frame.stamp_ns) > max_dt_ns:
             raise SourceError(f"{poses_file}: no pose within {max_dt_ns / 1e6:g} ms of frame {frame.frame_id} "
                               f"(stamp {frame.stamp_ns} ns; the nearest is {int(stamps[j]) - frame.stamp_ns:+d} ns away)")
+        if frame_stamps is not None:  # a row is the pose of its nearest frame only (TUM's associate.py)
+            other = int(frame_stamps[_nearest(frame_stamps, int(stamps[j]))])
+            if abs(other - int(stamps[j])) < abs(frame.stamp_ns - int(stamps[j])):
+                raise SourceError(
+                    f"{poses_file}: no pose of its own for frame {frame.frame_id} (stamp {frame.stamp_ns} ns): the nearest "
+                    f"row ({int(stamps[j]) - frame.stamp_ns:+d} ns) belongs to the frame at {other} ns; a pose file "
+                    f"needs a row per frame (or import a sparser one with `driftmap correct`, which propagates)")
         return traj.poses[j]
     return by_stamp
+
+
+def _nearest(sorted_stamps: np.ndarray, stamp_ns: int) -> int:
+    """Index of the stamp nearest ``stamp_ns`` in a sorted array (the earlier one on a tie)."""
+    if len(sorted_stamps) == 1:
+        return 0
+    i = int(np.clip(np.searchsorted(sorted_stamps, stamp_ns), 1, len(sorted_stamps) - 1))
+    return i - 1 if abs(int(sorted_stamps[i - 1]) - stamp_ns) <= abs(int(sorted_stamps[i]) - stamp_ns) else i
+
+
+def _source_stamps(source: FrameSource) -> np.ndarray | None:
+    """The sorted stamps of the source's selected frames, when it can list them without reading frames."""
+    try:
+        stamps = source.stamps_ns()
+    except (SourceError, NotImplementedError):
+        return None
+    if not stamps or any(s is None for s in stamps):
+        return None
+    return np.sort(np.asarray(stamps, dtype=np.int64))
 
 
 def kitti_rows_in_sensor_frame(poses_file: Path, poses: np.ndarray, source: FrameSource, kitti_frame: str = "auto",

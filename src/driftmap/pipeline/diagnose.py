@@ -1,6 +1,10 @@
 """``driftmap diagnose`` as one library call: sample the store, diagnose a revision (and optionally a second one to
 compare), verify the regions, write the JSON and the report figures, and return what was found.
 
+With a report folder the diagnosed revision's volumetric layers (:class:`~driftmap.volume.VolumeLayers`) are built
+too: the report shows free / occupied / unknown space from above (``volume_top_view_rev<N>.png``) and the JSON gains
+a ``volume`` block with the voxels by state (every other key as without a report).
+
 The command line only parses its flags, opens the store, calls :func:`run_diagnose` and renders the result
 (:mod:`driftmap.cli.diagnose_cmds`); a navigation stack or a batch job calls the same function.
 """
@@ -9,13 +13,18 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from driftmap.diagnostics.double_wall import DiagnosticCloud
+from driftmap.diagnostics.figures import TopViewFigure, plot_state_top_view, sensor_band_m, sensor_up, state_top_view
 from driftmap.diagnostics.report import (
     GT_FORMATS,
     DiagnoseConfig,
@@ -24,13 +33,18 @@ from driftmap.diagnostics.report import (
     write_report,
 )
 from driftmap.errors import ConfigError, DriftmapError
+from driftmap.files import atomic_write
 from driftmap.pipeline.pose_files import read_ground_truth
 from driftmap.store.frame_store import FrameStore
+from driftmap.volume import VolumeConfig, VolumeLayers
 
 ProgressCallback = Callable[[str, int, int | None], None]
-"""``progress(stage, done, total)``: stages ``sampling frames``, ``diagnosing``, ``verifying``."""
+"""``progress(stage, done, total)``: stages ``sampling frames``, ``diagnosing``, ``verifying``, ``volume layers``."""
 
-__all__ = ["GT_FORMATS", "DiagnoseRun", "diagnose_config", "diagnosis_json", "run_diagnose"]
+__all__ = ["GT_FORMATS", "DiagnoseRun", "diagnose_config", "diagnosed_volume", "diagnosis_json", "run_diagnose",
+           "write_volume_top_view"]
+
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -45,6 +59,8 @@ class DiagnoseRun:
     """the JSON document written to ``json_path``"""
     files: dict[str, Path] = field(default_factory=dict)
     """the report figures, by name (empty without ``report_dir``)"""
+    volume: VolumeLayers | None = None
+    """the volumetric layers of the diagnosed revision (built for a report only)"""
 
 
 def diagnose_config(store: FrameStore, config_file: str | Path | None = None,
@@ -63,15 +79,17 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
                  gt: str | Path | None = None, gt_format: str | None = None, report_dir: str | Path | None = None,
                  compare_revision: int | None = None, points_per_frame: int | None = None, kitti_frame: str = "auto",
                  calib: str | Path | None = None, verify: bool = False, config_file: str | Path | None = None,
-                 progress: ProgressCallback | None = None) -> DiagnoseRun:
+                 progress: ProgressCallback | None = None, volume_config: VolumeConfig | None = None) -> DiagnoseRun:
     """Diagnose ``revision`` (default: the head) of an open ``store`` and write the JSON to ``json_path`` (and the
     figures to ``report_dir``).
 
     ``gt`` (``gt_format`` tum | kitti | redwood | 4x4; ``kitti_frame`` / ``calib`` for a KITTI file): ground truth for
     ATE / RPE. ``compare_revision``: also diagnosed, its score added as ``comparison`` and to the report. ``verify``:
     every double-wall region re-measured from the full-resolution frames (``verification``). ``config_file``: its
-    ``[diagnose]`` table over the scene's defaults. Raises :class:`ConfigError` for flags that do not fit together
-    and :class:`DriftmapError` for an empty store, before any work."""
+    ``[diagnose]`` table over the scene's defaults. ``report_dir``: the figures, and the revision's volumetric layers
+    (``volume_config``; None: the sensor's defaults) drawn from above, with the JSON's ``volume`` block. Raises
+    :class:`ConfigError` for flags that do not fit together and :class:`DriftmapError` for an empty store, before any
+    work."""
     tick = progress or (lambda stage, done, total: None)
     if len(store) == 0:
         raise DriftmapError(f"{store.path}: the store has no frames")
@@ -98,14 +116,66 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
         result.seconds["verify"] = time.perf_counter() - t0
         result = dataclasses.replace(result, verification=checks)
     data = diagnosis_json(result, other)
-    json_path = Path(json_path)
-    json_path.parent.mkdir(parents=True, exist_ok=True)
-    json_path.write_text(json.dumps(data, indent=1) + "\n")
+    layers = None
+    if report_dir is not None:
+        layers, data["volume"] = diagnosed_volume(store, result.revision, volume_config, progress=tick)
+    with atomic_write(json_path, "--json") as tmp:  # complete or not at all; names the file on a full disk
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
     files: dict[str, Path] = {}
     if report_dir is not None:
         compare = {f"revision {other.revision}": other, f"revision {result.revision}": result} if other is not None else None
         files = write_report(report_dir, result, compare=compare)
-    return DiagnoseRun(result, other, data, files)
+        files["volume_top_view"] = write_volume_top_view(report_dir, store, layers).path
+    return DiagnoseRun(result, other, data, files, layers)
+
+
+def _top_view_band(store: FrameStore, layers: VolumeLayers) -> tuple[NDArray[np.float64], tuple[float, float]]:
+    """The up direction of the layers' revision and the top view's height band around its sensors."""
+    poses = store.poses(layers.revision)
+    up = sensor_up(poses, layers.sensor_kind)
+    return up, sensor_band_m(poses[:, :3, 3], up)
+
+
+def diagnosed_volume(store: FrameStore, revision: int, config: VolumeConfig | None = None, *,
+                     progress: ProgressCallback | None = None) -> tuple[VolumeLayers, dict[str, Any]]:
+    """The volumetric layers of ``revision`` (``config``; None: the sensor's defaults) and the diagnosis JSON's
+    ``volume`` block: the voxel size, the voxels by state, and the cells of the top view (its height band around
+    the sensors) by state."""
+    tick = progress or (lambda stage, done, total: None)
+    t0 = time.perf_counter()
+    layers = VolumeLayers.from_store(store, revision, config,
+                                     progress=lambda stage, done, total: tick("volume layers", done, total))
+    build_s = time.perf_counter() - t0
+    stats = layers.stats()
+    up, band = _top_view_band(store, layers)
+    view = state_top_view(layers.state_grid(), layers.grid, band, up)
+    logger.info("diagnose: volume of revision %d: %d occupied, %d free, %d unknown voxels (%.1f s)", revision,
+                stats.occupied, stats.free, stats.unknown, build_s)
+    return layers, {"revision": int(revision), "voxel_size_m": float(layers.grid.voxel_size_m),
+                    "occupied": stats.occupied, "free": stats.free, "unknown": stats.unknown,
+                    "n_voxels": stats.n_voxels, "top_view": {"band_m": [round(v, 6) for v in view.band_m],
+                                                             **view.counts()},
+                    "build_s": round(build_s, 3)}
+
+
+def write_volume_top_view(report_dir: str | Path, store: FrameStore, layers: VolumeLayers) -> TopViewFigure:
+    """Free / occupied / unknown space of ``layers`` from above with the sensor path:
+    ``volume_top_view_rev<N>.png`` in ``report_dir``."""
+    up, band = _top_view_band(store, layers)
+    poses = store.poses(layers.revision)
+    return plot_state_top_view(Path(report_dir) / f"volume_top_view_rev{layers.revision}.png", layers.state_grid(),
+                               layers.grid, band_m=band, up=up, sensor_origins_m=poses[:, :3, 3],
+                               title=f"revision {layers.revision}: free / occupied / unknown from above (heights "
+                                     f"{band[0]:.2f} .. {band[1]:.2f} m, voxel {layers.grid.voxel_size_m:g} m)")
+
+
+def is_diagnosis_file(path: str | Path) -> bool:
+    """``path`` holds an earlier ``diagnose --json`` (which a new diagnosis may replace without ``--overwrite``)."""
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(data, dict) and {"revision", "double_wall"} <= set(data)
 
 
 def diagnosis_json(result: Diagnosis, other: Diagnosis | None = None) -> dict[str, Any]:

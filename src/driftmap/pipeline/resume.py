@@ -38,7 +38,8 @@ def poses_record(poses_file: str | Path | None, poses_from_source: bool, kitti_f
     """Where revision 0's poses come from (the coordinate frame of the stored frames): ``--resume`` must match."""
     if poses_file is not None:
         return {"mode": "file", "file": str(Path(poses_file).resolve()), "kitti_frame": kitti_frame,
-                "calib": None if calib_file is None else str(Path(calib_file).resolve())}
+                "calib": None if calib_file is None else str(Path(calib_file).resolve()),
+                "sha256": _sha256(Path(poses_file))}
     return {"mode": "source" if poses_from_source else "odometry"}
 
 
@@ -80,6 +81,15 @@ def check_resume_settings(store: FrameStore, src: FrameSource, recorded: dict[st
     file = out / BUILD_SOURCE_FILE
     given = record["poses"]
     if recorded is not None and "poses" in recorded:
+        if "sha256" not in recorded["poses"]:  # a record from before the file's content was recorded
+            given = {k: v for k, v in given.items() if k != "sha256"}
+        if {k: v for k, v in recorded["poses"].items() if k != "sha256"} == {k: v for k, v in given.items() if k != "sha256"} \
+                and recorded["poses"] != given:
+            raise ConfigError(
+                f"{out}: cannot --resume: the pose file {given.get('file')} changed since the stored frames were placed "
+                f"with it (sha256 {str(recorded['poses'].get('sha256'))[:12]}... then, {str(given.get('sha256'))[:12]}... "
+                f"now, recorded in {file}); the new frames' poses would not be in the stored frames' coordinate frame. "
+                f"Restore the file, or build into another --out")
         if recorded["poses"] != given:
             raise ConfigError(
                 f"{out}: cannot --resume with different poses: the stored frames were placed with "
@@ -166,4 +176,14 @@ def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
         recorded = summary["odometry_config"]
         return None if recorded is None else OdometryConfig.model_validate(recorded)
     except (OSError, ValueError, AttributeError):
+        return None
+
+
+def _sha256(path: Path) -> str | None:
+    """The hex SHA-256 of a file's bytes (None when it cannot be read: reading it fails later with a clear error)."""
+    import hashlib
+
+    try:
+        return hashlib.sha256(path.read_bytes()).hexdigest()
+    except OSError:
         return None

@@ -7,8 +7,9 @@ import enum
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
+from driftmap.config import SettingsModel
 from driftmap.frame import SensorKind
 
 
@@ -21,7 +22,7 @@ class NoiseModelKind(enum.Enum):
     """LiDAR / ToF: a constant range sigma along the ray."""
 
 
-class NoiseModel(BaseModel):
+class NoiseModel(SettingsModel):
     """Per-point measurement noise along the viewing ray, projected onto the surface normal."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)

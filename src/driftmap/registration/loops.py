@@ -29,12 +29,18 @@ from typing import Literal
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.config import Threads
+from driftmap.config import SettingsModel, Threads
 from driftmap.errors import ConfigError
-from driftmap.registration.pairwise import PreparedCloud, RegistrationResult, downsample, register_prepared, relative_pose
+from driftmap.registration.pairwise import (
+    PreparedCloud,
+    RegistrationResult,
+    downsample,
+    register_prepared,
+    relative_pose,
+)
 from driftmap.registration.place import ScanContext, scan_context, scan_context_distance, yaw_guess
 
 logger = logging.getLogger(__name__)
@@ -61,7 +67,7 @@ LIDAR_LOOP_DEFAULTS = {"submap_radius_frames": f"the scans within {LIDAR_SUBMAP_
 """The fields :meth:`LoopClosureConfig.for_lidar` sets, as ``driftmap config`` describes them."""
 
 
-class LoopClosureConfig(BaseModel):
+class LoopClosureConfig(SettingsModel):
     """Keyframe selection, candidate search and verification gates (metres, degrees)."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)

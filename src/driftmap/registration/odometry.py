@@ -24,10 +24,10 @@ import small_gicp
 from kiss_icp.config import KISSConfig
 from kiss_icp.kiss_icp import KissICP
 from numpy.typing import NDArray
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.config import Threads
+from driftmap.config import SettingsModel, Threads
 from driftmap.frame import Frame, SensorKind, TrackingHealth, TrackingStatus
 from driftmap.preprocess.scene import (
     LIDAR_MIN_SCENE_SCALE,
@@ -50,7 +50,7 @@ class OdometryMethod(enum.Enum):
     """KISS-ICP (point-to-point ICP against a local voxel map, adaptive threshold)"""
 
 
-class OdometryConfig(BaseModel):
+class OdometryConfig(SettingsModel):
     """Odometry settings, in metres. ``method`` picks the implementation; the ``gicp_*`` fields apply to
     ``gicp_map``, ``voxel_size_m`` .. ``max_points_per_voxel`` to ``kiss``, the ranges and ``max_points`` to both."""
 
