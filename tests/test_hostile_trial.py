@@ -177,3 +177,40 @@ def test_b9_an_emptied_manifest_beside_segments_is_damage_that_recover_repairs(s
     (stranger / "store.json").write_text("{}")
     assert "is not 'driftmap-store'" in _line(_cli("recover", stranger))
     assert sorted(p.name for p in stranger.iterdir()) == ["store.json"]
+
+
+def _can_mount_privately() -> bool:
+    if sys.platform != "linux" or shutil.which("unshare") is None or shutil.which("mount") is None:
+        return False
+    probe = 'd=$(mktemp -d) && mount -t tmpfs -o size=1m tmpfs "$d" && umount "$d" && rmdir "$d"'
+    return subprocess.run(["unshare", "-m", "sh", "-c", probe], capture_output=True, timeout=30).returncode == 0
+
+
+def test_w7_w8_a_full_or_read_only_disk_names_the_output_and_says_what_to_do(tmp_path: Path) -> None:
+    """convert, synth and view on a full disk (a 400 kB tmpfs) and on a read-only one: one line naming the output,
+    the reason and what to do (convert used to print only "[Errno 28] No space left on device"), no partial MCAP."""
+    if not _can_mount_privately():
+        pytest.skip("needs root and unshare -m (private tmpfs mounts)")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    store = tmp_path / "store"
+    assert _cli("build", LOG, "--out", store, "--frames", "0:4", "--no-loop-closure").returncode == 0
+    cmd = f"{sys.executable} -m driftmap.cli"
+    script = f"""
+        mount -t tmpfs -o size=400k tmpfs {mnt} || exit 99
+        {cmd} convert {LOG} {mnt}/out.mcap 2>&1; echo "rc=$?"; ls {mnt}; echo ---
+        {cmd} synth {mnt}/log --frames 20 2>&1; echo "rc=$?"; echo ---
+        rm -rf {mnt}/log; mount -o remount,ro {mnt}
+        {cmd} synth {mnt}/log --frames 4 2>&1; echo "rc=$?"; echo ---
+        {cmd} view {store} --out {mnt}/v 2>&1; echo "rc=$?"; echo ---
+    """
+    out = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=600,
+                         env={"COLUMNS": "300", **__import__("os").environ})
+    assert out.returncode == 0, out.stdout + out.stderr
+    parts = [" ".join(p.split()) for p in out.stdout.split("---")[:4]]
+    convert, synth_full, synth_ro, view_ro = parts
+    assert f"error: {mnt}/out.mcap: writing OUT.mcap failed: No space left on device; the disk is full" in convert
+    assert convert.endswith("rc=1"), convert  # and no out.mcap listed
+    assert f"error: {mnt}/log: writing the synthetic log failed: No space left on device; the disk is full" in synth_full
+    assert f"{mnt}/log" in synth_ro and ("read-only" in synth_ro.lower()) and synth_ro.endswith("rc=1")
+    assert f"{mnt}/v" in view_ro and view_ro.endswith("rc=1") and "Traceback" not in view_ro

@@ -40,7 +40,11 @@ def main() -> None:
     except OSError as exc:  # unwritable output, a directory where a file was expected, a full disk ...
         if state["debug"]:
             raise
-        _error(f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
+        from driftmap.cli.common import os_error_hint
+
+        hint = os_error_hint(exc)
+        _error((f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
+               + (f"; {hint}" if hint else ""))
     except KeyboardInterrupt:
         err_console.print(Text("interrupted", style="red"))
         sys.exit(130)

@@ -29,6 +29,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     source_options,
+    writing_output,
 )
 from driftmap.errors import DriftmapError
 from driftmap.store import refuse_inside_store
@@ -175,7 +176,7 @@ def synth(
 
         cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
     refuse_inside_store(out, "OUT")
-    with console.status(f"ray-casting the synthetic {scene}"):
+    with console.status(f"ray-casting the synthetic {scene}"), writing_output(out, "the synthetic log"):
         path = generate_synthetic_log(out, cfg, overwrite=overwrite)
     console.print(bold("synthetic log: ", path.resolve()))
     console.print(f"{cfg.n_frames} frames, {cfg.frame_period_ns / 1e9:g} s apart")
@@ -208,7 +209,7 @@ def convert(
     refuse_existing(out, "OUT.mcap", overwrite)
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     check_source_options(source, format, options)
-    with console.status(f"converting {source}"):
+    with console.status(f"converting {source}"), writing_output(out, "OUT.mcap"):
         summary = convert_source(source, out, format=format, frames=frames, **options)
     extra = {k: v for k, v in summary.items()
              if k not in ("out", "source", "frames", "points", "bytes", "skipped") and not isinstance(v, (dict, list))}

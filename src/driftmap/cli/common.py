@@ -7,10 +7,13 @@ Only the ``driftmap.cli`` package prints and exits; the library raises and logs.
 
 from __future__ import annotations
 
+import errno
 import logging
 import math
 import os
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, Optional
 
@@ -21,6 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.text import Text
 
 from driftmap import __version__
+from driftmap.errors import DriftmapError, OutputWriteError
 
 app = typer.Typer(
     name="driftmap",
@@ -182,3 +186,33 @@ def open_store(path: Path, mode: str = "r"):
     if store.loss:
         err_console.print(Text.assemble(("recovered earlier:", "yellow"), f" {store.loss}"), highlight=False)
     return store
+
+
+_OS_HINTS = {
+    errno.ENOSPC: "the disk is full: free space or write elsewhere",
+    errno.EDQUOT: "the disk quota is used up: free space or write elsewhere",
+    errno.EROFS: "the file system is mounted read-only: write elsewhere",
+    errno.EACCES: "no permission to write there: write elsewhere",
+}
+
+
+def os_error_hint(exc: OSError) -> str | None:
+    """What to do about a full, read-only or forbidden disk (None for other OS errors)."""
+    return _OS_HINTS.get(exc.errno or -1)
+
+
+@contextmanager
+def writing_output(path: Path, flag: str) -> Iterator[None]:
+    """An ``OSError`` while writing ``path`` (``flag``) that names no file (a full disk raises from ``write()``
+    without one) becomes an :class:`OutputWriteError` naming the output, with what to do for a full or read-only
+    disk; driftmap's own errors pass through."""
+    try:
+        yield
+    except DriftmapError:
+        raise
+    except OSError as exc:
+        hint = os_error_hint(exc)
+        where = exc.filename or path
+        reason = exc.strerror or str(exc)
+        raise OutputWriteError(f"{where}: writing {flag} failed: {reason}" + (f"; {hint}" if hint else ""),
+                               path=where, errno=exc.errno) from exc

@@ -23,6 +23,7 @@ from driftmap.cli.common import (
     open_store,
     progress_bar,
     refuse_existing,
+    writing_output,
     refuse_same_output,
 )
 
@@ -174,7 +175,7 @@ def view(
     check_output(out, "--out", folder=True)
 
     with open_store(store_path) as store:
-        with console.status(f"preparing the {color} view of {store_path}"):
+        with console.status(f"preparing the {color} view of {store_path}"), writing_output(out, "--out"):
             result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
                                 headless=headless, backend=backend, reference_revision=reference)
     if result.fallback_reason:
