@@ -159,7 +159,7 @@ def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:
 def view(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
-    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation)")] = "frame",
+    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation) | state (the occupied voxels of the volumetric layers by height; with --out also a free / occupied / unknown top view)")] = "frame",
     out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
     voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, max=1000.0, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
     backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",

@@ -331,6 +331,22 @@ def _context_offset(store: FrameStore, poses: NDArray[np.float64], a: _Layer, b:
     return float(np.median(offsets)), None
 
 
+def _context_verdict(ctx: float | None, why: str | None, measured: float, abs_tolerance_m: float,
+                     rel_tolerance: float) -> tuple[bool | None, str | None]:
+    """``(pose_explained, note)`` from the surroundings' offset ``ctx`` against the region's ``measured`` one: the
+    same offset (a pose error of these frames), surroundings that agree (a local change or artefact), or neither."""
+    if ctx is None:
+        return None, f"pose or local: undecidable ({why})"
+    if is_confirmed(ctx, measured, abs_tolerance_m=abs_tolerance_m, rel_tolerance=rel_tolerance):
+        return True, None
+    if abs(ctx) <= abs_tolerance_m:
+        return False, (f"the surroundings agree ({100 * ctx:+.1f} cm) but the region is {100 * measured:+.1f} cm off: "
+                       f"not a pose error of these frames (a local change or artefact)")
+    # the surroundings are misaligned too, by another amount: neither call is supported
+    return None, (f"pose or local: undecidable (the surroundings are {100 * ctx:+.1f} cm off, the region "
+                  f"{100 * measured:+.1f} cm)")
+
+
 # ---------------------------------------------------------------------------------------------- verify
 
 
@@ -406,17 +422,9 @@ def verify_regions(store: FrameStore, revision: int, regions: Sequence[DoubleWal
                 max_corr_m=gate, voxel_m=context_voxel_m, min_facing_points=context_min_facing_points, cos_max=cos_max,
                 search=o3d.geometry.KDTreeSearchParamHybrid(radius=2.5 * context_voxel_m, max_nn=normal_max_nn),
                 max_iterations=icp_max_iterations)
-            if ctx is None:
-                notes.append(f"pose or local: undecidable ({why})")
-            elif is_confirmed(ctx, measured, abs_tolerance_m=context_abs_tolerance_m, rel_tolerance=context_rel_tolerance):
-                explained = True
-            elif abs(ctx) <= context_abs_tolerance_m:
-                explained = False
-                notes.append(f"the surroundings agree ({100 * ctx:+.1f} cm) but the region is {100 * measured:+.1f} cm off: "
-                             f"not a pose error of these frames (a local change or artefact)")
-            else:  # the surroundings are misaligned too, by another amount: neither call is supported
-                notes.append(f"pose or local: undecidable (the surroundings are {100 * ctx:+.1f} cm off, the region "
-                             f"{100 * measured:+.1f} cm)")
+            explained, note = _context_verdict(ctx, why, measured, context_abs_tolerance_m, context_rel_tolerance)
+            if note is not None:
+                notes.append(note)
         checks.append(RegionCheck(offset_b_minus_a_m=measured, offset_reverse_m=reverse, offset_icp_m=icp_off,
                                   spread_m=spread, n_correspondences=len(d_ba), confirmed=ok,
                                   note="; ".join(notes) or None, context_offset_m=ctx, pose_explained=explained, **base))

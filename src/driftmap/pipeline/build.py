@@ -55,7 +55,7 @@ from driftmap.preprocess.scene import lidar_frames, sample_positions, scene_reac
 from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, OdometryConfig, make_odometry
 from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
-from driftmap.store.layout import BUILD_SOURCE_FILE
+from driftmap.store.layout import BUILD_CONFIG_FILE, BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE, MANIFEST
 
 __all__ = [  # the names other modules and users take from here (several live in the sibling modules now)
     "BUILD_SOURCE_FILE", "DEFAULT_POSES_MAX_DT_NS", "SOURCE_OPTION_FLAGS", "BuildConfig", "BuildResult",
@@ -104,16 +104,11 @@ def build(
     the robust back end); it is reported like any other loop.
     """
     config = config or BuildConfig()
-    if poses_max_dt_ns < 0:
-        raise ConfigError(f"the stamp tolerance of --poses must be >= 0, got {poses_max_dt_ns} ns")
-    if poses_file is not None and poses_from_source:
-        raise ConfigError("give either --poses FILE or --poses-from-source, not both")
-    if poses_file is None and (kitti_frame != "auto" or calib_file is not None):
-        raise ConfigError("--kitti-frame / --calib describe a KITTI --poses FILE; give one")
+    _check_pose_arguments(poses_file, poses_from_source, kitti_frame, calib_file, poses_max_dt_ns)
     tick = progress or (lambda stage, done, total: None)
     stages: dict[str, float] = {}
     out = Path(out)
-    store_exists = (out / "store.json").exists()
+    store_exists = (out / MANIFEST).exists()
     if store_exists and not resume:
         raise StoreError(f"{out}: a store exists already; use --resume to continue it or choose another --out")
     depth_options = (depth or DepthConfig()).source_options()
@@ -132,22 +127,7 @@ def build(
         pose_of, pose_of_source = ground_truth, PoseSource.GROUND_TRUTH
     new_store = not (resume and store_exists)
     out_existed, new_dirs = out.exists(), [p for p in (out, *out.parents) if not p.exists()]  # what create() makes
-    recorded: dict[str, Any] | None = None
-    if not new_store:
-        recorded = check_recorded_source(out, record)
-        store = FrameStore.open(out, "a")
-        for event in store.recovery_events:
-            logger.warning("resume: %s", event)
-        try:
-            if recorded is None:
-                check_stored_frames(store, src, record)
-            check_resume_settings(store, src, recorded, record)
-        except BaseException:
-            store.close()
-            raise
-    else:
-        check_first_frame_poses(src, pose_of, poses_from_source)
-        store = FrameStore.create(out)
+    store, recorded = _open_store(out, new_store, src, record, pose_of, poses_from_source)
     try:
         if recorded is None or set(record) - set(recorded):
             # a new store, or one whose record predates some fields (checked above): write the full record
@@ -167,16 +147,46 @@ def build(
         store.close()
 
 
+def _check_pose_arguments(poses_file: str | Path | None, poses_from_source: bool, kitti_frame: str,
+                          calib_file: str | Path | None, poses_max_dt_ns: int) -> None:
+    """The pose options agree with each other (before anything is read)."""
+    if poses_max_dt_ns < 0:
+        raise ConfigError(f"the stamp tolerance of --poses must be >= 0, got {poses_max_dt_ns} ns")
+    if poses_file is not None and poses_from_source:
+        raise ConfigError("give either --poses FILE or --poses-from-source, not both")
+    if poses_file is None and (kitti_frame != "auto" or calib_file is not None):
+        raise ConfigError("--kitti-frame / --calib describe a KITTI --poses FILE; give one")
+
+
+def _open_store(out: Path, new_store: bool, src: FrameSource, record: dict[str, Any],
+                pose_of: Callable[[Frame], np.ndarray] | None,
+                poses_from_source: bool) -> tuple[FrameStore, dict[str, Any] | None]:
+    """A new store (after the first frame's pose is checked), or the store to resume with what it recorded of its
+    source (checked against this run's: same source, pose mode, options and the frames already stored)."""
+    if new_store:
+        check_first_frame_poses(src, pose_of, poses_from_source)
+        return FrameStore.create(out), None
+    recorded = check_recorded_source(out, record)
+    store = FrameStore.open(out, "a")
+    for event in store.recovery_events:
+        logger.warning("resume: %s", event)
+    try:
+        if recorded is None:
+            check_stored_frames(store, src, record)
+        check_resume_settings(store, src, recorded, record)
+    except BaseException:
+        store.close()
+        raise
+    return store, recorded
+
+
 def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Callable[[Frame], np.ndarray] | None,
            poses_from_source: bool, loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
            inject_wrong_loop: tuple[int, int, np.ndarray] | None, *,
            source_record: dict[str, Any] | None = None,
            pose_of_source: PoseSource = PoseSource.EXTERNAL_FILE) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
-    pose_source = pose_of_source if pose_of else PoseSource.ODOMETRY
-    odometry: KissOdometry | GicpMapOdometry | None = None
-    odometry_config: dict[str, Any] | None = None
-    scene: dict[str, Any] | None = None
+    poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing)
     n_total = len(src)
     invalid: list[float] = []
     n_new = 0
@@ -201,38 +211,15 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             tick("frames", done, n_total)
             continue
         t_b = time.perf_counter()
-        health = None
-        if pose_of is not None:
-            T = pose_of(frame)
-        elif poses_from_source:
-            if frame.pose.source is PoseSource.NONE:
-                raise SourceError(no_pose_message(src, frame.frame_id))
-            T = frame.T_world_sensor
-            pose_source = frame.pose.source
-        else:
-            if odometry is None:
-                cfg = config.odometry or (recorded_odometry(store) if existing else None)
-                if cfg is None:
-                    sample = _scene_sample(src, store, frame, config)
-                    reach = scene_reach(lidar_frames(sample))
-                    scene = None if reach is None else reach.to_json()
-                    cfg = OdometryConfig.for_frames(sample)
-                if config.num_threads is not None:
-                    cfg = cfg.model_copy(update={"num_threads": config.num_threads})
-                odometry = make_odometry(cfg)
-                odometry_config = cfg.model_dump(mode="json")
-                if existing:
-                    last = sorted(existing)[-config.resume_seed_frames:]
-                    odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
-            step = odometry.register(frame)
-            T, health = step.T_world_sensor, step.health
+        T, health = poser.pose(frame)
         t_c = time.perf_counter()
-        stored = frame.with_pose(PoseEstimate(T, revision=0, source=pose_source, world_frame=frame.pose.world_frame))
+        stored = frame.with_pose(PoseEstimate(T, revision=0, source=poser.source, world_frame=frame.pose.world_frame))
         store.append(stored if health is None else dataclasses.replace(stored, tracking=health))
         t_store += time.perf_counter() - t_c
         t_odom += t_c - t_b
         n_new += 1
         tick("frames", done, n_total)
+    pose_source, odometry, odometry_config, scene = poser.source, poser.odometry, poser.odometry_config, poser.scene
     stages["read+validate"] = t_read
     stages["odometry" if pose_source is PoseSource.ODOMETRY else "poses"] = t_odom
     stages["store"] = t_store
@@ -253,8 +240,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     if loop_closure and len(store) >= 2:
         close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)
-    (store.path / "build_config.json").write_text(config.model_dump_json(indent=2) + "\n")
-    (store.path / "build_summary.json").write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
+    (store.path / BUILD_CONFIG_FILE).write_text(config.model_dump_json(indent=2) + "\n")
+    (store.path / BUILD_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result
 
 
@@ -295,3 +282,48 @@ def _with_sensor_error(frame: Frame, config: BuildConfig) -> Frame:
     return frame
 
 
+class _Poser:
+    """The revision-0 pose of each new frame: from the pose file or the log's ground truth (``pose_of``), from the
+    source (``--poses-from-source``), or from the odometry, made on the first frame that needs it (its lengths from
+    frames spread over the log, or as recorded on ``--resume``, then seeded with the last stored frames)."""
+
+    def __init__(self, src: FrameSource, store: FrameStore, config: BuildConfig,
+                 pose_of: Callable[[Frame], np.ndarray] | None, poses_from_source: bool, pose_of_source: PoseSource,
+                 existing: set[int]) -> None:
+        self.src, self.store, self.config, self.existing = src, store, config, existing
+        self.pose_of, self.poses_from_source = pose_of, poses_from_source
+        self.source = pose_of_source if pose_of else PoseSource.ODOMETRY
+        self.odometry: KissOdometry | GicpMapOdometry | None = None
+        self.odometry_config: dict[str, Any] | None = None
+        self.scene: dict[str, Any] | None = None
+
+    def pose(self, frame: Frame) -> tuple[np.ndarray, Any]:
+        """``(T_world_sensor, tracking health or None)`` of ``frame``."""
+        if self.pose_of is not None:
+            return self.pose_of(frame), None
+        if self.poses_from_source:
+            if frame.pose.source is PoseSource.NONE:
+                raise SourceError(no_pose_message(self.src, frame.frame_id))
+            self.source = frame.pose.source
+            return frame.T_world_sensor, None
+        if self.odometry is None:
+            self.odometry = self._make_odometry(frame)
+        step = self.odometry.register(frame)
+        return step.T_world_sensor, step.health
+
+    def _make_odometry(self, frame: Frame) -> KissOdometry | GicpMapOdometry:
+        store, config = self.store, self.config
+        cfg = config.odometry or (recorded_odometry(store) if self.existing else None)
+        if cfg is None:
+            sample = _scene_sample(self.src, store, frame, config)
+            reach = scene_reach(lidar_frames(sample))
+            self.scene = None if reach is None else reach.to_json()
+            cfg = OdometryConfig.for_frames(sample)
+        if config.num_threads is not None:
+            cfg = cfg.model_copy(update={"num_threads": config.num_threads})
+        odometry = make_odometry(cfg)
+        self.odometry_config = cfg.model_dump(mode="json")
+        if self.existing:
+            last = sorted(self.existing)[-config.resume_seed_frames:]
+            odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
+        return odometry

@@ -222,68 +222,74 @@ def backproject(
     intrinsics.check_image_shape(depth.shape, what)
     if not (min_depth_m >= 0 and max_depth_m > min_depth_m):
         raise DepthError(f"{what}: need 0 <= min_depth_m < max_depth_m, got {min_depth_m}, {max_depth_m}")
-    rays = _rays(intrinsics)
+    if depth.dtype == np.uint16:
+        return _backproject_uint16(depth, intrinsics, depth_scale, min_depth_m, max_depth_m, check_scale, what)
+    if depth.dtype not in (np.float32, np.float64):
+        raise DepthError(f"{what}: unsupported depth dtype {depth.dtype} (expected uint16, float32 or float64)")
+    return _backproject_metres(depth, intrinsics, min_depth_m, max_depth_m, check_scale, what)
+
+
+def _backproject_uint16(depth: NDArray, intrinsics: PinholeIntrinsics, depth_scale: float, min_depth_m: float,
+                        max_depth_m: float, check_scale: bool, what: str) -> BackprojectionResult:
+    """:func:`backproject` of a uint16 image in ``depth_scale`` units per metre: one compiled pass."""
     flat = depth.ravel()
     n_pixels = flat.size
+    if not (math.isfinite(depth_scale) and depth_scale > 0):
+        raise DepthScaleError(f"{what}: depth_scale must be positive, got {depth_scale}",
+                              depth_scale_used=depth_scale, depth_scale_suggested=None)
+    if check_scale:
+        check_depth_scale(depth, depth_scale, what=what)
+    rays = _rays(intrinsics)
+    lut, min_code, max_code = _uint16_lut(float(depth_scale), float(min_depth_m), float(max_depth_m))
+    # one compiled pass: validity, points in pixel order, counts per reason (same float32 products as
+    # the float path, so the points are bit-identical)
+    valid = np.empty(n_pixels, dtype=bool)
+    scratch = np.empty((n_pixels, 3), dtype=np.float32)
+    n_valid, n_zero, n_sentinel, n_below, n_beyond = backproject_uint16(
+        flat, lut, rays.view(np.float32).reshape(-1, 3), min_code, max_code, valid, scratch)
+    counts = {
+        InvalidReason.ZERO.value: int(n_zero),
+        InvalidReason.NO_READING_65535.value: int(n_sentinel),
+        InvalidReason.BELOW_MIN.value: int(n_below),
+        InvalidReason.BEYOND_MAX.value: int(n_beyond),
+    }
+    # shrink the buffer to the valid points in place (realloc: no copy of the points), so that the result
+    # owns exactly its points and a Frame can take them without copying (frame.adopt_readonly)
+    scratch.resize((int(n_valid), 3), refcheck=False)
+    result = BackprojectionResult(scratch, valid, counts, n_pixels, float(depth_scale))
+    logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
+    return result
 
-    if depth.dtype == np.uint16:
-        if not (math.isfinite(depth_scale) and depth_scale > 0):
-            raise DepthScaleError(f"{what}: depth_scale must be positive, got {depth_scale}",
-                                  depth_scale_used=depth_scale, depth_scale_suggested=None)
-        if check_scale:
-            check_depth_scale(depth, depth_scale, what=what)
-        lut, min_code, max_code = _uint16_lut(float(depth_scale), float(min_depth_m), float(max_depth_m))
-        # one compiled pass: validity, points in pixel order, counts per reason (same float32 products as
-        # the numpy path below, so the points are bit-identical)
-        valid = np.empty(n_pixels, dtype=bool)
-        scratch = np.empty((n_pixels, 3), dtype=np.float32)
-        n_valid, n_zero, n_sentinel, n_below, n_beyond = backproject_uint16(
-            flat, lut, rays.view(np.float32).reshape(-1, 3), min_code, max_code, valid, scratch)
-        counts = {
-            InvalidReason.ZERO.value: int(n_zero),
-            InvalidReason.NO_READING_65535.value: int(n_sentinel),
-            InvalidReason.BELOW_MIN.value: int(n_below),
-            InvalidReason.BEYOND_MAX.value: int(n_beyond),
-        }
-        # shrink the buffer to the valid points in place (realloc: no copy of the points), so that the result
-        # owns exactly its points and a Frame can take them without copying (frame.adopt_readonly)
-        scratch.resize((int(n_valid), 3), refcheck=False)
-        result = BackprojectionResult(scratch, valid, counts, n_pixels, float(depth_scale))
-        logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
-        return result
-    elif depth.dtype in (np.float32, np.float64):
-        if check_scale:
-            check_depth_scale(depth, 1.0, what=what)
-        # classify in the image's own precision; only the kept depths become float32
-        valid = (flat >= min_depth_m) & (flat < max_depth_m)
-        if min_depth_m == 0:
-            valid &= flat != 0
-        finite = np.isfinite(flat)
-        n_nan = int(np.count_nonzero(np.isnan(flat)))
-        n_inf = n_pixels - n_nan - int(np.count_nonzero(finite))
-        n_zero = int(np.count_nonzero(flat == 0))
-        n_negative = int(np.count_nonzero(finite & (flat < 0)))
-        n_below = int(np.count_nonzero((flat > 0) & (flat < min_depth_m)))
-        n_beyond = int(np.count_nonzero(finite & (flat >= max_depth_m)))
-        counts = {
-            InvalidReason.ZERO.value: n_zero,
-            InvalidReason.NAN.value: n_nan,
-            InvalidReason.INF.value: n_inf,
-            InvalidReason.NEGATIVE.value: n_negative,
-            InvalidReason.BELOW_MIN.value: n_below,
-            InvalidReason.BEYOND_MAX.value: n_beyond,
-        }
-        zv = flat[valid].astype(np.float32)
-        used_scale = None
-    else:
-        raise DepthError(f"{what}: unsupported depth dtype {depth.dtype} (expected uint16, float32 or float64)")
 
+def _backproject_metres(depth: NDArray, intrinsics: PinholeIntrinsics, min_depth_m: float, max_depth_m: float,
+                        check_scale: bool, what: str) -> BackprojectionResult:
+    """:func:`backproject` of a float image in metres (classified in the image's own precision; only the kept depths
+    become float32)."""
+    flat = depth.ravel()
+    n_pixels = flat.size
+    if check_scale:
+        check_depth_scale(depth, 1.0, what=what)
+    rays = _rays(intrinsics)
+    valid = (flat >= min_depth_m) & (flat < max_depth_m)
+    if min_depth_m == 0:
+        valid &= flat != 0
+    finite = np.isfinite(flat)
+    n_nan = int(np.count_nonzero(np.isnan(flat)))
+    counts = {
+        InvalidReason.ZERO.value: int(np.count_nonzero(flat == 0)),
+        InvalidReason.NAN.value: n_nan,
+        InvalidReason.INF.value: n_pixels - n_nan - int(np.count_nonzero(finite)),
+        InvalidReason.NEGATIVE.value: int(np.count_nonzero(finite & (flat < 0))),
+        InvalidReason.BELOW_MIN.value: int(np.count_nonzero((flat > 0) & (flat < min_depth_m))),
+        InvalidReason.BEYOND_MAX.value: int(np.count_nonzero(finite & (flat >= max_depth_m))),
+    }
+    zv = flat[valid].astype(np.float32)
     # gather the valid rays (x, y, 1) in one compress, then scale by depth: (x z, y z, z)
     points = rays[valid].view(np.float32).reshape(-1, 3)
     np.multiply(points[:, 0], zv, out=points[:, 0])
     np.multiply(points[:, 1], zv, out=points[:, 1])
     points[:, 2] = zv
-    result = BackprojectionResult(points, valid, counts, n_pixels, used_scale)
+    result = BackprojectionResult(points, valid, counts, n_pixels, None)
     if sum(counts.values()) + result.n_valid != n_pixels:  # pragma: no cover - internal consistency guard
         raise DepthError(f"{what}: invalid-pixel accounting does not add up ({counts}, valid={result.n_valid})")
     logger.debug("%s: %d valid pixels, invalid fraction %.3f %s", what, result.n_valid, result.invalid_fraction, counts)
