@@ -214,3 +214,33 @@ def test_w7_w8_a_full_or_read_only_disk_names_the_output_and_says_what_to_do(tmp
     assert f"error: {mnt}/log: writing the synthetic log failed: No space left on device; the disk is full" in synth_full
     assert f"{mnt}/log" in synth_ro and ("read-only" in synth_ro.lower()) and synth_ro.endswith("rc=1")
     assert f"{mnt}/v" in view_ro and view_ro.endswith("rc=1") and "Traceback" not in view_ro
+
+
+def test_w16_build_settings_come_from_the_environment_as_config_show_says(tmp_path: Path) -> None:
+    """``config --show`` lists build.* with "defaults < file < DRIFTMAP_* environment"; DRIFTMAP_BUILD__* used to
+    stop every command ("build: no such table"). Now the environment sets them over the file (and is named in
+    errors), and the diagnose table, file-only, says so."""
+    import json
+    import os
+
+    env = {**os.environ, "COLUMNS": "200"}
+    config = tmp_path / "c.toml"
+    config.write_text("[build]\nnum_threads = 2\n")
+
+    def run(*args: object, **extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                              timeout=600, env={**env, **extra})
+
+    out = run("build", LOG, "--out", tmp_path / "s", "--frames", "0:3", "--no-loop-closure", "--config", config,
+              DRIFTMAP_BUILD__NUM_THREADS="1")
+    assert out.returncode == 0, out.stderr
+    assert json.loads((tmp_path / "s" / "build_config.json").read_text())["num_threads"] == 1
+    shown = run("config", "--show", DRIFTMAP_BUILD__ODOMETRY_EDGE_WINDOW="5")
+    assert any("build.odometry_edge_window" in line and " 5 " in line for line in shown.stdout.splitlines())
+    bad = run("build", LOG, "--out", tmp_path / "t", "--frames", "0:3", DRIFTMAP_BUILD__NUM_THREADS="x")
+    assert "environment DRIFTMAP_BUILD__NUM_THREADS: build.num_threads:" in _line(bad)
+    assert not (tmp_path / "t").exists()
+    typo = run("build", LOG, "--out", tmp_path / "t", DRIFTMAP_BUILD__LOOP_CLOSURE__FOO="1")
+    assert "DRIFTMAP_BUILD__LOOP_CLOSURE__FOO: build.loop_closure.foo: unknown setting" in _line(typo)
+    diag = run("config", "--show", DRIFTMAP_DIAGNOSE__MAX_NEIGHBORS="3")
+    assert "read from a config file's [diagnose] table" in _line(diag)

@@ -378,16 +378,60 @@ def validation_problems(exc: ValidationError, origin: Any, *, prefix: tuple[str,
     return "\n".join(lines)
 
 
+_ENV_FILE_ONLY = {
+    DIAGNOSE_TABLE: "the diagnose settings are read from a config file's [diagnose] table (diagnose --config), not "
+                    "from the environment",
+}
+
+
 def _check_env_tables() -> None:
-    """``DRIFTMAP_X__...`` variables whose table X does not exist are refused (pydantic-settings ignores them)."""
-    known = {name.upper() for name in DriftmapConfig.model_fields}
+    """``DRIFTMAP_X__...`` variables whose table X does not exist are refused (pydantic-settings ignores them);
+    ``DRIFTMAP_BUILD__...`` are the build settings' (:func:`env_table`)."""
+    known = {name.upper() for name in DriftmapConfig.model_fields} | {BUILD_TABLE.upper()}
     for name in sorted(os.environ):
         if not name.upper().startswith(ENV_PREFIX) or ENV_DELIMITER not in name:
             continue
         table = name[len(ENV_PREFIX):].split(ENV_DELIMITER)[0].upper()
         if table not in known:
-            why = _REMOVED_TABLES.get(table.lower(), f"no such table (known: {', '.join(sorted(k.lower() for k in known))})")
+            why = _REMOVED_TABLES.get(table.lower()) or _ENV_FILE_ONLY.get(table.lower()) or (
+                f"no such table (known: {', '.join(sorted(k.lower() for k in known))})")
             raise ConfigError(f"environment {name}: {table.lower()}: {why}")
+
+
+def env_table(table: str) -> dict[str, Any]:
+    """The ``DRIFTMAP_<TABLE>__KEY[__SUBKEY]`` environment variables as a nested dict (keys lower-case; a value
+    starting with ``[`` or ``{`` is read as JSON, any other stays a string for the settings model to validate)."""
+    _check_env_tables()
+    head = f"{ENV_PREFIX}{table.upper()}{ENV_DELIMITER}"
+    out: dict[str, Any] = {}
+    for name in sorted(os.environ):
+        if not name.upper().startswith(head):
+            continue
+        keys = name[len(head):].lower().split(ENV_DELIMITER)
+        node = out
+        for key in keys[:-1]:
+            node = node.setdefault(key, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"environment {name}: {table}.{'.'.join(keys)}: conflicts with another variable")
+        raw = os.environ[name]
+        if raw.strip()[:1] in ("[", "{"):
+            try:
+                node[keys[-1]] = json.loads(raw)
+            except ValueError as exc:
+                raise ConfigError(f"environment {name}: {table}.{'.'.join(keys)}: not valid JSON ({exc})") from None
+        else:
+            node[keys[-1]] = raw
+    return out
+
+
+def merge_settings(base: dict[str, Any], top: dict[str, Any]) -> dict[str, Any]:
+    """``top`` over ``base``, nested tables merged key by key."""
+    return _deep_merge(base, top)
+
+
+def has_setting(data: dict[str, Any], loc: tuple[str, ...]) -> bool:
+    """Whether the nested ``data`` sets the key at ``loc``."""
+    return _has(data, loc)
 
 
 def _has(data: dict[str, Any], loc: tuple[str, ...]) -> bool:

@@ -51,20 +51,36 @@ class BuildConfig(SettingsModel):
     information_calibration_iterations: int = Field(10, ge=0, description="pose graph: at most this many variance-component re-weighting rounds (they stop once no group's scale changes by more than 5 %)")
 
     @classmethod
-    def load(cls, path: str | Path) -> BuildConfig:
-        """A build config file (JSON or TOML): its ``build`` table, next to which only the general tables
-        (``depth``, ``map``: :class:`driftmap.config.DriftmapConfig`, read by :meth:`DriftmapConfig.load`) may
-        stand; or, without any of these tables, the whole file. Problems are :class:`ConfigError`, one line each,
-        naming the file and the key."""
+    def load(cls, path: str | Path | None = None) -> BuildConfig:
+        """The build settings: defaults, then a config file (JSON or TOML: its ``build`` table, next to which only
+        the general tables -- ``depth``, ``map``, ``volume``: :class:`driftmap.config.DriftmapConfig` -- may stand;
+        or, without any of these tables, the whole file), then the ``DRIFTMAP_BUILD__*`` environment (as
+        ``driftmap config --show`` lists: defaults < file < environment < flags). Problems are
+        :class:`ConfigError`, one line each, naming the file or the environment variable and the key."""
         from pydantic import ValidationError
 
-        from driftmap.config import split_config_file, validation_problems
+        from driftmap.config import (
+            BUILD_TABLE,
+            env_table,
+            has_setting,
+            merge_settings,
+            split_config_file,
+            validation_problems,
+        )
 
-        _, data, prefix = split_config_file(path)
+        data, prefix = ({}, (BUILD_TABLE,)) if path is None else split_config_file(path)[1:]
+        env = env_table(BUILD_TABLE)
         try:
-            return cls(**data)
+            return cls(**merge_settings(data, env))
         except ValidationError as exc:
-            raise ConfigError(validation_problems(exc, str(path), prefix=prefix)) from exc
+            def origin(loc: tuple[str, ...]) -> str:
+                return "environment" if has_setting(env, loc) else str(path)
+            problems = validation_problems(exc, origin, prefix=prefix, env_names=True)
+            if not prefix:  # a bare build file: its keys have no table, the environment's are DRIFTMAP_BUILD__...
+                problems = "\n".join(
+                    line.replace("environment DRIFTMAP_", f"environment DRIFTMAP_{BUILD_TABLE.upper()}__", 1)
+                    for line in problems.splitlines())
+            raise ConfigError(problems) from exc
 
 
 @dataclass
