@@ -244,3 +244,26 @@ def test_w16_build_settings_come_from_the_environment_as_config_show_says(tmp_pa
     assert "DRIFTMAP_BUILD__LOOP_CLOSURE__FOO: build.loop_closure.foo: unknown setting" in _line(typo)
     diag = run("config", "--show", DRIFTMAP_DIAGNOSE__MAX_NEIGHBORS="3")
     assert "read from a config file's [diagnose] table" in _line(diag)
+
+
+# ------------------------------------------------------------------------------- the third trial (76 cases)
+
+
+def test_t3_b3_a_memory_budget_beyond_the_machine_is_refused_not_oom_killed(sevens: dict, tmp_path: Path) -> None:
+    """The budget error said "or raise the budget"; raising it to 1e12 MiB had the kernel kill the process at 22 GB.
+    A budget over the machine's memory is refused naming the key; nothing is written."""
+    config = tmp_path / "v.toml"
+    config.write_text("[volume]\nmemory_budget_mb = 1e12\n")
+    line = _line(_cli("export", sevens["store"], "--octomap", tmp_path / "k.bt", "--config", config))
+    assert "volume.memory_budget_mb: must be at most this machine's memory" in line, line
+    assert not (tmp_path / "k.bt").exists()
+
+
+def test_t3_b4_absurd_poses_are_a_typed_error_of_the_layers_not_a_traceback() -> None:
+    """Finite poses 3.6e18 m away overflowed the int64 lattice (numpy "Maximum allowed dimension exceeded")."""
+    from driftmap.volume.grid import GridSpec
+
+    with pytest.raises(ConfigError, match=r"observations reach 3\.6e\+18 m from the origin"):
+        GridSpec.covering(np.array([0.0, 0.0, 0.0]), np.array([3.6e18, 1.0, 1.0]), 0.02, budget_mb=4096)
+    with pytest.raises(ConfigError, match=r"more than volume\.memory_budget_mb"):
+        GridSpec.covering(np.array([0.0, 0.0, 0.0]), np.array([1e6, 1e6, 1.0]), 0.02, budget_mb=4096)

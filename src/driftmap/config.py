@@ -199,6 +199,14 @@ TRUNCATION_VOXELS = 4.0
 """Default TSDF truncation, in voxels (Open3D's examples use 4-8)."""
 
 
+def _physical_memory_mb() -> float | None:
+    """This machine's physical memory in MiB (None where the OS does not say)."""
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES") / 2**20
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
 class VolumeConfig(SettingsModel):
     """Voxel size, TSDF truncation, OctoMap's sensor model, ranges, the unknown-space policy and a memory budget."""
 
@@ -217,6 +225,15 @@ class VolumeConfig(SettingsModel):
     memory_budget_mb: float = Field(4096.0, gt=0.0, description="layers that would allocate more than this (MiB) are refused before anything is allocated")
     padding_m: float = Field(0.5, ge=0.0, description="the grid spans the observations plus this margin, so small corrections do not grow it")
     keep_frame_voxels: bool = Field(True, description="keep each frame's missed voxels (4 bytes each, ~1 MB a 2 cm depth frame) so that a correction takes a frame out by decrementing them instead of tracing its rays again (about half an update's work)")
+
+    @field_validator("memory_budget_mb")
+    @classmethod
+    def _within_memory(cls, value: float) -> float:
+        physical_mb = _physical_memory_mb()
+        if physical_mb is not None and value > physical_mb:
+            raise ValueError(f"must be at most this machine's memory, {physical_mb:,.0f} MiB (more would have the "
+                             f"process killed instead of refused)")
+        return value
 
     @model_validator(mode="after")
     def _clamps(self) -> VolumeConfig:

@@ -23,6 +23,10 @@ BYTES_PER_VOXEL = 4 + 4 + 4 + 8 + 4
 """hits (int32), misses (int32), the per-frame mark (int32), the TSDF's fixed-point sum (int64) and count (int32)."""
 
 
+_MAX_LATTICE_INDEX = float(2**52)
+"""lattice indices beyond this (about 4.5e15 voxels from the origin) are no map: refused before int64 overflows"""
+
+
 @dataclass(frozen=True)
 class GridSpec:
     """A box of the world lattice: ``shape`` voxels from lattice voxel ``origin_index``, each ``voxel_size_m``."""
@@ -53,8 +57,17 @@ class GridSpec:
                  padding_m: float = 0.0, budget_mb: float | None = None) -> GridSpec:
         """The smallest block-aligned grid holding the box ``min_m .. max_m`` plus ``padding_m``; a grid over
         ``budget_mb`` MiB is a :class:`ConfigError` (nothing is allocated)."""
-        lo = np.floor((np.asarray(min_m, dtype=np.float64) - padding_m) / voxel_size_m).astype(np.int64)
-        hi = np.floor((np.asarray(max_m, dtype=np.float64) + padding_m) / voxel_size_m).astype(np.int64) + 1
+        lo_f = np.floor((np.asarray(min_m, dtype=np.float64) - padding_m) / voxel_size_m)
+        hi_f = np.floor((np.asarray(max_m, dtype=np.float64) + padding_m) / voxel_size_m)
+        if not (np.all(np.isfinite(lo_f)) and np.all(np.isfinite(hi_f))
+                and max(float(np.max(np.abs(lo_f))), float(np.max(np.abs(hi_f)))) < _MAX_LATTICE_INDEX):
+            reach = max(float(np.max(np.abs(np.asarray(min_m, dtype=np.float64)))),
+                        float(np.max(np.abs(np.asarray(max_m, dtype=np.float64)))))
+            raise ConfigError(f"volume: the observations reach {reach:.3g} m from the origin, beyond any grid of "
+                              f"{voxel_size_m:g} m voxels: are the poses of this revision absurd (driftmap info, "
+                              f"driftmap revisions)?")
+        lo = lo_f.astype(np.int64)
+        hi = hi_f.astype(np.int64) + 1
         lo = (lo // BLOCK_RESOLUTION) * BLOCK_RESOLUTION
         hi = -((-hi) // BLOCK_RESOLUTION) * BLOCK_RESOLUTION
         spec = cls(float(voxel_size_m), tuple(int(v) for v in lo), tuple(int(v) for v in hi - lo))  # type: ignore[arg-type]
