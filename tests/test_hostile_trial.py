@@ -267,3 +267,66 @@ def test_t3_b4_absurd_poses_are_a_typed_error_of_the_layers_not_a_traceback() ->
         GridSpec.covering(np.array([0.0, 0.0, 0.0]), np.array([3.6e18, 1.0, 1.0]), 0.02, budget_mb=4096)
     with pytest.raises(ConfigError, match=r"more than volume\.memory_budget_mb"):
         GridSpec.covering(np.array([0.0, 0.0, 0.0]), np.array([1e6, 1e6, 1.0]), 0.02, budget_mb=4096)
+
+
+def test_t3_w12_info_counts_the_frames_the_build_flagged(tmp_path: Path) -> None:
+    """build printed "flagged: frame 17 (lost)" while info said "frames flagged 0" (it counted input-quality flags
+    only): info now shows the tracking counts and flagged frames exactly as build_summary.json has them."""
+    import json
+
+    store, log = tmp_path / "s", tmp_path / "log"
+    assert _cli("synth", log, "--frames", "20").returncode == 0  # 20 frames over the whole loop: fast motion
+    assert _cli("build", log, "--out", store, "--no-loop-closure").returncode == 0
+    tracking = json.loads((store / "build_summary.json").read_text())["tracking"]
+    out = _cli("info", store)
+    assert out.returncode == 0, out.stderr
+    rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") >= 3}
+    by = tracking["by_status"]
+    flagged = [f["frame_id"] for f in tracking["flagged"]]
+    ok = tracking["frames"] - by.get("recovered", 0) - len(flagged)
+    assert rows["tracking: ok / recovered / flagged (lost, reinitialised)"] == f"{ok} / {by.get('recovered', 0)} / {len(flagged)}"
+    assert flagged and rows["frames flagged by tracking"] == ", ".join(map(str, flagged))
+
+
+def test_t3_w9_w10_export_flags_that_would_be_ignored_or_confusing_are_usage_errors(sevens: dict, tmp_path: Path) -> None:
+    """--band-m without --grid2d / --mcap and --no-volume without --mcap were silently ignored; --grid2d g.pgm said
+    "--grid2d and --grid2d (its PGM image) name the same file". Each is a usage error (exit 2) naming the flag."""
+    cases = ((("--band-m", "0,1", "--trajectory", tmp_path / "t.tum"), "--band-m"),
+             (("--no-volume", "--map", tmp_path / "m.ply"), "--no-volume"),
+             (("--grid2d", tmp_path / "g.pgm"), "name the map's YAML file"))
+    for args, words in cases:
+        out = _cli("export", sevens["store"], *args)
+        assert out.returncode == 2 and words in " ".join(out.stderr.split()), out.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_t3_b1_w8_convert_never_writes_into_its_source_folder_nor_mcap_bytes_under_another_name(tmp_path: Path) -> None:
+    """convert s6 s6/depth/000000.png --overwrite replaced a frame with MCAP bytes (the next build failed on it); an
+    MCAP written into a PCD folder became a broken 'frame'; convert s6 s6.ply wrote MCAP bytes named .ply."""
+    log = tmp_path / "s6"
+    assert _cli("synth", log, "--frames", "4").returncode == 0
+    frame = (log / "depth" / "000000.png").read_bytes()
+    line = _line(_cli("convert", log, log / "depth" / "000000.png", "--overwrite"))
+    assert "is inside the source folder" in line and (log / "depth" / "000000.png").read_bytes() == frame
+    assert "is inside the source folder" in _line(_cli("convert", log, log / "x.mcap"))
+    assert not (log / "x.mcap").exists()
+    out = _cli("convert", log, tmp_path / "s6.ply")
+    assert out.returncode == 2 and "name it OUT.mcap" in " ".join(out.stderr.split()) and not (tmp_path / "s6.ply").exists()
+
+
+def test_t3_w14_w15_recover_says_what_is_wrong_with_the_folder(sevens: dict, tmp_path: Path) -> None:
+    """recover of a folder that does not exist said "store.json missing"; on a read-only mount its hint was "free
+    space (or fix the device)"."""
+    assert "no such folder" in _line(_cli("recover", tmp_path / "nonexist"))
+    if not _can_mount_privately():
+        pytest.skip("needs root and unshare -m (private tmpfs mounts) for the read-only part")
+    mnt = tmp_path / "mnt"
+    mnt.mkdir()
+    script = (f"mount -t tmpfs -o size=16m tmpfs {mnt} && cp -r {sevens['store']} {mnt}/st && "
+              f"rm -f {mnt}/st/store.json && mount -o remount,ro {mnt} && "
+              f"{sys.executable} -m driftmap.cli recover {mnt}/st 2>&1; echo rc=$?")
+    out = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, timeout=300,
+                         env={"COLUMNS": "300", **__import__("os").environ})
+    text = " ".join(out.stdout.split())
+    assert text.endswith("rc=1") and "read-only file system" in text and "cannot be written there" in text, text
+    assert "free space" not in text

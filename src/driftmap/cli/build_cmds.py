@@ -105,7 +105,7 @@ def config_cmd(
                 table.add_row(prefix + name, shown, field.description or "")
 
     walk(DriftmapConfig.load(file), "")
-    build_cfg = BuildConfig() if file is None else BuildConfig.load(file)
+    build_cfg = BuildConfig.load(file)
     walk(build_cfg, "build.")
     if build_cfg.odometry is None:  # per sensor kind: show both defaults instead of "None"
         from driftmap.frame import SensorKind
@@ -123,7 +123,7 @@ def config_cmd(
 
 @app.command("synth")
 def synth(
-    out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to.")],
+    out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to (with --fleet: a folder of N log folders).")],
     frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Number of frames (default: 60 in the room, 245 on the street; with --period-s, --stationary-start, --stops or turns: what the scene's speed needs).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 7,
     lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR (implied by --lidar-pattern rosette and --point-times).")] = False,
@@ -143,12 +143,26 @@ def synth(
     points_per_scan: Annotated[Optional[int], typer.Option("--points-per-scan", min=1, help="Points per rosette scan (default: 24000).")] = None,
     point_times: Annotated[bool, typer.Option("--point-times/--no-point-times", help="Per-point capture times: each LiDAR point is rendered from the moving sensor's pose at its time, stored in lidar/NNNNNN.time.bin (int64 ns after the scan's start stamp).")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier synthetic log in OUT (its stale frame files are removed); without it an existing log is refused. A folder holding anything else is always refused.")] = False,
+    fleet: Annotated[Optional[int], typer.Option("--fleet", min=1, max=1000, metavar="N", help="Write N small room logs OUT/room-00/ ... (40 frames at 200 x 150 unless --frames; seeds from --seed on; drift rates, odometry step and loop length differ from log to log) for 'driftmap batch OUT/*'. Takes --frames, --seed, --lidar, --broken and --overwrite.")] = None,
+    broken: Annotated[int, typer.Option("--broken", min=0, max=1000, metavar="K", help="With --fleet: also K logs broken on purpose (OUT/broken-00-truncated-depth/, a missing or a cut synthetic.json, in turn).")] = 0,
 ) -> None:
-    """Generate a synthetic drifting-robot log (deterministic for a given seed)."""
+    """Generate a synthetic drifting-robot log (deterministic for a given seed); with --fleet, N of them."""
     from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 
     scene = choice(scene, ("room", "street"), "--scene")
     pattern = choice(lidar_pattern, ("spinning", "rosette"), "--lidar-pattern")
+    if fleet is not None or broken:
+        not_taken = {"--scene": scene != "room", "--yaw-drift-deg-per-m": yaw_drift_deg_per_m is not None,
+                     "--scale-drift-percent": scale_drift_percent is not None, "--period-s": period_s is not None,
+                     "--speed-m-per-s": speed_m_per_s is not None, "--stationary-start": stationary_start,
+                     "--stops": stops or stop_frames, "--turns": turns or turn_at or turn_frames or turn_deg_per_frame,
+                     "--lidar-pattern": pattern != "spinning", "--points-per-scan": points_per_scan is not None,
+                     "--point-times": point_times}
+
+        from driftmap.cli.batch_cmds import synth_fleet_command
+
+        synth_fleet_command(out, fleet, broken, frames, seed, lidar, overwrite, [k for k, v in not_taken.items() if v])
+        return
     if frames is not None and speed_m_per_s is not None:
         raise typer.BadParameter("give the frame count or the speed, not both (the speed sets the frame count)",
                                  param_hint="--speed-m-per-s")
@@ -201,11 +215,14 @@ def convert(
     point_layout: Annotated[Optional[str], typer.Option("--point-layout", help=POINT_LAYOUT_HELP)] = None,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
+    from driftmap.export.mcap import convert as convert_source
     from driftmap.pipeline.build import check_source_options
-    from driftmap.sources.mcap_export import convert as convert_source
 
     format = _source_format(source, format)
     check_output(out, "OUT.mcap")
+    _refuse_inside_source(out, source)
+    if out.suffix.lower() != ".mcap":
+        raise typer.BadParameter(f"{out}: convert writes an MCAP log; name it OUT.mcap", param_hint="OUT.mcap")
     refuse_existing(out, "OUT.mcap", overwrite)
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     check_source_options(source, format, options)
@@ -220,10 +237,21 @@ def convert(
                   highlight=False)
 
 
+def _refuse_inside_source(out: Path, source: Path) -> None:
+    """An output inside the source folder would become one of its frames (or replace one): refused, --overwrite or
+    not (the source is never written)."""
+    from driftmap.errors import ConfigError
+
+    src, dst = source.resolve(), out.resolve()
+    if src.is_dir() and src in dst.parents:
+        raise ConfigError(f"{out}: is inside the source folder {source}; the next read of the folder would take it for "
+                          f"a frame (or it would replace one): write it elsewhere")
+
+
 def _load_build_config(path: Optional[Path]):
     from driftmap.pipeline.build import BuildConfig
 
-    return BuildConfig() if path is None else BuildConfig.load(path)
+    return BuildConfig.load(path)
 
 
 def _source_format(source: Path, format: Optional[str]) -> Optional[str]:
@@ -271,6 +299,7 @@ def _tracking_counts(tracking: dict) -> str:
     return f"{by.get('ok', 0) + by.get('first', 0)} / {by.get('recovered', 0)} / {len(tracking['flagged'])}"
 
 
+# longer than 80 lines: 30 of them are the typer options, one per flag, with their help text (the CLI contract)
 @app.command()
 def build(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log.")],

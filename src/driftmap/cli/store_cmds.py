@@ -116,6 +116,16 @@ def export(
     if all(p is None for p in outputs_given):
         raise typer.BadParameter("nothing to export: give --map, --trajectory, --mcap, --mesh, --octomap and/or --grid2d")
     band = _band(band_m)
+    if band is not None and grid2d_path is None and mcap_path is None:
+        raise typer.BadParameter("the height band of the 2-D grid: give --grid2d or --mcap with it", param_hint="--band-m")
+    if no_volume and mcap_path is None:
+        raise typer.BadParameter("leaves the volumetric layers out of the MCAP: give --mcap with it", param_hint="--no-volume")
+    if no_volume and band is not None and grid2d_path is None:
+        raise typer.BadParameter("--no-volume leaves the 2-D grid out of the MCAP: --band-m has nothing to apply to",
+                                 param_hint="--band-m")
+    if grid2d_path is not None and grid2d_path.suffix.lower() not in (".yaml", ".yml"):
+        raise typer.BadParameter(f"{grid2d_path}: name the map's YAML file (OUT.yaml or .yml; its image is written "
+                                 f"beside it as OUT.pgm)", param_hint="--grid2d")
     format = choice(format, ("tum", "kitti"), "--format")
     if voxel_size_m is not None and not voxel_size_m > 0:
         raise typer.BadParameter(f"must be positive, got {voxel_size_m}", param_hint="--voxel-size-m")
@@ -143,7 +153,9 @@ def export(
             store.export_trajectory(trajectory, revision=rev, format=format)
             console.print(f"trajectory (revision {rev}, {format}): {trajectory}")
         if map_path is not None:
-            view = store.map(rev)
+            from driftmap.map.view import MapView
+
+            view = MapView.from_store(store, rev)
             _, n_written = view.write(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
             detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
             console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
@@ -152,7 +164,7 @@ def export(
             volume = _volume_layers(store, rev, settings.volume)
             _write_volume(volume, mesh_path, octomap_path, grid2d_path, band)
         if mcap_path is not None:
-            from driftmap.map.foxglove_export import export_foxglove_mcap
+            from driftmap.export.foxglove import export_foxglove_mcap
 
             with progress_bar() as progress:
                 task = progress.add_task("foxglove mcap", total=None)
@@ -248,7 +260,15 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")
         if invalid:
             table.add_row("invalid-pixel fraction (mean / max)", f"{np.mean(invalid):.3f} / {np.max(invalid):.3f}")
-            table.add_row("frames flagged", str(flagged))
+            table.add_row("frames flagged (input quality)", str(flagged))
+        tracking = [(int(f), i["tracking"]) for f, i in zip(store.frame_ids, infos) if i.get("tracking")]
+        if tracking:  # the odometry's health records, as build_summary.json counts them
+            lost = [f for f, t in tracking if t.get("status") in ("lost", "reinitialised")]
+            recovered = sum(1 for _, t in tracking if t.get("status") == "recovered")
+            table.add_row("tracking: ok / recovered / flagged (lost, reinitialised)",
+                          f"{len(tracking) - recovered - len(lost)} / {recovered} / {len(lost)}")
+            if lost:
+                table.add_row("frames flagged by tracking", ", ".join(map(str, lost[:20])) + (" ..." if len(lost) > 20 else ""))
         console.print(table)
 
 

@@ -17,11 +17,11 @@ import errno as errno_codes
 import json
 import logging
 import os
-import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
-from driftmap.errors import OutputInsideStoreError, OutputWriteError, StoreIOError
+from driftmap.errors import OutputInsideStoreError, StoreIOError
+from driftmap.files import atomic_write
 from driftmap.store.layout import FORMAT_NAME, LOCK_FILE, MANIFEST, SEGMENT_FILE
 
 logger = logging.getLogger(__name__)
@@ -98,15 +98,6 @@ def refuse_inside_store(path: str | Path | None, flag: str, *, output_is_store: 
         f"(segments, {MANIFEST}): write it outside the store folder", path=path, flag=flag, store=store)
 
 
-def _fsync_dir(folder: Path) -> None:
-    with contextlib.suppress(OSError):
-        fd = os.open(folder, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-
-
 @contextlib.contextmanager
 def atomic_output(path: str | Path, what: str, *, guard: bool = True) -> Iterator[Path]:
     """Write ``path`` atomically: the body writes the file at the yielded temporary path (same folder, same
@@ -116,33 +107,13 @@ def atomic_output(path: str | Path, what: str, *, guard: bool = True) -> Iterato
 
     ``what`` names the output in errors (a CLI flag or the function). ``guard``: refuse a path inside a store
     folder first (:func:`refuse_inside_store`). An ``OSError`` becomes :class:`~driftmap.errors.OutputWriteError`
-    naming ``path``.
+    naming ``path``. The writing is :func:`driftmap.files.atomic_write`'s; this adds the store-folder guard.
     """
     path = Path(path)
     if guard:
         refuse_inside_store(path, what)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp{path.suffix}")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_write(path, what) as tmp:
         yield tmp
-        if not tmp.exists():
-            raise OutputWriteError(f"{path}: the writer produced no file ({what})", path=path, errno=None)
-        fd = os.open(tmp, os.O_RDONLY)
-        try:
-            os.fsync(fd)
-        finally:
-            os.close(fd)
-        os.replace(tmp, path)
-        _fsync_dir(path.parent)
-    except OSError as exc:
-        raise OutputWriteError(
-            f"{path}: could not be written ({what}): {exc.strerror or exc}"
-            + (" (no space left on the device)" if exc.errno == errno_codes.ENOSPC else "")
-            + "; nothing was written under that name (an existing file is unchanged)",
-            path=path, errno=exc.errno) from exc
-    finally:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
 
 
 #: how to continue after an I/O error, by what was being done
@@ -161,6 +132,10 @@ def store_io_error(exc: OSError, file: str | Path, action: str, store: str | Pat
     elif exc.errno == errno_codes.EROFS:
         reason = "read-only file system"
     code = f" [{errno_codes.errorcode.get(exc.errno, exc.errno)}]" if exc.errno else ""
+    if exc.errno in (errno_codes.EROFS, errno_codes.EACCES, errno_codes.EPERM) and hint is not READ_HINT:
+        # no space to free: the store cannot be written where it is (reading it still works)
+        hint = ("the store cannot be written there (it can still be read: info, export, diagnose); remount it "
+                "writable or copy it to a writable place and run the command there")
     message = f"{file}: {action} failed: {reason}{code}; {hint.format(store=store)}"
     logger.debug("%s", message, exc_info=exc)
     return StoreIOError(message, path=Path(file), errno=exc.errno)

@@ -70,6 +70,8 @@ def read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
         if segments:
             raise StoreCorruptError(f"{file}: missing, but {path} holds {len(segments)} segment file(s){fix}",
                                     path=file, offset=None) from exc
+        if not path.exists():
+            raise StoreError(f"{path}: no such folder (not a driftmap store)") from exc
         raise StoreError(f"{path}: not a driftmap store ({MANIFEST} missing)") from exc
     except IsADirectoryError as exc:
         raise StoreCorruptError(f"{file}: is a folder, not the manifest{fix}", path=file, offset=None) from exc

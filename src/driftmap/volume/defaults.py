@@ -42,7 +42,9 @@ def resolve_config(store: FrameStore, config: VolumeConfig) -> VolumeConfig:
     max_range = config.max_range_m if config.max_range_m is not None else _odometry_max_range(store)
     if max_range is None:
         raise ConfigError(f"{store.path}: a LiDAR store without a max range for its rays (no odometry settings in "
-                          f"{BUILD_SUMMARY}): set volume.max_range_m")
+                          f"{BUILD_SUMMARY}): set volume.max_range_m (metres) in a [volume] table of --config or "
+                          f"as DRIFTMAP_VOLUME__MAX_RANGE_M (export --mcap --no-volume writes the MCAP without the "
+                          f"layers)")
     return config.resolved(SensorKind.LIDAR, scale, max_range)
 
 
