@@ -330,3 +330,19 @@ def test_t3_w14_w15_recover_says_what_is_wrong_with_the_folder(sevens: dict, tmp
     text = " ".join(out.stdout.split())
     assert text.endswith("rc=1") and "read-only file system" in text and "cannot be written there" in text, text
     assert "free space" not in text
+
+
+def test_t3_w5_w17_w18_w19_messages_name_the_units_the_format_and_the_flag(tmp_path: Path) -> None:
+    """Stamps in nanoseconds say so; a YAML config says which formats are read; synth --frames too large names the
+    flag; a demo with a bad --log leaves no empty results folder behind."""
+    ns = tmp_path / "ns.tum"
+    ns.write_text("1700000000000000000 0 0 0 0 0 0 1\n")
+    assert "are the stamps in nanoseconds or milliseconds?" in _line(_cli("perturb", ns, tmp_path / "p.tum",
+                                                                          "--drift-percent-per-m", "1"))
+    yaml = tmp_path / "c.yaml"
+    yaml.write_text("build:\n  num_threads: 1\n")
+    assert "read as TOML when named .toml, else as JSON" in _line(_cli("config", "--file", yaml))
+    out = _cli("synth", tmp_path / "x", "--frames", "100000000")
+    assert out.returncode == 2 and "--frames" in out.stderr and not (tmp_path / "x").exists()
+    _line(_cli("demo", "--out", tmp_path / "dm", "--log", tmp_path / "missing"))
+    assert not (tmp_path / "dm").exists()

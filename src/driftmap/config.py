@@ -340,11 +340,13 @@ _REMOVED_TABLES = {
 def read_config_file(path: str | Path) -> dict[str, Any]:
     """The top-level table of a ``.toml`` file, or the object of any other (JSON) file."""
     path = Path(path)
+    is_toml = path.suffix.lower() == ".toml"
     try:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (some editors write one) is not a setting
-        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+        data = tomllib.loads(text) if is_toml else json.loads(text)
     except (OSError, ValueError) as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc})") from exc
+        kind = "" if is_toml or path.suffix.lower() == ".json" else " (config files are read as TOML when named .toml, else as JSON)"
+        raise ConfigError(f"{path}: cannot read config ({exc}){kind}") from exc
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: a config file holds an object of settings, not {type(data).__name__}")
     return data

@@ -25,7 +25,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
@@ -44,8 +44,9 @@ from driftmap.diagnostics.report import DiagnoseConfig, Diagnosis, diagnose_clou
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.diagnostics.walls import WallSpread, wall_spread
 from driftmap.errors import ConfigError, EmptyExportError
-from driftmap.map.foxglove_export import export_foxglove_mcap
+from driftmap.export.foxglove import export_foxglove_mcap
 from driftmap.map.fusion import FusedCloud
+from driftmap.map.view import MapView
 from driftmap.pipeline.build import BuildConfig, BuildResult, build
 from driftmap.registration.loops import LoopClosureConfig
 from driftmap.report import top_view
@@ -55,9 +56,6 @@ from driftmap.store.guards import is_store_folder
 from driftmap.volume import VolumeConfig, VolumeLayers, VolumeStats
 from driftmap.volume.export import write_mesh
 from driftmap.volume.grid import GridSpec
-
-if TYPE_CHECKING:
-    from driftmap.map.view import MapView
 
 logger = logging.getLogger(__name__)
 
@@ -319,8 +317,8 @@ def _prepare(out_dir: str | Path, log_path: str | Path | None, max_frames: int |
     stages = _Stages(progress)
     out = Path(out_dir)
     _check_results_folder(out)
+    log = SyntheticLog(Path(log_path) if log_path else embedded_log_path())  # a bad --log leaves no folder behind
     out.mkdir(parents=True, exist_ok=True)
-    log = SyntheticLog(Path(log_path) if log_path else embedded_log_path())
     # the map exports: map.export_voxel_size_m when set, else the demo's own 1 cm
     map_voxel_m = config.map.export_voxel_size_m if config.map.export_voxel_size_m is not None else DEMO_MAP_VOXEL_M
     n = len(log) if max_frames is None else min(max_frames, len(log))
@@ -373,7 +371,7 @@ def _diagnose_before(run: _DemoRun, built: BuildResult) -> _Revision0:
         cloud = run.stages.run("sample frames for diagnosis", lambda: DiagnosticCloud.from_store(store, dcfg.sampling))
         diag0 = run.stages.run("diagnose revision 0",
                                lambda: diagnose_store(store, 0, config=dcfg, cloud=cloud, ground_truth=gt))
-        view = store.map(0)
+        view = MapView.from_store(store, 0)
         odom_points = view.points_world.copy()
         point_frames = view.point_frame_ids()
         odom_spread = _loop_wall_spread(odom_points)
@@ -396,7 +394,7 @@ def _diagnose_after(run: _DemoRun, before: _Revision0, closed: BuildResult) -> _
     ground-truth map."""
     rev = closed.loop_revision
     with FrameStore.open(run.store_dir) as store:
-        view = store.map(0)
+        view = MapView.from_store(store, 0)
         diag1, corrected_points, frames_moved = None, None, 0
         if rev is not None:
             diag1, corrected_points, frames_moved = _apply_and_diagnose(run, store, view, rev, before)

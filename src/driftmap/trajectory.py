@@ -64,7 +64,8 @@ def stamp_s_to_ns(text: str) -> int:
         whole, _, frac = text.partition(".")
         value = int(whole or "0") * 1_000_000_000 + int((frac + "000000000")[:9] or "0")
     if value > _INT64_MAX:  # a stamp must fit the int64 ns every stamp is kept in
-        raise OverflowError(f"{text!r} s is beyond the int64 nanosecond range")
+        raise OverflowError(f"{text!r} s is beyond the int64 nanosecond range (year 2262): are the stamps in "
+                            f"nanoseconds or milliseconds? TUM and driftmap pose files give seconds")
     return -value if negative else value
 
 

@@ -124,7 +124,7 @@ def config_cmd(
 @app.command("synth")
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to (with --fleet: a folder of N log folders).")],
-    frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Number of frames (default: 60 in the room, 245 on the street; with --period-s, --stationary-start, --stops or turns: what the scene's speed needs).")] = None,
+    frames: Annotated[Optional[int], typer.Option("--frames", min=2, max=1_000_000, help="Number of frames (default: 60 in the room, 245 on the street; with --period-s, --stationary-start, --stops or turns: what the scene's speed needs).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 7,
     lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR (implied by --lidar-pattern rosette and --point-times).")] = False,
     yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", callback=finite, help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street).")] = None,
