@@ -346,3 +346,23 @@ def test_t3_w5_w17_w18_w19_messages_name_the_units_the_format_and_the_flag(tmp_p
     assert out.returncode == 2 and "--frames" in out.stderr and not (tmp_path / "x").exists()
     _line(_cli("demo", "--out", tmp_path / "dm", "--log", tmp_path / "missing"))
     assert not (tmp_path / "dm").exists()
+
+
+def test_t3_w20_a_store_creation_killed_before_its_manifest_is_no_dead_end(tmp_path: Path) -> None:
+    """A SIGKILL ~2 s into a build left only store.json.tmp: build, --resume and recover all refused the folder.
+    What an interrupted creation leaves (no manifest, no segment: nothing was stored) is cleared by the next build;
+    a folder with anything else in it is still refused."""
+    for resume in ((), ("--resume",)):
+        out = tmp_path / f"e{len(resume)}"
+        out.mkdir()
+        (out / "store.json.tmp").write_text("{}")
+        (out / "writer.lock").write_text("")
+        run = _cli("build", LOG, "--out", out, "--frames", "0:3", "--no-loop-closure", *resume)
+        assert run.returncode == 0, run.stderr
+        assert len(FrameStore.open(out)) == 3 and not (out / "store.json.tmp").exists()
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "store.json.tmp").write_text("{}")
+    (other / "notes.txt").write_text("mine")
+    assert "is not a driftmap store" in _line(_cli("build", LOG, "--out", other, "--frames", "0:3"))
+    assert sorted(p.name for p in other.iterdir()) == ["notes.txt", "store.json.tmp"]

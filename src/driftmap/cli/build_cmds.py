@@ -332,7 +332,9 @@ def build(
 
     format = _source_format(source, format)
     refuse_inside_store(out, "--out", output_is_store=True)  # --resume continues a store; none is made inside one
-    if out.is_dir() and not (out / MANIFEST).exists() and any(out.iterdir()):
+    from driftmap.store.frame_store import creation_leftovers
+
+    if out.is_dir() and not (out / MANIFEST).exists() and any(out.iterdir()) and not creation_leftovers(out):
         raise ConfigError(f"--out {out}: exists and is not a driftmap store (it is not empty: no {MANIFEST}); "
                           f"choose another --out, or empty the folder")
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)

@@ -44,13 +44,14 @@ from driftmap.errors import (
     EmptyStoreError,
     FrameRejectedError,
     GeometryError,
+    StoreCorruptError,
     StoreError,
     parse_enum,
 )
 from driftmap.frame import Frame, PoseEstimate, PoseSource
-from driftmap.store.damage import DataLoss, RecoveryEvent, StoreCorruptError
+from driftmap.store.damage import DataLoss, RecoveryEvent
 from driftmap.store.guards import READ_HINT, RECOVER_HINT, RESUME_HINT, refuse_inside_store, store_io_error
-from driftmap.store.layout import FORMAT_NAME, LOCK_FILE, MANIFEST, SEGMENT_FILE
+from driftmap.store.layout import FORMAT_NAME, LOCK_FILE, MANIFEST, SEGMENT_FILE, TMP_SUFFIX
 from driftmap.store.ledger import (
     SAME_POSE_DEG,
     SAME_POSE_M,
@@ -113,6 +114,23 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 
+
+def creation_leftovers(path: str | Path) -> list[Path]:
+    """The files of a store creation that was killed before its manifest was renamed into place (``store.json.tmp``,
+    ``writer.lock``), when the folder holds nothing else: no frame was ever stored, so they may be removed.
+    Empty for any other folder."""
+    path = Path(path)
+    own = {MANIFEST + TMP_SUFFIX, LOCK_FILE}
+    try:
+        if not path.is_dir():
+            return []
+        entries = list(path.iterdir())
+    except OSError:
+        return []
+    if not entries or any(p.name not in own or not p.is_file() for p in entries):
+        return []
+    return sorted(entries)
+
 class FrameStore:
     """Every frame with the pose estimate that produced it, plus every pose revision; nothing overwritten.
 
@@ -150,6 +168,12 @@ class FrameStore:
         try:
             if path.exists() and not path.is_dir():
                 raise StoreError(f"{path}: exists and is a file, not a store directory")
+            leftovers = creation_leftovers(path)
+            if leftovers:  # a create killed before its manifest was in place: no frame was ever stored
+                logger.warning("%s: removing what an interrupted store creation left (%s)", path,
+                               ", ".join(p.name for p in leftovers))
+                for p in leftovers:
+                    p.unlink()
             if path.exists() and any(path.iterdir()):
                 raise StoreError(f"{path}: exists and is not empty; open it instead of creating it")
         except OSError as exc:
@@ -379,14 +403,6 @@ class FrameStore:
         A path inside a store folder is refused; the file is written under a temporary name and renamed into
         place."""
         return export_trajectory(self, file, revision=revision, format=format)
-
-    # ------------------------------------------------------------------------------------------ maps
-
-    def map(self, revision: int | None = None) -> Any:
-        """A :class:`driftmap.map.view.MapView` of this store's frames in ``revision`` (default head)."""
-        from driftmap.map.view import MapView
-
-        return MapView.from_store(self, self.head if revision is None else revision)
 
     # ------------------------------------------------------------------------------------------ closing
 
