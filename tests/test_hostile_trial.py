@@ -366,3 +366,36 @@ def test_t3_w20_a_store_creation_killed_before_its_manifest_is_no_dead_end(tmp_p
     (other / "notes.txt").write_text("mine")
     assert "is not a driftmap store" in _line(_cli("build", LOG, "--out", other, "--frames", "0:3"))
     assert sorted(p.name for p in other.iterdir()) == ["notes.txt", "store.json.tmp"]
+
+
+def test_t3_w7_a_flipped_bit_inside_an_mcap_is_an_error_with_the_way_out_not_data(tmp_path: Path) -> None:
+    """20 flipped bytes inside an MCAP: in a zstd chunk --lenient gave the bare ZstdError and no way forward; in an
+    uncompressed payload the damaged depth image was stored without a word (chunk CRCs were not checked). Both are
+    now an error naming the file, with what --lenient does and how to salvage the intact chunks; nothing is stored."""
+    mcap = tmp_path / "log.mcap"
+    assert _cli("convert", LOG, mcap, "--frames", "0:6").returncode == 0
+    data = mcap.read_bytes()
+    for k, offset in enumerate((len(data) // 3, len(data) // 2)):
+        flipped = bytearray(data)
+        flipped[offset:offset + 20] = bytes(b ^ 0xFF for b in flipped[offset:offset + 20])
+        bad = tmp_path / f"flip{k}.mcap"
+        bad.write_bytes(bytes(flipped))
+        line = _line(_cli("build", bad, "--out", tmp_path / f"st{k}", "--lenient", "--no-loop-closure"))
+        assert f"{bad}: damaged MCAP data" in line and "mcap recover" in line, line
+        assert not (tmp_path / f"st{k}").exists()
+
+
+def test_t3_w21_export_never_replaces_what_the_store_was_built_from(sevens: dict, tmp_path: Path) -> None:
+    """export --trajectory SOURCE/poses.txt --overwrite replaced the data set's own ground truth (a later
+    --poses-from-source build then failed); now any output inside the recorded source folder, or on the --poses file
+    a store was built with, is refused, --overwrite or not."""
+    folder = sevens["folder"]
+    before = {p.name: p.read_bytes() for p in folder.iterdir()}
+    line = _line(_cli("export", sevens["store"], "--trajectory", folder / "frame-000000.pose.txt", "--overwrite"))
+    assert "would replace the source it was built from" in line
+    store = tmp_path / "st"
+    assert _cli("build", folder, "--out", store, "--poses", sevens["gt"], "--no-loop-closure").returncode == 0
+    gt = sevens["gt"].read_bytes()
+    line = _line(_cli("export", store, "--trajectory", sevens["gt"], "--overwrite"))
+    assert "would replace the --poses file it was built with" in line and sevens["gt"].read_bytes() == gt
+    assert {p.name: p.read_bytes() for p in folder.iterdir()} == before

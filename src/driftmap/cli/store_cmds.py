@@ -143,6 +143,7 @@ def export(
     if map_path is not None and voxel_size_m is not None:
         outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
     refuse_same_output([(p, f) for p, f in outputs if p is not None])
+    _refuse_store_inputs(store_path, [(p, f) for p, f in outputs if p is not None])
     for path, flag in outputs:  # every output checked before anything is written
         if path is not None:
             refuse_existing(path, flag, overwrite)
@@ -177,6 +178,20 @@ def export(
                 )
             console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
                           f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
+
+
+def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:
+    """No export replaces what the store was built from (its source, a file in its source folder, its --poses or
+    --calib file), --overwrite or not: ``--resume`` and ``--poses-from-source`` read them again."""
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.resume import recorded_inputs
+
+    for source, what in recorded_inputs(store_path):
+        src = source.resolve()
+        for path, flag in outputs:
+            dst = path.resolve()
+            if dst == src or (src.is_dir() and src in dst.parents):
+                raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
 
 
 def _band(text: Optional[str]) -> Optional[tuple[float, float]]:

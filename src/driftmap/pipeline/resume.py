@@ -187,3 +187,23 @@ def _sha256(path: Path) -> str | None:
         return hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError:
         return None
+
+
+def recorded_inputs(store_path: str | Path) -> list[tuple[Path, str]]:
+    """What the store at ``store_path`` was built from, as ``build_source.json`` records it: ``(path, what)`` for the
+    source (a folder or a log) and any pose / calibration file (empty when nothing is recorded or it is unreadable).
+    An export must not replace them: ``--resume`` and ``--poses-from-source`` read them again."""
+    try:
+        record = json.loads((Path(store_path) / BUILD_SOURCE_FILE).read_text())
+    except (OSError, ValueError):
+        return []
+    if not isinstance(record, dict):
+        return []
+    out = []
+    if isinstance(record.get("path"), str):
+        out.append((Path(record["path"]), "the source it was built from"))
+    poses = record.get("poses") if isinstance(record.get("poses"), dict) else {}
+    for key, what in (("file", "the --poses file it was built with"), ("calib", "the --calib file it was built with")):
+        if isinstance(poses.get(key), str):
+            out.append((Path(poses[key]), what))
+    return out

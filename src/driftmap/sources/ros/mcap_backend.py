@@ -21,6 +21,10 @@ from driftmap.sources.ros.msgtypes import FORMAT_MCAP, MCAP_MAGIC, normalize_typ
 logger = logging.getLogger(__name__)
 
 
+DAMAGED_INSIDE_HINT = ("the damage is inside the file (a chunk that does not decompress or parse), which --lenient does "
+                       "not skip (it reads past a truncated end only); the mcap CLI's `mcap recover FILE -o FIXED.mcap` "
+                       "salvages the intact chunks")
+
 class McapBackend(Backend):
     """``mcap`` reader + ``mcap_ros2`` decoder; an in-memory catalogue for files without a usable summary."""
 
@@ -38,7 +42,7 @@ class McapBackend(Backend):
             raise SourceError(f"{path}: cannot open MCAP file ({exc})") from exc
         self._size = path.stat().st_size
         try:
-            self._reader = SeekingReader(self._file)
+            self._reader = SeekingReader(self._file, validate_crcs=True)  # a flipped bit is an error, not data
         except Exception as exc:  # McapError, or whatever a damaged magic / header makes the parser raise
             self._file.close()
             raise SourceError(f"{path}: not an MCAP file ({type(exc).__name__}: {exc})") from exc
@@ -70,7 +74,7 @@ class McapBackend(Backend):
 
         memory: dict[str, list[tuple[int, int, Any, Any, Any]]] = {}
         self._file.seek(0)
-        reader = StreamReader(self._file, skip_magic=False)
+        reader = StreamReader(self._file, skip_magic=False, validate_crcs=True)
         readable_to = len(MCAP_MAGIC)
         seq = 0
         try:
@@ -162,7 +166,8 @@ class McapBackend(Backend):
             raise
         except Exception as exc:  # a chunk that does not parse or decompress
             raise SourceError(
-                f"{self.path}: damaged MCAP data while reading {', '.join(topics)} ({type(exc).__name__}: {exc})"
+                f"{self.path}: damaged MCAP data while reading {', '.join(topics)} ({type(exc).__name__}: {exc}); "
+                f"{DAMAGED_INSIDE_HINT}"
             ) from exc
 
     def decoder(self, topic: str, channel: Any, schema: Any) -> Any:
@@ -219,7 +224,8 @@ class McapBackend(Backend):
             raise
         except Exception as exc:  # the mcap parser raises many types for a damaged record
             raise SourceError(
-                f"{self.path}: damaged MCAP data while reading {what} ({type(exc).__name__}: {exc})"
+                f"{self.path}: damaged MCAP data while reading {what} ({type(exc).__name__}: {exc}); "
+                f"{DAMAGED_INSIDE_HINT}"
             ) from exc
 
     def log_times(self, topic: str) -> NDArray[np.int64]:
@@ -245,7 +251,7 @@ class McapBackend(Backend):
                 if offset is None:
                     continue
                 self._file.seek(offset)
-                record = next(iter(StreamReader(self._file, skip_magic=True).records))
+                record = next(iter(StreamReader(self._file, skip_magic=True, validate_crcs=True).records))
                 if not isinstance(record, MessageIndex):
                     raise SourceError(
                         f"{self.path}: expected a message index at byte offset {offset}, found {type(record).__name__}"
