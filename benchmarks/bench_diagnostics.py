@@ -23,6 +23,7 @@ from driftmap.datasets import shared_datasets_dir
 from driftmap.diagnostics import perturb
 from driftmap.diagnostics.double_wall import DiagnosticCloud, detect_double_walls, map_entropy
 from driftmap.diagnostics.report import diagnose_store
+from driftmap.map.view import MapView
 from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.store.frame_store import FrameStore
 
@@ -54,7 +55,7 @@ def run(quick: bool = False) -> list[dict]:
             for frame in source:
                 store.append(frame)
         store = FrameStore.open(path)
-        n_map = store.map(0).n_points
+        n_map = MapView.from_store(store, 0).n_points
         cloud = DiagnosticCloud.from_store(store)
         base = store.poses(0)
         k = int(np.searchsorted(cloud.frame_ids, 500))

@@ -115,7 +115,7 @@ def run(quick: bool = False) -> list[dict]:
         memory = {mode: measure_memory(path, mode) for mode in ("default", "resident")}
         rss_ratio = {mode: (m["peak"] - m["baseline"]) / (m["n_points"] * 12) for mode, m in memory.items()}
         store = FrameStore.open(path, verify=False)
-        view = store.map(1)
+        view = MapView.from_store(store, 1)
         n_points = view.n_points
         check(n_points == N_FRAMES * POINTS_PER_FRAME, f"map has {n_points} points")
         # correctness first: the re-transformed map equals numpy's float64 transform of the sensor points
@@ -255,7 +255,7 @@ def run(quick: bool = False) -> list[dict]:
                 store.append(processed(i, gt[i]))
             store.add_revision({i: T @ random_poses(7, 1, 0.02)[0] for i, T in gt.items()}, source="external_file")
         store = FrameStore.open(Path(tmp) / "kitchen", verify=False)
-        view = store.map(0)
+        view = MapView.from_store(store, 0)
         flip = {"rev": 0}
 
         def correct(_):

@@ -30,7 +30,7 @@ from PIL import Image
 
 from driftmap import PinholeIntrinsics, backproject
 from driftmap.datasets import ENV_VAR, shared_datasets_dir
-from driftmap.sources.mcap_export import write_depth_image_mcap
+from driftmap.export.depth_log import write_depth_image_mcap
 from driftmap.sources.ros import RosLogSource
 
 SCENE = "7scenes-redkitchen"

@@ -180,7 +180,7 @@ def write_ros_messages(path: Path, kind: str, messages: list[tuple[str, str, dic
         from mcap.writer import CompressionType
         from mcap_ros2.writer import Writer
 
-        from driftmap.sources.mcap_export import ros2_msgdef
+        from driftmap.export.ros_messages import ros2_msgdef
 
         with open(path, "wb") as f:
             writer = Writer(f, compression=CompressionType.NONE)

@@ -535,8 +535,8 @@ def test_fuzz_found_pointcloud2_layouts(layout: dict, message: str, tmp_path: Pa
 
 def test_fuzz_found_a_camera_info_that_back_projects_to_infinity(sevenscenes_dir: Path, tmp_path: Path) -> None:
     """A CameraInfo with cx = 1e300 was accepted (it is finite) and gave frames whose points were -inf."""
+    from driftmap.export.depth_log import write_depth_image_mcap
     from driftmap.frame import PinholeIntrinsics
-    from driftmap.sources.mcap_export import write_depth_image_mcap
 
     depth = np.asarray(Image.open(sevenscenes_dir / "frame-000000.depth.png"))
     for cx, ok in ((320.0, True), (1e300, False), (-700.0, False)):
@@ -553,7 +553,7 @@ def test_fuzz_found_a_schema_without_the_standard_fields(tmp_path: Path) -> None
     """An MCAP whose TFMessage schema lacks child_frame_id decoded into messages without it: an AttributeError."""
     from mcap_ros2.writer import Writer
 
-    from driftmap.sources.mcap_export import ros2_msgdef
+    from driftmap.export.ros_messages import ros2_msgdef
 
     xyz = np.arange(30, dtype=np.float32).reshape(10, 3)
     messages = ros_log_messages([(LOG_STAMP0_NS, xyz, np.zeros(10, np.float32))], [np.eye(4)], np.eye(4))
@@ -818,8 +818,8 @@ def test_a_pointcloud2_header_stamp_nanosec_beyond_a_second_is_refused(kitti_dir
 
 
 def test_a_depth_image_header_stamp_nanosec_beyond_a_second_is_refused(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    from driftmap.export.ros_messages import camera_info_msg, depth_image_msg
     from driftmap.frame import PinholeIntrinsics
-    from driftmap.sources.mcap_export import camera_info_msg, depth_image_msg
 
     K = PinholeIntrinsics(585.0, 585.0, 320.0, 240.0, 640, 480)
     messages = []

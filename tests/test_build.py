@@ -18,6 +18,7 @@ from driftmap.demo import LOOP_WALL, embedded_log_path
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.diagnostics.walls import wall_spread
 from driftmap.errors import StoreError
+from driftmap.map.view import MapView
 from driftmap.pipeline.build import BuildConfig, build
 from driftmap import geometry
 from driftmap.registration.loops import LoopClosureConfig, make_keyframe, proximity_candidates
@@ -104,9 +105,9 @@ def test_loop_closure_closes_the_synthetic_loop(tmp_path: Path) -> None:
         after = trajectory_errors(store.poses(), gt).ate_rmse_m
         assert after < 0.6 * before
         # the doubled loop wall is single again: as thin as in the ground-truth map
-        spread_before = wall_spread(store.map(0).points_world, **LOOP_WALL).median_m
-        spread_after = wall_spread(store.map().points_world, **LOOP_WALL).median_m
-        gt_view = store.map(0)
+        spread_before = wall_spread(MapView.from_store(store, 0).points_world, **LOOP_WALL).median_m
+        spread_after = wall_spread(MapView.from_store(store, store.head).points_world, **LOOP_WALL).median_m
+        gt_view = MapView.from_store(store, 0)
         gt_view.apply(-1, poses=gt)
         spread_gt = wall_spread(gt_view.points_world, **LOOP_WALL).median_m
     assert spread_before > 2.5 * spread_gt

@@ -68,7 +68,7 @@ def test_a_correction_re_deskews_as_a_rebuild_from_the_corrected_trajectory(tmp_
         for fid in gt_store.frame_ids:
             store.append(gt_store.frame(int(fid)))
     store = FrameStore.open(path, "a")
-    view = store.map(0)
+    view = MapView.from_store(store, 0)
     before = view.points_world.copy()
     # move one frame only: its neighbour's scan motion changes with it, so the neighbour is re-deskewed too
     ids = store.frame_ids

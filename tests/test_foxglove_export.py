@@ -18,10 +18,11 @@ from scipy.spatial.transform import Rotation
 from driftmap import ConfigError, StoreError, __version__
 from driftmap.demo import embedded_log_path
 from driftmap.diagnostics.double_wall import DoubleWallRegion, DoubleWallResult
-from driftmap.map.foxglove_export import export_foxglove_mcap
+from driftmap.errors import ExportError
+from driftmap.export.foxglove import export_foxglove_mcap
+from driftmap.map.view import MapView
 from driftmap.pipeline.build import build
 from driftmap.preprocess.cloud import voxel_downsample
-from driftmap.sources.mcap_export import ExportError
 from driftmap.store.frame_store import FrameStore
 
 MAP_VOXEL_M = 0.02
@@ -145,7 +146,7 @@ def test_map_is_the_fused_map_of_the_revision_and_lies_on_the_frames(exported, s
     assert message.log_time == cloud.timestamp.ToNanoseconds() == int(store.ledger.stamps_ns.min())
     cols = decode_cloud(cloud)
     points = np.stack([cols["x"], cols["y"], cols["z"]], axis=1)
-    fused = store.map(1).fused(MAP_VOXEL_M)
+    fused = MapView.from_store(store, 1).fused(MAP_VOXEL_M)
     assert points.tobytes() == fused.points_world.astype("<f4").tobytes()
     assert np.array_equal(cols["n_frames"], fused.n_frames_per_point().astype(np.float32))
     first = np.array([fused.frames_of(i).min() for i in range(len(fused.points_world))], dtype=np.float32)

@@ -32,6 +32,7 @@ from test_store import assert_frames_identical
 
 from driftmap import Frame, PointAttributes, PoseEstimate, PoseSource
 from driftmap.errors import DriftmapError
+from driftmap.map.view import MapView
 from driftmap.store import segment as segment_module
 from driftmap.store.frame_store import FrameStore
 
@@ -126,7 +127,7 @@ def _read_everything(path: Path, template: Template, *, verify: bool = True) -> 
                     assert_frames_identical(frame, template.frames[int(fid)])
             for rev in store.revisions:
                 store.poses(rev.revision_id)
-            view = store.map(store.head)
+            view = MapView.from_store(store, store.head)
             view.points_world.sum()
             return store
     except DriftmapError:
@@ -159,7 +160,7 @@ def _assert_true_to_the_originals(path: Path, template: Template, must_keep: set
                 r = store.ledger.revision(r).parent_id
             if rev.revision_id in template.poses and not set(chain) & set(store.loss.revision_ids):
                 assert store.poses(rev.revision_id).tobytes() == template.poses[rev.revision_id][order].tobytes()
-        store.map(store.head)
+        MapView.from_store(store, store.head)
 
 
 def _recover_and_check(path: Path, template: Template, must_keep: set[int]) -> None:
@@ -352,7 +353,7 @@ def test_a_frame_record_holding_nonsense(template: Template, data: st.DataObject
                         continue
                     if int(fid) in template.frames:
                         assert_frames_identical(frame, template.frames[int(fid)])
-                store.map(store.head)
+                MapView.from_store(store, store.head)
         except DriftmapError:
             pass
         try:
@@ -365,7 +366,7 @@ def test_a_frame_record_holding_nonsense(template: Template, data: st.DataObject
                 frame = store.frame(int(fid))  # no error left after recovery
                 if int(fid) in template.frames:
                     assert_frames_identical(frame, template.frames[int(fid)])
-            store.map(store.head)
+            MapView.from_store(store, store.head)
         assert FrameStore.recover(path) == []
 
 

@@ -266,7 +266,7 @@ def test_scans_from_a_converted_mcap_keep_their_kitti_sequence(kitti_dir: Path, 
     converts the data set's cam0 ``poses.txt`` in ``auto`` as a store built from the folder does (build,
     correct, diagnose). When the sequence folder is gone, the rows are taken as they are with the camera-motion
     warning (it was silent), and ``--kitti-frame cam0 --calib`` still converts them."""
-    from driftmap.sources.mcap_export import convert
+    from driftmap.export.mcap import convert
     from driftmap.sources.ros import read_export_origin
 
     seq = tmp_path / "seq"

@@ -58,7 +58,7 @@ def reference_map(frames: list[Frame], poses: np.ndarray) -> np.ndarray:
 
 def test_map_is_exact_after_a_chain_of_corrections_and_a_rollback(kitchen_store: FrameStore, kitchen_frames: list[Frame]) -> None:
     store = kitchen_store
-    view = store.map()
+    view = MapView.from_store(store, store.head)
     np.testing.assert_allclose(view.points_world, reference_map(kitchen_frames, store.poses(0)), atol=1e-6, rtol=0)
     gt = store.poses(0)
     ids = [int(i) for i in store.frame_ids]
@@ -75,13 +75,13 @@ def test_map_is_exact_after_a_chain_of_corrections_and_a_rollback(kitchen_store:
         assert np.max(np.abs(view.points_world - expected)) <= 1e-6
     # the rollback restored revision 1 bit for bit, and a view built from scratch equals the incremental one
     assert store.poses(back.revision_id).tobytes() == store.poses(rev1.revision_id).tobytes()
-    fresh = store.map(rev5.revision_id)
+    fresh = MapView.from_store(store, rev5.revision_id)
     assert fresh.points_world.tobytes() == view.points_world.tobytes()
 
 
 def test_changed_regions_contain_exactly_the_moved_points(kitchen_store: FrameStore) -> None:
     store = kitchen_store
-    view = store.map()
+    view = MapView.from_store(store, store.head)
     before = view.points_world.copy()
     owner = view.point_frame_ids()
     ids = [int(i) for i in store.frame_ids]
@@ -117,7 +117,7 @@ def test_changed_regions_contain_exactly_the_moved_points(kitchen_store: FrameSt
 
 def test_incremental_apply_touches_only_changed_frames(kitchen_store: FrameStore) -> None:
     store = kitchen_store
-    view = store.map()
+    view = MapView.from_store(store, store.head)
     rev = store.add_revision({int(store.frame_ids[0]): np.eye(4)}, source="external_file", propagate=False)
     changes = view.apply(rev.revision_id)
     assert changes.frame_ids.tolist() == [int(store.frame_ids[0])]
@@ -125,7 +125,7 @@ def test_incremental_apply_touches_only_changed_frames(kitchen_store: FrameStore
 
 
 def test_queries_agree_with_brute_force(kitchen_store: FrameStore) -> None:
-    view = kitchen_store.map()
+    view = MapView.from_store(kitchen_store, kitchen_store.head)
     pts = view.points_world.astype(np.float64)
     owner = view.point_frame_ids()
     center = pts[12345]
@@ -146,7 +146,7 @@ def test_queries_agree_with_brute_force(kitchen_store: FrameStore) -> None:
 
 
 def test_fused_export_with_provenance_and_roi(kitchen_store: FrameStore, tmp_path: Path) -> None:
-    view = kitchen_store.map()
+    view = MapView.from_store(kitchen_store, kitchen_store.head)
     pts = view.points_world
     owner = view.point_frame_ids()
     roi = BoxROI(min_m=tuple(pts[500] - 0.1), max_m=tuple(pts[500] + 0.1), in_world=True)
@@ -183,7 +183,7 @@ def test_strided_sources_with_attributes_transform_exactly(tmp_path: Path, kitch
                                                        time_offset_ns=rng.integers(0, 10**6, f.n_points)))
     with FrameStore.create(tmp_path / "s") as store:
         store.append(g)
-        view = store.map()
+        view = MapView.from_store(store, store.head)
         assert store.frame_ref(g.frame_id).point_stride > 12
         np.testing.assert_allclose(view.points_world, geometry.transform_points(g.T_world_sensor, g.points_sensor), atol=1e-6)
 
@@ -207,7 +207,7 @@ def test_read_mapped_and_in_memory_sources_give_the_same_map(kitchen_store: Fram
     rev = store.add_revision({int(i): T @ P for i, T, P in zip(store.frame_ids, store.poses(0),
                                                                  perturbation(4, len(store.frame_ids), 0.05))},
                              source="external_file")
-    read = store.map(0)
+    read = MapView.from_store(store, 0)
     mapped = MapView.from_store(store, 0, release_pages=False)
     memory = MapView.from_frames(kitchen_frames)
     for revision in (0, rev.revision_id, 0):
@@ -230,7 +230,7 @@ def test_boxes_leave_out_points_with_nan_coordinates(tmp_path: Path, kitchen_fra
     g = f.with_points(pts)
     with FrameStore.create(tmp_path / "nan") as store:
         store.append(g)
-        for view in (store.map(), MapView.from_store(store, 0, release_pages=False), MapView.from_frames([g])):
+        for view in (MapView.from_store(store, store.head), MapView.from_store(store, 0, release_pages=False), MapView.from_frames([g])):
             world = view.points_world
             assert np.isnan(world[bad]).any(axis=1).all()
             good = np.delete(np.arange(len(pts)), bad)
@@ -248,7 +248,7 @@ def test_a_segment_truncated_under_an_open_map_raises_and_the_map_recovers(tmp_p
         rev = store.add_revision({f.frame_id: f.T_world_sensor @ P for f, P in zip(frames, perturbation(6, 4, 0.05))},
                                  source="external_file")
     store = FrameStore.open(tmp_path / "t")
-    view = store.map(0)
+    view = MapView.from_store(store, 0)
     last = store.frame_ref(frames[-1].frame_id)
     segment = last.segment
     original = segment.read_bytes()
@@ -278,7 +278,7 @@ def test_a_failed_read_in_one_segment_leaves_no_frame_of_a_later_segment_silentl
     store = FrameStore.open(tmp_path / "t")
     first, last = store.frame_ref(frames[0].frame_id), store.frame_ref(frames[-1].frame_id)
     assert first.segment != last.segment
-    view = store.map(0)
+    view = MapView.from_store(store, 0)
     original = first.segment.read_bytes()
     with open(first.segment, "r+b") as fh:
         fh.truncate(first.payload_offset + 1000)
@@ -301,7 +301,7 @@ def test_nan_points_stay_out_of_fused_voxels_and_changed_voxel_keys(tmp_path: Pa
         store.append(g)
         store.append(Frame(frame_id=99, stamp_ns=g.stamp_ns + 1, sensor_name=g.sensor_name, sensor_kind=g.sensor_kind,
                            points_sensor=np.full((4, 3), np.nan, np.float32), pose=g.pose))  # nothing but NaN
-        view, ref = store.map(), MapView.from_frames([clean])
+        view, ref = MapView.from_store(store, store.head), MapView.from_frames([clean])
         fused, expected = view.fused(0.05), ref.fused(0.05)
         assert np.all(np.isfinite(fused.points_world))
         np.testing.assert_allclose(fused.points_world, expected.points_world, atol=1e-6)
@@ -496,7 +496,7 @@ def query_mode(request, monkeypatch: pytest.MonkeyPatch) -> str:
 
 
 def test_compiled_queries_equal_numpy_on_real_frames(kitchen_store: FrameStore, query_mode: str) -> None:
-    view = kitchen_store.map()
+    view = MapView.from_store(kitchen_store, kitchen_store.head)
     pts = view.points_world
     rng = np.random.default_rng(11)
     boxes = []
@@ -590,7 +590,7 @@ def test_compiled_queries_equal_numpy_on_random_grids(query_mode: str) -> None:
 
 
 def test_height_band_filters_nearest_and_the_queries(kitchen_store: FrameStore, query_mode: str) -> None:
-    view = kitchen_store.map()
+    view = MapView.from_store(kitchen_store, kitchen_store.head)
     pts = view.points_world
     z_lo, z_hi = np.quantile(pts[:, 2], [0.55, 0.7])
     band = (float(z_lo), float(z_hi))
@@ -640,7 +640,7 @@ def test_queries_follow_corrections_rollbacks_and_new_frames(tmp_path: Path, kit
     with FrameStore.create(tmp_path / "q") as store:
         for f in kitchen_frames[:12]:
             store.append(f)
-        view = store.map()
+        view = MapView.from_store(store, store.head)
         ids = [int(i) for i in store.frame_ids]
         check_queries(view, view.frame_points_world(ids[4])[100].astype(np.float64))
         shift = np.eye(4)
@@ -670,7 +670,7 @@ def test_queries_after_a_failed_read_see_the_points_the_map_holds(tmp_path: Path
             store.append(f)
         rev = store.add_revision({f.frame_id: shift @ f.T_world_sensor for f in frames}, source="external_file")
     store = FrameStore.open(tmp_path / "t")
-    view = store.map(0)
+    view = MapView.from_store(store, 0)
     around = view.frame_points_world(frames[1].frame_id)[10].astype(np.float64)
     assert_same_result(view.query_box(around - 0.2, around + 0.2), reference_box(view, around - 0.2, around + 0.2))
     last = store.frame_ref(frames[-1].frame_id)

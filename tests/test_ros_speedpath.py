@@ -18,9 +18,10 @@ from mcap_ros2.writer import Writer as Ros2McapWriter
 from PIL import Image
 
 from driftmap import PinholeIntrinsics, PoseEstimate, PoseSource, Provenance, SourceError, depth_frame
+from driftmap.export.depth_log import write_depth_image_mcap
+from driftmap.export.ros_messages import ros2_msgdef
 from driftmap.frame import Frame, FrameQuality
 from driftmap.preprocess.depth import InvalidFractionMonitor
-from driftmap.sources.mcap_export import ros2_msgdef, write_depth_image_mcap
 from driftmap.sources.ros import RosLogSource, StampSource, provenance_uri
 
 K = PinholeIntrinsics(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)

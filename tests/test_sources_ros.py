@@ -29,15 +29,12 @@ from driftmap import (
     depth_frame,
     geometry,
 )
+from driftmap.errors import ExportError
+from driftmap.export.depth_log import write_depth_image_mcap
+from driftmap.export.mcap import convert, export_mcap
+from driftmap.export.ros_messages import ros2_msgdef
 from driftmap.frame import Frame, SensorKind
 from driftmap.sources.base import open_source
-from driftmap.sources.mcap_export import (
-    ExportError,
-    convert,
-    export_mcap,
-    ros2_msgdef,
-    write_depth_image_mcap,
-)
 from driftmap.sources.ros import (
     PointTimeReference,
     RosLogSource,

@@ -36,14 +36,15 @@ from driftmap.errors import (
     DriftmapError,
     EmptyExportError,
     EmptyStoreError,
+    ExportError,
     FrameRejectedError,
     OutputInsideStoreError,
     OutputWriteError,
     StoreError,
     StoreIOError,
 )
-from driftmap.map.foxglove_export import export_foxglove_mcap
-from driftmap.sources.mcap_export import ExportError
+from driftmap.export.foxglove import export_foxglove_mcap
+from driftmap.map.view import MapView
 from driftmap.store import refuse_inside_store
 from driftmap.store import segment as segment_module
 from driftmap.store.frame_store import FrameStore
@@ -185,7 +186,7 @@ def test_nan_points_are_stored_as_given(tmp_path: Path) -> None:
         store.append(f)
     assert_store_holds(tmp_path / "s", [f])
     with FrameStore.open(tmp_path / "s") as store:
-        world = store.map(0).points_world
+        world = MapView.from_store(store, 0).points_world
         assert len(world) == len(pts) and np.isnan(world).any(axis=1).sum() == 3
 
 
@@ -274,7 +275,7 @@ def test_library_writers_refuse_to_write_into_a_store(store3: tuple[Path, list[F
         with pytest.raises(OutputInsideStoreError):
             store.export_trajectory(path / "store.json")
         with pytest.raises(OutputInsideStoreError):
-            store.map(0).write(path / "segment-000000.ply")
+            MapView.from_store(store, 0).write(path / "segment-000000.ply")
         traj = Trajectory(store.ledger.stamps_ns.copy(), store.poses(0), store.frame_ids.copy())
     write_tum(tmp := path.parent / "t.tum", traj)  # the pose-file writers sit below the store: their callers check
     with pytest.raises(OutputInsideStoreError):
@@ -373,7 +374,7 @@ def test_reading_needs_no_write_access(read_only_store, tmp_path: Path) -> None:
     with FrameStore.open(path) as store:
         for f in frames:
             assert_frames_identical(store.frame(f.frame_id), f)
-        view = store.map(0)
+        view = MapView.from_store(store, 0)
         assert len(view.points_world) == sum(f.n_points for f in frames)
         store.export_trajectory(tmp_path / "out.tum")  # outputs outside the store are fine
         view.write(tmp_path / "map.ply")
@@ -629,7 +630,7 @@ def test_exports_of_an_empty_store_are_typed_errors_and_write_nothing(tmp_path: 
         with pytest.raises(EmptyStoreError, match=rf"store {path} has no frames in revision 0"):
             store.export_trajectory(out / "t.tum")
         with pytest.raises(EmptyStoreError, match=rf"store {path} has no frames in revision 0"):
-            store.map(0).write(out / "m.ply")
+            MapView.from_store(store, 0).write(out / "m.ply")
         with pytest.raises(EmptyStoreError, match=rf"store {path} has no frames in revision 0") as err:
             export_foxglove_mcap(store, out / "x.mcap")
         assert isinstance(err.value, ExportError)  # as before
@@ -642,7 +643,7 @@ def test_a_map_without_a_finite_point_is_not_exported(tmp_path: Path) -> None:
     with FrameStore.create(tmp_path / "s") as store:
         store.append(f)
         with pytest.raises(EmptyExportError, match="no point to write"):
-            store.map(0).write(tmp_path / "m.ply")
+            MapView.from_store(store, 0).write(tmp_path / "m.ply")
     assert not (tmp_path / "m.ply").exists()
     with pytest.raises(EmptyExportError):
         write_tum(tmp_path / "t.tum", Trajectory(np.zeros(0, np.int64), np.zeros((0, 4, 4))))
@@ -657,7 +658,7 @@ def test_failed_exports_leave_no_partial_file_and_keep_the_old_one(store3: tuple
                                                                   monkeypatch: pytest.MonkeyPatch) -> None:
     import open3d as o3d
 
-    from driftmap.map import foxglove_export
+    from driftmap.export import foxglove as foxglove_export
 
     path, _ = store3
     out = tmp_path / "out"
@@ -682,7 +683,7 @@ def test_failed_exports_leave_no_partial_file_and_keep_the_old_one(store3: tuple
     with FrameStore.open(path) as store:
         monkeypatch.setattr(o3d.io, "write_point_cloud", broken_ply)
         with pytest.raises(DriftmapError, match="Open3D could not write"):
-            store.map(0).write(out / "map.ply", voxel_size_m=0.05, provenance=True)
+            MapView.from_store(store, 0).write(out / "map.ply", voxel_size_m=0.05, provenance=True)
         monkeypatch.setattr(Path, "write_text", disk_full)
         for name, fmt in (("traj.tum", "tum"), ("traj.txt", "kitti")):
             with pytest.raises(OutputWriteError) as err:
@@ -696,7 +697,7 @@ def test_failed_exports_leave_no_partial_file_and_keep_the_old_one(store3: tuple
         assert {p.name: p.read_bytes() for p in out.iterdir()} == old  # every old file intact, nothing else
         assert _leftovers(out) == []
         # and when nothing fails, the same calls replace them
-        store.map(0).write(out / "map.ply", voxel_size_m=0.05, provenance=True)
+        MapView.from_store(store, 0).write(out / "map.ply", voxel_size_m=0.05, provenance=True)
         store.export_trajectory(out / "traj.tum")
         export_foxglove_mcap(store, out / "x.mcap", overwrite=True)
         assert read_tum(out / "traj.tum").poses.tobytes() == store.poses(0).tobytes()

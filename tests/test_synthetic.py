@@ -297,7 +297,7 @@ def test_indoor_lidar_is_diagnosed_with_indoor_lengths(lidar_log: Path, tmp_path
           source_options={"sensor": "lidar"})
     with FrameStore.open(tmp_path / "gt") as store:
         np.testing.assert_allclose(store.poses(0), log.ground_truth().poses, rtol=0, atol=1e-6)  # TUM: 9 decimals
-    from driftmap.sources.mcap_export import convert
+    from driftmap.export.mcap import convert
 
     convert(lidar_log, tmp_path / "lidar.mcap", sensor="lidar")  # through an MCAP: the log is still known
     build(tmp_path / "lidar.mcap", tmp_path / "via_mcap", loop_closure=False)

@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree
 from driftmap import viewer
 from driftmap.demo import embedded_log_path
 from driftmap.errors import ConfigError, DriftmapError, StoreError
+from driftmap.map.view import MapView
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import ROOM_MAX_M
 from driftmap.store.frame_store import FrameStore
@@ -110,7 +111,7 @@ def test_revision_colouring_is_the_exact_per_point_displacement(store: FrameStor
     cm = colored_map(store, revision=1, color="revision")
     assert cm.reference_revision == 0
     # independent: the same point in the full maps of revision 0 and 1 (same order), moved by |p1 - p0|
-    p0, p1 = store.map(0).points_world, store.map(1).points_world
+    p0, p1 = MapView.from_store(store, 0).points_world, MapView.from_store(store, 1).points_world
     pick = np.random.default_rng(0).choice(cm.n_points, 2000, replace=False)
     dist, index = cKDTree(p1).query(cm.points_world[pick])
     assert np.all(dist == 0)

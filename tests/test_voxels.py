@@ -12,7 +12,7 @@ import pytest
 from driftmap import viewer
 from driftmap.diagnostics.surfaces import voxel_ids
 from driftmap.errors import ConfigError, GeometryError
-from driftmap.map.view import _packed_voxel_keys
+from driftmap.map.view import MapView, _packed_voxel_keys
 from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.store.frame_store import FrameStore
 from driftmap.voxels import (
@@ -49,7 +49,7 @@ def _reference_ids(points: np.ndarray, size_m: float) -> tuple[np.ndarray, np.nd
 
 
 def test_map_viewer_and_diagnostics_give_the_same_voxels_and_ids_on_real_points(few_frames: FrameStore) -> None:
-    view = few_frames.map(0)
+    view = MapView.from_store(few_frames, 0)
     pts = view.points_world
     pts = pts[np.isfinite(pts).all(axis=1)]
     ref_coords, ref_ids = _reference_ids(pts, VOXEL_M)
@@ -164,7 +164,7 @@ def test_dense_ids_and_first_per_key_equal_numpy_unique(span: int) -> None:
 
 
 def test_first_point_per_voxel_keeps_the_first_real_point_of_every_voxel(few_frames: FrameStore) -> None:
-    pts = few_frames.map(0).points_world
+    pts = MapView.from_store(few_frames, 0).points_world
     pts = pts[np.isfinite(pts).all(axis=1)]
     first = first_point_per_voxel(pts, VOXEL_M)
     _, ref_first = np.unique(np.floor(pts / VOXEL_M).astype(np.int64), axis=0, return_index=True)

@@ -7,6 +7,7 @@ Every error names what it is about (file, frame, field) in its message.
 from __future__ import annotations
 
 import enum
+from pathlib import Path
 from typing import TypeVar
 
 E = TypeVar("E", bound=enum.Enum)
@@ -49,8 +50,34 @@ class SourceError(DriftmapError):
     """A data source (log, data-set folder, file) cannot be read."""
 
 
+class NotACloudFile(SourceError):
+    """The file has no PCD / PLY header at all (``reason`` says what was found instead)."""
+
+    def __init__(self, file: Path, reason: str):
+        super().__init__(f"{file}: {reason}")
+        self.reason = reason
+
+
+class TfError(SourceError):
+    """A transform cannot be looked up: unknown frame, no path between two frames, or no data at a time."""
+
+
 class StoreError(DriftmapError):
     """The frame store or pose ledger rejected an operation or is damaged."""
+
+
+class StoreCorruptError(StoreError):
+    """A store file is truncated or damaged; names the file and the byte offset."""
+
+    def __init__(self, message: str, *, path: Path, offset: int | None):
+        super().__init__(message)
+        self.path = path
+        self.offset = offset
+
+
+class PoseGraphError(DriftmapError):
+    """A pose graph is malformed (unknown key, bad information matrix, unreadable g2o file) or GTSAM failed
+    on it (indeterminate linear system, an ISAM2 node with no constraint to the graph)."""
 
 
 def parse_enum(kind: type[E], value: object, what: str, error: type[DriftmapError] = ConfigError) -> E:
@@ -108,6 +135,10 @@ class EmptyExportError(DriftmapError):
     """An export has nothing to write (no frames, no points); nothing was written."""
 
 
+class ExportError(DriftmapError):
+    """Frames cannot be written as requested (inconsistent frames, names, stamps)."""
+
+
 class EmptyStoreError(StoreError, EmptyExportError):
     """The store (or the revision asked for) has no frames, so an export or analysis has nothing to work on."""
 
@@ -115,6 +146,11 @@ class EmptyStoreError(StoreError, EmptyExportError):
         super().__init__(message)
         self.store = store
         self.revision = revision
+
+
+class EmptyStoreExportError(ExportError, EmptyStoreError):
+    """The store to export has no frames (an :class:`ExportError` as before, and an
+    :class:`~driftmap.errors.EmptyStoreError`)."""
 
 
 class OutputWriteError(DriftmapError, OSError):

@@ -46,7 +46,7 @@ from PIL import Image  # noqa: E402
 from driftmap.diagnostics.figures import TopViewFigure, plot_state_top_view, sensor_band_m, sensor_up  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
-from driftmap.map.view import POSE_EPSILON  # noqa: E402
+from driftmap.map.view import POSE_EPSILON, MapView  # noqa: E402
 from driftmap.preprocess.scene import LIDAR_OUTDOOR_P99_RANGE_M, scan_reach_m  # noqa: E402
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
@@ -217,7 +217,7 @@ def _check_revision(store: FrameStore, revision: int | None, what: str = "--revi
 def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_points: int,
                 seed: int) -> tuple[NDArray[np.float32], NDArray[np.int64], int]:
     """One real point per occupied voxel (chosen at random, so no frame is favoured), with its frame id."""
-    view = store.map(revision)
+    view = MapView.from_store(store, revision)
     rng = np.random.default_rng(seed)
     kept_p, kept_f, kept_k = [], [], []
     chunk: list[int] = []

@@ -289,7 +289,7 @@ class _OpenFiles:
 class MapView:
     """World points of a set of frames in one pose revision.
 
-    Build it with :meth:`FrameStore.map` (sensor points from the store's segments) or :meth:`from_frames`
+    Build it with :meth:`from_store` (sensor points from the store's segments) or :meth:`from_frames`
     (points held by the frames). ``revision`` is the revision currently materialised.
 
     ``release_pages=True`` (default): sensor points are read from the segment files (``pread``) into a small

@@ -12,6 +12,7 @@ import numpy as np
 from driftmap import geometry
 from driftmap.errors import ConfigError
 from driftmap.frame import Frame, PoseSource, SensorKind
+from driftmap.map.view import MapView
 from driftmap.pipeline.build_config import BuildConfig, BuildResult, ProgressCallback
 from driftmap.pipeline.resume import recorded_odometry
 from driftmap.posegraph import PoseGraph, PoseGraphResult, RobustKernel
@@ -271,7 +272,7 @@ def _store_correction(store: FrameStore, result: BuildResult, opt: PoseGraphResu
     the map; the largest correction into ``result``."""
     revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True,
                                   note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
-    changes = store.map(0).apply(revision.revision_id)
+    changes = MapView.from_store(store, 0).apply(revision.revision_id)
     result.loop_revision = revision.revision_id
     result.max_correction_m = changes.max_translation_m
     result.max_correction_deg = max((c.rotation_deg for c in changes.changes), default=0.0)

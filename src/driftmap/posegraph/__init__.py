@@ -22,7 +22,8 @@ as :func:`driftmap.geometry.se3_exp`), so the permutation is the whole conversio
 
 Modules (one concept each; import from the package, which re-exports every public name):
 
-* :mod:`~driftmap.posegraph.errors` -- :class:`PoseGraphError`;
+* :class:`PoseGraphError` lives in :mod:`driftmap.errors` with every other error (:mod:`~driftmap.posegraph.errors`
+  re-exports it);
 * :mod:`~driftmap.posegraph.tangent` -- :class:`TangentOrder`, :func:`reorder_6x6`, information checks;
 * :mod:`~driftmap.posegraph.robust` -- :class:`RobustKernel`, kernel widths, the chi2 gate;
 * :mod:`~driftmap.posegraph.measurements` -- :class:`Edge`, :class:`EdgeKind`, :class:`Prior`, the default prior;
@@ -35,7 +36,7 @@ Modules (one concept each; import from the package, which re-exports every publi
 
 from __future__ import annotations
 
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 from driftmap.posegraph.g2o import PLANAR_OUT_OF_PLANE_INFORMATION
 from driftmap.posegraph.graph import PoseGraph, optimize_g2o
 from driftmap.posegraph.graph import logger as logger  # not in __all__, importable as before

@@ -1,12 +1,8 @@
-"""The pose graph's error type (the lowest module of the package: every other one raises it)."""
+"""The pose graph's error type, :class:`driftmap.errors.PoseGraphError` (defined with every other driftmap error in
+:mod:`driftmap.errors`; importable from here as before, the same class)."""
 
 from __future__ import annotations
 
-from driftmap.errors import DriftmapError
+from driftmap.errors import PoseGraphError
 
 __all__ = ["PoseGraphError"]
-
-
-class PoseGraphError(DriftmapError):
-    """A pose graph is malformed (unknown key, bad information matrix, unreadable g2o file) or GTSAM failed
-    on it (indeterminate linear system, an ISAM2 node with no constraint to the graph)."""

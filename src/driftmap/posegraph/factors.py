@@ -9,7 +9,7 @@ import gtsam
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 from driftmap.posegraph.measurements import Edge, Prior
 from driftmap.posegraph.robust import m_estimator
 from driftmap.posegraph.tangent import information_to_gtsam

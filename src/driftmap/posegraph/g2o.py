@@ -6,25 +6,23 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import gtsam
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 from driftmap.posegraph.factors import gtsam_call
 from driftmap.posegraph.measurements import Edge
 from driftmap.posegraph.robust import RobustKernel
 from driftmap.posegraph.tangent import information_from_gtsam
 
-if TYPE_CHECKING:  # the graph module imports this one; only the annotation needs the class
-    from driftmap.posegraph.graph import PoseGraph
-
 __all__ = [
     "PLANAR_OUT_OF_PLANE_INFORMATION",
+    "G2oTarget",
     "g2o_is_3d",
     "lift_information_2d",
     "lift_pose2",
@@ -38,8 +36,21 @@ __all__ = [
 PLANAR_OUT_OF_PLANE_INFORMATION = 1e6
 
 
+class G2oTarget(Protocol):
+    """What :func:`read_g2o_into` fills: a :class:`~driftmap.posegraph.graph.PoseGraph` (the graph module imports
+    this one, so the reader names only the three methods it calls)."""
+
+    def add_node(self, key: int, T_world_x: ArrayLike) -> None: ...
+
+    def add_odometry(self, key_from: int, key_to: int, T_from_to: ArrayLike, information_6x6: ArrayLike, *,
+                     robust: RobustKernel = ..., robust_param: float | None = None) -> Edge: ...
+
+    def add_loop(self, key_from: int, key_to: int, T_from_to: ArrayLike, information_6x6: ArrayLike, *,
+                 robust: RobustKernel = ..., robust_param: float | None = None) -> Edge: ...
+
+
 def read_g2o_into(
-    graph: PoseGraph, path: Path, *, loop_robust: RobustKernel, loop_robust_param: float | None
+    graph: G2oTarget, path: Path, *, loop_robust: RobustKernel, loop_robust_param: float | None
 ) -> bool:
     """Add the nodes, then the edges, of the g2o file ``path`` to ``graph``; returns whether the file is 3D.
 

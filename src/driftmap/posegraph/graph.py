@@ -13,7 +13,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 from driftmap.posegraph.factors import between_factor, gtsam_call, poses_from_values, prior_factor, values_from_poses
 from driftmap.posegraph.g2o import read_g2o_into, write_g2o
 from driftmap.posegraph.measurements import (

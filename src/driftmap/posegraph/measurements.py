@@ -14,8 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from driftmap import geometry
-from driftmap.errors import DriftmapError
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import DriftmapError, PoseGraphError
 from driftmap.posegraph.robust import RobustKernel, default_robust_param
 from driftmap.posegraph.tangent import check_information
 

@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import geometry
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 from driftmap.posegraph.factors import between_factor, gaussian, gtsam_call, pose3, prior_factor
 from driftmap.posegraph.measurements import Edge, EdgeKind, Prior
 from driftmap.posegraph.result import LoopResidual, OptimizationProgress, Optimizer, ProgressCallback

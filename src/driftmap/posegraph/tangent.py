@@ -11,7 +11,7 @@ import enum
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from driftmap.posegraph.errors import PoseGraphError
+from driftmap.errors import PoseGraphError
 
 __all__ = [
     "TangentOrder",

@@ -35,11 +35,11 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 
-from driftmap.errors import ConfigError, SourceError, TransformError
+from driftmap.errors import ConfigError, NotACloudFile, SourceError, TransformError
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
-from driftmap.sources.cloud_headers import CloudHeader, NotACloudFile, check_cloud_file
-from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, far_points, point_time_offsets_ns
+from driftmap.sources.cloud_headers import CloudHeader, check_cloud_file
+from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, measured_points, point_time_offsets_ns
 from driftmap.sources.stamps import (
     MAX_STAMP_NS,
     STAMP_FILE_NAMES,
@@ -140,7 +140,8 @@ MAX_FRAME_NUMBER = 2**63 - 1
 def frame_files(paths: Sequence[Path], what: str, *, lenient: bool = False) -> list[Path]:
     """The regular files among ``paths`` (names that match a source's frame files). A name that is a symlink loop
     or a dangling symlink raises :class:`SourceError` naming the link and the chain (lenient: a warning, left out);
-    folders and other non-files are not frames and are left out silently."""
+    a folder named like a frame file is not a frame: left out with a warning saying it is a folder, not a file;
+    other non-files (sockets, devices) are left out silently."""
     out = []
     for file in paths:
         if file.is_file():
@@ -148,6 +149,8 @@ def frame_files(paths: Sequence[Path], what: str, *, lenient: bool = False) -> l
             continue
         problem = broken_link_problem(file)
         if problem is None:
+            if file.is_dir():
+                logger.warning("%s: is a folder, not a file (%s); it is not a frame and is left out", file, what)
             continue
         if not lenient:
             raise SourceError(f"{problem} ({what})")
@@ -326,7 +329,9 @@ class CloudFolder(FrameSource):
         super().__init__(str(path), frames=frames, lenient=lenient)
         self.path = Path(path)
         if poses_from_ground_truth:
-            raise SourceError(f"{self.path}: a folder of clouds has no ground truth; give a pose file with poses=")
+            raise SourceError(f"{self.path}: a folder of clouds has no ground truth to place the clouds with (build "
+                              f"--poses-from-source; poses_from_ground_truth=True in the library): give their pose "
+                              f"file with --poses FILE instead (poses= in the library)")
         try:
             self.sensor_kind = SensorKind(sensor_kind)
         except ValueError:
@@ -392,8 +397,9 @@ class CloudFolder(FrameSource):
             return self._nominal(ids, int(period_ns)), origin, f"{self.path} (stamps frame_id * {int(period_ns)} ns)"
         stamps = self._nominal(ids, DEFAULT_PERIOD_NS)
         logger.warning("%s: no stamps in the folder; they are assumed: frame_id * %d ns (nominal 10 Hz). Give them with "
-                       "a stamp file (%s: seconds, one line per cloud), a pose file with stamps (poses=) "
-                       "or the scan period (period_ns, --period-s)", self.path, DEFAULT_PERIOD_NS,
+                       "a stamp file beside the clouds (%s: seconds, one line per cloud), the scan period "
+                       "(--period-s SECONDS; period_ns= in the library) or, in the library, a pose file with stamps "
+                       "(poses=)", self.path, DEFAULT_PERIOD_NS,
                        " / ".join(STAMP_FILE_NAMES))
         return stamps, "assumed 10 Hz", f"{self.path} (nominal stamps frame_id * {DEFAULT_PERIOD_NS} ns)"
 
@@ -420,14 +426,16 @@ class CloudFolder(FrameSource):
         n_stamps = sum(p is not None for p in parsed)
         if n_stamps < len(parsed):
             return (f" (only {n_stamps} of the {len(parsed)} file names are stamps, so all are taken as frame numbers; "
-                    f"name every file by its stamp, or give the stamps with a stamp file (times.txt) or poses=)"
+                    f"name every file by its stamp, or give the stamps with a stamp file (times.txt) beside the "
+                    f"clouds, or poses= in the library)"
                     if n_stamps else "")
         units = sorted({p[1] for p in parsed if p is not None})
         if len(units) > 1:
             return f" (the file names are stamps of different units, {', '.join(units)}, so they were not used as stamps)"
         problem = period_problem(sorted(p[0] for p in parsed if p is not None))
         return (f" (the file names are stamps in {units[0]}, but {problem}, so they were not used as stamps; give the "
-                f"stamps with a stamp file (times.txt) or poses=, or rename the files to frame numbers)"
+                f"stamps with a stamp file (times.txt) beside the clouds (or poses= in the library), or rename the "
+                f"files to frame numbers)"
                 if problem else "")
 
     def _stamp_file(self, ids: list[int]) -> tuple[list[int], str, str] | None:
@@ -480,9 +488,10 @@ class CloudFolder(FrameSource):
                 logger.warning("%s: its stamps are not used for the clouds of %s: %s", file, self.path, problem)
                 continue
             usable.append((stamps, file.name, f"{file} (only the stamps of its 4x4 poses, {fit[1]}; its poses are used "
-                                              f"only when given with poses= or build --poses)"))
+                                              f"only when given with build --poses FILE, poses= in the library)"))
         if len(usable) > 1:
-            logger.warning("%s: %s all carry stamps for the clouds; none is used (pass the right one with poses=)",
+            logger.warning("%s: %s all carry stamps for the clouds; none is used (keep only the right one beside the "
+                           "clouds, or pass it with poses= in the library)",
                            self.path, ", ".join(u[1] for u in usable))
             return None
         return usable[0] if usable else None
@@ -498,7 +507,9 @@ class CloudFolder(FrameSource):
 
     def read_cloud(self, index: int) -> tuple[NDArray[np.float32], PointAttributes]:
         """Points (float32, as stored) and attributes (intensity, colours, normals, per-point times) of the cloud
-        at ``index``; normals and times only when they pass :mod:`driftmap.sources.point_fields`' checks."""
+        at ``index``; normals and times only when they pass :mod:`driftmap.sources.point_fields`' checks. Points with
+        a NaN / inf coordinate, exactly at the sensor origin (no return) or too far are dropped; a cloud without a point
+        left raises :class:`SourceError` naming the file (:func:`~driftmap.sources.point_fields.measured_points`)."""
         frame_id, file, stamp_ns, _ = self._entries[index]
         what = f"{file} (frame {frame_id})"
         cloud, header = _read_checked_cloud(file, frame_id)
@@ -509,12 +520,11 @@ class CloudFolder(FrameSource):
         if not finite.all():
             logger.warning("%s: dropping %d points with NaN/inf coordinates (frame %d)", file,
                            int(np.count_nonzero(~finite)), frame_id)
-        far = far_points(positions, what)  # as written (float64 data is checked before the cast to float32)
-        if far is not None:
-            finite &= ~far
+        # as written (float64 data is checked before the cast to float32): no return, too far, no point left
+        keep = measured_points(positions, what)
 
         def kept(values: NDArray) -> NDArray:
-            return values if finite.all() else values[finite]
+            return values if keep is None else values[keep]
 
         attrs: dict[str, Any] = {}
         if "intensity" in cloud.point:

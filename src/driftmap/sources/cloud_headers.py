@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from driftmap.errors import SourceError
+from driftmap.errors import NotACloudFile, SourceError
 
 logger = logging.getLogger(__name__)
 
@@ -48,14 +48,6 @@ PLY_TYPES = {
     "double": "f8", "float64": "f8",
 }
 _PLY_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
-
-
-class NotACloudFile(SourceError):
-    """The file has no PCD / PLY header at all (``reason`` says what was found instead)."""
-
-    def __init__(self, file: Path, reason: str):
-        super().__init__(f"{file}: {reason}")
-        self.reason = reason
 
 
 @dataclass(frozen=True)

@@ -3,19 +3,15 @@ Kinect-like depth image, a LiDAR scan (:mod:`driftmap.sources.synthetic`)."""
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
+from driftmap.sources.synthetic_config import SyntheticLogConfig
 from driftmap.sources.synthetic_lidar import cast_lidar, lidar_rays
 from driftmap.sources.synthetic_motion import MotionSchedule, base_poses_at
-
-if TYPE_CHECKING:  # the config module imports this one; only the annotations need the class
-    from driftmap.sources.synthetic import SyntheticLogConfig
 
 
 def T_base_camera(config: SyntheticLogConfig) -> NDArray[np.float64]:

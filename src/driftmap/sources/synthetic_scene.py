@@ -4,16 +4,13 @@ built from them (:mod:`driftmap.sources.synthetic`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 import open3d as o3d
 
 from driftmap.errors import SourceError
+from driftmap.sources.synthetic_config import SyntheticLogConfig
 from driftmap.sources.synthetic_motion import STREET_HALF_SIZE_M
-
-if TYPE_CHECKING:  # the config module imports this one; only the annotations need the class
-    from driftmap.sources.synthetic import SyntheticLogConfig
 
 
 @dataclass(frozen=True)

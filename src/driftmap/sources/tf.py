@@ -29,13 +29,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
-from driftmap.errors import SourceError
+from driftmap.errors import TfError
 
 logger = logging.getLogger(__name__)
-
-
-class TfError(SourceError):
-    """A transform cannot be looked up: unknown frame, no path between two frames, or no data at a time."""
 
 
 def normalize_frame(frame: str) -> str:

@@ -9,19 +9,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from driftmap.errors import StoreError
+from driftmap.errors import StoreCorruptError as StoreCorruptError  # importable here as before
 from driftmap.store.revision import Revision
 from driftmap.store.segment_format import EVENT_DATA_LOST
 from driftmap.store.values import preview
-
-
-class StoreCorruptError(StoreError):
-    """A store file is truncated or damaged; names the file and the byte offset."""
-
-    def __init__(self, message: str, *, path: Path, offset: int | None):
-        super().__init__(message)
-        self.path = path
-        self.offset = offset
 
 
 @dataclass(frozen=True)

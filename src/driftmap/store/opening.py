@@ -10,10 +10,10 @@ from typing import Any
 
 import numpy as np
 
-from driftmap.errors import GeometryError, StoreError
+from driftmap.errors import GeometryError, StoreCorruptError, StoreError
 from driftmap.frame import PoseSource
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import DataLoss, RecoveryEvent, StoreCorruptError, lost_ids, without_frames
+from driftmap.store.damage import DataLoss, RecoveryEvent, lost_ids, without_frames
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.layout import MANIFEST
 from driftmap.store.ledger import PoseLedger

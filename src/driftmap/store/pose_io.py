@@ -6,24 +6,41 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from driftmap.errors import ConfigError, EmptyStoreError, StoreError, parse_enum
 from driftmap.frame import PoseSource
 from driftmap.store.guards import refuse_inside_store
+from driftmap.store.ledger import PoseLedger
 from driftmap.store.pose_match import PoseMatch, PoseMatchMode, match_pose_rows, stamp_ranges_text
-from driftmap.store.revision import SAME_POSE_DEG, SAME_POSE_M, Revision
+from driftmap.store.revision import SAME_POSE_DEG, SAME_POSE_M, PoseDiff, Revision
 from driftmap.store.values import id_sample
 from driftmap.trajectory import Trajectory, has_stamps, read_trajectory, write_kitti, write_tum
 
-if TYPE_CHECKING:
-    from driftmap.store.frame_store import FrameStore
-
 logger = logging.getLogger(__name__)
+
+
+class PoseFileStore(Protocol):
+    """The part of a :class:`~driftmap.store.frame_store.FrameStore` that pose files read and write (the frame store
+    imports this module, so it names only what it uses)."""
+
+    path: Path
+    ledger: PoseLedger
+
+    @property
+    def head(self) -> int: ...
+
+    def poses(self, revision: int | None = None) -> NDArray[np.float64]: ...
+
+    def diff(self, a: int, b: int) -> PoseDiff: ...
+
+    def add_revision(self, poses: Mapping[int, NDArray[np.float64]], *, source: PoseSource | str,
+                     parent: int | None = None, propagate: bool = True, note: str = "") -> Revision: ...
 
 
 class TrajectoryFormat(enum.Enum):
@@ -35,7 +52,7 @@ class TrajectoryFormat(enum.Enum):
     MATRIX_4X4 = "4x4"
 
 
-def import_poses(store: FrameStore, file: str | Path, *, format: TrajectoryFormat | str, match: PoseMatchMode | str | None,
+def import_poses(store: PoseFileStore, file: str | Path, *, format: TrajectoryFormat | str, match: PoseMatchMode | str | None,
                  max_dt_ns: int, source: PoseSource | str, propagate: bool, kitti_frame: str,
                  calib_file: str | Path | None,
                  rows_in_sensor_frame: Callable[[Trajectory, str], Trajectory] | None) -> tuple[Revision, PoseMatch]:
@@ -75,7 +92,7 @@ def import_poses(store: FrameStore, file: str | Path, *, format: TrajectoryForma
     return revision, matched
 
 
-def _refuse_rows_per_stored_frame(store: FrameStore, file: str | Path, trajectory: Trajectory) -> None:
+def _refuse_rows_per_stored_frame(store: PoseFileStore, file: str | Path, trajectory: Trajectory) -> None:
     """Refuse a file that looks written one row per *stored* frame (a KITTI export of a sliced store) when it is
     to be read as one row per frame *id* (an explicit ``match="index"`` takes the rows as frame ids all the same)."""
     ids = store.ledger.frame_ids
@@ -87,7 +104,7 @@ def _refuse_rows_per_stored_frame(store: FrameStore, file: str | Path, trajector
             f"by index explicitly if row i really is frame_id i")
 
 
-def _warn_about_index_match(store: FrameStore, file: str | Path, trajectory: Trajectory, matched: PoseMatch,
+def _warn_about_index_match(store: PoseFileStore, file: str | Path, trajectory: Trajectory, matched: PoseMatch,
                             max_dt_ns: int) -> None:
     """Rows taken as frame ids although the file has stamps: say so when the stamps tell another story."""
     ledger = store.ledger
@@ -100,7 +117,7 @@ def _warn_about_index_match(store: FrameStore, file: str | Path, trajectory: Tra
                        file, float(np.median(dt_ns)) / 1e9)
 
 
-def warn_about_revision(store: FrameStore, revision: Revision, what: str, *, far: bool = False) -> None:
+def warn_about_revision(store: PoseFileStore, revision: Revision, what: str, *, far: bool = False) -> None:
     """Warnings about a new revision, which is recorded all the same (the history says it was made):
 
     - it moves no frame beyond text round-off (the same rule ``driftmap revisions`` counts changes with);
@@ -122,7 +139,7 @@ def warn_about_revision(store: FrameStore, revision: Revision, what: str, *, far
                        revision.revision_id, diff.max_translation_m, revision.parent_id, span, revision.parent_id)
 
 
-def export_trajectory(store: FrameStore, file: str | Path, *, revision: int | None,
+def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int | None,
                       format: TrajectoryFormat | str) -> Path:
     """:meth:`FrameStore.export_trajectory <driftmap.store.frame_store.FrameStore.export_trajectory>`."""
     fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")

@@ -9,10 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from driftmap.errors import DriftmapError, StoreError
+from driftmap.errors import DriftmapError, StoreCorruptError, StoreError
 from driftmap.frame import Frame
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import StoreCorruptError
 from driftmap.store.frame_codec import frame_from_info, unpack_attributes
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.manifest import SegmentEntry

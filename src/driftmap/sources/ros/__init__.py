@@ -17,7 +17,7 @@ or a ``nav_msgs/msg/Odometry`` topic (``pose_from_odometry``); extrinsics ``T_ba
 tree. See ``docs/sources-ros.md`` for every option, the stamp rules and the error behaviour.
 
 Frame ids are the message index on the chosen topic (0 = first message), also after ``frames=`` slicing
-and time ranges; an MCAP written by :func:`driftmap.sources.mcap_export.export_mcap` restores the original
+and time ranges; an MCAP written by :func:`driftmap.export.mcap.export_mcap` restores the original
 frame ids from its ``driftmap.export`` metadata record.
 
 Layout of the package (each module one concept; this one re-exports their public names):
@@ -36,7 +36,7 @@ Layout of the package (each module one concept; this one re-exports their public
 """
 
 # Re-exports only. Besides __all__, the public names of the former single module ros.py stay importable from here
-# (mcap_export imports the message type and topic names).
+# (driftmap.export.mcap imports the message type and topic names).
 # ruff: noqa: F401
 from driftmap.sources.point_fields import PointTimeReference
 from driftmap.sources.ros.backend import TopicInfo

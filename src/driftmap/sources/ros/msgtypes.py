@@ -33,7 +33,7 @@ TOPIC_TF_STATIC = "/tf_static"
 #: Message types read as poses (:func:`~driftmap.sources.ros.poses.load_pose_topic`).
 POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, TRANSFORM_STAMPED)
 
-#: Name of the MCAP metadata record that :mod:`driftmap.sources.mcap_export` writes.
+#: Name of the MCAP metadata record that :mod:`driftmap.export.mcap` writes.
 EXPORT_METADATA_NAME = "driftmap.export"
 
 #: Depth image encodings: numpy dtype and depth scale (units per metre; ``None`` = already metres).

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.errors import SourceError
+from driftmap.errors import SourceError, TfError
 from driftmap.frame import PoseEstimate, PoseSource
 from driftmap.sources.ros.backend import Backend, TopicInfo
 from driftmap.sources.ros.containers import open_backend
@@ -28,7 +28,7 @@ from driftmap.sources.ros.msgtypes import (
     message_fields,
     stamp_ns_of,
 )
-from driftmap.sources.tf import TfBuffer, TfError, TransformSeries, normalize_frame, transforms_from_tum
+from driftmap.sources.tf import TfBuffer, TransformSeries, normalize_frame, transforms_from_tum
 
 logger = logging.getLogger(__name__)
 

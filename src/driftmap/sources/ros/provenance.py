@@ -1,6 +1,6 @@
 """Where a ROS log source's frames come from, and what an MCAP written by driftmap says about its frames: the
 ``provenance`` URI of a topic, and the ``driftmap.export`` metadata record
-(:mod:`driftmap.sources.mcap_export`): per sensor topic the original frame ids, pose sources, sensor name and
+(:mod:`driftmap.export.mcap`): per sensor topic the original frame ids, pose sources, sensor name and
 kind, and the data set the frames were converted from (``origin``)."""
 
 from __future__ import annotations

@@ -191,7 +191,7 @@ class RosLogSource(FrameSource):
 
     def export_origin(self) -> dict[str, Any] | None:
         """The data set an MCAP written by ``driftmap convert`` was read from (``{"format", "path",
-        "options"}``), if it says so (:mod:`driftmap.sources.mcap_export`)."""
+        "options"}``), if it says so (:mod:`driftmap.export.mcap`)."""
         return parse_origin(self._backend.metadata().get(EXPORT_METADATA_NAME) or {})
 
     def _export_entry(self) -> dict[str, Any] | None:
@@ -447,7 +447,7 @@ class RosLogSource(FrameSource):
         return out
 
     def ground_truth(self):  # type: ignore[override]
-        """Ground truth written by :func:`~driftmap.sources.mcap_export.export_mcap` (``PoseStamped`` on the
+        """Ground truth written by :func:`~driftmap.export.mcap.export_mcap` (``PoseStamped`` on the
         sensor's ground-truth topic), else ``None``."""
         from driftmap.trajectory import Trajectory
 
