@@ -12,7 +12,7 @@ import pytest
 from driftmap import viewer
 from driftmap.diagnostics.surfaces import voxel_ids
 from driftmap.errors import ConfigError, GeometryError
-from driftmap.map.view import MapView, _packed_voxel_keys
+from driftmap.map.view import MapView
 from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.store.frame_store import FrameStore
 from driftmap.voxels import (
@@ -57,7 +57,7 @@ def test_map_viewer_and_diagnostics_give_the_same_voxels_and_ids_on_real_points(
 
     # the three callers' keys on the same (float32) points: the map's bounding grid, the viewer's absolute grid,
     # the diagnostics' (3, N) columns; all give numpy's lexicographic ids
-    map_ids, map_keys = dense_ids(_packed_voxel_keys(pts, VOXEL_M))
+    map_ids, map_keys = dense_ids(voxel_keys(pts, VOXEL_M))
     abs_ids, abs_keys = dense_ids(voxel_keys(pts, VOXEL_M, grid=ABSOLUTE_GRID))
     diag_ids, diag_keys, grid = voxel_ids(np.ascontiguousarray(pts.T), VOXEL_M)
     for ids in (map_ids, abs_ids, diag_ids):
@@ -136,7 +136,7 @@ def test_coordinates_outside_the_key_range_raise_instead_of_wrapping() -> None:
     with pytest.raises(ConfigError, match="too large"):
         voxel_keys(huge, 1e-3)
     with pytest.raises(ConfigError, match="too large"):
-        _packed_voxel_keys(huge, 1e-3)
+        voxel_keys(huge, 1e-3)
     # a non-finite point has no voxel (the cast would give an arbitrary integer on some platforms)
     for bad in (np.nan, np.inf):
         with pytest.raises(GeometryError, match="1 points are not finite"):

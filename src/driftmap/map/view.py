@@ -17,7 +17,6 @@ import mmap
 import os
 import sys
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -50,6 +49,17 @@ from driftmap.kernels.points import (
     transform_pieces,
 )
 from driftmap.map.fusion import write_cloud
+from driftmap.map.segment_reads import OpenFiles, SensorBuffer
+from driftmap.map.view_types import (  # re-exported: the view's result types
+    ChangeSet,
+    FrameChange,
+    FusedMap,
+    Nearest,
+    QueryResult,
+    displacements,
+    vec3_arg,
+    z_range_arg,
+)
 from driftmap.preprocess.cloud import RegionOfInterest
 from driftmap.store.guards import atomic_output, refuse_inside_store
 from driftmap.voxels import first_per_key, voxel_keys
@@ -72,115 +82,6 @@ QUERY_PIECE_POINTS = 2048
 #: Query passes over fewer points than this run on the calling thread: a pass costs ~0.4 ns per point on one core,
 #: launching a parallel region ~0.2 ms.
 QUERY_PARALLEL_POINTS = 1 << 20
-
-
-@dataclass(frozen=True, slots=True)
-class FrameChange:
-    """How one frame moved between two revisions, and the world-space region it touched."""
-
-    frame_id: int
-    stamp_ns: int
-    translation_m: float
-    rotation_deg: float
-    box_before_m: NDArray[np.float32]
-    """(2, 3): min and max corner of the frame's points before."""
-    box_after_m: NDArray[np.float32]
-    voxels_before: NDArray[np.int64] | None = None
-    """Unique integer voxel keys ``floor(p / voxel_size_m)`` of the frame's points before (if asked)."""
-    voxels_after: NDArray[np.int64] | None = None
-
-
-@dataclass(frozen=True)
-class ChangeSet:
-    """The frames a revision change moved; a navigation stack refreshes only these regions."""
-
-    from_revision: int
-    to_revision: int
-    changes: list[FrameChange]
-    voxel_size_m: float | None = None
-
-    @property
-    def frame_ids(self) -> NDArray[np.int64]:
-        return np.array([c.frame_id for c in self.changes], dtype=np.int64)
-
-    @property
-    def max_translation_m(self) -> float:
-        return max((c.translation_m for c in self.changes), default=0.0)
-
-    def boxes_m(self) -> NDArray[np.float32]:
-        """(2K, 2, 3) every before and after box."""
-        if not self.changes:
-            return np.zeros((0, 2, 3), np.float32)
-        return np.stack([b for c in self.changes for b in (c.box_before_m, c.box_after_m)])
-
-    def voxels(self) -> NDArray[np.int64]:
-        """Union of all before and after voxel keys (needs ``voxel_size_m`` at apply time)."""
-        if self.voxel_size_m is None:
-            raise ConfigError("voxel keys were not computed: pass voxel_size_m to apply()")
-        keys = [k for c in self.changes for k in (c.voxels_before, c.voxels_after) if k is not None and len(k)]
-        return np.unique(np.concatenate(keys), axis=0) if keys else np.zeros((0, 3), np.int64)
-
-
-@dataclass(frozen=True, slots=True)
-class QueryResult:
-    points_world: NDArray[np.float32]
-    frame_ids: NDArray[np.int64]
-
-
-@dataclass(frozen=True, slots=True)
-class Nearest:
-    distance_m: float
-    point_world: NDArray[np.float32]
-    frame_id: int
-
-
-@dataclass(frozen=True)
-class FusedMap:
-    """A voxel-deduplicated map with per-voxel provenance.
-
-    ``points_world[i]`` is the centroid of voxel i (or a full-resolution ROI point); the frames that
-    contributed to it are ``provenance_frame_ids[provenance_offsets[i]:provenance_offsets[i + 1]]``.
-    """
-
-    points_world: NDArray[np.float32]
-    provenance_offsets: NDArray[np.int64]
-    provenance_frame_ids: NDArray[np.int64]
-    voxel_size_m: float | None
-    n_roi_points: int
-
-    def frames_of(self, index: int) -> NDArray[np.int64]:
-        return self.provenance_frame_ids[self.provenance_offsets[index] : self.provenance_offsets[index + 1]]
-
-    def n_frames_per_point(self) -> NDArray[np.int64]:
-        return np.diff(self.provenance_offsets)
-
-
-def _displacements(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> tuple[NDArray[np.float64], ...]:
-    """Per pose pair of two (K, 4, 4) stacks: distance of the origins (m) and relative rotation angle (deg),
-    computed as :meth:`PoseLedger.diff` does (one numpy pass, not a Python call per frame)."""
-    translation_m = np.linalg.norm(T_a[:, :3, 3] - T_b[:, :3, 3], axis=1)
-    return translation_m, np.degrees(geometry.relative_rotation_angle_rad(T_a, T_b))
-
-
-def _vec3(method: str, name: str, value: Sequence[float]) -> NDArray[np.float64]:
-    """A world position or corner as a fresh float64 (3,) array."""
-    out = np.array(value, dtype=np.float64)
-    if out.shape != (3,):
-        raise ConfigError(f"{method}: {name} must be 3 numbers (x, y, z), got shape {out.shape}")
-    if np.isnan(out).any():
-        raise ConfigError(f"{method}: {name} has a NaN coordinate: {out.tolist()}")
-    return out
-
-
-def _z_range(method: str, z_range_m: tuple[float, float]) -> tuple[float, float]:
-    """A height band ``(lo, hi)`` in metres (world z, inclusive)."""
-    try:
-        z_lo, z_hi = (float(v) for v in z_range_m)
-    except (TypeError, ValueError):
-        raise ConfigError(f"{method}: z_range_m must be two numbers (lo, hi), got {z_range_m!r}") from None
-    if not z_lo <= z_hi:
-        raise ConfigError(f"{method}: z_range_m must have lo <= hi, got {z_range_m!r}")
-    return z_lo, z_hi
 
 
 def _parallel(n_pieces: int, n_points: int) -> bool:
@@ -244,48 +145,6 @@ class _PieceIndex:
         return self
 
 
-def _packed_voxel_keys(points_or_keys: NDArray, voxel_size_m: float | None) -> NDArray[np.int64]:
-    """One int64 per point identifying its voxel (``floor(p / voxel_size_m)``, or given integer keys) on the
-    points' bounding grid: :func:`driftmap.voxels.voxel_keys`."""
-    return voxel_keys(points_or_keys, voxel_size_m)
-
-
-@dataclass
-class _Buffer:
-    """Where sensor points come from: a flat float32 array (``_start``/``_stride`` in floats), or a segment
-    file read with ``pread`` (``path`` set, ``flat`` None: ``_start`` is a byte offset, ``_stride`` in floats)."""
-
-    flat: NDArray[np.float32] | None
-    mm: mmap.mmap | None = None
-    path: Path | None = None
-
-
-class _OpenFiles:
-    """``n`` read-only descriptors of one file, one per reading thread (each its own read-ahead state, so a
-    thread's sequential reads stay sequential for the kernel even while another thread reads elsewhere),
-    closed on exit."""
-
-    def __init__(self, path: Path, n: int):
-        opened: list[int] = []
-        try:
-            for _ in range(n):
-                opened.append(os.open(path, os.O_RDONLY))
-                if hasattr(os, "posix_fadvise"):
-                    os.posix_fadvise(opened[-1], 0, 0, os.POSIX_FADV_SEQUENTIAL)
-        except OSError as exc:
-            for fd in opened:
-                os.close(fd)
-            raise StoreError(f"{path}: cannot open the segment to read sensor points: {exc}") from exc
-        self.fds = np.array(opened, np.int32)
-
-    def __enter__(self) -> NDArray[np.int32]:
-        return self.fds
-
-    def __exit__(self, *exc: object) -> None:
-        for fd in self.fds:
-            os.close(int(fd))
-
-
 class MapView:
     """World points of a set of frames in one pose revision.
 
@@ -308,7 +167,7 @@ class MapView:
         self._frame_times: dict[int, NDArray[np.int64]] = {}
         self.deskew_problems: dict[int, str] = {}
         """Frames with per-point times placed rigidly instead, and why (a flagged frame, never an abort)."""
-        self._buffers: list[_Buffer] = []
+        self._buffers: list[SensorBuffer] = []
         self._buffer_index: dict[object, int] = {}
         self._scratch = np.zeros((0, 0), np.float32)
         self.frame_ids = np.zeros(0, np.int64)
@@ -368,14 +227,14 @@ class MapView:
         key = id(mm) if mm is not None else id(flat)
         if key not in self._buffer_index:
             self._buffer_index[key] = len(self._buffers)
-            self._buffers.append(_Buffer(flat, mm))
+            self._buffers.append(SensorBuffer(flat, mm))
         return self._buffer_index[key]
 
     def _register_file(self, path: Path) -> int:
         key = ("file", str(path))
         if key not in self._buffer_index:
             self._buffer_index[key] = len(self._buffers)
-            self._buffers.append(_Buffer(None, None, path))
+            self._buffers.append(SensorBuffer(None, None, path))
         return self._buffer_index[key]
 
     def refresh(self) -> list[int]:
@@ -573,7 +432,7 @@ class MapView:
                              numba.get_num_threads())
         else:
             scratch = self._thread_scratch(strides)
-            with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
+            with OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
                 got = read_transform_pieces(fds, starts, strides, counts, piece_rows, self._T, world, dst, scratch,
                                             boxes)
                 self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
@@ -606,7 +465,7 @@ class MapView:
         old_T = self._T[moved].copy()
         self._T[moved] = target[moved]
         self._transform(moved)
-        translation_m, rotation_deg = _displacements(old_T, target[moved])
+        translation_m, rotation_deg = displacements(old_T, target[moved])
         changes = []
         for k, r in enumerate(moved):
             changes.append(FrameChange(
@@ -634,7 +493,7 @@ class MapView:
         old = ledger.poses(revision)[np.searchsorted(ledger.frame_ids, self.frame_ids)]
         moved = np.flatnonzero(~np.all(np.abs(old - self._T) <= POSE_EPSILON, axis=(1, 2)))
         sensor_boxes = self._sensor_boxes(moved)
-        translation_m, rotation_deg = _displacements(old[moved], self._T[moved])
+        translation_m, rotation_deg = displacements(old[moved], self._T[moved])
         changes = []
         for k, r in enumerate(moved):
             lo, hi = sensor_boxes[k, :3].astype(np.float64), sensor_boxes[k, 3:].astype(np.float64)
@@ -664,7 +523,7 @@ class MapView:
             strides = self._stride[piece_rows]
             boxes = np.empty((starts.size, 6), np.float32)
             scratch = self._thread_scratch(strides)
-            with _OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
+            with OpenFiles(buffer.path, min(len(scratch), starts.size)) as fds:
                 got = read_frame_bounds(fds, starts, strides, counts, scratch, boxes)
                 self._check_read(buffer.path, fds, got, starts, counts, piece_rows)
             out[sel, :3] = np.minimum.reduceat(boxes[:, :3], first)
@@ -678,7 +537,7 @@ class MapView:
         keys = np.floor(pts[np.isfinite(pts).all(axis=1)] / voxel_size_m).astype(np.int64)
         if len(keys) == 0:
             return keys
-        first = first_per_key(_packed_voxel_keys(keys, None))  # in key order, as np.unique(return_index=True)
+        first = first_per_key(voxel_keys(keys, None))  # in key order, as np.unique(return_index=True)
         return keys[first]
 
     # ------------------------------------------------------------------------------------------ access
@@ -757,9 +616,9 @@ class MapView:
         float64), with ``z_range_m=(lo, hi)`` also ``lo <= z <= hi``. Points come in map order (frame by frame
         in the order the frames were added, each frame's points in their stored order) with their frame ids;
         points with a NaN coordinate never match."""
-        lo, hi = _vec3("query_box", "min_m", min_m), _vec3("query_box", "max_m", max_m)
+        lo, hi = vec3_arg("query_box", "min_m", min_m), vec3_arg("query_box", "max_m", max_m)
         if z_range_m is not None:
-            z_lo, z_hi = _z_range("query_box", z_range_m)
+            z_lo, z_hi = z_range_arg("query_box", z_range_m)
             lo[2], hi[2] = max(lo[2], z_lo), min(hi[2], z_hi)
         return self._select(QUERY_BOX, np.concatenate([lo, hi]))
 
@@ -768,10 +627,10 @@ class MapView:
         """Points within ``radius_m`` of a world position (``((x-cx)^2 + (y-cy)^2) + (z-cz)^2 <= radius_m^2`` in
         float64), with ``z_range_m=(lo, hi)`` only those with ``lo <= z <= hi`` (a height band, world frame).
         Order and provenance as :meth:`query_box`."""
-        c = _vec3("query_radius", "center_m", center_m)
+        c = vec3_arg("query_radius", "center_m", center_m)
         if not radius_m >= 0:
             raise ConfigError(f"query_radius: radius_m must be a number >= 0, got {radius_m}")
-        z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else _z_range("query_radius", z_range_m)
+        z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else z_range_arg("query_radius", z_range_m)
         return self._select(QUERY_BALL, np.array([c[0], c[1], c[2], radius_m**2, z_lo, z_hi], np.float64))
 
     def nearest(self, position_m: Sequence[float], *, z_range_m: tuple[float, float] | None = None) -> Nearest:
@@ -782,8 +641,8 @@ class MapView:
         points, the one in the frame whose world box is nearest wins (ties as ``np.argsort`` orders them), then
         the first in that frame. Points with a NaN coordinate are left out. Raises :class:`StoreError` when no
         point qualifies."""
-        q = _vec3("nearest", "position_m", position_m)
-        z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else _z_range("nearest", z_range_m)
+        q = vec3_arg("nearest", "position_m", position_m)
+        z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else z_range_arg("nearest", z_range_m)
         index = self._piece_index.update(self)
         bounds = np.empty(index.n_pieces)
         nearest_bounds(index.boxes, q, z_lo, z_hi, bounds)
@@ -838,7 +697,7 @@ class MapView:
             return FusedMap(pts.copy(), offsets, ids, None, int(keep.sum()))
         rest = ~keep
         p, f = pts[rest], ids[rest]
-        _, inverse, counts = np.unique(_packed_voxel_keys(p, voxel_size_m), return_inverse=True, return_counts=True)
+        _, inverse, counts = np.unique(voxel_keys(p, voxel_size_m), return_inverse=True, return_counts=True)
         centroids = np.stack([np.bincount(inverse, weights=p[:, k].astype(np.float64)) for k in range(3)], axis=1) / counts[:, None]
         frame_rank = np.searchsorted(self._sorted_ids(), f)
         pairs = np.sort(inverse.astype(np.int64) * len(self.frame_ids) + frame_rank)
