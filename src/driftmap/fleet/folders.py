@@ -1,0 +1,99 @@
+"""The output folder of a batch, and how a log's results appear in it whole or not at all.
+
+::
+
+    DIR/.driftmap-fleet      marks DIR as a batch's folder (``--resume`` continues it)
+    DIR/fleet.json           one row per log (the contract in docs/fleet.md)
+    DIR/fleet.html, *.png    the fleet report
+    DIR/fleet_config.json    the config every log's build and diagnose read (without the [fleet] table)
+    DIR/<name>/              one log: store/, diagnosis.json, result.json, log.txt and the exports
+    DIR/.fleet-tmp/          logs being written (removed when a batch starts and ends)
+
+A log is written into ``DIR/.fleet-tmp/<name>.<token>/`` and renamed to ``DIR/<name>/`` when it is complete
+(:func:`publish`: a rename within one file system, so ``DIR/<name>/`` is never half-written). ``result.json``
+records the log's row and the hash of the config it was made with (:func:`completed_result`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import secrets
+import shutil
+from pathlib import Path
+from typing import Any
+
+from driftmap._version import __version__
+from driftmap.errors import ConfigError
+from driftmap.files import fsync_dir
+
+__all__ = ["FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "prepare_out_dir",
+           "publish", "temp_folder"]
+
+MARKER = ".driftmap-fleet"
+FLEET_JSON = "fleet.json"
+RESULT_FILE = "result.json"
+TMP_DIR = ".fleet-tmp"
+LOG_FILES = ("store", "diagnosis.json", RESULT_FILE)
+"""What a complete log folder holds at least."""
+
+
+def prepare_out_dir(out_dir: Path, resume: bool) -> None:
+    """Make ``out_dir`` a batch's folder: new or empty, or an earlier batch's with ``resume``; partial logs of an
+    interrupted batch are removed. Anything else is refused (:class:`ConfigError`) before it is touched."""
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ConfigError(f"--out {out_dir}: is a file, but a batch writes a folder")
+    earlier = (out_dir / MARKER).is_file()
+    if out_dir.is_dir() and any(out_dir.iterdir()) and not earlier:
+        raise ConfigError(f"--out {out_dir}: exists, is not empty and holds no batch ({MARKER}); choose another --out")
+    if earlier and not resume:
+        raise ConfigError(f"--out {out_dir}: holds an earlier batch; pass --resume to continue it (complete logs made "
+                          f"with the same config are kept), or choose another --out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / MARKER).write_text(json.dumps({"format": "driftmap-fleet", "driftmap": __version__}) + "\n")
+    clean_temp(out_dir)
+
+
+def clean_temp(out_dir: Path) -> list[str]:
+    """Remove the partial logs an interrupted batch left in ``DIR/.fleet-tmp``; returns their names."""
+    tmp = out_dir / TMP_DIR
+    removed = []
+    if tmp.is_dir():
+        for entry in sorted(tmp.iterdir()):
+            removed.append(entry.name)
+            shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+    return removed
+
+
+def temp_folder(out_dir: Path, name: str) -> Path:
+    """A new folder to write log ``name`` into (in ``DIR/.fleet-tmp``, on the same file system as ``DIR``)."""
+    folder = out_dir / TMP_DIR / f"{name}.{secrets.token_hex(4)}"
+    folder.mkdir(parents=True)
+    return folder
+
+
+def publish(tmp: Path, final: Path) -> None:
+    """Rename the complete log ``tmp`` to ``final``. An earlier ``final`` (a log redone) is moved aside first and
+    removed after: at every moment ``final`` is either the old complete log, absent, or the new complete one."""
+    fsync_dir(tmp)
+    old = None
+    if final.exists():
+        old = tmp.parent / f"{tmp.name}.old"
+        final.rename(old)
+    tmp.rename(final)
+    fsync_dir(final.parent)
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
+
+
+def completed_result(folder: Path, expected_hash: str | None = None) -> dict[str, Any] | None:
+    """The ``result.json`` of a complete log folder (None if the folder is missing, incomplete, failed, or was
+    made with another config than ``expected_hash``)."""
+    if not all((folder / f).exists() for f in LOG_FILES):
+        return None
+    with contextlib.suppress(OSError, ValueError):
+        result = json.loads((folder / RESULT_FILE).read_text())
+        if (isinstance(result, dict) and isinstance(result.get("row"), dict) and result["row"].get("status") == "ok"
+                and (expected_hash is None or result.get("config_hash") == expected_hash)):
+            return result
+    return None
