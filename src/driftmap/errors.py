@@ -165,3 +165,14 @@ class OutputWriteError(DriftmapError, OSError):
 
     def __str__(self) -> str:
         return str(self.args[0]) if self.args else ""
+
+
+class QueryError(ConfigError):
+    """An action query of ``driftmap decide`` (or its query file) is malformed or cannot be answered on this map:
+    ``query_id`` names the query (None for the file itself), ``field`` the offending key (None when the whole query
+    is at fault)."""
+
+    def __init__(self, message: str, *, query_id: str | None, field: str | None = None):
+        super().__init__(message)
+        self.query_id = query_id
+        self.field = field

@@ -1,0 +1,184 @@
+"""``driftmap decide``: answer a file of action queries (clearance, collision, grasp, foothold, explore) on a store's
+revision, and with ``--compare A,B`` or ``--against OTHER_STORE`` list the decisions that flipped
+(docs/decisions.md)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.table import Table
+
+from driftmap.cli.common import (
+    app,
+    bold,
+    check_output,
+    console,
+    open_store,
+    progress_bar,
+    refuse_existing,
+    refuse_same_output,
+)
+
+FIGURE = "decisions.png"
+
+
+def _pair(text: str | None) -> tuple[int, int] | None:
+    """``--compare A,B`` -> two revision ids (a usage error otherwise)."""
+    if text is None:
+        return None
+    parts = [p.strip() for p in text.split(",")]
+    if len(parts) != 2 or not all(p.lstrip("-").isdigit() for p in parts):
+        raise typer.BadParameter(f"expected two revision ids A,B, got {text!r}", param_hint="--compare")
+    a, b = int(parts[0]), int(parts[1])
+    if a < 0 or b < 0:
+        raise typer.BadParameter(f"revision ids are >= 0, got {text!r}", param_hint="--compare")
+    return a, b
+
+
+@app.command()
+def decide(
+    store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
+    queries: Annotated[Path, typer.Option("--queries", help="Query file (JSON, or YAML with PyYAML): {\"queries\": [{\"id\", \"kind\": clearance | collision | grasp | foothold | explore, ...}]} (docs/decisions.md).")],
+    json_path: Annotated[Path, typer.Option("--json", help="Write the decisions here (JSON).")],
+    revision: Annotated[int | None, typer.Option("--revision", min=0, help="Revision (default: the latest).")] = None,
+    report: Annotated[Path | None, typer.Option("--report", help="Write the top-view figure of the decisions (decisions.png) to this folder.")] = None,
+    compare_revisions: Annotated[str | None, typer.Option("--compare", metavar="A,B", help="Decide on revisions A and B of STORE (the layers updated from A to B, not rebuilt) and list the decisions that flipped; the JSON's decisions are B's.")] = None,
+    against: Annotated[Path | None, typer.Option("--against", metavar="OTHER_STORE", help="Also decide on another store built from the same log (its latest revision, or --against-revision) and list the decisions that flipped from STORE to it.")] = None,
+    against_revision: Annotated[int | None, typer.Option("--against-revision", min=0, help="The revision of --against (default: its latest).")] = None,
+    diagnose: Annotated[bool, typer.Option("--diagnose", help="Run diagnose on each decided revision first: double walls in reach of a query bound its uncertainty and label it double_wall_nearby.")] = False,
+    diagnosis: Annotated[Path | None, typer.Option("--diagnosis", help="The double walls from a diagnosis JSON (diagnose --json) of the decided revision, instead of --diagnose.")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="Config file (JSON or TOML) whose [volume] table sets the volumetric layers (driftmap config --show).")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --json file (and the report's figure).")] = False,
+) -> None:
+    """Decide what the map lets the robot do: clearance, collision, grasp, foothold and exploration queries, each
+    with its margin, uncertainty, failure label, contributing frames, freshness and latency."""
+    from driftmap.config import DriftmapConfig
+    from driftmap.decisions.query_file import load_queries
+    from driftmap.decisions.walls import double_walls_of
+
+    pair = _pair(compare_revisions)
+    if pair is not None and (revision is not None or against is not None):
+        raise typer.BadParameter("--compare A,B names both revisions: give it without --revision and --against",
+                                 param_hint="--compare")
+    if against_revision is not None and against is None:
+        raise typer.BadParameter("--against-revision needs --against", param_hint="--against-revision")
+    if diagnose and diagnosis is not None:
+        raise typer.BadParameter("give --diagnose or --diagnosis, not both", param_hint="--diagnosis")
+    if diagnosis is not None and (pair is not None or against is not None):
+        raise typer.BadParameter("--diagnosis holds one revision's double walls; with a comparison use --diagnose",
+                                 param_hint="--diagnosis")
+    inputs = [(queries, "--queries")] + [(p, f) for p, f in ((config, "--config"), (diagnosis, "--diagnosis")) if p]
+    figure = None if report is None else report / FIGURE
+    refuse_same_output([(json_path, "--json"), *inputs] + ([(figure, "--report")] if figure else []))
+    check_output(json_path, "--json")
+    check_output(report, "--report", folder=True)
+    refuse_existing(json_path, "--json", overwrite)
+    if figure is not None:
+        refuse_existing(figure, "--report", overwrite)
+    query_set = load_queries(queries)  # every query checked before the store is opened
+    volume = DriftmapConfig.load(config).volume
+    with open_store(store_path) as store:
+        revisions = list(pair) if pair else [store.head if revision is None else revision]
+        _precheck(store, query_set, volume, revisions)
+        walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
+        with progress_bar() as progress:
+            tick = _ticker(progress)
+            result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick)
+    decisions, comparison, layers = result
+    _write(json_path, decisions, comparison)
+    if figure is not None:
+        from driftmap.decisions.figure import write_figure
+
+        write_figure(figure, decisions, layers, comparison)
+    _render(decisions, comparison)
+    console.print(bold("decisions: ", json_path))
+    if figure is not None:
+        console.print(bold("report: ", figure))
+
+
+def _precheck(store, query_set, volume, revisions: list[int]) -> None:
+    """Before any work: the revisions exist, and no query lies far off the map (a QueryError naming it)."""
+    from driftmap.decisions.decide import check_in_box, reach_of
+
+    for rev in revisions:
+        store.ledger.revision(rev)
+        check_in_box(query_set, *reach_of(store, rev, volume))
+
+
+def _ticker(progress):
+    tasks: dict[str, int] = {}
+
+    def tick(stage: str, done: int, total: int | None) -> None:
+        name = {"volume": "volumetric layers", "decide": "decisions"}.get(stage, stage)
+        if name not in tasks:
+            tasks[name] = progress.add_task(name, total=total)
+        progress.update(tasks[name], completed=done, total=total)
+    return tick
+
+
+def _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, given_walls, tick):
+    """The decision sets (one, or two and their comparison) and the layers of the last."""
+    from driftmap.decisions import compare, decide, decide_revisions
+    from driftmap.volume.layers import VolumeLayers
+
+    def walls(s, rev):
+        if not diagnose:
+            return None
+        from driftmap.diagnostics.diagnosis import diagnose_store
+
+        return diagnose_store(s, rev)
+
+    if pair is not None:
+        (a, b), layers = decide_revisions(store, query_set, list(pair), volume,
+                                          double_walls=[walls(store, pair[0]), walls(store, pair[1])], progress=tick)
+        return b, compare(a, b), layers
+    rev = store.head if revision is None else revision
+    if against is not None:
+        with open_store(against) as other:
+            other_rev = other.head if against_revision is None else against_revision
+            other.ledger.revision(other_rev)
+            a = decide(store, query_set, rev, volume, double_walls=walls(store, rev), progress=tick)
+            layers = VolumeLayers.from_store(other, other_rev, volume, progress=tick)
+            b = decide(other, query_set, other_rev, volume, layers=layers, double_walls=walls(other, other_rev),
+                       progress=tick)
+        return b, compare(a, b), layers
+    layers = VolumeLayers.from_store(store, rev, volume, progress=tick)
+    d = decide(store, query_set, rev, volume, layers=layers, double_walls=given_walls if given_walls is not None else walls(store, rev),
+               progress=tick)
+    return d, None, layers
+
+
+def _write(path: Path, decisions, comparison) -> None:
+    from driftmap.decisions.compare import output_json
+    from driftmap.store.guards import atomic_output
+
+    data = output_json(decisions, comparison)
+    with atomic_output(path, "--json") as tmp:
+        tmp.write_text(json.dumps(data, indent=1) + "\n")
+
+
+def _render(decisions, comparison) -> None:
+    table = Table(title=f"decisions on revision {decisions.representation.revision}")
+    for col in ("kind", "decisions", "failures"):
+        table.add_column(col)
+    by_kind: dict[str, dict[str, int]] = {}
+    failures: dict[str, int] = {}
+    for d in decisions.decisions:
+        counts = by_kind.setdefault(d.kind, {})
+        counts[d.decision] = counts.get(d.decision, 0) + 1
+        if d.failure_label is not None:
+            failures[d.kind] = failures.get(d.kind, 0) + 1
+    for kind, counts in by_kind.items():
+        table.add_row(kind, ", ".join(f"{k} {v}" for k, v in sorted(counts.items())), str(failures.get(kind, 0)))
+    console.print(table)
+    if comparison is not None:
+        a, b = comparison.a.representation, comparison.b.representation
+        console.print(f"{len(comparison.flipped)} of {len(comparison.margin_deltas)} decisions flipped from revision "
+                      f"{a.revision} of {a.store} to revision {b.revision} of {b.store}")
+        for f in comparison.flipped[:20]:
+            delta = "" if f.margin_delta is None else f", margin {f.margin_delta:+.3f}"
+            console.print(f"  {f.id}: {f.before} -> {f.after}{delta} (evidence moved "
+                          f"{100 * f.why['max_evidence_shift_m']:.1f} cm)")

@@ -1,0 +1,194 @@
+"""The library entry point: :func:`decide` answers a query set on one revision of a store, for a navigation stack
+as for ``driftmap decide``; :func:`decide_revisions` answers it on several revisions, updating the volumetric layers
+from one to the next (only the frames that moved) instead of rebuilding them.
+
+Every query is checked before the first is answered: its fields when the file is read
+(:mod:`driftmap.decisions.query_file`), and here that its region reaches the map (the layers' grid) at all.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from driftmap import __version__
+from driftmap.decisions import space, surface
+from driftmap.decisions.errors import QueryError
+from driftmap.decisions.evidence import DecisionContext
+from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_queries
+from driftmap.decisions.records import Decision, DecisionSet, Representation
+from driftmap.decisions.settings import DecideConfig, settings_hash
+from driftmap.decisions.walls import double_walls_of
+from driftmap.volume.grid import BLOCK_RESOLUTION
+
+if TYPE_CHECKING:
+    from driftmap.config import VolumeConfig
+    from driftmap.store.frame_store import FrameStore
+    from driftmap.volume.layers import VolumeLayers
+
+ProgressCallback = Callable[[str, int, int | None], None]
+
+DECIDERS: dict[str, Callable[[DecisionContext, Any], dict]] = {
+    "clearance": space.clearance,
+    "collision": space.collision,
+    "explore": space.explore,
+    "grasp": surface.grasp,
+    "foothold": surface.foothold,
+}
+_REGION_FIELD = {"clearance": "points_m", "collision": "path_m", "grasp": "roi_min_m", "foothold": "center_m",
+                 "explore": "min_m"}
+
+
+def as_query_set(queries: QuerySet | Sequence[Query] | dict | str | Path) -> QuerySet:
+    """A query set from a file path, a parsed file (dict), a list of queries or a query set."""
+    if isinstance(queries, QuerySet):
+        return queries
+    if isinstance(queries, (str, Path)):
+        return load_queries(queries)
+    if isinstance(queries, dict):
+        return parse_queries(queries)
+    items = list(queries)
+    if items and all(isinstance(q, Query) for q in items):
+        return QuerySet(items)
+    return parse_queries(items)
+
+
+def check_on_map(queries: Iterable[Query], layers: VolumeLayers) -> None:
+    """A query whose whole region lies outside the layers' grid (the map's bounds) is a :class:`QueryError`
+    naming it: a unit or frame mistake, not a question about unknown space."""
+    check_in_box(queries, layers.grid.min_m, layers.grid.max_m)
+
+
+def reach_of(store: FrameStore, revision: int, config: VolumeConfig | None) -> tuple[np.ndarray, np.ndarray]:
+    """A box holding the layers' grid, from the poses alone: every sensor origin of the revision grown by the
+    max range and the grid's padding (the grid spans the frames' points cut to that range, plus the padding).
+    Queries outside it are refused before the layers are built."""
+    from driftmap.config import VolumeConfig
+    from driftmap.volume.defaults import resolve_config
+
+    cfg = resolve_config(store, config or VolumeConfig())
+    if cfg.max_range_m is None:
+        return np.full(3, -np.inf), np.full(3, np.inf)
+    origins = np.asarray(store.poses(revision))[:, :3, 3]
+    block = 2 * BLOCK_RESOLUTION * float(cfg.voxel_size_m)  # the grid's corners are rounded out to whole blocks
+    grow = float(cfg.max_range_m) + cfg.padding_m + float(cfg.truncation_m or 0.0) + block
+    return origins.min(axis=0) - grow, origins.max(axis=0) + grow
+
+
+def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarray) -> None:
+    """Each query's region must reach into the box ``lo_map .. hi_map``: else a :class:`QueryError` naming it."""
+    for q in queries:
+        lo, hi = q.extent_m()
+        if np.any(hi < lo_map) or np.any(lo > hi_map):
+            raise QueryError(
+                f"query {q.id!r}: its {q.kind} region {np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()} lies "
+                f"outside the map ({np.round(lo_map, 3).tolist()} .. {np.round(hi_map, 3).tolist()}, field "
+                f"{_REGION_FIELD[q.kind]})", query_id=q.id, field=_REGION_FIELD[q.kind])
+
+
+def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path, revision: int | None = None,
+           config: VolumeConfig | None = None, *, decide_config: DecideConfig | None = None,
+           layers: VolumeLayers | None = None, double_walls: Any = None,
+           progress: ProgressCallback | None = None) -> DecisionSet:
+    """Answer every query on ``revision`` (default: the head) of ``store``.
+
+    ``config``: the volumetric settings (defaults follow the sensor); ``layers``: layers of that revision already
+    built (else they are built here, which is most of the time of a first call); ``double_walls``: a
+    :class:`~driftmap.diagnostics.diagnosis.Diagnosis` of the revision, the JSON ``diagnose --json`` wrote (path
+    or dict) or a list of regions -- the double walls in reach of each query then label and bound it.
+    """
+    qs = as_query_set(queries)
+    rev = store.head if revision is None else int(revision)
+    store.ledger.revision(rev)  # an unknown revision: a StoreError naming it, before any work
+    walls = double_walls_of(double_walls, rev)
+    t0 = time.perf_counter()
+    if layers is None:
+        check_in_box(qs, *reach_of(store, rev, config))
+        from driftmap.volume.layers import VolumeLayers
+
+        layers = VolumeLayers.from_store(store, rev, config, progress=progress)
+    elif layers.revision != rev:
+        raise QueryError(f"the layers given are of revision {layers.revision}, not {rev}", query_id=None)
+    layers_s = time.perf_counter() - t0
+    check_on_map(qs, layers)
+    return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s)
+
+
+def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path,
+                     revisions: Sequence[int], config: VolumeConfig | None = None, *,
+                     decide_config: DecideConfig | None = None, double_walls: Sequence[Any] | None = None,
+                     progress: ProgressCallback | None = None) -> tuple[list[DecisionSet], VolumeLayers]:
+    """:func:`decide` on each revision in turn; the layers are built once and then updated to the next revision
+    (:meth:`~driftmap.volume.layers.VolumeLayers.apply`: only the frames that moved). Returns the decision sets
+    and the layers (of the last revision)."""
+    from driftmap.volume.layers import VolumeLayers
+
+    qs = as_query_set(queries)
+    for r in revisions:
+        store.ledger.revision(int(r))
+        check_in_box(qs, *reach_of(store, int(r), config))
+    walls = list(double_walls) if double_walls is not None else [None] * len(revisions)
+    if len(walls) != len(revisions):
+        raise QueryError(f"double_walls: {len(walls)} entries for {len(revisions)} revisions (one per revision, None "
+                         f"for none)", query_id=None)
+    walls = [double_walls_of(w, int(r)) for w, r in zip(walls, revisions)]
+    out: list[DecisionSet] = []
+    layers = None
+    for n, rev in enumerate(revisions):
+        t0 = time.perf_counter()
+        if layers is None:
+            layers = VolumeLayers.from_store(store, int(rev), config, progress=progress)
+            check_on_map(qs, layers)
+        else:
+            layers.apply(int(rev), store)
+        out.append(_decide_on(store, qs, layers, decide_config or DecideConfig(), walls[n], progress,
+                              time.perf_counter() - t0))
+    assert layers is not None
+    return out, layers
+
+
+def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: DecideConfig, walls: list,
+               progress: ProgressCallback | None, layers_s: float) -> DecisionSet:
+    tick = progress or (lambda stage, done, total: None)
+    ctx = DecisionContext(store, layers.revision, layers, cfg, walls)
+    t_all = time.perf_counter()
+    prepare(layers)
+    prepare_s = time.perf_counter() - t_all
+    decisions: list[Decision] = []
+    for n, q in enumerate(qs):
+        t = time.perf_counter()
+        fields = DECIDERS[q.kind](ctx, q)
+        decisions.append(Decision(q.id, q.kind, latency_s=time.perf_counter() - t, **fields))
+        tick("decide", n + 1, len(qs))
+    rev = layers.revision
+    representation = Representation(
+        store=str(store.path), revision=int(rev), settings_hash=settings_hash(layers.config, cfg),
+        driftmap_version=__version__, store_uuid=_store_uuid(store), n_frames=len(store),
+        settings={"volume": layers.config.model_dump(mode="json"), "decide": cfg.model_dump(mode="json")},
+        query_file=None if qs.source == "<memory>" else qs.source)
+    return DecisionSet(representation, decisions, qs, np.asarray(store.frame_ids, dtype=np.int64).copy(),
+                       np.asarray(store.poses(rev)).copy(), walls,
+                       {"layers": layers_s, "prepare": prepare_s, "decide": time.perf_counter() - t_all - prepare_s})
+
+
+def prepare(layers: VolumeLayers) -> None:
+    """Build what every query reads once (the surface KD-tree, the per-column unknown counts; cached on the layers
+    until they change), so that a query's latency is its own."""
+    from driftmap.volume.queries import surface_tree
+
+    surface_tree(layers)
+    space.unknown_sat(layers)
+    layers.observers(np.zeros((1, 3)))  # the sorted (voxel, frame) index the provenance lookups search
+
+
+def _store_uuid(store: FrameStore) -> str | None:
+    from driftmap.store.manifest import read_manifest
+
+    try:
+        return str(read_manifest(Path(store.path))["store_uuid"])
+    except Exception:  # noqa: BLE001 - the id is a label; a store that opened has one, a damaged manifest gives none
+        return None

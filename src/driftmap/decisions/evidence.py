@@ -1,0 +1,156 @@
+"""What every decision reads from the map, and what it reports about its evidence: the contributing frames, the
+stamp of the newest, the revision that set each frame's pose, and the uncertainty.
+
+The **uncertainty** of a decision (metres) is the larger of
+
+- the *frame spread* at its evidence point: the map points within ``spread_radius_m`` of the point are grouped by
+  the frame that measured them; each frame with at least ``spread_min_points`` of them places the surface at the
+  median of its points' offsets along the surface normal; the spread is the distance between the nearest and the
+  farthest of these placements. On a consistent map it is the depth noise of a frame's median (a few mm); where the
+  frames' poses disagree -- drift, a wrong loop, a step -- it is how far apart they put the surface the decision
+  hinges on. It is the pose uncertainty of the contributing frames as it shows at the point, measured from the data
+  (GTSAM marginals are not stored with a revision);
+- the separation of the largest double wall ``diagnose`` flagged within ``double_wall_reach_m`` of the query's
+  region, when a diagnosis of the revision is given.
+
+None when neither can be measured (fewer than two frames near the evidence and no diagnosis in reach).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap.decisions.settings import DecideConfig
+from driftmap.decisions.walls import DoubleWall, walls_in_reach
+
+if TYPE_CHECKING:
+    from driftmap.map.view import MapView
+    from driftmap.store.frame_store import FrameStore
+    from driftmap.volume.layers import VolumeLayers
+
+
+@dataclass
+class DecisionContext:
+    """The map of one revision as the deciders read it (layers, map view, frame stamps and poses)."""
+
+    store: FrameStore
+    revision: int
+    layers: VolumeLayers
+    config: DecideConfig
+    double_walls: list[DoubleWall] = field(default_factory=list)
+    _stamps: dict[int, int] = field(default_factory=dict)
+    _origins: dict[int, NDArray[np.float64]] = field(default_factory=dict)
+    _pose_revision: dict[int, int] | None = None
+
+    def __post_init__(self) -> None:
+        ids = np.asarray(self.store.frame_ids, dtype=np.int64)
+        self._stamps = dict(zip(ids.tolist(), np.asarray(self.store.ledger.stamps_ns).tolist()))
+
+    @property
+    def view(self) -> MapView:
+        assert self.layers.view is not None
+        return self.layers.view
+
+    @property
+    def voxel_m(self) -> float:
+        return float(self.layers.grid.voxel_size_m)
+
+    @property
+    def max_range_m(self) -> float | None:
+        r = self.layers.config.max_range_m
+        return None if r is None else float(r)
+
+    # ------------------------------------------------------------------------------------------- points
+    def origin(self, frame_id: int) -> NDArray[np.float64]:
+        o = self._origins.get(frame_id)
+        if o is None:
+            o = self._origins[frame_id] = self.view.pose(frame_id)[:3, 3].copy()
+        return o
+
+    def points_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """Full-resolution map points (float64) inside the world box and their frames; with ``range_limited_points``
+        only those within the volume's max range of their sensor (the depth the layers trust as hits)."""
+        found = self.view.query_box(lo, hi)
+        return self._in_range(found.points_world.astype(np.float64), found.frame_ids)
+
+    def points_in_ball(self, center: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        found = self.view.query_radius(center, radius_m)
+        return self._in_range(found.points_world.astype(np.float64), found.frame_ids)
+
+    def _in_range(self, pts: NDArray[np.float64], fids: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        if not self.config.range_limited_points or self.max_range_m is None or len(pts) == 0:
+            return pts, fids
+        uniq, inv = np.unique(fids, return_inverse=True)
+        origins = np.stack([self.origin(int(f)) for f in uniq])
+        keep = np.linalg.norm(pts - origins[inv], axis=1) <= self.max_range_m
+        return pts[keep], fids[keep]
+
+    # ------------------------------------------------------------------------------------------- frames
+    def frames_report(self, frames: NDArray[np.int64] | list[int]) -> tuple[list[int], int | None]:
+        """Sorted unique frame ids and the stamp of the newest (None without frames)."""
+        ids = sorted({int(f) for f in np.asarray(frames, dtype=np.int64).ravel()})
+        stamps = [self._stamps[f] for f in ids if f in self._stamps]
+        return ids, (max(stamps) if stamps else None)
+
+    def pose_revisions(self, frames: list[int]) -> list[int]:
+        """For each frame, the revision in this revision's ancestry that last set its pose (0: the poses that
+        produced the frames)."""
+        if self._pose_revision is None:
+            self._pose_revision = self._ancestry_pose_revisions()
+        return [self._pose_revision.get(int(f), 0) for f in frames]
+
+    def _ancestry_pose_revisions(self) -> dict[int, int]:
+        by_id = {r.revision_id: r for r in self.store.revisions}
+        out: dict[int, int] = {}
+        rev = by_id.get(self.revision)
+        while rev is not None and rev.parent_id is not None:
+            for f in (*rev.set_directly.keys(), *rev.propagated.keys()):
+                out.setdefault(int(f), rev.revision_id)
+            rev = by_id.get(rev.parent_id)
+        return out
+
+    # -------------------------------------------------------------------------------------- uncertainty
+    def frame_spread_m(self, point: NDArray[np.float64] | None, normal: NDArray[np.float64] | None = None) -> float | None:
+        """How far apart the frames near ``point`` place the surface along ``normal`` (fitted when None)."""
+        if point is None:
+            return None
+        pts, fids = self.points_in_ball(point, self.config.spread_radius_m)
+        if len(pts) < 2 * self.config.spread_min_points:
+            return None
+        if normal is None:
+            centred = pts - pts.mean(axis=0)
+            normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+        offsets = (pts - point) @ np.asarray(normal, dtype=np.float64)
+        _, inv, counts = np.unique(fids, return_inverse=True, return_counts=True)
+        placed = [float(np.median(offsets[inv == k])) for k in np.flatnonzero(counts >= self.config.spread_min_points)]
+        if len(placed) < 2:
+            return None
+        return max(placed) - min(placed)
+
+    def uncertainty(self, lo: NDArray[np.float64], hi: NDArray[np.float64], point: NDArray[np.float64] | None,
+                    normal: NDArray[np.float64] | None = None) -> tuple[float | None, dict, list[DoubleWall]]:
+        """The decision's uncertainty (module docstring), its parts, and the double walls in reach."""
+        spread = self.frame_spread_m(point, normal)
+        walls = walls_in_reach(self.double_walls, lo, hi, self.config.double_wall_reach_m)
+        wall_m = max((w.separation_m for w in walls), default=None)
+        parts = {"frame_spread_m": spread, "double_wall_separation_m": wall_m}
+        values = [v for v in (spread, wall_m) if v is not None]
+        return (max(values) if values else None), parts, walls
+
+    def finish(self, decision: str, failure: str | None, lo: NDArray[np.float64], hi: NDArray[np.float64],
+               point: NDArray[np.float64] | None, frames: NDArray[np.int64] | list[int],
+               normal: NDArray[np.float64] | None = None) -> dict:
+        """The fields every decision shares: frames, freshness, uncertainty, the failure label (a passing decision
+        with a double wall in reach is labelled ``double_wall_nearby``)."""
+        ids, newest = self.frames_report(frames)
+        unc, parts, walls = self.uncertainty(lo, hi, point, normal)
+        if failure is None and walls:
+            failure = "double_wall_nearby"
+        return {"decision": decision, "failure_label": failure, "frames": ids, "stamp_ns_newest": newest,
+                "uncertainty": unc, "evidence_m": point,
+                "details": {"uncertainty_parts": parts, "frame_pose_revisions": self.pose_revisions(ids),
+                            "double_walls_in_reach": [w.to_json() for w in walls]}}

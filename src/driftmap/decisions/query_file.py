@@ -1,0 +1,370 @@
+"""Action queries and the query file (docs/decisions.md): ``{"queries": [{"id": ..., "kind": ..., ...}, ...]}`` in
+JSON, or the same in YAML when PyYAML is installed.
+
+Every query is checked before anything is computed; a bad one is a :class:`~driftmap.decisions.errors.QueryError`
+naming the query id and the field (an unknown kind, a path of one point, a negative radius, a number that is not
+finite, a box whose max is below its min, ...). Whether a query's region lies on the map can only be told with the
+map: :func:`driftmap.decisions.decide.decide` checks that against the layers' bounds.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap.decisions.errors import QueryError
+
+KINDS = ("clearance", "collision", "grasp", "foothold", "explore")
+UNKNOWN_POLICIES = ("occupied", "free")
+IGNORED_KEYS = frozenset({"note", "tags", "truth"})
+"""Keys a query may carry for its author (a description, labels, the truth of a generated set); decide ignores them."""
+MAX_POINTS_PER_QUERY = 100_000
+MAX_QUERY_FILE_BYTES = 256 << 20
+
+
+@dataclass(frozen=True)
+class Query:
+    """What every query has: its id and kind (the subclasses add the geometry)."""
+
+    id: str
+    kind: str
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def anchor_m(self) -> NDArray[np.float64]:
+        """A representative world point (for figures and distances to double walls): the extent's centre."""
+        lo, hi = self.extent_m()
+        return 0.5 * (lo + hi)
+
+
+@dataclass(frozen=True)
+class ClearanceQuery(Query):
+    points_m: NDArray[np.float64]
+    radius_m: float
+    unknown_is: str | None = None
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.points_m.min(axis=0) - self.radius_m, self.points_m.max(axis=0) + self.radius_m
+
+
+@dataclass(frozen=True)
+class CollisionQuery(Query):
+    path_m: NDArray[np.float64]
+    footprint: str
+    """box | cylinder"""
+    size_m: tuple[float, ...]
+    """box: edge lengths (x, y, z); cylinder: (radius, height), axis vertical"""
+    unknown_is: str | None = None
+
+    @property
+    def half_extent_m(self) -> NDArray[np.float64]:
+        if self.footprint == "box":
+            return 0.5 * np.asarray(self.size_m, dtype=np.float64)
+        r, h = self.size_m
+        return np.array([r, r, 0.5 * h])
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.path_m.min(axis=0) - self.half_extent_m, self.path_m.max(axis=0) + self.half_extent_m
+
+    @property
+    def length_m(self) -> float:
+        return float(np.linalg.norm(np.diff(self.path_m, axis=0), axis=1).sum())
+
+
+@dataclass(frozen=True)
+class GraspQuery(Query):
+    roi_min_m: NDArray[np.float64]
+    roi_max_m: NDArray[np.float64]
+    min_points: int | None = None
+    max_normal_spread_deg: float | None = None
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.roi_min_m, self.roi_max_m
+
+
+@dataclass(frozen=True)
+class FootholdQuery(Query):
+    center_m: NDArray[np.float64]
+    radius_m: float
+    max_slope_deg: float
+    max_flatness_m: float | None = None
+    min_points: int | None = None
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.center_m - self.radius_m, self.center_m + self.radius_m
+
+
+@dataclass(frozen=True)
+class ExploreQuery(Query):
+    min_m: NDArray[np.float64]
+    max_m: NDArray[np.float64]
+    max_unknown_fraction: float
+
+    def extent_m(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        return self.min_m, self.max_m
+
+
+@dataclass(frozen=True)
+class QuerySet:
+    """The queries of a file (in its order) and where they came from."""
+
+    queries: list[Query]
+    source: str = "<memory>"
+    raw: list[dict] = field(default_factory=list, repr=False)
+    """the queries as given (the truth of a generated set travels here)"""
+
+    def __len__(self) -> int:
+        return len(self.queries)
+
+    def __iter__(self):
+        return iter(self.queries)
+
+    def by_id(self) -> dict[str, Query]:
+        return {q.id: q for q in self.queries}
+
+
+# ------------------------------------------------------------------------------------------------ loading
+def load_queries(path: str | Path) -> QuerySet:
+    """Read and check a query file: ``.json``, or ``.yaml`` / ``.yml`` (needs PyYAML)."""
+    path = Path(path)
+    try:
+        size = path.stat().st_size
+    except FileNotFoundError:
+        raise QueryError(f"{path}: no such query file", query_id=None) from None
+    if path.is_dir():
+        raise QueryError(f"{path}: is a folder, not a query file", query_id=None)
+    if size > MAX_QUERY_FILE_BYTES:
+        raise QueryError(f"{path}: {size:,} bytes is more than a query file may hold ({MAX_QUERY_FILE_BYTES:,})",
+                         query_id=None)
+    text = path.read_text(encoding="utf-8")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        data = _parse_yaml(text, path)
+    else:
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise QueryError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})",
+                             query_id=None) from None
+    return parse_queries(data, source=str(path))
+
+
+def _parse_yaml(text: str, path: Path) -> Any:
+    try:
+        import yaml
+    except ImportError:
+        raise QueryError(f"{path}: reading a YAML query file needs PyYAML (pip install pyyaml); or give the same "
+                         f"queries as JSON", query_id=None) from None
+    try:
+        return yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise QueryError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})", query_id=None) from None
+
+
+def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
+    """Check the parsed file (``{"queries": [...]}``, or a bare list of queries) and build the queries."""
+    items = data.get("queries") if isinstance(data, Mapping) else data
+    if isinstance(data, Mapping) and "queries" not in data:
+        raise QueryError(f"{source}: no 'queries' list (expected {{\"queries\": [...]}})", query_id=None)
+    if not isinstance(items, list):
+        raise QueryError(f"{source}: 'queries' must be a list, got {type(items).__name__}", query_id=None)
+    if not items:
+        raise QueryError(f"{source}: the query list is empty", query_id=None)
+    queries: list[Query] = []
+    seen: set[str] = set()
+    for n, item in enumerate(items):
+        query = parse_query(item, n)
+        if query.id in seen:
+            raise QueryError(f"query {query.id!r}: the id is used twice (ids name decisions: each must be unique)",
+                             query_id=query.id, field="id")
+        seen.add(query.id)
+        queries.append(query)
+    return QuerySet(queries, source, [dict(i) for i in items])
+
+
+_REQUIRED = {
+    "clearance": ("points_m", "radius_m"),
+    "collision": ("path_m", "footprint"),
+    "grasp": ("roi_min_m", "roi_max_m"),
+    "foothold": ("center_m", "radius_m", "max_slope_deg"),
+    "explore": ("min_m", "max_m", "max_unknown_fraction"),
+}
+_OPTIONAL = {
+    "clearance": ("unknown_is",),
+    "collision": ("unknown_is",),
+    "grasp": ("min_points", "max_normal_spread_deg"),
+    "foothold": ("max_flatness_m", "min_points"),
+    "explore": (),
+}
+
+
+def parse_query(item: Any, index: int = 0) -> Query:
+    """One query (a mapping) checked and built; ``index`` names it when it has no usable id."""
+    if not isinstance(item, Mapping):
+        raise QueryError(f"query #{index + 1}: expected a mapping with id and kind, got {type(item).__name__}",
+                         query_id=None)
+    qid = item.get("id")
+    if not isinstance(qid, str) or not qid.strip():
+        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r}", query_id=None, field="id")
+    kind = item.get("kind")
+    if kind not in KINDS:
+        raise QueryError(f"query {qid!r}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})", query_id=qid, field="kind")
+    allowed = {"id", "kind", *_REQUIRED[kind], *_OPTIONAL[kind]} | IGNORED_KEYS
+    for key in item:
+        if key not in allowed:
+            raise QueryError(f"query {qid!r}: unknown field {key!r} for a {kind} query (fields: "
+                             f"{', '.join(sorted(allowed - IGNORED_KEYS - {'id', 'kind'}))})", query_id=qid, field=str(key))
+    for key in _REQUIRED[kind]:
+        if key not in item:
+            raise QueryError(f"query {qid!r}: a {kind} query needs {key!r}", query_id=qid, field=key)
+    return _BUILDERS[kind](qid, item)
+
+
+def _clearance(qid: str, item: Mapping) -> ClearanceQuery:
+    points = _points(qid, item, "points_m", min_count=1)
+    radius = _number(qid, item, "radius_m", lo=0.0)
+    return ClearanceQuery(qid, "clearance", points, radius, _policy(qid, item))
+
+
+def _collision(qid: str, item: Mapping) -> CollisionQuery:
+    path = _points(qid, item, "path_m", min_count=2)
+    if not np.any(np.linalg.norm(np.diff(path, axis=0), axis=1) > 0):
+        raise QueryError(f"query {qid!r}: path_m has length 0 (all its points coincide): a path needs two distinct "
+                         f"points", query_id=qid, field="path_m")
+    fp = item["footprint"]
+    if not isinstance(fp, Mapping) or len(fp) != 1 or next(iter(fp)) not in ("box_m", "cylinder_m"):
+        raise QueryError(f"query {qid!r}: footprint must be {{\"box_m\": [lx, ly, lz]}} or {{\"cylinder_m\": "
+                         f"[radius, height]}}, got {fp!r}", query_id=qid, field="footprint")
+    key = next(iter(fp))
+    size = _vector(qid, fp[key], f"footprint.{key}", 3 if key == "box_m" else 2)
+    if np.any(size <= 0):
+        raise QueryError(f"query {qid!r}: footprint.{key} must be positive lengths, got {size.tolist()}",
+                         query_id=qid, field=f"footprint.{key}")
+    return CollisionQuery(qid, "collision", path, "box" if key == "box_m" else "cylinder",
+                          tuple(float(v) for v in size), _policy(qid, item))
+
+
+def _grasp(qid: str, item: Mapping) -> GraspQuery:
+    lo, hi = _box(qid, item, "roi_min_m", "roi_max_m")
+    min_points = _integer(qid, item, "min_points", lo=3) if "min_points" in item else None
+    spread = _number(qid, item, "max_normal_spread_deg", lo=0.0, hi=90.0) if "max_normal_spread_deg" in item else None
+    return GraspQuery(qid, "grasp", lo, hi, min_points, spread)
+
+
+def _foothold(qid: str, item: Mapping) -> FootholdQuery:
+    center = _vector(qid, item["center_m"], "center_m", 3)
+    radius = _number(qid, item, "radius_m", lo=0.0, strict=True)
+    slope = _number(qid, item, "max_slope_deg", lo=0.0, hi=90.0)
+    flat = _number(qid, item, "max_flatness_m", lo=0.0, strict=True) if "max_flatness_m" in item else None
+    min_points = _integer(qid, item, "min_points", lo=3) if "min_points" in item else None
+    return FootholdQuery(qid, "foothold", center, radius, slope, flat, min_points)
+
+
+def _explore(qid: str, item: Mapping) -> ExploreQuery:
+    lo, hi = _box(qid, item, "min_m", "max_m")
+    frac = _number(qid, item, "max_unknown_fraction", lo=0.0, hi=1.0)
+    return ExploreQuery(qid, "explore", lo, hi, frac)
+
+
+_BUILDERS = {"clearance": _clearance, "collision": _collision, "grasp": _grasp, "foothold": _foothold,
+             "explore": _explore}
+
+
+# ------------------------------------------------------------------------------------------------ values
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _number(qid: str, item: Mapping, key: str, *, lo: float | None = None, hi: float | None = None,
+            strict: bool = False) -> float:
+    v = item[key]
+    if not _is_number(v):
+        raise QueryError(f"query {qid!r}: {key} must be a number, got {v!r}", query_id=qid, field=key)
+    v = float(v)
+    if not math.isfinite(v):
+        raise QueryError(f"query {qid!r}: {key} must be finite, got {v}", query_id=qid, field=key)
+    if lo is not None and (v < lo or (strict and v == lo)):
+        what = "negative" if v < 0 <= lo else f"{'<=' if strict else 'below'} {lo:g}"
+        raise QueryError(f"query {qid!r}: {key} must be {'>' if strict else '>='} {lo:g}, got {v:g} ({what})",
+                         query_id=qid, field=key)
+    if hi is not None and v > hi:
+        raise QueryError(f"query {qid!r}: {key} must be <= {hi:g}, got {v:g}", query_id=qid, field=key)
+    return v
+
+
+def _integer(qid: str, item: Mapping, key: str, *, lo: int) -> int:
+    v = item[key]
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise QueryError(f"query {qid!r}: {key} must be a whole number >= {lo}, got {v!r}", query_id=qid, field=key)
+    return int(v)
+
+
+def _vector(qid: str, value: Any, key: str, n: int) -> NDArray[np.float64]:
+    if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != n or not all(_is_number(v) for v in value):
+        raise QueryError(f"query {qid!r}: {key} must be {n} numbers, got {value!r}", query_id=qid, field=key)
+    out = np.asarray(value, dtype=np.float64)
+    if not np.all(np.isfinite(out)):
+        raise QueryError(f"query {qid!r}: {key} must be finite, got {out.tolist()}", query_id=qid, field=key)
+    return out
+
+
+def _points(qid: str, item: Mapping, key: str, *, min_count: int) -> NDArray[np.float64]:
+    value = item[key]
+    if not isinstance(value, Sequence) or isinstance(value, str):
+        raise QueryError(f"query {qid!r}: {key} must be a list of [x, y, z] points, got {type(value).__name__}",
+                         query_id=qid, field=key)
+    if len(value) < min_count:
+        what = "a path needs at least two points" if min_count == 2 else "give at least one point"
+        raise QueryError(f"query {qid!r}: {key} has {len(value)} point{'s' if len(value) != 1 else ''}: {what}",
+                         query_id=qid, field=key)
+    if len(value) > MAX_POINTS_PER_QUERY:
+        raise QueryError(f"query {qid!r}: {key} has {len(value):,} points, more than {MAX_POINTS_PER_QUERY:,}",
+                         query_id=qid, field=key)
+    return np.stack([_vector(qid, p, f"{key}[{k}]", 3) for k, p in enumerate(value)])
+
+
+def _box(qid: str, item: Mapping, lo_key: str, hi_key: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    lo = _vector(qid, item[lo_key], lo_key, 3)
+    hi = _vector(qid, item[hi_key], hi_key, 3)
+    if np.any(hi <= lo):
+        raise QueryError(f"query {qid!r}: {hi_key} {hi.tolist()} must exceed {lo_key} {lo.tolist()} on every axis",
+                         query_id=qid, field=hi_key)
+    return lo, hi
+
+
+def _policy(qid: str, item: Mapping) -> str | None:
+    v = item.get("unknown_is")
+    if v is None:
+        return None
+    if v not in UNKNOWN_POLICIES:
+        raise QueryError(f"query {qid!r}: unknown_is must be one of {', '.join(UNKNOWN_POLICIES)}, got {v!r}",
+                         query_id=qid, field="unknown_is")
+    return str(v)
+
+
+def query_to_json(query: Query) -> dict:
+    """A query as the file holds it (contract keys)."""
+    out: dict[str, Any] = {"id": query.id, "kind": query.kind}
+    if isinstance(query, ClearanceQuery):
+        out.update(points_m=query.points_m.tolist(), radius_m=query.radius_m)
+    elif isinstance(query, CollisionQuery):
+        key = "box_m" if query.footprint == "box" else "cylinder_m"
+        out.update(path_m=query.path_m.tolist(), footprint={key: list(query.size_m)})
+    elif isinstance(query, GraspQuery):
+        out.update(roi_min_m=query.roi_min_m.tolist(), roi_max_m=query.roi_max_m.tolist())
+    elif isinstance(query, FootholdQuery):
+        out.update(center_m=query.center_m.tolist(), radius_m=query.radius_m, max_slope_deg=query.max_slope_deg)
+    elif isinstance(query, ExploreQuery):
+        out.update(min_m=query.min_m.tolist(), max_m=query.max_m.tolist(), max_unknown_fraction=query.max_unknown_fraction)
+    for key in ("unknown_is", "min_points", "max_normal_spread_deg", "max_flatness_m"):
+        value = getattr(query, key, None)
+        if value is not None:
+            out[key] = value
+    return out

@@ -1,0 +1,283 @@
+"""Decisions about space: ``clearance`` (a robot sphere at points), ``collision`` (a box or cylinder footprint swept
+along a path) and ``explore`` (how much of a region nobody saw).
+
+Obstacles are the layers' *observed surface*: the mean point of every occupied voxel at least ``surface_min_hits``
+points ended in (:func:`driftmap.volume.queries.surface_tree`), so one stray point of depth noise is no wall.
+Unknown space is a voxel no ray ended in or passed through. The policy for it (``unknown_is``, per query or the
+volume setting; default ``occupied``): a sphere or footprint that reaches unknown space before any surface is
+``unknown`` -- a planner must not go there without looking -- and with ``free`` unknown space is ignored. Anything
+outside the layers' grid is unknown.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
+from driftmap.volume.queries import surface_tree
+
+if TYPE_CHECKING:
+    from driftmap.decisions.evidence import DecisionContext
+    from driftmap.volume.layers import VolumeLayers
+
+UNKNOWN = -1
+MARGIN_CAP_M = 0.25
+"""collision: the footprint's clearance is exact up to this far beyond its bounding sphere (a lower bound beyond)"""
+
+
+def _policy(ctx: DecisionContext, value: str | None) -> str:
+    return value if value is not None else ctx.layers.config.unknown_is.value
+
+
+def _surface(ctx: DecisionContext) -> tuple[object | None, NDArray[np.float64]]:
+    tree = surface_tree(ctx.layers)
+    return tree, (np.zeros((0, 3)) if tree is None else np.asarray(tree.data))
+
+
+# ------------------------------------------------------------------------------------------------ clearance
+def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
+    """``blocked`` when an observed surface is closer than the radius to any point; else ``unknown`` when an
+    unknown voxel is (its centre within the radius plus half a voxel: the layers' distance to unknown space), with
+    policy ``occupied``; else ``free``. Margin: the smallest clearance to a surface minus the radius."""
+    tree, surface = _surface(ctx)
+    if tree is None:
+        d_surf, idx = np.full(len(q.points_m), np.inf), np.zeros(len(q.points_m), np.int64)
+    else:
+        d_surf, idx = tree.query(q.points_m)
+    k = int(np.argmin(d_surf))
+    margin = float(d_surf[k]) - q.radius_m
+    policy = _policy(ctx, q.unknown_is)
+    n_unknown = sum(unknown_in_ball(ctx.layers, p, q.radius_m) for p in q.points_m) if policy == "occupied" else 0
+    if margin < 0:
+        decision, failure = "blocked", "collision"
+    elif n_unknown:
+        decision, failure = "unknown", "unknown_space"
+    else:
+        decision, failure = "free", None
+    evidence = surface[int(idx[k])] if np.isfinite(d_surf[k]) else None
+    frames = ctx.layers.observers(evidence[None])[0] if evidence is not None else np.zeros(0, np.int64)
+    lo, hi = q.extent_m()
+    out = ctx.finish(decision, failure, lo, hi, evidence, frames)
+    out["margin"] = margin if np.isfinite(margin) else None
+    out["details"].update(clearance_m=float(d_surf[k]), unknown_voxels_in_reach=int(n_unknown),
+                          nearest_point_index=k, unknown_is=policy)
+    return out
+
+
+def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: float) -> int:
+    """How many unknown voxels (or voxels outside the grid) have their centre within ``radius_m`` plus half a voxel
+    of ``point`` (their nearest face within ``radius_m``, as the layers' distance to unknown space counts it)."""
+    vs = layers.grid.voxel_size_m
+    reach = radius_m + 0.5 * vs
+    lo = np.ceil((point - reach) / vs - 0.5).astype(np.int64)
+    hi = np.floor((point + reach) / vs - 0.5).astype(np.int64)
+    gx, gy = (a.ravel() for a in np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij"))
+    rho2 = ((gx + 0.5) * vs - point[0]) ** 2 + ((gy + 0.5) * vs - point[1]) ** 2
+    keep = rho2 < reach * reach
+    gx, gy = gx[keep], gy[keep]
+    dz = np.sqrt(reach * reach - rho2[keep])
+    z0 = np.ceil((point[2] - dz) / vs - 0.5).astype(np.int64)
+    z1 = np.floor((point[2] + dz) / vs - 0.5).astype(np.int64)
+    return unknown_in_columns(layers, gx, gy, z0, z1)
+
+
+# ------------------------------------------------------------------------------------------------ collision
+def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
+    """Sweep the footprint (centred on the path) along the path every ``sweep_step_m``; the first place where an
+    observed surface point lies inside it is a contact (``blocked``), the first where it holds an unknown voxel's
+    centre (policy ``occupied``) is ``unknown``, whichever comes first (a contact wins a tie); else ``free``.
+    Margin: the smallest distance between the footprint and a surface point along the whole path (negative: how
+    deep the surface reaches into it)."""
+    step = ctx.config.sweep_step_m or 0.5 * ctx.voxel_m
+    samples, along = path_samples(q.path_m, step)
+    tree, surface = _surface(ctx)
+    signed, nearest = _footprint_distances(q, samples, tree, surface)
+    contact = np.flatnonzero(signed < 0)
+    unknown = (np.flatnonzero(_unknown_counts(ctx.layers, q, samples) > 0) if _policy(ctx, q.unknown_is) == "occupied"
+               else np.zeros(0, np.int64))
+    first_c = int(contact[0]) if len(contact) else None
+    first_u = int(unknown[0]) if len(unknown) else None
+    k_min = int(np.argmin(signed))
+    if first_c is not None and (first_u is None or first_c <= first_u):
+        decision, failure, at = "blocked", "collision", first_c
+        evidence = surface[int(nearest[first_c])]
+    elif first_u is not None:
+        decision, failure, at = "unknown", "unknown_space", first_u
+        evidence = surface[int(nearest[k_min])] if nearest[k_min] >= 0 else None
+    else:
+        decision, failure, at = "free", None, None
+        evidence = surface[int(nearest[k_min])] if nearest[k_min] >= 0 else None
+    frames = ctx.layers.observers(evidence[None])[0] if evidence is not None else np.zeros(0, np.int64)
+    lo, hi = q.extent_m()
+    out = ctx.finish(decision, failure, lo, hi, evidence, frames)
+    margin = float(signed[k_min])
+    out["margin"] = margin if np.isfinite(margin) else None
+    out["details"].update(
+        outcome={"blocked": "contact", "unknown": "unknown", "free": "clear"}[decision],
+        contact_distance_m=None if at is None else float(along[at]),
+        stop_point_m=None if at is None else samples[at].tolist(),
+        path_length_m=float(along[-1]), footprint=q.footprint, footprint_m=list(q.size_m),
+        unknown_is=_policy(ctx, q.unknown_is), n_samples=len(samples))
+    return out
+
+
+def path_samples(path: NDArray[np.float64], step_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Points every ``step_m`` (at most) along a polyline, its vertices included, and their distance along it."""
+    pts, dist, travelled = [path[:1]], [np.zeros(1)], 0.0
+    for a, b in itertools.pairwise(path):
+        seg = float(np.linalg.norm(b - a))
+        if seg == 0:
+            continue
+        n = max(1, int(np.ceil(seg / step_m)))
+        t = np.arange(1, n + 1) / n
+        pts.append(a + (b - a) * t[:, None])
+        dist.append(travelled + seg * t)
+        travelled += seg
+    return np.concatenate(pts), np.concatenate(dist)
+
+
+def footprint_signed_distance(q: CollisionQuery, offsets: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Signed distance (m) of points (given relative to the footprint's centre) to the footprint: negative inside."""
+    return footprint_signed_distances(q, np.zeros((1, 3)), offsets)[0]
+
+
+def footprint_signed_distances(q: CollisionQuery, centres: NDArray[np.float64], points: NDArray[np.float64]
+                               ) -> NDArray[np.float64]:
+    """(S, M) signed distances of ``points`` to the footprint placed at each of ``centres`` (negative inside)."""
+    offsets = points[None, :, :] - centres[:, None, :]
+    if q.footprint == "box":
+        d = np.abs(offsets) - 0.5 * np.asarray(q.size_m)
+    else:
+        r, h = q.size_m
+        d = np.stack([np.hypot(offsets[..., 0], offsets[..., 1]) - r, np.abs(offsets[..., 2]) - 0.5 * h], axis=-1)
+    outside = np.sqrt(np.sum(np.maximum(d, 0.0) ** 2, axis=-1))
+    return np.where(np.all(d <= 0, axis=-1), d.max(axis=-1), outside)
+
+
+GROUP = 8
+"""collision: consecutive path samples whose surface candidates are gathered together"""
+
+
+def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: object | None,
+                         surface: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Per sample: the smallest signed distance from the footprint to a surface point and that point's index. Exact
+    wherever it can be the path's smallest or a contact (the samples whose centre lies within the footprint's
+    bounding radius of the nearest centre distance) up to :data:`MARGIN_CAP_M` beyond the footprint; elsewhere the
+    lower bound ``nearest surface - bounding radius`` (with the nearest point's index)."""
+    n = len(samples)
+    if tree is None:
+        return np.full(n, np.inf), np.full(n, -1, np.int64)
+    bound = float(np.linalg.norm(q.half_extent_m))
+    d_centre, nearest = tree.query(samples)
+    signed = d_centre - bound
+    nearest = nearest.astype(np.int64)
+    need = np.flatnonzero(d_centre <= min(float(d_centre.min()), bound + MARGIN_CAP_M) + bound)
+    if len(need) == 0:
+        return signed, nearest
+    for start in range(0, len(need), GROUP):
+        rows = need[start:start + GROUP]
+        centre = samples[rows].mean(axis=0)
+        spread = float(np.linalg.norm(samples[rows] - centre, axis=1).max())
+        reach = spread + bound + min(float(d_centre[rows].max()), bound + MARGIN_CAP_M)
+        cand = np.asarray(tree.query_ball_point(centre, reach), dtype=np.int64)
+        if len(cand) == 0:
+            continue
+        d = footprint_signed_distances(q, samples[rows], surface[cand])
+        j = np.argmin(d, axis=1)
+        signed[rows] = d[np.arange(len(rows)), j]
+        nearest[rows] = cand[j]
+    return signed, nearest
+
+
+def _unknown_counts(layers: VolumeLayers, q: CollisionQuery, samples: NDArray[np.float64]) -> NDArray[np.int64]:
+    """Per sample, how many unknown voxel centres (or voxels outside the grid) the footprint holds: one summed-volume
+    lookup per sample for a box, one per column of its cross-section for a cylinder."""
+    vs, half = layers.grid.voxel_size_m, q.half_extent_m
+    lo = np.ceil((samples - half) / vs - 0.5).astype(np.int64)
+    hi = np.floor((samples + half) / vs - 0.5).astype(np.int64)
+    if q.footprint == "box":
+        return unknown_in_boxes(layers, lo, hi)
+    n = int((hi[:, :2] - lo[:, :2]).max()) + 1
+    grid = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
+    cols = lo[:, None, :2] + grid[None]  # (S, n*n, 2) candidate columns
+    centre = (cols + 0.5) * vs - samples[:, None, :2]
+    inside = (np.sum(centre**2, axis=-1) <= q.size_m[0] ** 2) & np.all(cols <= hi[:, None, :2], axis=-1)
+    which, k = np.nonzero(inside)
+    boxes_lo = np.column_stack([cols[which, k], lo[which, 2]])
+    boxes_hi = np.column_stack([cols[which, k], hi[which, 2]])
+    counts = unknown_in_boxes(layers, boxes_lo, boxes_hi)
+    return np.bincount(which, weights=counts, minlength=len(samples)).astype(np.int64)
+
+
+def unknown_in_boxes(layers: VolumeLayers, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
+    """Unknown voxels in lattice boxes ``lo .. hi`` (inclusive, (K, 3) each; voxels outside the grid count as
+    unknown), from the summed-volume table of the unknown voxels: eight lookups per box."""
+    sat = unknown_sat(layers)
+    o, shape = np.asarray(layers.grid.origin_index), np.asarray(layers.grid.shape)
+    size = np.prod(np.maximum(hi - lo + 1, 0), axis=1)
+    a = np.clip(lo - o, 0, shape)  # first voxel inside, as a SAT index (SAT[i] sums voxels < i)
+    b = np.clip(hi - o + 1, 0, shape)
+    inside = np.prod(np.maximum(b - a, 0), axis=1)
+    total = np.zeros(len(lo), dtype=np.int64)
+    for corner in range(8):
+        pick = [(corner >> k) & 1 for k in range(3)]
+        idx = [np.where(pick[k], b[:, k], a[:, k]) for k in range(3)]
+        sign = (-1) ** (3 - sum(pick))
+        total += sign * sat[idx[0], idx[1], idx[2]].astype(np.int64)
+    return np.where(inside > 0, total, 0) + (size - inside)
+
+
+def unknown_in_columns(layers: VolumeLayers, gx: NDArray[np.int64], gy: NDArray[np.int64],
+                       z0: int | NDArray[np.int64], z1: int | NDArray[np.int64]) -> int:
+    """Unknown voxels in the lattice columns ``(gx, gy)`` between lattice z ``z0 .. z1`` (inclusive; one range for
+    all columns or one per column); voxels outside the grid count as unknown."""
+    if len(gx) == 0:
+        return 0
+    z0 = np.broadcast_to(np.asarray(z0, dtype=np.int64), gx.shape)
+    z1 = np.broadcast_to(np.asarray(z1, dtype=np.int64), gx.shape)
+    keep = z1 >= z0
+    lo = np.stack([gx, gy, z0], axis=1)[keep]
+    hi = np.stack([gx, gy, z1], axis=1)[keep]
+    return int(unknown_in_boxes(layers, lo, hi).sum()) if len(lo) else 0
+
+
+def unknown_sat(layers: VolumeLayers) -> NDArray[np.int32]:
+    """The summed-volume table of the unknown voxels (a leading zero plane on each axis): ``sat[i, j, k]`` counts
+    the unknown voxels below grid index (i, j, k). Cached on the layers until they change."""
+    key = "decisions_unknown_sat"
+    hit = layers.cache.get(key)
+    if hit is not None and hit[0] == layers.version:
+        return hit[1]
+    unknown = layers.state_grid() == UNKNOWN
+    sat = np.zeros(tuple(n + 1 for n in unknown.shape), dtype=np.int32)
+    np.cumsum(unknown, axis=0, dtype=np.int32, out=sat[1:, 1:, 1:])
+    np.cumsum(sat[1:, 1:, 1:], axis=1, out=sat[1:, 1:, 1:])
+    np.cumsum(sat[1:, 1:, 1:], axis=2, out=sat[1:, 1:, 1:])
+    layers.cache[key] = (layers.version, sat)
+    return sat
+
+
+# ------------------------------------------------------------------------------------------------ explore
+def explore(ctx: DecisionContext, q: ExploreQuery) -> dict:
+    """The fraction of the region's voxels (centres inside it; at least the one holding its centre) that are
+    unknown: ``go_look`` above ``max_unknown_fraction``, else ``known``. Margin: the threshold minus the fraction."""
+    layers = ctx.layers
+    vs = layers.grid.voxel_size_m
+    lo = np.ceil(q.min_m / vs - 0.5).astype(np.int64)
+    hi = np.floor(q.max_m / vs - 0.5).astype(np.int64)
+    centre = np.floor(0.5 * (q.min_m + q.max_m) / vs).astype(np.int64)
+    lo, hi = np.where(hi < lo, centre, lo), np.where(hi < lo, centre, hi)
+    total = int(np.prod(hi - lo + 1))
+    fraction = int(unknown_in_boxes(layers, lo[None], hi[None])[0]) / total
+    margin = q.max_unknown_fraction - fraction
+    decision, failure = ("go_look", "unknown_space") if margin < 0 else ("known", None)
+    _, fids = ctx.points_in_box(q.min_m, q.max_m)
+    out = ctx.finish(decision, failure, q.min_m, q.max_m, None, fids)
+    out["evidence_m"] = 0.5 * (q.min_m + q.max_m)
+    out["margin"] = float(margin)
+    out["details"].update(unknown_fraction=float(fraction), n_voxels=int(total))
+    return out
