@@ -18,6 +18,8 @@ from rich.text import Text
 from driftmap.cli import build_cmds  # noqa: F401
 from driftmap.cli import store_cmds  # noqa: F401
 from driftmap.cli import diagnose_cmds  # noqa: F401
+from driftmap.cli import batch_cmds  # noqa: F401
+from driftmap.cli import decide_cmds  # noqa: F401
 # isort: on
 from driftmap.cli.common import app, err_console, state
 from driftmap.errors import DriftmapError
