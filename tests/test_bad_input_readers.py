@@ -921,3 +921,228 @@ def test_generate_synthetic_log_refuses_an_existing_log_without_overwrite(tmp_pa
     empty = tmp_path / "empty"
     empty.mkdir()
     assert len(list((generate_synthetic_log(empty, small) / "depth").iterdir())) == 5
+
+
+# ---- 14. a hostile-input trial: what the readers stored without a word ------------------------------------------
+
+
+def _cli(args: list[object]) -> tuple[int, str]:
+    """``python -m driftmap.cli ARGS`` as a user runs it: the exit code and what it printed (stdout + stderr, log lines
+    not wrapped)."""
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "COLUMNS": "4000"}
+    done = subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], check=False, capture_output=True,
+                          text=True, env=env, timeout=600)
+    return done.returncode, done.stdout + done.stderr
+
+
+def _store_ids(path: Path) -> list[int]:
+    with FrameStore.open(path) as store:
+        return store.frame_ids.tolist()
+
+
+@pytest.mark.parametrize("kind", ["kitti_bin", "pcd_binary", "ply_binary"])
+def test_points_at_the_sensor_origin_are_dropped_and_an_all_zero_scan_is_refused(kind: str, kitti_dir: Path,
+                                                                                 tmp_path: Path,
+                                                                                 caplog: pytest.LogCaptureFixture) -> None:
+    """B2: a KITTI .bin of zeros (every point at the sensor origin: no return) was stored as 124k identical points.
+    Points at (0, 0, 0) are dropped with a logged count; a scan with no point left is refused naming the file
+    (--lenient skips it), for KITTI .bin, PCD and PLY alike."""
+    scans = [_kitti_scan(kitti_dir, k, 10) for k in range(3)]
+    holes = scans[1].copy()
+    holes[:100, :3] = 0.0  # organised-cloud style "no return" points
+    zeros = np.zeros((3000, 4), dtype="<f4")
+    folder, _ = _absurd_source(kind, tmp_path / "data", [scans[0], holes, zeros])
+    zero_file = next(p for p in (folder / "velodyne" / "000002.bin", folder / "scan_2.pcd", folder / "scan_2.ply")
+                     if p.exists())
+    with caplog.at_level("WARNING"):
+        frame = open_source(folder).frame(1)
+    assert frame.points_sensor.tobytes() == np.ascontiguousarray(holes[100:, :3]).tobytes()
+    assert any("dropping 100 of" in r.getMessage() and "sensor origin" in r.getMessage() for r in caplog.records)
+    code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+    assert code != 0 and f"{zero_file} (frame 2): no valid point: of its 3000 points, 3000 at the sensor origin" in said, said
+    assert "--lenient" in said
+    code, said = _cli(["build", folder, "--out", tmp_path / "lenient", "--no-loop-closure", "--lenient"])
+    assert code == 0, said
+    assert _store_ids(tmp_path / "lenient") == [0, 1]
+    with FrameStore.open(tmp_path / "lenient") as store:
+        assert store.frame(1).n_points == len(holes) - 100
+
+
+def _bin_copy(kitti_dir: Path, folder: Path, n: int) -> list[np.ndarray]:
+    """``n`` real KITTI scans (every 10th point, cut to a multiple of 3 points: 48-byte sizes, which both layouts
+    fit) as a sequence folder; the scans."""
+    scans = [_kitti_scan(kitti_dir, k, 10) for k in range(n)]
+    scans = [np.ascontiguousarray(s[: len(s) // 3 * 3]) for s in scans]
+    _kitti_copy(kitti_dir, folder, n, scans=scans)
+    (folder / "times.txt").write_text("".join(f"{0.1 * k:.1f}\n" for k in range(n)))
+    return scans
+
+
+def test_a_forced_point_layout_the_data_contradicts_is_refused_before_anything_is_stored(kitti_dir: Path,
+                                                                                        tmp_path: Path) -> None:
+    """B5: --point-layout xyz on x, y, z, intensity scans read the intensities as coordinates without a word. The data
+    check of ``auto`` now applies to a forced layout: refused for the whole folder, naming it, the flag and the layout
+    the data has; a layout the data agrees with, or cannot tell, is read as given."""
+    folder = tmp_path / "seq"
+    scans = _bin_copy(kitti_dir, folder, 3)
+    assert all(s.nbytes % 48 == 0 for s in scans)
+    code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure", "--point-layout", "xyz"])
+    assert code != 0, said
+    assert (f"{folder / 'velodyne'}: --point-layout xyz (point_layout='xyz' in the library) reads the scans as float32 "
+            f"x, y, z, but the data looks like xyzi") in said, said
+    assert "give --point-layout xyzi" in said
+    assert not (tmp_path / "store").exists() or _store_ids(tmp_path / "store") == []
+    source = open_source(folder, point_layout="xyzi")  # what the data is: read as given
+    assert source.frame(0).points_sensor.tobytes() == np.ascontiguousarray(scans[0][:, :3]).tobytes()
+    assert "--point-layout xyzi" in source.point_layout_reason
+    xyz = tmp_path / "xyz"  # and the other way round: x, y, z scans forced as x, y, z, intensity
+    _kitti_copy(kitti_dir, xyz, 3, scans=[np.ascontiguousarray(s[: len(s) // 4 * 4, :3]) for s in scans])
+    with pytest.raises(SourceError, match=r"--point-layout xyzi .* the data looks like xyz \(float32 x, y, z\)"):
+        open_source(xyz, point_layout="xyzi")
+
+
+def test_a_pcd_in_millimetres_is_refused_as_a_units_problem(kitti_dir: Path, tmp_path: Path,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    """B6: a PCD whose coordinates are millimetres was stored 1000x too large, with only a warning about points
+    farther than 10 km. Its median range (10 km for a KITTI scan) is no LiDAR scan in metres: refused, naming the
+    file and millimetres. A cloud of which a large share is dropped as too far says it may be units."""
+    folder = tmp_path / "mm"
+    folder.mkdir()
+    for k in range(3):
+        scan = _kitti_scan(kitti_dir, k, 10)
+        write_pcd(folder / f"scan_{k}.pcd", {**_columns(scan), "x": scan[:, 0] * 1000, "y": scan[:, 1] * 1000,
+                                             "z": scan[:, 2] * 1000})
+    code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+    assert code != 0, said
+    assert f"{folder / 'scan_0.pcd'} (frame 0): the median point lies 1.008e+04 m from the sensor" in said, said
+    assert "look like millimetres (the median would be 10.1 m)" in said and "read in metres" in said
+    scan = _kitti_scan(kitti_dir, 0, 10)
+    part = scan.copy()
+    part[: len(part) // 5, :3] *= 5000.0  # a fifth of the cloud beyond 10 km (the median stays in range)
+    far = tmp_path / "part"
+    far.mkdir()
+    write_pcd(far / "scan_0.pcd", _columns(part))
+    with caplog.at_level("WARNING"):
+        frame = open_source(far).frame(0)
+    assert 0 < len(frame.points_sensor) < len(part)
+    warned = [r.getMessage() for r in caplog.records if "farther than 10000 m" in r.getMessage()]
+    assert len(warned) == 1 and "may be a units problem" in warned[0] and "millimetres" in warned[0], warned
+
+
+def test_a_pcd_whose_coordinates_are_all_nan_is_refused_not_stored_empty(kitti_dir: Path, tmp_path: Path) -> None:
+    """W2: a PCD whose x, y, z are all NaN was stored as an empty frame (exit 0), while ``POINTS 0`` is an error.
+    A frame without a valid point is refused naming the file; --lenient skips it."""
+    folder = tmp_path / "clouds"
+    folder.mkdir()
+    for k in range(3):
+        scan = _kitti_scan(kitti_dir, k, 10).copy()
+        if k == 1:
+            scan[:, :3] = np.nan
+        write_pcd(folder / f"scan_{k}.pcd", _columns(scan))
+    code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
+    assert code != 0, said
+    assert f"{folder / 'scan_1.pcd'} (frame 1): no valid point: of its" in said and "with a NaN or infinite" in said
+    code, said = _cli(["build", folder, "--out", tmp_path / "lenient", "--no-loop-closure", "--lenient"])
+    assert code == 0, said
+    assert _store_ids(tmp_path / "lenient") == [0, 2]
+
+
+def test_an_all_zero_depth_image_is_warned_about_and_flagged_with_poses_from_source(sevenscenes_dir: Path,
+                                                                                    tmp_path: Path) -> None:
+    """W3: a depth PNG of zeros built with --poses-from-source was stored without a word (the invalid-fraction
+    monitor flags jumps over a history of frames, and none comes before frame 1). It is warned about, naming the
+    file and its invalid fraction, and flagged in the store."""
+    folder = _sevenscenes_copy(sevenscenes_dir, tmp_path / "seq", range(3))
+    zero_file = folder / "frame-000001.depth.png"
+    Image.fromarray(np.zeros((480, 640), dtype=np.uint16)).save(zero_file)
+    code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure", "--poses-from-source"])
+    assert code == 0, said
+    assert f"{zero_file} (frame 1): invalid pixel fraction 1.000 (no valid pixel: the frame has no point)" in said, said
+    with FrameStore.open(tmp_path / "store") as store:
+        assert store.frame_ids.tolist() == [0, 1, 2]
+        flags = [store.frame(k).quality.flags for k in range(3)]
+    assert not flags[0] and not flags[2]
+    assert len(flags[1]) == 1 and flags[1][0].startswith("mostly_invalid: 1.000 of the"), flags
+
+
+def test_a_folder_named_like_a_frame_file_is_called_a_folder(sevenscenes_dir: Path, kitti_dir: Path, tmp_path: Path,
+                                                            caplog: pytest.LogCaptureFixture) -> None:
+    """W4: a folder named ``frame-000001.depth.png`` was reported as a "missing" depth image; it is a folder, not a
+    file, and the warnings say so (a KITTI scan name that is a folder alike, which was left out without a word)."""
+    folder = _sevenscenes_copy(sevenscenes_dir, tmp_path / "seq", range(3))
+    (folder / "frame-000001.depth.png").unlink()
+    (folder / "frame-000001.depth.png").mkdir()
+    with caplog.at_level("WARNING"):
+        source = open_source(folder)
+        assert [f.frame_id for f in source] == [0, 2]
+    said = [r.getMessage() for r in caplog.records]
+    assert f"{folder / 'frame-000001.depth.png'}: is a folder, not a file (7-Scenes depth)" in said[0], said
+    gap = next(m for m in said if "have no depth image" in m)
+    assert f"frame 1 ({folder / 'frame-000001.depth.png'} is a folder, not a file)" in gap and "missing" not in gap
+    seq = _kitti_copy(kitti_dir, tmp_path / "kitti", 2)
+    (seq / "velodyne" / "000002.bin").mkdir()
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert open_source(seq).frame_ids() == [0, 1]
+    assert any(f"{seq / 'velodyne' / '000002.bin'}: is a folder, not a file" in r.getMessage() for r in caplog.records)
+
+
+def test_a_frame_store_given_as_a_source_is_named_a_store(kitti_dir: Path, tmp_path: Path) -> None:
+    """W13: ``driftmap build STORE --out x`` called the store's segment "a log that does not start with its format's
+    magic bytes: a damaged or foreign file". It is a driftmap frame store: used directly, or exported as MCAP."""
+    store = tmp_path / "store"
+    with FrameStore.create(store) as created:
+        created.append(open_source(_kitti_copy(kitti_dir, tmp_path / "seq", 1)).frame(0))
+    for args in (["build", store, "--out", tmp_path / "x"], ["convert", store, tmp_path / "x.mcap"]):
+        code, said = _cli(args)
+        assert code != 0, said
+        assert f"{store}: is a driftmap frame store" in said and f"driftmap export {store} --mcap OUT.mcap" in said, said
+        assert "magic bytes" not in said
+    (store / "store.json").write_text("{damaged")  # a store whose manifest is damaged: its segments tell
+    with pytest.raises(SourceError, match="is a driftmap frame store"):
+        open_source(store)
+
+
+def test_reader_messages_name_the_command_line_flag_first(kitti_dir: Path, tmp_path: Path,
+                                                          caplog: pytest.LogCaptureFixture) -> None:
+    """W1: messages that reach the command line named only the library's arguments (``poses=``, ``format=``,
+    ``period_ns``, "point_layout option"); they name the flag first now."""
+    unknown = tmp_path / "unknown"
+    unknown.mkdir()
+    (unknown / "notes.txt").write_text("no frames here")
+    code, said = _cli(["build", unknown, "--out", tmp_path / "s1"])
+    assert code != 0 and "pass --format FORMAT to force one, format= in the library" in said, said
+    clouds = tmp_path / "clouds"
+    clouds.mkdir()
+    for k in range(2):
+        write_pcd(clouds / f"scan_{k}.pcd", _columns(_kitti_scan(kitti_dir, k, 10)))
+    code, said = _cli(["build", clouds, "--out", tmp_path / "s2", "--poses-from-source"])
+    assert code != 0 and "give their pose file with --poses FILE instead (poses= in the library)" in said, said
+    with caplog.at_level("WARNING"):
+        open_source(clouds)
+    assert any("the scan period (--period-s SECONDS; period_ns= in the library)" in r.getMessage()
+               for r in caplog.records)
+    seq = tmp_path / "seq"
+    _bin_copy(kitti_dir, seq, 2)
+    assert open_source(seq, point_layout="xyzi").point_layout_reason == (
+        "given with --point-layout xyzi (point_layout='xyzi' in the library)")
+
+
+def test_an_all_zero_scan_does_not_hide_the_layout_of_the_folder(kitti_dir: Path, tmp_path: Path) -> None:
+    """B2, the layout side: with every size a multiple of 48 bytes the data decides the layout, and a scan of zeros
+    (the same in either layout) made the folder "cannot tell". It abstains now; the others decide, and the zero
+    scan itself is refused when read (lenient: skipped)."""
+    folder = tmp_path / "seq"
+    scans = _bin_copy(kitti_dir, folder, 3)
+    np.zeros((3000, 4), dtype="<f4").tofile(folder / "velodyne" / "000001.bin")
+    source = open_source(folder)
+    assert source.point_layout.value == "xyzi" and "000001.bin holds too few points" in source.point_layout_reason
+    assert source.frame(2).points_sensor.tobytes() == np.ascontiguousarray(scans[2][:, :3]).tobytes()
+    with pytest.raises(SourceError, match=r"000001\.bin \(frame 1\): no valid point: of its 3000 points, 3000 at the "
+                                          r"sensor origin"):
+        source.frame(1)
+    assert [f.frame_id for f in open_source(folder, lenient=True)] == [0, 2]

@@ -561,7 +561,7 @@ def test_cloud_folder_pose_file_is_the_estimate(
 
 
 def test_cloud_folder_bad_input(tmp_path: Path) -> None:
-    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.zeros((4, 3), np.float32)))
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ones((4, 3), np.float32)))
     o3d.t.io.write_point_cloud(str(tmp_path / "scan_1.ply"), cloud)
     o3d.t.io.write_point_cloud(str(tmp_path / "scan_01.pcd"), cloud)
     with pytest.raises(SourceError, match=r"scan_01\.pcd and .*scan_1\.ply: both are frame 1"):

@@ -744,7 +744,7 @@ def test_pointcloud2_layouts(tmp_path: Path, variant: str) -> None:
 
 def test_point_time_reference_override(tmp_path: Path) -> None:
     offsets = np.arange(N_PTS) * 1000
-    cols = {c: np.zeros(N_PTS, dtype=np.float32) for c in "xyz"} | {"time": offsets / 1e9}
+    cols = {c: np.ones(N_PTS, dtype=np.float32) for c in "xyz"} | {"time": offsets / 1e9}  # not at the origin: no return
     stamp = 50_000_000  # a stamp close to zero (sim time) makes AUTO ambiguous: force RELATIVE
     path = write_mcap(tmp_path / "t.mcap", [("/p", "sensor_msgs/msg/PointCloud2", cloud_msg(stamp, "l", cols), stamp)])
     (frame,) = list(RosLogSource(path, point_time=PointTimeReference.RELATIVE))

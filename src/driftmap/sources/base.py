@@ -12,8 +12,10 @@ and contents (or ``format=``) and names every format it tried when none fits.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import re
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -226,6 +228,10 @@ def open_source(path: str | Path, format: str | None = None, **options: Any) -> 
     path = Path(path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
+    if looks_like_store_folder(path):
+        raise SourceError(f"{path}: is a driftmap frame store (what `driftmap build` writes), not a source to read "
+                          f"frames from: use it directly (driftmap diagnose / correct / export {path}), or export its "
+                          f"frames as a log with `driftmap export {path} --mcap OUT.mcap` and read that")
     if format is not None:
         if format not in formats:
             raise SourceError(f"unknown format {format!r}; known formats: {', '.join(sorted(formats))}")
@@ -245,7 +251,8 @@ def open_source(path: str | Path, format: str | None = None, **options: Any) -> 
             return spec.open(path, **options)
     raise SourceError(f"{path}: cannot tell the format{_foreign_hint(path)}; the formats driftmap reads: "
                       + "; ".join(f"{name} ({spec.description})" for name, spec in formats.items())
-                      + " (none of their detectors matched; pass format= / --format to force one)")
+                      + " (none of their detectors matched; pass --format FORMAT to force one, format= in the "
+                        "library)")
 
 
 #: file suffixes of formats driftmap does not read, and how to get their data into one it reads
@@ -268,6 +275,34 @@ FOREIGN_FORMATS: dict[tuple[str, ...], str] = {
     (".png", ".jpg", ".jpeg"): "one image: the depth-image formats read data-set folders (7scenes, tum, redwood)",
     (".mcap", ".bag"): "a log that does not start with its format's magic bytes: a damaged or foreign file",
 }
+
+
+_STORE_MANIFEST = "store.json"
+_STORE_FORMAT = "driftmap-store"
+_STORE_SEGMENT = re.compile(r"segment-\d{6,}\.mcap")
+_MAX_MANIFEST_BYTES = 64 << 20
+
+
+def looks_like_store_folder(path: Path) -> bool:
+    """Whether ``path`` is a driftmap frame store folder: its ``store.json`` says ``"format": "driftmap-store"``, or
+    it holds segment files (``segment-NNNNNN.mcap``: a store whose manifest is damaged or gone), as
+    :func:`driftmap.store.guards.is_store_folder` decides. A small local check: the sources sit below the store in
+    the layers (.importlinter) and do not import it."""
+    try:
+        if not path.is_dir():
+            return False
+        manifest = path / _STORE_MANIFEST
+        if manifest.is_file() and manifest.stat().st_size <= _MAX_MANIFEST_BYTES:
+            try:
+                data = json.loads(manifest.read_bytes())
+            except ValueError:
+                data = None
+            if isinstance(data, dict) and data.get("format") == _STORE_FORMAT:
+                return True
+        with os.scandir(path) as entries:
+            return any(_STORE_SEGMENT.fullmatch(entry.name) for entry in entries)
+    except OSError:
+        return False
 
 
 def _foreign_hint(path: Path) -> str:

@@ -15,6 +15,7 @@ Internal to :mod:`driftmap.sources` (the source modules re-export what they alwa
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -29,7 +30,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from driftmap.errors import DepthError, DepthScaleError, GeometryError, SourceError
-from driftmap.frame import Frame, PinholeIntrinsics, PoseEstimate, Provenance
+from driftmap.frame import Frame, FrameQuality, PinholeIntrinsics, PoseEstimate, Provenance
 from driftmap.preprocess.depth import COMMON_DEPTH_SCALES, UINT16_NO_READING, InvalidFractionMonitor, depth_frame
 from driftmap.sources.base import FrameSource
 
@@ -43,6 +44,12 @@ NOMINAL_30HZ_PERIOD_NS = 33_333_333
 KINECT_RANGE_M = (0.3, 10.0)
 #: A frame with more of its readings than this outside the sensor's range has the wrong depth scale.
 MAX_OUT_OF_RANGE_FRACTION = 0.1
+#: A frame with at least this fraction of its pixels invalid is warned about and flagged, whatever the frames
+#: before it (:class:`~driftmap.preprocess.depth.InvalidFractionMonitor` flags only jumps above a history of
+#: several frames: an image that is all zeros at the start of a sequence, or in a short one, passed without a word).
+MOSTLY_INVALID_FRACTION = 0.95
+#: How many such frames a source warns about one by one; later ones are logged at debug level.
+MOSTLY_INVALID_WARNINGS = 10
 
 
 # ---- images -----------------------------------------------------------------------------------------------------
@@ -329,6 +336,8 @@ class DepthFolderSource(FrameSource):
         super().__init__(str(path), frames=frames, lenient=lenient)
         self.pixel_stride = int(pixel_stride)
         self.path = Path(path)
+        self._mostly_invalid = 0
+        """How many frames :meth:`_flag_mostly_invalid` has flagged."""
 
     def _set_depth_units(self, depth_scale: float, min_depth_m: float, max_depth_m: float,
                          sensor_range_m: tuple[float, float] | None) -> None:
@@ -365,7 +374,7 @@ class DepthFolderSource(FrameSource):
         check_sensor_range(depth, self.depth_scale, self.sensor_range_m, what=f"frame {frame_id} ({file})")
         color = self._color(index)
         with frame_errors_named(file, frame_id):
-            return depth_frame(
+            frame = depth_frame(
                 depth,
                 self.intrinsics,
                 frame_id=frame_id,
@@ -381,6 +390,32 @@ class DepthFolderSource(FrameSource):
                 pixel_stride=self.pixel_stride,
                 color_rgb=color,
             )
+        return self._flag_mostly_invalid(frame, file)
+
+    def _flag_mostly_invalid(self, frame: Frame, file: Path) -> Frame:
+        """``frame``, flagged (``mostly_invalid: ...``) with a warning naming ``file`` and its invalid-pixel fraction
+        when at least :data:`MOSTLY_INVALID_FRACTION` of its pixels are invalid (an all-zero image: no point at
+        all), unless the invalid-fraction monitor flagged it already (it warned then, naming the file)."""
+        quality = frame.quality
+        if quality is None or quality.invalid_fraction < MOSTLY_INVALID_FRACTION:
+            return frame
+        if any(f.startswith("invalid_fraction_jump") for f in quality.flags):
+            return frame
+        counts = ", ".join(f"{k} {v}" for k, v in sorted(quality.invalid_counts.items(), key=lambda kv: -kv[1]) if v)
+        what = ("no valid pixel: the frame has no point" if quality.n_valid == 0 else
+                f"only {quality.n_valid} valid pixels")
+        reason = (f"mostly_invalid: {quality.invalid_fraction:.3f} of the {quality.n_measurements} pixels invalid "
+                  f"({counts or 'none counted'}); {what}")
+        self._mostly_invalid += 1
+        again = self._mostly_invalid > MOSTLY_INVALID_WARNINGS
+        logger.log(logging.DEBUG if again else logging.WARNING,
+                   "%s (frame %d): invalid pixel fraction %.3f (%s); the frame is flagged%s", file, frame.frame_id,
+                   quality.invalid_fraction, what,
+                   f" (more such frames of {self.path} are logged at debug level)"
+                   if self._mostly_invalid == MOSTLY_INVALID_WARNINGS else "")
+        flagged = FrameQuality(quality.n_measurements, quality.n_valid, quality.invalid_counts,
+                               (*quality.flags, reason))
+        return dataclasses.replace(frame, quality=flagged)
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "intrinsics": self.intrinsics.to_dict(), "depth_scale": self.depth_scale}

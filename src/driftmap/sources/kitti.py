@@ -9,13 +9,16 @@ Layout of a sequence folder (``sequences/NN/`` in the official archive)::
                           ../../poses/NN.txt (the official layout) or given with poses=
 
 ``frame_id`` is the number in the ``.bin`` name. The point layout (``x, y, z, intensity`` or, as some conversions
-write, ``x, y, z`` only) is decided once for the whole folder (:func:`decide_point_layout`), never per file.
+write, ``x, y, z`` only) is decided once for the whole folder (:func:`decide_point_layout`), never per file; a
+layout given with ``--point-layout`` (``point_layout=``) is checked against the data the same way, and refused when
+the scans read as scans only in the other layout (:func:`check_given_layout`).
 Ground truth is converted to the Velodyne frame:
 ``T_world_velo = inv(Tr) @ T_cam0 @ Tr`` (so the world is the Velodyne frame of frame 0). Frames carry no
 estimate (``PoseSource.NONE``) unless ``poses_from_ground_truth=True``. Points are the raw scan (no range
-filtering; points with a NaN / inf coordinate or farther than
-:data:`~driftmap.sources.point_fields.MAX_POINT_RANGE_M` are dropped and counted); intensity is a per-point
-attribute. ``times.txt`` must step like a sensor (seconds: :func:`~driftmap.sources.stamps.check_seconds_period`).
+filtering; points with a NaN / inf coordinate, exactly at the sensor origin (no return) or farther than
+:data:`~driftmap.sources.point_fields.MAX_POINT_RANGE_M` are dropped and counted, and a scan left without a point
+is refused: :func:`~driftmap.sources.point_fields.measured_points`); intensity is a per-point attribute.
+``times.txt`` must step like a sensor (seconds: :func:`~driftmap.sources.stamps.check_seconds_period`).
 Hidden and temporary files in ``velodyne/`` are not scans (:func:`~driftmap.sources.cloud_folder.is_ignored_file`).
 """
 
@@ -37,7 +40,7 @@ from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
-from driftmap.sources.point_fields import far_points
+from driftmap.sources.point_fields import measured_points
 from driftmap.sources.stamps import (
     check_increasing_stamps,
     check_seconds_period,
@@ -86,12 +89,16 @@ def _layout_misfit(sample: bytes, layout: PointLayout) -> float | None:
     """How badly the bytes read as ``layout`` fit a LiDAR scan: the median step between consecutive points over
     their median range (about 0.004 for a KITTI scan in its own layout, about 1.4 in the other one, where every
     "point" mixes the axes of two points); ``inf`` when over 1 % of the coordinates are NaN / inf or absurd;
-    ``None`` for a sample too short to tell."""
+    ``None`` for a sample too short to tell. Points at the origin (no return: zeros, the same in either layout)
+    tell nothing and are not looked at."""
     values = np.frombuffer(sample, dtype="<f4")
     points = values[: len(values) // layout.columns * layout.columns].reshape(-1, layout.columns)[:, :3]
     if len(points) < MIN_LAYOUT_POINTS:
         return None
     xyz = points.astype(np.float64)
+    xyz = xyz[xyz.any(axis=1)]  # not the zeros of "no return" points (NaN counts as non-zero: looked at below)
+    if len(xyz) < MIN_LAYOUT_POINTS:
+        return None
     sane = np.isfinite(xyz).all(axis=1) & (np.abs(xyz) < ABSURD_COORDINATE_M).all(axis=1)
     if np.mean(sane) < 0.99:
         return float("inf")
@@ -106,7 +113,8 @@ def _layout_misfit(sample: bytes, layout: PointLayout) -> float | None:
 def _layout_from_data(files: list[Path]) -> tuple[PointLayout | None, str]:
     """The layout the data of (up to three of) ``files`` fits clearly better, or ``None`` and why not."""
     picks = sorted({files[0], files[len(files) // 2], files[-1]})
-    votes = []
+    votes: list[tuple[PointLayout | None, str]] = []
+    abstained: list[str] = []  # files too short to tell: the others decide
     for file in picks:
         try:
             with file.open("rb") as fh:
@@ -116,23 +124,25 @@ def _layout_from_data(files: list[Path]) -> tuple[PointLayout | None, str]:
         sample = sample[: len(sample) // 48 * 48]
         misfit = {lay: _layout_misfit(sample, lay) for lay in (PointLayout.XYZI, PointLayout.XYZ)}
         if any(m is None for m in misfit.values()):
-            votes.append((None, f"{file.name} holds too few points to tell"))
+            abstained.append(f"{file.name} holds too few points (off the sensor origin) to tell")
             continue
         best, other = sorted(misfit, key=lambda lay: misfit[lay])  # type: ignore[arg-type]
         clear = misfit[best] < 0.5 and misfit[other] >= 4 * misfit[best]  # type: ignore[operator]
         votes.append((best if clear else None, f"{file.name} reads about as well either way" if not clear else
                       f"{file.name} reads as a scan only as {best.value}"))
     chosen = {v for v, _ in votes}
+    said = "; ".join([*(w for _, w in votes), *abstained])
     if len(chosen) == 1 and None not in chosen:
-        return chosen.pop(), "; ".join(w for _, w in votes)
-    return None, "; ".join(w for _, w in votes) or "no scan could be read"
+        return chosen.pop(), said
+    return None, said or "no scan could be read"
 
 
 def decide_point_layout(files: list[Path], folder: Path) -> tuple[PointLayout, str]:
     """One layout for every scan of a folder, and why: from the files' sizes (a size that is a multiple of 16 but
     not of 12 can only be x, y, z, intensity, and the other way round; the layout more files fit wins, and the
     others raise when read), and, when every size is a multiple of both (48), from the data
-    (:func:`_layout_misfit`). :class:`SourceError` asking for ``point_layout=`` when neither settles it."""
+    (:func:`_layout_misfit`). :class:`SourceError` asking for ``--point-layout`` (``point_layout=``) when neither
+    settles it."""
     sizes = {}
     for file in files:
         try:
@@ -148,15 +158,36 @@ def decide_point_layout(files: list[Path], folder: Path) -> tuple[PointLayout, s
         if n16 == n12:
             raise SourceError(f"{folder}: {n16} scans have a size that only float32 x, y, z, intensity (16 bytes a "
                               f"point) fits and {n12} one that only x, y, z (12 bytes) fits: the folder mixes layouts "
-                              f"or holds damaged scans; open it with point_layout='xyzi' or 'xyz'")
+                              f"or holds damaged scans; give the layout with --point-layout xyzi or xyz "
+                              f"(in the library: point_layout='xyzi' or 'xyz')")
         layout = PointLayout.XYZI if n16 > n12 else PointLayout.XYZ
         return layout, f"the sizes of {max(n16, n12)} of {len(sizes)} scans are multiples of {layout.point_bytes} bytes"
     layout, why = _layout_from_data(fits[PointLayout.XYZI])
     if layout is None:
         raise SourceError(f"{folder}: cannot tell whether the scans are float32 x, y, z, intensity (16 bytes a point) "
-                          f"or x, y, z (12 bytes): every size is a multiple of both, and {why}; open it with "
-                          f"point_layout='xyzi' or 'xyz'")
+                          f"or x, y, z (12 bytes): every size is a multiple of both, and {why}; give the layout "
+                          f"with --point-layout xyzi or xyz (in the library: point_layout='xyzi' or 'xyz')")
     return layout, f"every size fits both layouts; {why}"
+
+
+def check_given_layout(layout: PointLayout, files: list[Path], folder: Path) -> str:
+    """Why the scans are read in ``layout``, given with ``--point-layout`` (``point_layout=``): the data check
+    ``auto`` uses (:func:`_layout_from_data`, on whole 48-byte blocks: it reads in either layout whatever the
+    sizes); :class:`SourceError` naming the folder when the scans read as LiDAR scans only in the other layout (x, y, z
+    read as x, y, z, intensity, or intensities read as coordinates), before any scan is read as a frame. Data that
+    cannot tell is read as given."""
+    given = f"given with --point-layout {layout.value} (point_layout='{layout.value}' in the library)"
+    if not files:
+        return given
+    seen, why = _layout_from_data(files)
+    if seen is None or seen is layout:
+        return given
+    raise SourceError(f"{folder}: --point-layout {layout.value} (point_layout='{layout.value}' in the library) reads "
+                      f"the scans as {layout.spelled}, but the data looks like {seen.value} ({seen.spelled}): {why}; "
+                      f"read as {layout.value}, "
+                      + ("the intensities would be read as coordinates" if seen is PointLayout.XYZI else
+                         "every fourth coordinate would be read as an intensity")
+                      + f"; give --point-layout {seen.value}, or auto to let the data decide")
 
 
 def read_calib_tr(file: Path) -> NDArray[np.float64]:
@@ -416,7 +447,7 @@ class KittiOdometry(FrameSource):
             layout, why = decide_point_layout([f for _, f in scans], self.path / "velodyne")
             logger.info("%s: scans read as %s (%s)", self.path, layout.spelled, why)
         else:
-            why = "point_layout option"
+            why = check_given_layout(layout, [f for _, f in scans], self.path / "velodyne")
         self.point_layout: PointLayout = layout
         self.point_layout_reason = why
 
@@ -461,7 +492,9 @@ class KittiOdometry(FrameSource):
                 logger.warning("%s; the scans are read without ground truth", exc)
                 self.poses_file, self._gt, self.T_cam0_velo = None, {}, None
         elif poses_from_ground_truth:
-            raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) to place the scans with (poses_from_ground_truth=True, build --poses-from-source)")
+            raise SourceError(f"{self.path}: no ground-truth poses (poses.txt) to place the scans with (build "
+                              f"--poses-from-source; poses_from_ground_truth=True in the library): give the file with "
+                              f"--poses FILE instead (poses= in the library)")
         elif (self.path / "calib.txt").is_file():
             self.T_cam0_velo = read_calib_tr(self.path / "calib.txt")
 
@@ -534,11 +567,9 @@ class KittiOdometry(FrameSource):
         if not finite.all():  # as the cloud-folder and PointCloud2 readers: dropped and counted
             logger.warning("%s: frame %d: %d of %d points have a NaN or infinite coordinate and are left out",
                            file, frame_id, int(len(scan) - finite.sum()), len(scan))
-        far = far_points(scan[:, :3], f"{file} (frame {frame_id})")
-        if far is not None:
-            finite &= ~far
-        if not finite.all():
-            scan = scan[finite]
+        keep = measured_points(scan[:, :3], f"{file} (frame {frame_id})")  # also: no return, too far, none left
+        if keep is not None:
+            scan = scan[keep]
         if len(scan) < MIN_SCAN_POINTS:
             logger.warning("%s: frame %d has only %d points (a full HDL-64 scan has ~120k): a truncated or "
                            "filtered scan registers poorly", file, frame_id, len(scan))

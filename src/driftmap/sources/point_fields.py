@@ -11,6 +11,18 @@ otherwise pass every reader and fail every later command (a voxel grid too large
 range is returned as read, bit for bit. Depth back-projection cannot produce such points (depth is bounded by the
 depth range kept, the intrinsics by :func:`driftmap.sources.depth_folder.intrinsics_problem`).
 
+**Units.** Points are read in metres. A cloud whose median range (of its finite points off the origin) is beyond
+:data:`MAX_MEDIAN_RANGE_M` is no LiDAR scan in metres: it is refused (:class:`SourceError` naming the file and the
+median), suggesting millimetres (the usual mistake: the median would then be a thousandth of it) or points that are
+not in the sensor's frame. The warning about far points says it may be a units problem when a large share
+(:data:`LARGE_FAR_FRACTION`) of the cloud is dropped.
+
+**No return.** A point exactly at the sensor origin ``(0, 0, 0)`` (range 0) is what LiDAR drivers and converters
+write where a beam had no return (organised clouds, zero-filled scans): it is no measurement, and is dropped with
+one warning per cloud naming the file and the count (:func:`measured_points`, the KITTI and PCD / PLY readers). A cloud left without any point
+(every point NaN / inf, at the origin or too far) is refused, naming the file and the counts: the readers never
+store an empty frame (lenient sources skip it, as any frame that cannot be read).
+
 **Normals.** A normal field is kept only when *every* normal of the cloud is finite and unit length within
 :data:`NORMAL_UNIT_TOLERANCE`. Otherwise the cloud's normals are dropped, all of them, with one warning naming the
 file / message and the counts (zero, NaN / inf, not unit length): a field that is partly wrong is not trusted
@@ -58,6 +70,47 @@ MAX_ABSURD_FRACTION = 0.5
 """A cloud with more than this fraction of its points beyond :data:`MAX_POINT_RANGE_M` is refused as a whole."""
 _BOX_M = MAX_POINT_RANGE_M / 3**0.5
 """Points with every coordinate within this are within :data:`MAX_POINT_RANGE_M` (the check's fast path)."""
+MAX_MEDIAN_RANGE_M = 1_000.0
+"""No LiDAR scan in metres has its median point farther than this from the sensor (a KITTI scan's is about 10 m,
+an outdoor long-range scan's well under 100 m): a cloud whose median range is beyond it is refused
+(:func:`check_units`), most likely millimetres read as metres."""
+MILLIMETRE_MEDIAN_RANGE_M = 1e6
+"""Up to this median range (1 km once divided by 1000) the units message suggests millimetres; beyond it the data
+is refused by the far-point check as not read as it was meant (:func:`far_points`)."""
+LARGE_FAR_FRACTION = 0.1
+"""When more than this fraction of a cloud's finite points are dropped as too far, the warning says it may be a
+units problem."""
+_UNITS_SAMPLE = 4096
+"""About how many points of a cloud the units check looks at (evenly spaced)."""
+
+
+def median_range_m(points: NDArray) -> float | None:
+    """The median distance from the sensor of (a sample of about :data:`_UNITS_SAMPLE` of) the finite points of a
+    cloud (N, 3) that are not at the origin; ``None`` when there is none."""
+    xyz = np.asarray(points)
+    if len(xyz) == 0:
+        return None
+    sample = xyz[:: max(1, len(xyz) // _UNITS_SAMPLE)]
+    with np.errstate(over="ignore", invalid="ignore"):
+        coords = sample.astype(np.float64)
+        coords = coords[np.isfinite(coords).all(axis=1)]
+        ranges = np.sqrt(np.einsum("ij,ij->i", coords, coords))
+    ranges = ranges[np.isfinite(ranges) & (ranges > 0)]
+    return float(np.median(ranges)) if ranges.size else None
+
+
+def check_units(points: NDArray, what: str) -> None:
+    """:class:`SourceError` naming ``what`` when the cloud's median range (:func:`median_range_m`) is beyond
+    :data:`MAX_MEDIAN_RANGE_M` (and within :data:`MILLIMETRE_MEDIAN_RANGE_M`, beyond which :func:`far_points` refuses
+    the cloud as not read as it was meant): the coordinates are most likely millimetres."""
+    median = median_range_m(points)
+    if median is None or not MAX_MEDIAN_RANGE_M < median <= MILLIMETRE_MEDIAN_RANGE_M:
+        return
+    raise SourceError(f"{what}: the median point lies {median:.4g} m from the sensor, which no LiDAR scan in metres "
+                      f"does (at most {MAX_MEDIAN_RANGE_M:g} m): the coordinates look like millimetres (the median "
+                      f"would be {median / 1000:.3g} m), or the points are not in the sensor's frame; LiDAR points are "
+                      f"read in metres, in the sensor's frame: convert the file's coordinates to metres; the cloud is "
+                      f"refused")
 
 
 def far_points(points: NDArray, what: str, *, hint: str = "") -> NDArray[np.bool_] | None:
@@ -69,10 +122,12 @@ def far_points(points: NDArray, what: str, *, hint: str = "") -> NDArray[np.bool
     :class:`driftmap.preprocess.depth.InvalidReason`) by the caller; one warning names ``what`` (the file or
     message, and the frame) and the count. When more than :data:`MAX_ABSURD_FRACTION` of the finite points are that
     far, :class:`SourceError` names ``what``, the count and ``hint`` (what may be wrong, e.g. a PointCloud2's
-    ``is_bigendian``): the cloud is refused."""
+    ``is_bigendian``): the cloud is refused. A cloud whose median range is not a LiDAR's in metres is refused first
+    (:func:`check_units`)."""
     xyz = np.asarray(points)
     if len(xyz) == 0:
         return None
+    check_units(xyz, what)
     with np.errstate(invalid="ignore"):
         inside = np.abs(xyz) <= _BOX_M  # False for NaN: those rows are looked at below
     if bool(np.all(inside)):
@@ -94,9 +149,48 @@ def far_points(points: NDArray, what: str, *, hint: str = "") -> NDArray[np.bool
                           f"read as it was meant{hint}; the cloud is refused")
     far = np.zeros(len(xyz), dtype=bool)
     far[rows[beyond]] = True
+    units = ("" if n_far <= LARGE_FAR_FRACTION * n_finite else
+             f"; that is {n_far / n_finite:.0%} of the cloud: it may be a units problem (LiDAR points are read in "
+             f"metres; are the coordinates in millimetres?)")
     logger.warning("%s: dropping %d of %d points farther than %g m from the sensor (up to %.3g m): no sensor "
-                   "measures that far%s", what, n_far, len(xyz), MAX_POINT_RANGE_M, largest, hint)
+                   "measures that far%s%s", what, n_far, len(xyz), MAX_POINT_RANGE_M, largest, hint, units)
     return far
+
+
+def measured_points(points: NDArray, what: str, *, hint: str = "") -> NDArray[np.bool_] | None:
+    """The coordinate check every LiDAR point reader (KITTI ``.bin``, PCD / PLY clouds) applies to a cloud (N, 3) in
+    its sensor's frame: which points are measurements, or ``None`` when every point is (the cloud is used as it is,
+    bit for bit).
+
+    Dropped (the caller applies the mask): points with a NaN / inf coordinate (the readers warn about those
+    themselves), points farther than :data:`MAX_POINT_RANGE_M` (:func:`far_points`, which also refuses a cloud most of
+    whose points are that far, or whose median range says it is not in metres, :func:`check_units`), and points
+    exactly at the sensor origin (range 0: no return), with one warning naming ``what`` and their count. A cloud with
+    no point left raises :class:`SourceError` naming ``what`` and the counts."""
+    xyz = np.asarray(points)
+    n = len(xyz)
+    if n == 0:
+        raise SourceError(f"{what}: the cloud has no points")
+    finite = np.isfinite(xyz).all(axis=1)
+    far = far_points(xyz, what, hint=hint)
+    at_origin = finite & ~xyz.any(axis=1)  # exactly (0, 0, 0); -0.0 is 0 too
+    n_origin = int(np.count_nonzero(at_origin))
+    keep = finite & ~at_origin
+    if far is not None:
+        keep &= ~far
+    n_keep = int(np.count_nonzero(keep))
+    if n_keep == 0:
+        n_far = 0 if far is None else int(np.count_nonzero(far))
+        n_bad = n - int(np.count_nonzero(finite))
+        parts = [f"{count} {why}" for count, why in ((n_bad, "with a NaN or infinite coordinate"),
+                                                    (n_origin, "at the sensor origin (0, 0, 0: no return)"),
+                                                    (n_far, f"farther than {MAX_POINT_RANGE_M:g} m")) if count]
+        raise SourceError(f"{what}: no valid point: of its {n} points, {', '.join(parts)}; a frame without a "
+                          f"measurement is not stored (--lenient skips it, lenient=True in the library)")
+    if n_origin:
+        logger.warning("%s: dropping %d of %d points exactly at the sensor origin (0, 0, 0): range 0 is no return, "
+                       "not a measurement", what, n_origin, n)
+    return None if n_keep == n else keep
 
 
 class PointTimeReference(enum.Enum):

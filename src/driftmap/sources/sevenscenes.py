@@ -150,7 +150,7 @@ class SevenScenes(DepthFolderSource):
             hi = None if indices[-1] == len(self._frames) - 1 else self._frames[indices[-1]][0]
             inside = [(i, f) for i, f in self.missing_depth if i > lo and (hi is None or i < hi)]
             if inside:
-                shown = "; ".join(f"frame {i} ({f} missing)" for i, f in inside[:5])
+                shown = "; ".join(f"frame {i} ({f} {_not_a_depth_file(f)})" for i, f in inside[:5])
                 logger.warning("%s: %d frame(s) of the sequence have no depth image and are left out: %s%s "
                                "(--frames START:STOP:STEP counts the frames that have one)", self.path, len(inside),
                                shown, f"; and {len(inside) - 5} more" if len(inside) > 5 else "")
@@ -200,6 +200,20 @@ class SevenScenes(DepthFolderSource):
 
     def describe(self) -> dict[str, Any]:
         return {**super().describe(), "ground_truth": True, "estimate": None}
+
+
+def _not_a_depth_file(file: Path) -> str:
+    """Why a frame's depth image is not there: ``"missing"``, or what stands in its place."""
+    try:
+        if file.is_dir():
+            return "is a folder, not a file"
+        if file.is_symlink():
+            return "is a symlink that leads to no file"
+        if file.exists():
+            return "is not a regular file"
+    except OSError as exc:
+        return f"cannot be looked at: {exc.strerror or exc}"
+    return "missing"
 
 
 def _detect(path: Path) -> bool:

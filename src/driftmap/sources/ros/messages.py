@@ -169,6 +169,10 @@ def pointcloud2_points(
     if far is not None:
         counts[InvalidReason.BEYOND_MAX.value] = int(np.count_nonzero(far))
         keep = finite & ~far
+    at_origin = finite & ~xyz.any(axis=1)  # exactly (0, 0, 0): no return (organized clouds fill their gaps so)
+    if at_origin.any():
+        counts[InvalidReason.ZERO.value] = int(np.count_nonzero(at_origin))
+        keep = (finite if keep is None else keep) & ~at_origin
     if keep is not None:
         xyz = xyz[keep]
 
