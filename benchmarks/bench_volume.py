@@ -27,10 +27,12 @@ implementations taking turns.
   Target <= 0.15x. Check: the updated layers equal the rebuild bit for bit. Details: the time split of the update
   and of the rebuild (stage timers wrapped around the layers' functions for one untimed run) and the top functions of
   a cProfile of that update.
-* ``volume_memory_synthetic`` / ``volume_memory_7scenes``: ``VolumeLayers.stats()``: the layers' bytes against the
-  observed voxels times 24 B (the same per-voxel fields stored for the observed voxels only); the ratio is
-  bytes per observed voxel / 24. No target. Details: what 8^3 blocks allocated only where a voxel was observed would
-  take per observed voxel.
+* ``volume_memory_synthetic`` / ``volume_memory_7scenes``: ``VolumeLayers.stats()``: the layers' grid bytes against
+  the observed voxels times 24 B (the same per-voxel fields stored for the observed voxels only); the ratio is
+  bytes per observed voxel / 24. No target. Details: the per-frame records the layers keep besides the grid (hit
+  keys, the missed voxels ``keep_frame_voxels`` keeps, hit-point sums: they grow with the frames, not the grid) and
+  the total per observed voxel; what 8^3 blocks allocated only where a voxel was observed would take per observed
+  voxel.
 
 The machine's load moves the correction timings (single runs of 2-30 s): the details keep the ratio of every
 repetition and of the instrumented run.
@@ -396,7 +398,7 @@ APPLY_STAGES = [
 ]
 REBUILD_STAGES = [
     (MapView, "from_store", _const("map view")),
-    (layers_mod, "_observations", _const("observe")),
+    (VolumeLayers, "_observe", _const("observe")),
     (VolumeLayers, "_integrate", _const("integrate")),
     (Observation, "bounds_m", _const("ray bounds (Observation.bounds_m)")),
     (volume_defaults, "resolve_config", _const("resolve config")),
@@ -492,8 +494,14 @@ def bench_correction(quick: bool, label: str, make_store: Callable[[Path], None]
         "ours": {"median_bytes": stats.nbytes},
         "anchors": {f"observed_voxels_x_{BYTES_PER_VOXEL}B": {"median_bytes": stats.observed * BYTES_PER_VOXEL}},
         "target_ratio": float("inf"),
-        "check": f"{stats.bytes_per_observed_voxel:.1f} bytes per observed voxel",
+        "check": f"{stats.bytes_per_observed_voxel:.1f} bytes per observed voxel (grid), "
+                 f"{stats.total_nbytes / max(stats.observed, 1):.1f} with the per-frame records",
         "details": {"bytes_per_observed_voxel": stats.bytes_per_observed_voxel,
+                    "per_frame_records_bytes (hit keys, kept miss voxels, hit sums; not in the ratio)":
+                        stats.cache_nbytes,
+                    "per_frame_records_bytes_per_frame": stats.cache_nbytes / max(len(ids), 1),
+                    "total_bytes_per_observed_voxel (grid + per-frame records)":
+                        stats.total_nbytes / max(stats.observed, 1),
                     f"bricks_{BLOCK_RESOLUTION}^3_holding_an_observed_or_tsdf_voxel": bricks,
                     f"bytes_per_observed_voxel_if_only_those_bricks_were_allocated ({BYTES_PER_VOXEL} B/voxel)":
                         bricks * BLOCK_RESOLUTION**3 * BYTES_PER_VOXEL / max(stats.observed, 1),

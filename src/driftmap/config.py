@@ -219,12 +219,12 @@ class VolumeConfig(SettingsModel):
     clamp_max: float = Field(0.971, gt=0.5, lt=1.0, description="occupancy probability clamp, upper (OctoMap's default)")
     occupancy_threshold: float = Field(0.5, gt=0.0, lt=1.0, description="a voxel is occupied at or above this probability, free below it (OctoMap's default)")
     min_range_m: float = Field(0.05, ge=0.0, description="points closer than this to their sensor carve and mark nothing (a point at the sensor origin is no observation)")
-    max_range_m: float | None = Field(None, gt=0.0, description="points farther than this carve free space only up to this range and mark no hit; None: a depth camera's range where its noise reaches half a voxel (2.55 m at 2 cm), a LiDAR odometry's max range")
+    max_range_m: float | None = Field(None, gt=0.0, description="points farther than this carve free space only up to this range and mark no hit; None: a depth camera's range where its noise reaches half a voxel (2.29 m at 2 cm), a LiDAR odometry's max range")
     surface_min_hits: int = Field(2, ge=1, description="clearance counts an occupied voxel as a surface when at least this many points ended in it (one stray point of depth noise is no wall: on the synthetic log's noisy camera single-point voxels put 97 % of the clearance errors over a voxel)")
     unknown_is: UnknownIs = Field(UnknownIs.OCCUPIED, description="occupied | free: how the distance field and swept checks treat never-observed voxels")
-    memory_budget_mb: float = Field(4096.0, gt=0.0, description="layers that would allocate more than this (MiB) are refused before anything is allocated")
+    memory_budget_mb: float = Field(4096.0, gt=0.0, description="layers whose grid would allocate more than this (MiB) are refused before anything is allocated; the frames' kept missed voxels (keep_frame_voxels) stop being kept beyond it")
     padding_m: float = Field(0.5, ge=0.0, description="the grid spans the observations plus this margin, so small corrections do not grow it")
-    keep_frame_voxels: bool = Field(True, description="keep each frame's missed voxels (4 bytes each, ~1 MB a 2 cm depth frame) so that a correction takes a frame out by decrementing them instead of tracing its rays again (about half an update's work)")
+    keep_frame_voxels: bool = Field(True, description="keep each frame's missed voxels (4 bytes each, ~1 MB a 2 cm depth frame) so that a correction takes a frame out by decrementing them instead of tracing its rays again; kept while the grid and the kept voxels fit memory_budget_mb")
 
     @field_validator("memory_budget_mb")
     @classmethod

@@ -46,7 +46,7 @@ from PIL import Image  # noqa: E402
 from driftmap.diagnostics.figures import TopViewFigure, plot_state_top_view, sensor_band_m, sensor_up  # noqa: E402
 from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
-from driftmap.map.view import POSE_EPSILON, MapView  # noqa: E402
+from driftmap.map.view import MapView  # noqa: E402
 from driftmap.preprocess.scene import LIDAR_OUTDOOR_P99_RANGE_M, scan_reach_m  # noqa: E402
 from driftmap.render import BACKGROUND_RGB, ViewCamera, fit_camera, look_along, render_software  # noqa: E402,F401
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
@@ -60,6 +60,8 @@ logger = logging.getLogger(__name__)
 
 COLOR_MODES = ("frame", "revision", "double-wall", "state")
 BACKENDS = ("auto", "window", "open3d", "software", "rerun")
+DISPLAY_POSE_EPSILON = 1e-12
+"""``--color revision`` draws a frame grey (not moved) when no entry of its pose changed by more than this."""
 #: Display voxel size per sensor kind (m).
 DEFAULT_VOXEL_SIZE_M = {SensorKind.DEPTH_CAMERA: 0.02, SensorKind.LIDAR: 0.2}
 #: Top views of depth-camera maps drop points this far above the mean sensor height (ceilings hide the room).
@@ -244,7 +246,7 @@ def _apply_palette(values: NDArray[np.float64], value_range: tuple[float, float]
 def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now: NDArray[np.float64],
                     T_ref: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """How far each point moved from the reference revision to now (exact per point), and whether its frame moved."""
-    moved_frame = np.any(np.abs(T_now - T_ref) > POSE_EPSILON, axis=(1, 2))
+    moved_frame = np.any(np.abs(T_now - T_ref) > DISPLAY_POSE_EPSILON, axis=(1, 2))
     p = points.astype(np.float64)
     # p_ref = T_ref T_now^-1 p, frame by frame (rows index the frames)
     delta = T_ref @ np.linalg.inv(T_now)

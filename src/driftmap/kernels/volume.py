@@ -30,6 +30,8 @@ def _flat(ix: int, iy: int, iz: int, ny: int, nz: int) -> int:
     return (ix * ny + iy) * nz + iz
 
 
+# longer than 80 lines: one compiled loop (Amanatides-Woo voxel traversal of every ray, the per-frame marks and the
+# miss list in one pass); split into helpers numba would inline them anyway, and the traversal state is shared
 @numba.njit(cache=True, nogil=True)
 def occupancy_update(origin: np.ndarray, ends: np.ndarray, is_hit: np.ndarray, origin_index: np.ndarray,
                      shape: np.ndarray, hits: np.ndarray, misses: np.ndarray, mark: np.ndarray, token: int, sign: int,

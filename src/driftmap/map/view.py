@@ -69,8 +69,10 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-#: Poses whose 4x4 matrices differ by no more than this (max abs entry) count as unchanged.
-POSE_EPSILON = 1e-12
+#: Poses whose 4x4 matrices differ by no more than this (max abs entry) count as unchanged: none, every change is
+#: applied (a rebuild places each frame at its exact pose, so must an update; a loop closure may move a camera at 0 by
+#: 4e-20 m, which puts a voxel-boundary point into another voxel).
+POSE_EPSILON = 0.0
 #: Sensor payloads are (read and) transformed in pieces of at most this many bytes, shared out among the
 #: threads; a piece read from a segment file fits in the reading core's cache (one buffer per thread).
 READ_PIECE_BYTES = 256 << 10

@@ -73,13 +73,23 @@ class VolumeStats:
     unknown: int
     n_voxels: int
     nbytes: int
+    """the dense grid's arrays (:attr:`GridSpec.nbytes`)"""
+    cache_nbytes: int = 0
+    """what the layers keep per frame besides the grid: its hit voxels (:attr:`VolumeLayers.frame_hits`), its missed
+    voxels (:attr:`VolumeLayers.frame_misses`, with ``keep_frame_voxels``) and the hit-point sums; grows with the
+    number of frames, not with the grid"""
 
     @property
     def observed(self) -> int:
         return self.occupied + self.free
 
     @property
+    def total_nbytes(self) -> int:
+        return self.nbytes + self.cache_nbytes
+
+    @property
     def bytes_per_observed_voxel(self) -> float:
+        """The grid's bytes per observed voxel (:attr:`total_nbytes` for everything the layers hold)."""
         return self.nbytes / max(self.observed, 1)
 
 
@@ -120,6 +130,9 @@ class VolumeLayers:
     cache: dict = field(default_factory=dict)
     _token: int = 0
     _observers: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
+    _kept_bytes: int = 0
+    """bytes of :attr:`frame_misses` (bounded with the grid by ``memory_budget_mb``)"""
+    _budget_logged: bool = False
 
     # --------------------------------------------------------------------------------------------- building
     @classmethod
@@ -189,11 +202,13 @@ class VolumeLayers:
                 if c.keep_frame_voxels:
                     misses = (miss_flats[:n_miss] if n_miss <= len(miss_flats)
                               else np.flatnonzero(a.mark == 2 * token + 1))  # the buffer overflowed: this frame's marks
-                    self.frame_misses[obs.frame_id] = (g, misses.astype(np.int32 if g.n_voxels < 2**31 else np.int64))
+                    self._keep_misses(obs.frame_id, misses.astype(np.int32 if g.n_voxels < 2**31 else np.int64))
             else:
                 self.frame_hits.pop(obs.frame_id, None)
         if sign < 0:
-            self.frame_misses.pop(obs.frame_id, None)
+            dropped = self.frame_misses.pop(obs.frame_id, None)
+            if dropped is not None:
+                self._kept_bytes -= dropped[1].nbytes
         self.hit_batches.append(_hit_sums(ends[obs.is_hit], sign))
         self._observers = None
         self.version += 1
@@ -208,6 +223,20 @@ class VolumeLayers:
             hits = ends[obs.is_hit]
             kernels.tsdf_rays(g.lattice_units(obs.origin_m), hits, origin_index, shape,
                               float(c.truncation_m) / g.voxel_size_m, a.tsdf_sum, a.tsdf_count, sign)
+
+    def _keep_misses(self, frame_id: int, flats: NDArray[np.integer]) -> None:
+        """Keep a frame's missed voxels (:attr:`frame_misses`) while the grid and the kept voxels stay within
+        ``memory_budget_mb``; beyond it the frame is kept out and taking it out traces its rays again (the same
+        voxels: exact either way). The budget bounds what grows with the frames, not only the grid."""
+        if self.grid.nbytes + self._kept_bytes + flats.nbytes > self.config.memory_budget_mb * 2**20:
+            if not self._budget_logged:
+                logger.info("volume: the frames' missed voxels reach volume.memory_budget_mb = %g MiB beside the "
+                            "grid (%s): frames from %d on are not kept (a correction traces their rays again)",
+                            self.config.memory_budget_mb, self.grid.describe(), frame_id)
+                self._budget_logged = True
+            return
+        self.frame_misses[frame_id] = (self.grid, flats)
+        self._kept_bytes += flats.nbytes
 
     def _cached_misses(self, frame_id: int) -> NDArray[np.int64]:
         """A frame's kept miss voxels as flat indices of the current grid (moved over if the grid grew since)."""
@@ -260,6 +289,17 @@ class VolumeLayers:
         old_obs = {fid: self._observe(store, fid) for fid in candidates}
         changes = self.view.apply(revision)
         changed = [int(f) for f in changes.frame_ids]
+        kept = sorted(set(moved) - set(changed))
+        if kept:
+            # a pose change the map view did not apply (a view whose POSE_EPSILON is not 0), while a rebuild places
+            # the frame at the exact pose (a loop closure moved an origin at 0 to 4e-20): take a view of the
+            # revision as a rebuild does, and re-integrate every candidate (an unchanged frame's -1 / +1 cancel)
+            from driftmap.map.view import MapView
+
+            logger.info("volume: frames %s moved without the map view applying it; re-reading the view of "
+                        "revision %d", kept[:5], revision)
+            self.view = MapView.from_store(store, revision)
+            changed += [f for f in sorted(candidates) if f not in changed]
         missing = [f for f in changed if f not in old_obs]
         if missing:
             logger.warning("volume: frames %s changed beyond the moved frames and their neighbours; rebuilding the "
@@ -353,7 +393,15 @@ class VolumeLayers:
     def stats(self) -> VolumeStats:
         s = self.state_grid().ravel()
         counts = np.bincount(s.astype(np.int64) + 1, minlength=3)
-        return VolumeStats(int(counts[2]), int(counts[1]), int(counts[0]), self.grid.n_voxels, self.grid.nbytes)
+        return VolumeStats(int(counts[2]), int(counts[1]), int(counts[0]), self.grid.n_voxels, self.grid.nbytes,
+                           self.cache_nbytes())
+
+    def cache_nbytes(self) -> int:
+        """Bytes of the per-frame records (hit keys, kept miss voxels, hit-point sums): see :class:`VolumeStats`."""
+        hits = sum(k.nbytes for k in self.frame_hits.values())
+        misses = sum(m.nbytes for _, m in self.frame_misses.values())
+        sums = sum(k.nbytes + x.nbytes + n.nbytes for k, x, n in self.hit_batches)
+        return int(hits + misses + sums)
 
     def observers(self, points_m: NDArray[np.floating]) -> list[NDArray[np.int64]]:
         """For each world point, the frames whose rays ended in its voxel (the frames behind an occupied voxel)."""

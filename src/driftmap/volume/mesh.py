@@ -7,23 +7,19 @@ extracts the mesh, as it would from a grid it had integrated itself.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
 from driftmap.kernels.volume import TSDF_QUANTUM
 from driftmap.volume.grid import BLOCK_RESOLUTION
-
-if TYPE_CHECKING:
-    from driftmap.volume.layers import VolumeLayers
+from driftmap.volume.protocol import Layers
 
 DEFAULT_WEIGHT_THRESHOLD = 3.0
 """Marching cubes uses samples observed at least this many times (Open3D's default for ``extract_triangle_mesh``)."""
 
 
-def to_voxel_block_grid(layers: VolumeLayers) -> o3d.t.geometry.VoxelBlockGrid:
+def to_voxel_block_grid(layers: Layers) -> o3d.t.geometry.VoxelBlockGrid:
     """An Open3D ``VoxelBlockGrid`` (``tsdf``, ``weight``; 8^3 blocks) holding the layers' TSDF: the blocks with an
     observation, each sample's TSDF and its observation count as weight."""
     g = layers.grid
@@ -58,7 +54,7 @@ def to_voxel_block_grid(layers: VolumeLayers) -> o3d.t.geometry.VoxelBlockGrid:
     return vbg
 
 
-def triangle_mesh(layers: VolumeLayers, weight_threshold: float = DEFAULT_WEIGHT_THRESHOLD) -> o3d.geometry.TriangleMesh:
+def triangle_mesh(layers: Layers, weight_threshold: float = DEFAULT_WEIGHT_THRESHOLD) -> o3d.geometry.TriangleMesh:
     """The TSDF's zero surface as a triangle mesh (world frame, metres); empty when nothing was observed."""
     vbg = to_voxel_block_grid(layers)
     if vbg.hashmap().size() == 0 or not np.any(layers.arrays.tsdf_count >= weight_threshold):

@@ -13,7 +13,6 @@ until the layers change. :func:`distance_field` evaluates it at every voxel (for
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -22,18 +21,16 @@ from scipy.spatial import cKDTree
 
 from driftmap.errors import ConfigError
 from driftmap.volume.config import UnknownIs
-
-if TYPE_CHECKING:
-    from driftmap.volume.layers import VolumeLayers
+from driftmap.volume.protocol import Layers
 
 OCCUPIED, FREE, UNKNOWN = 1, 0, -1
 
 
-def _policy(layers: VolumeLayers, unknown_is: UnknownIs | str | None) -> UnknownIs:
+def _policy(layers: Layers, unknown_is: UnknownIs | str | None) -> UnknownIs:
     return UnknownIs(unknown_is) if unknown_is is not None else layers.config.unknown_is
 
 
-def _cached(layers: VolumeLayers, name: str, build):  # noqa: ANN001, ANN202 - a small memo per layers version
+def _cached(layers: Layers, name: str, build):  # noqa: ANN001, ANN202 - a small memo per layers version
     hit = layers.cache.get(name)
     if hit is not None and hit[0] == layers.version:
         return hit[1]
@@ -42,7 +39,7 @@ def _cached(layers: VolumeLayers, name: str, build):  # noqa: ANN001, ANN202 - a
     return value
 
 
-def surface_tree(layers: VolumeLayers) -> cKDTree | None:
+def surface_tree(layers: Layers) -> cKDTree | None:
     """A KD-tree of the observed surface: the mean point of every occupied voxel at least ``surface_min_hits``
     points ended in (None when there is none)."""
     def build() -> cKDTree | None:
@@ -54,7 +51,7 @@ def surface_tree(layers: VolumeLayers) -> cKDTree | None:
     return _cached(layers, "surface_tree", build)
 
 
-def unknown_distance_grid(layers: VolumeLayers) -> NDArray[np.float32]:
+def unknown_distance_grid(layers: Layers) -> NDArray[np.float32]:
     """Per grid voxel, the distance (metres) from its centre to the nearest face of a never-observed voxel (0 in one)."""
     def build() -> NDArray[np.float32]:
         unknown = layers.state_grid() == UNKNOWN
@@ -65,7 +62,7 @@ def unknown_distance_grid(layers: VolumeLayers) -> NDArray[np.float32]:
     return _cached(layers, "unknown_distance", build)
 
 
-def clearance_m(layers: VolumeLayers, points_m: ArrayLike, unknown_is: UnknownIs | str | None = None, *,
+def clearance_m(layers: Layers, points_m: ArrayLike, unknown_is: UnknownIs | str | None = None, *,
                 max_m: float | None = None) -> NDArray[np.float64]:
     """Clearance (metres) at each world point: the distance to the nearest observed surface and, when unknown space
     is an obstacle, to the nearest unknown voxel (outside the grid: 0); with ``unknown_is = free`` unknown space
@@ -97,7 +94,7 @@ class DistanceField:
     revision: int
 
 
-def distance_field(layers: VolumeLayers, unknown_is: UnknownIs | str | None = None) -> DistanceField:
+def distance_field(layers: Layers, unknown_is: UnknownIs | str | None = None) -> DistanceField:
     """:func:`clearance_m` at every voxel centre of the grid (cached per policy until the layers change)."""
     policy = _policy(layers, unknown_is)
 
@@ -122,7 +119,7 @@ class SweepResult:
     """the frames whose rays ended in that voxel (empty for unknown space)"""
 
 
-def sweep(layers: VolumeLayers, path_m: ArrayLike, *, radius_m: float | None = None,
+def sweep(layers: Layers, path_m: ArrayLike, *, radius_m: float | None = None,
           box_m: ArrayLike | None = None, step_m: float | None = None) -> SweepResult:
     """Move a sphere (``radius_m``) or an axis-aligned box (``box_m``: edge lengths x, y, z) along the polyline
     ``path_m`` (K >= 2 points) in steps of ``step_m`` (default half a voxel) and return the first voxel inside the
