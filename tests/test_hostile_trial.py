@@ -399,3 +399,16 @@ def test_t3_w21_export_never_replaces_what_the_store_was_built_from(sevens: dict
     line = _line(_cli("export", store, "--trajectory", sevens["gt"], "--overwrite"))
     assert "would replace the --poses file it was built with" in line and sevens["gt"].read_bytes() == gt
     assert {p.name: p.read_bytes() for p in folder.iterdir()} == before
+
+
+def test_t3_w6_a_pose_a_billion_metres_away_is_refused_not_stored_as_infinite_points(tmp_path: Path) -> None:
+    """perturb --drift-percent-per-m 1e20 then correct: the poses (2e17 m) were accepted ("max change inf m", numpy
+    overflow warnings, float32 world points at inf). A translation beyond 1e9 m is a TransformError naming the frame;
+    the store keeps its revisions."""
+    store = tmp_path / "s"
+    assert _cli("build", LOG, "--out", store, "--frames", "0:4", "--no-loop-closure").returncode == 0
+    assert _cli("export", store, "--trajectory", tmp_path / "t.tum").returncode == 0
+    assert _cli("perturb", tmp_path / "t.tum", tmp_path / "p.tum", "--drift-percent-per-m", "1e20").returncode == 0
+    line = _line(_cli("correct", store, "--poses", tmp_path / "p.tum"))
+    assert "correction pose of frame 1: translation" in line and "beyond 1e+09 m from the origin" in line
+    assert len(FrameStore.open(store).revisions) == 1

@@ -18,6 +18,9 @@ from driftmap.errors import GeometryError, TransformError
 #: Real files are written with limited precision (7-Scenes poses are off by up to 4e-4), so a matrix within
 #: the tolerance is accepted and its rotation projected onto SO(3); anything further off is rejected.
 RIGID_TOLERANCE = 1e-3
+MAX_TRANSLATION_M = 1e9
+"""No pose of a map lies farther than this from its origin (a million km; Earth-centred coordinates are ~6.4e6 m):
+beyond it a pose is a unit or arithmetic error, and float32 world points would overflow (``max change inf m``)."""
 
 
 def identity() -> NDArray[np.float64]:
@@ -37,6 +40,9 @@ def as_rigid(T: ArrayLike, name: str = "transform", *, tolerance: float = RIGID_
         raise TransformError(f"{name}: expected a 4x4 matrix, got shape {M.shape}")
     if not np.all(np.isfinite(M)):
         raise TransformError(f"{name}: contains NaN or inf")
+    if float(np.max(np.abs(M[:3, 3]))) > MAX_TRANSLATION_M:
+        raise TransformError(f"{name}: translation {M[:3, 3].tolist()} m is beyond {MAX_TRANSLATION_M:g} m from the "
+                             f"origin (a unit error? poses are in metres)")
     if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance, rtol=0.0):
         raise TransformError(f"{name}: last row must be [0, 0, 0, 1], got {M[3].tolist()}")
     R = M[:3, :3]
@@ -67,7 +73,9 @@ def rigid_stack_problems(poses: ArrayLike, *, tolerance: float = RIGID_TOLERANCE
     with np.errstate(invalid="ignore"):
         ortho = np.max(np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)), axis=(1, 2))
         det = np.linalg.det(np.where(finite[:, None, None], R, 0.0))
-    ok = finite & last_row & (ortho <= tolerance) & (np.abs(det - 1.0) <= tolerance)
+    with np.errstate(invalid="ignore"):
+        near = np.max(np.abs(T[:, :3, 3]), axis=1) <= MAX_TRANSLATION_M
+    ok = finite & last_row & (ortho <= tolerance) & (np.abs(det - 1.0) <= tolerance) & near
     bad = np.flatnonzero(~ok)
     if bad.size == 0:
         return bad, None
@@ -77,6 +85,8 @@ def rigid_stack_problems(poses: ArrayLike, *, tolerance: float = RIGID_TOLERANCE
         if not finite[i]
         else f"last row is {T[i, 3].tolist()}, expected [0, 0, 0, 1]"
         if not last_row[i]
+        else f"translation {T[i, :3, 3].tolist()} m is beyond {MAX_TRANSLATION_M:g} m from the origin (a unit error?)"
+        if not near[i]
         else f"rotation block is not a rotation (max |R^T R - I| = {ortho[i]:.3g}, det = {det[i]:.6g})"
     )
     return bad, reason

@@ -91,6 +91,8 @@ def rollback(
     console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({len(rev.set_directly)} frames changed)")
 
 
+# longer than 80 lines: 16 of them are the typer options (the CLI contract); the body checks every output before
+# anything is written, then writes each in turn
 @app.command()
 def export(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
