@@ -161,7 +161,7 @@ def view(
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation) | state (the occupied voxels of the volumetric layers by height; with --out also a free / occupied / unknown top view)")] = "frame",
     out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
-    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, max=1000.0, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
     backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
     headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
     reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
@@ -172,6 +172,8 @@ def view(
 
     color = choice(color, tuple(COLOR_MODES), "--color")
     backend = choice(backend, tuple(BACKENDS), "--backend")
+    if voxel_size_m is not None and voxel_size_m > 1000.0:  # after 'finite', so inf says it is not finite
+        raise typer.BadParameter(f"must be at most 1000 m, got {voxel_size_m}", param_hint="--voxel-size-m")
     check_output(out, "--out", folder=True)
 
     with open_store(store_path) as store:

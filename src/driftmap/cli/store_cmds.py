@@ -98,7 +98,7 @@ def export(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
-    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, max=1000.0, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
+    voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
     trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
     mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
@@ -129,8 +129,9 @@ def export(
         raise typer.BadParameter(f"{grid2d_path}: name the map's YAML file (OUT.yaml or .yml; its image is written "
                                  f"beside it as OUT.pgm)", param_hint="--grid2d")
     format = choice(format, ("tum", "kitti"), "--format")
-    if voxel_size_m is not None and not voxel_size_m > 0:
-        raise typer.BadParameter(f"must be positive, got {voxel_size_m}", param_hint="--voxel-size-m")
+    if voxel_size_m is not None and not 0 < voxel_size_m <= MAX_VOXEL_SIZE_M:
+        raise typer.BadParameter(f"must be positive and at most {MAX_VOXEL_SIZE_M:g} m, got {voxel_size_m}",
+                                 param_hint="--voxel-size-m")
     settings = DriftmapConfig.load(config)  # validated also when --voxel-size-m is given
     if voxel_size_m is None:
         voxel_size_m = settings.map.export_voxel_size_m
@@ -180,6 +181,10 @@ def export(
                 )
             console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
                           f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
+
+
+MAX_VOXEL_SIZE_M = 1000.0
+"""--voxel-size-m of export and view: a voxel larger than this is no map (checked after 'finite', so inf says so)."""
 
 
 def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:

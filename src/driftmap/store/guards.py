@@ -132,7 +132,7 @@ def store_io_error(exc: OSError, file: str | Path, action: str, store: str | Pat
     elif exc.errno == errno_codes.EROFS:
         reason = "read-only file system"
     code = f" [{errno_codes.errorcode.get(exc.errno, exc.errno)}]" if exc.errno else ""
-    if exc.errno in (errno_codes.EROFS, errno_codes.EACCES, errno_codes.EPERM) and hint is not READ_HINT:
+    if exc.errno in (errno_codes.EROFS, errno_codes.EACCES, errno_codes.EPERM) and hint in (RESUME_HINT, RECOVER_HINT):
         # no space to free: the store cannot be written where it is (reading it still works)
         hint = ("the store cannot be written there (it can still be read: info, export, diagnose); remount it "
                 "writable or copy it to a writable place and run the command there")
