@@ -413,3 +413,18 @@ def test_t3_w6_a_pose_a_billion_metres_away_is_refused_not_stored_as_infinite_po
     line = _line(_cli("correct", store, "--poses", tmp_path / "p.tum"))
     assert "correction pose of frame 1: translation" in line and "beyond 1e+09 m from the origin" in line
     assert len(FrameStore.open(store).revisions) == 1
+
+
+# ------------------------------------------------------------------------------- the fourth trial
+
+
+def test_t4_b3_a_min_range_not_below_the_max_range_is_a_config_error(sevens: dict, tmp_path: Path) -> None:
+    """[volume] min_range_m = 3, max_range_m = 1 (or equal, or a min beyond the sensor's range) gave Open3D's "No
+    block is touched in TSDF volume" traceback: nothing can be carved, so it is a one-line error naming the keys."""
+    for table, words in (("min_range_m = 3.0\nmax_range_m = 1.0\n", "min_range_m (3.0) must be less than max_range_m"),
+                         ("min_range_m = 0.5\nmax_range_m = 0.5\n", "min_range_m (0.5) must be less than max_range_m"),
+                         ("min_range_m = 30.0\n", "volume.min_range_m (30.0 m) must be less than the max range")):
+        config = tmp_path / "v.toml"
+        config.write_text("[volume]\n" + table)
+        assert words in _line(_cli("export", sevens["store"], "--octomap", tmp_path / "o.bt", "--config", config))
+        assert not (tmp_path / "o.bt").exists()

@@ -237,6 +237,9 @@ class VolumeConfig(SettingsModel):
 
     @model_validator(mode="after")
     def _clamps(self) -> VolumeConfig:
+        if self.max_range_m is not None and not self.min_range_m < self.max_range_m:
+            raise ValueError(f"min_range_m ({self.min_range_m}) must be less than max_range_m ({self.max_range_m}): "
+                             f"no ray would carve or mark anything")
         if not self.clamp_min < self.occupancy_threshold < self.clamp_max:
             raise ValueError(f"occupancy_threshold ({self.occupancy_threshold}) must lie between clamp_min "
                              f"({self.clamp_min}) and clamp_max ({self.clamp_max})")
@@ -249,10 +252,14 @@ class VolumeConfig(SettingsModel):
         voxel = self.voxel_size_m
         if voxel is None:
             voxel = DEPTH_VOXEL_SIZE_M if sensor is not SensorKind.LIDAR else LIDAR_VOXEL_PER_SCALE_M * scene_scale
+        max_range = self.max_range_m if self.max_range_m is not None else sensor_max_range_m
+        if max_range is not None and not self.min_range_m < max_range:
+            raise ConfigError(f"volume.min_range_m ({self.min_range_m} m) must be less than the max range "
+                              f"({max_range} m, the sensor's): no ray would carve or mark anything")
         return self.model_copy(update={
             "voxel_size_m": voxel,
             "truncation_m": self.truncation_m if self.truncation_m is not None else TRUNCATION_VOXELS * voxel,
-            "max_range_m": self.max_range_m if self.max_range_m is not None else sensor_max_range_m,
+            "max_range_m": max_range,
         })
 
     # OctoMap's log-odds of the sensor model

@@ -62,6 +62,6 @@ def triangle_mesh(layers: Layers, weight_threshold: float = DEFAULT_WEIGHT_THRES
     try:
         return vbg.extract_triangle_mesh(weight_threshold=weight_threshold).to_legacy()
     except RuntimeError as exc:  # Open3D fails to colour a mesh without a triangle instead of returning it empty
-        if "shape {0}" not in str(exc):
+        if "shape {0}" not in str(exc) and "No block is touched" not in str(exc):  # else: nothing to mesh
             raise
         return o3d.geometry.TriangleMesh()
