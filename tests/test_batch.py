@@ -286,3 +286,89 @@ def test_synth_fleet_refuses_options_it_does_not_take(tmp_path: Path) -> None:
     out = _cli("synth", "--fleet", 2, "--scene", "street", tmp_path / "f")
     assert out.returncode == 2 and "--scene" in out.stderr
     assert not (tmp_path / "f").exists()
+
+
+def test_cli_resume_redoes_a_log_whose_store_is_damaged(batch, fleet_logs: Path, config_file: Path,
+                                                         tmp_path: Path) -> None:
+    """B6: a log folder whose result.json says ok but whose store lost a segment is not `skipped` on --resume: it
+    is run again and its folder replaced; an intact one is kept."""
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(batch[0].out_dir, out)
+    (out / "room-00" / "store" / "segment-000000.mcap").unlink()
+    config = load_batch_config(config_file)
+    specs = {s.name: s for s in expand_inputs([str(fleet_logs / "room-00"), str(fleet_logs / "room-01")])}
+    assert completed_result(out / "room-00", config_hash(config, specs["room-00"])) is None
+    assert completed_result(out / "room-01", config_hash(config, specs["room-01"])) is not None
+    kept = (out / "room-01" / RESULT_FILE).stat().st_mtime_ns
+    ran = _cli("batch", fleet_logs / "room-00", fleet_logs / "room-01", "--out", out, "--resume", "--workers", 1,
+               "--config", config_file, timeout=600)
+    assert ran.returncode == 0, ran.stderr
+    status = {r["name"]: (r["status"], r["frames"]) for r in json.loads((out / "fleet.json").read_text())["logs"]}
+    assert status == {"room-00": ("ok", 40), "room-01": ("skipped", 40)}
+    with FrameStore.open(out / "room-00" / "store") as store:
+        assert len(store) == 40
+    assert (out / "room-01" / RESULT_FILE).stat().st_mtime_ns == kept
+    assert not (out / TMP_DIR).exists() or not any((out / TMP_DIR).iterdir())
+
+
+def test_cli_refuses_an_out_among_the_inputs_and_reserved_names(fleet_logs: Path, tmp_path: Path) -> None:
+    """W7, W8, W9: a reserved --name says it is reserved; --out equal to an input, or inside one, is refused."""
+    log = fleet_logs / "room-00"
+    before = sorted(p.relative_to(log) for p in log.rglob("*"))
+    listing = tmp_path / "logs.txt"
+    for name in ("fleet.json", ".fleet-tmp"):
+        listing.write_text(f"{log} --name {name}\n")
+        line = _one_line_error(_cli("batch", listing, "--out", tmp_path / "out"))
+        assert f"{listing}:1: --name: '{name}' is reserved" in line and "not a usable" not in line, line
+    line = _one_line_error(_cli("batch", log, "--out", log))
+    assert f"--out {log}: is one of the inputs" in line and "no log among" not in line, line
+    line = _one_line_error(_cli("batch", log, "--out", log / "depth" / "fl"))
+    assert f"--out {log / 'depth' / 'fl'}: is inside the input {log}" in line, line
+    assert not (tmp_path / "out").exists()
+    assert sorted(p.relative_to(log) for p in log.rglob("*")) == before  # nothing written into the log
+
+
+def test_failed_log_errors_name_the_final_folder_and_how_to_drop_ground_truth(fleet_logs: Path, config_file: Path,
+                                                                               tmp_path: Path,
+                                                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    """W10: a log too short for ATE/RPE with ground_truth "auto" says how to turn it off; an export failure names
+    DIR/<name>/mesh.ply, not the temporary folder that is gone by then."""
+    from driftmap.errors import EmptyExportError
+    from driftmap.fleet.task import run_log
+
+    out = tmp_path / "out"
+    spec = LogSpec(name="one", input=str(fleet_logs / "room-00"), frames="0:2")
+    row = run_log(spec, load_batch_config(config_file), out)
+    assert row["status"] == "failed" and "ATE/RPE need at least 3" in row["error"], row
+    assert '[fleet] ground_truth = "none"' in row["error"] and TMP_DIR not in row["error"], row["error"]
+
+    def no_surface(layers, path, *, flag="--mesh", **_):
+        raise EmptyExportError(f"{flag} {path}: the TSDF has no surface to mesh")
+
+    monkeypatch.setattr("driftmap.volume.export.write_mesh", no_surface)
+    mesh_config = tmp_path / "mesh.toml"
+    mesh_config.write_text(CONFIG.replace('exports = ["trajectory"]', 'exports = ["mesh"]\nground_truth = "none"'))
+    spec = LogSpec(name="one", input=str(fleet_logs / "room-00"), frames="0:4")
+    row = run_log(spec, load_batch_config(mesh_config), out)
+    assert row["status"] == "failed" and f"{out / 'one' / 'mesh.ply'}:" in row["error"], row["error"]
+    assert TMP_DIR not in row["error"] and "--mesh" not in row["error"], row["error"]
+    assert not (out / "one").exists()
+
+
+def test_cli_a_ray_that_cannot_start_is_one_error_line(fleet_logs: Path, tmp_path: Path) -> None:
+    """W11: ray.init failing (as on a loaded machine) is one error line saying Ray could not start and why."""
+    out = tmp_path / "out"
+    code = ("import sys, ray\n"
+            "def boom(*a, **k):\n"
+            "    raise Exception('The current node timed out during startup. This could happen because some of the "
+            "Ray processes failed to startup.')\n"
+            "ray.init = boom\n"
+            f"sys.argv = ['driftmap', 'batch', {str(fleet_logs / 'room-00')!r}, '--out', {str(out)!r}]\n"
+            "from driftmap.cli import main; main()\n")
+    ran = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path,
+                         check=False)
+    line = _one_line_error(ran)
+    assert "Ray could not start" in line and "The current node timed out during startup" in line, line
+    assert not out.exists()

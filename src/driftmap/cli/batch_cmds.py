@@ -73,6 +73,9 @@ def batch(
         try:
             result = run_batch(specs, out, batch_config, workers=workers, ray_address=ray_address, resume=resume,
                                progress=tick)
+        except DriftmapError:
+            progress.update(task, visible=False)  # e.g. Ray could not start: the error line alone, no empty bar
+            raise
         except KeyboardInterrupt:
             progress.stop()
             err_console.print(Text(f"interrupted: the logs that finished are in {out}, the others left nothing "

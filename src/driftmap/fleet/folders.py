@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import secrets
 import shutil
 from pathlib import Path
@@ -27,8 +28,10 @@ from driftmap._version import __version__
 from driftmap.errors import ConfigError
 from driftmap.files import fsync_dir
 
-__all__ = ["FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "prepare_out_dir",
-           "publish", "temp_folder"]
+__all__ = ["FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "damage",
+           "prepare_out_dir", "publish", "temp_folder"]
+
+logger = logging.getLogger(__name__)
 
 MARKER = ".driftmap-fleet"
 FLEET_JSON = "fleet.json"
@@ -86,14 +89,42 @@ def publish(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def completed_result(folder: Path, expected_hash: str | None = None) -> dict[str, Any] | None:
+def completed_result(folder: Path, expected_hash: str | None = None, *, verify: bool = True) -> dict[str, Any] | None:
     """The ``result.json`` of a complete log folder (None if the folder is missing, incomplete, failed, or was
-    made with another config than ``expected_hash``)."""
+    made with another config than ``expected_hash``). With ``verify`` the folder's data is checked against its
+    recorded row too (:func:`damage`): a log whose store was damaged or changed since is not complete."""
     if not all((folder / f).exists() for f in LOG_FILES):
         return None
     with contextlib.suppress(OSError, ValueError):
         result = json.loads((folder / RESULT_FILE).read_text())
         if (isinstance(result, dict) and isinstance(result.get("row"), dict) and result["row"].get("status") == "ok"
                 and (expected_hash is None or result.get("config_hash") == expected_hash)):
+            if verify and (problem := damage(folder, result["row"])) is not None:
+                logger.warning("%s: %s; the log is run again", folder, problem)
+                return None
             return result
+    return None
+
+
+def damage(folder: Path, row: dict[str, Any]) -> str | None:
+    """What is wrong with a log folder whose ``result.json`` says it is complete (None if nothing): its store does
+    not open (a damaged or missing segment), holds another number of frames than the recorded row, its
+    ``diagnosis.json`` does not parse, or an export the row names is missing."""
+    from driftmap.store.frame_store import FrameStore
+
+    try:
+        with FrameStore.open(folder / "store") as store:
+            frames = len(store)
+    except Exception as exc:  # noqa: BLE001 - any failure to read the store means the log must be redone
+        return f"its store does not open ({type(exc).__name__}: {exc})"
+    if frames != row.get("frames"):
+        return f"its store holds {frames} frames, but its result records {row.get('frames')}"
+    try:
+        json.loads((folder / "diagnosis.json").read_text())
+    except (OSError, ValueError) as exc:
+        return f"its diagnosis.json cannot be read ({exc})"
+    exports = row.get("exports")
+    missing = [f for f in exports.values() if not (folder / f).exists()] if isinstance(exports, dict) else []
+    if missing:
+        return f"its exports are missing ({', '.join(missing)})"
     return None

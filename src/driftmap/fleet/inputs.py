@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import Any
 
 from driftmap.errors import ConfigError
+from driftmap.fleet.folders import MARKER, TMP_DIR
 
 __all__ = ["LIST_SUFFIXES", "LogSpec", "expand_inputs", "log_name", "parse_log_options", "read_list_file"]
 
@@ -104,8 +105,16 @@ def _check_value(option: str, value: str, where: str) -> None:
             raise ConfigError(f"{where}: --period-s: the scan period must be a positive number, got {value!r}")
     elif option == "--pose-from-tf" and (len(value.split(",")) != 2 or not all(p.strip() for p in value.split(","))):
         raise ConfigError(f"{where}: --pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {value!r}")
-    elif option == "--name" and (not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]*", value) or value in RESERVED_NAMES):
-        raise ConfigError(f"{where}: --name: {value!r} is not a usable folder name (letters, digits, . _ + -)")
+    elif option == "--name":
+        if value in RESERVED_NAMES or value in (TMP_DIR, MARKER):
+            reserved = ", ".join(sorted(RESERVED_NAMES | {TMP_DIR, MARKER}))
+            raise ConfigError(f"{where}: --name: {value!r} is reserved: the batch's folder keeps its own files under "
+                              f"that name ({reserved}); choose another name")
+        if value.startswith("."):
+            raise ConfigError(f"{where}: --name: {value!r} starts with '.': a log's folder name may not (those are "
+                              f"the batch's own, hidden files); choose another name")
+        if not re.fullmatch(r"[A-Za-z0-9_+-][A-Za-z0-9._+-]*", value):
+            raise ConfigError(f"{where}: --name: {value!r} is not a usable folder name (letters, digits, . _ + -)")
 
 
 def parse_log_options(words: list[str], where: str, base: Path) -> dict[str, Any]:
@@ -204,6 +213,20 @@ def _unique_names(specs: list[LogSpec]) -> list[LogSpec]:
     return out
 
 
+def _refuse_out_among_inputs(out: Path, out_resolved: Path, path: Path, resolved: Path, where: str) -> None:
+    """``--out`` may not be inside an input log (its files would land among the log's own, e.g. its frames), nor
+    be one, unless it is an earlier batch's folder that a glob matched (then it is skipped)."""
+    inside = resolved in out_resolved.parents
+    if not inside and not (resolved == out_resolved and not (out_resolved / MARKER).is_file()):
+        return
+    source = "" if where == str(path) else f" ({where})"
+    if inside:
+        raise ConfigError(f"--out {out}: is inside the input {path}{source}; a batch may not write into a log it "
+                          f"reads (its files would be taken for the log's own): choose an --out outside the inputs")
+    raise ConfigError(f"--out {out}: is one of the inputs ({path}{source}); a batch writes its own folder and may not "
+                      f"write into a log it reads: choose an --out outside the inputs")
+
+
 def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None = None) -> list[LogSpec]:
     """One :class:`LogSpec` per log the inputs name, in order (paths, globs, list files; see the module docstring).
     ``exclude``: a folder (the batch's ``--out``) whose own path and contents are never taken as logs.
@@ -218,8 +241,10 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
     for text in inputs:
         for path, options, where in _expand_one(str(text)):
             resolved = path.resolve()
-            if skip is not None and (resolved == skip or skip in resolved.parents):
-                continue
+            if skip is not None:
+                _refuse_out_among_inputs(exclude, skip, path, resolved, where)
+                if resolved == skip or skip in resolved.parents:
+                    continue  # an earlier batch's folder (or its contents) that a glob like logs/* matched
             spec = LogSpec(name=options.get("name") or log_name(resolved), input=str(resolved),
                            origin=where, **{k: v for k, v in options.items() if k != "name"})
             key = tuple(sorted(spec.options_record().items())) + (spec.name,)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shutil
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -28,7 +29,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
 from driftmap.fleet.folders import clean_temp, completed_result, prepare_out_dir
 from driftmap.fleet.inputs import LogSpec
@@ -129,14 +130,39 @@ def _start_ray(ray: Any, ray_address: str | None, workers: int, threads: int) ->
         return False
     quiet = {"include_dashboard": False, "log_to_driver": False, "logging_level": logging.ERROR}
     if ray_address is None:
-        ray.init(address="local", num_cpus=workers * threads, **quiet)  # a new Ray, even with a cluster here
+        try:
+            ray.init(address="local", num_cpus=workers * threads, **quiet)  # a new Ray, even with a cluster here
+        except Exception as exc:  # Ray raises a bare Exception ("timed out during startup"), among others
+            _shutdown_quietly(ray)
+            raise DriftmapError(f"Ray could not start here ({workers} workers x {threads} threads): "
+                                f"{_first_line(exc)}; no log was run (a loaded or small machine: try fewer --workers, "
+                                f"and check /tmp/ray/session_latest/logs)") from exc
         return True
     try:
         ray.init(address=ray_address, **quiet)
     except (ConnectionError, ValueError, RuntimeError) as exc:
-        raise ConfigError(f"--ray-address {ray_address}: cannot join the Ray cluster ({exc}); is 'ray start --head' "
-                          f"running there, and is its token in {DEFAULT_TOKEN} or RAY_AUTH_TOKEN here?") from exc
+        _shutdown_quietly(ray)
+        raise ConfigError(f"--ray-address {ray_address}: cannot join the Ray cluster ({_first_line(exc)}); is 'ray "
+                          f"start --head' running there, and is its token in {DEFAULT_TOKEN} or RAY_AUTH_TOKEN "
+                          f"here?") from exc
+    except Exception as exc:  # as above
+        _shutdown_quietly(ray)
+        raise DriftmapError(f"--ray-address {ray_address}: Ray could not start: {_first_line(exc)}; no log was "
+                            f"run") from exc
     return True
+
+
+def _first_line(exc: BaseException) -> str:
+    """An exception's message on one line (Ray's run to many lines): its first line, or its type."""
+    lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+    return lines[0].rstrip(".") if lines else type(exc).__name__
+
+
+def _shutdown_quietly(ray: Any) -> None:
+    """Stop what a failed ``ray.init`` may have started."""
+    with contextlib.suppress(Exception):
+        if ray.is_initialized():
+            ray.shutdown()
 
 
 class _Batch:
@@ -221,6 +247,7 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     names = [s.name for s in specs]
     if len(set(names)) != len(names):
         raise ConfigError("two logs of the batch have one name; give each its own (--name in a list file)")
+    fresh = not out_dir.exists()
     prepare_out_dir(out_dir, resume)
     config_file = config.write_tables(out_dir)
     rows = _skipped_rows(specs, config, out_dir) if resume else {}
@@ -231,7 +258,12 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     w, t = plan_workers(workers, config.fleet.threads_per_log, ray_address)
     try:
         if todo:
-            started = _start_ray(ray, ray_address, w, t)
+            try:
+                started = _start_ray(ray, ray_address, w, t)
+            except DriftmapError:
+                if fresh:  # nothing ran: leave no batch folder behind (a rerun needs no --resume)
+                    shutil.rmtree(out_dir, ignore_errors=True)
+                raise
             if ray_address is not None and workers is None:
                 w = plan_workers(None, t, ray_address, int(ray.cluster_resources().get("CPU", 1)))[0]
             shared = ray.put(config)
@@ -251,7 +283,8 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     finally:
         if started:
             ray.shutdown()
-        clean_temp(out_dir)
+        if out_dir.is_dir():
+            clean_temp(out_dir)
     ordered = [rows[n] for n in names]
     files = {"fleet_json": write_fleet_json(out_dir, ordered, w, ray_address, threads=t)}
     files.update(write_fleet_report(out_dir, ordered))

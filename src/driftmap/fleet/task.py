@@ -28,6 +28,7 @@ from typing import Any, Self
 import numpy as np
 
 from driftmap._version import __version__
+from driftmap.errors import DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
 from driftmap.fleet.folders import RESULT_FILE, publish, temp_folder
 from driftmap.fleet.inputs import LogSpec
@@ -99,10 +100,10 @@ def _exports(store: Any, folder: Path, config: BatchConfig, layers: Any) -> dict
         layers = layers if layers is not None else VolumeLayers.from_store(store, rev, config.settings.volume)
         for name, file, write in (("mesh", "mesh.ply", write_mesh), ("octomap", "octomap.bt", write_octomap)):
             if name in exports:
-                write(layers, folder / file)
+                write(layers, folder / file, flag=f"[fleet] exports {name}")
                 files[name] = file
         if "grid2d" in exports:
-            write_grid2d(layers, folder / "grid2d.yaml", _observed_band(layers))
+            write_grid2d(layers, folder / "grid2d.yaml", _observed_band(layers), flag="[fleet] exports grid2d")
             files["grid2d"] = "grid2d.yaml"
         if "mcap" in exports:
             from driftmap.export.foxglove import export_foxglove_mcap
@@ -147,8 +148,17 @@ def _process(spec: LogSpec, config: BatchConfig, folder: Path, threads: int, con
     compare = 0 if config.fleet.compare_before_loop_closure and result.loop_revision is not None else None
     report = folder / "report" if "report" in config.fleet.exports else None
     with FrameStore.open(folder / "store") as store:
-        run = run_diagnose(store, folder / "diagnosis.json", gt=gt, gt_format=gt_format, report_dir=report,
-                           compare_revision=compare, config_file=config_file, volume_config=config.settings.volume)
+        try:
+            run = run_diagnose(store, folder / "diagnosis.json", gt=gt, gt_format=gt_format, report_dir=report,
+                               compare_revision=compare, config_file=config_file,
+                               volume_config=config.settings.volume)
+        except DriftmapError as exc:
+            if spec.gt is None and gt is not None and gt in str(exc):  # the ground truth "auto" found failed
+                hint = (f"{exc}; this ground truth is the log folder's groundtruth.txt, taken because [fleet] "
+                        f"ground_truth = \"auto\": set [fleet] ground_truth = \"none\" in the --config file to "
+                        f"diagnose the log without it")
+                exc.args = (hint, *exc.args[1:])
+            raise
         files = _exports(store, folder, config, run.volume)
     hook(spec, "diagnosed")
     row = empty_row(spec, "ok")
@@ -214,8 +224,10 @@ def run_log(spec: LogSpec, config: BatchConfig, out_dir: str | Path, *, threads:
         published = True
         return row
     except Exception as exc:  # noqa: BLE001 - any failure is this log's row; the other logs go on
-        logger.info("%s: failed: %s: %s", spec.name, type(exc).__name__, exc)
-        return failed_row(spec, str(exc) or repr(exc), type(exc).__name__, time.perf_counter() - t0)
+        # the temporary folder is gone when the row is read: name the log's final folder instead
+        message = (str(exc) or repr(exc)).replace(str(folder), str(out_dir / spec.name))
+        logger.info("%s: failed: %s: %s", spec.name, type(exc).__name__, message)
+        return failed_row(spec, message, type(exc).__name__, time.perf_counter() - t0)
     finally:
         _limit_threads(numba_threads)
         if not published:
