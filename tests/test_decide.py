@@ -354,3 +354,141 @@ def test_queries_off_the_map_are_refused_by_the_library(gt_store: FrameStore) ->
         decide(gt_store, {"queries": [{"id": "far", "kind": "explore", "min_m": [50, 50, 0], "max_m": [51, 51, 1],
                                         "max_unknown_fraction": 0.5}]})
     assert err.value.query_id == "far"
+
+
+# ------------------------------------------------------------------------------------------------ hostile input
+def _one_error_line(out: subprocess.CompletedProcess) -> str:
+    assert out.returncode != 0, (out.stdout, out.stderr)
+    lines = [line for line in out.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1 and lines[0].startswith("error:") and "Traceback" not in out.stderr, out.stderr
+    return lines[0]
+
+
+def test_decide_never_writes_into_the_source_the_store_was_built_from(gt_store: FrameStore, tmp_path: Path) -> None:
+    """--json / --report inside (or equal to) the recorded source folder or the --poses file are refused, even with
+    --overwrite, and the source file is left as it was."""
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [BAD_CLI["negative_radius"][0] | {"radius_m": 0.1}]}))
+    victim = LOG / "synthetic.json"
+    before = victim.read_bytes()
+    for args, flag in ((["--json", victim, "--overwrite"], "--json"),
+                       (["--json", tmp_path / "o.json", "--report", LOG, "--overwrite"], "--report"),
+                       (["--json", LOG / "groundtruth.txt", "--overwrite"], "--json")):
+        line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, *args))
+        assert line.startswith(f"error: {flag} ") and "would replace" in line and "write it elsewhere" in line, line
+    assert victim.read_bytes() == before
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_a_diagnosis_with_double_walls_through_the_cli(odo_store: FrameStore, odo_decisions, odo_diagnosis,
+                                                      tmp_path: Path) -> None:
+    """``decide --diagnosis DG.json`` with double walls in reach (walls converted once, no AttributeError); the
+    query file starts with a UTF-8 byte-order mark, which is accepted."""
+    before, _ = odo_decisions
+    near = [d.id for d in before.decisions if d.details["double_walls_in_reach"]][:2]
+    assert near
+    data = json.loads(QUERY_FILE.read_text())
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [x for x in data["queries"] if x["id"] in near]}), encoding="utf-8-sig")
+    assert q.read_bytes().startswith(b"\xef\xbb\xbf")
+    dg = tmp_path / "dg.json"
+    dg.write_text(json.dumps(odo_diagnosis.to_json()))
+    out_json = tmp_path / "out.json"
+    out = _cli("decide", odo_store.path, "--queries", q, "--json", out_json, "--revision", 0, "--diagnosis", dg)
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out_json.read_text())
+    assert [d["id"] for d in result["decisions"]] == [x for x in near]
+    assert all(d["details"]["double_walls_in_reach"] for d in result["decisions"])
+
+
+@pytest.mark.parametrize(("content", "field"), [
+    ({"revision": 0, "double_wall": {"regions": [{}]}}, "center_m"),
+    ({"revision": "zero"}, "revision"),
+    (["x"], "not a diagnosis"),
+    ({"revision": 0, "double_wall": {"regions": [{"center_m": [0, 0, 1], "separation_m": "wide"}]}}, "separation_m"),
+])
+def test_a_lying_diagnosis_is_one_line_naming_the_file(content, field: str, gt_store: FrameStore,
+                                                       tmp_path: Path) -> None:
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [{"id": "ok", "kind": "clearance", "points_m": [[1.5, 0, 1]], "radius_m": 0.1}]}))
+    dg = tmp_path / "dg.json"
+    dg.write_text(json.dumps(content))
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, "--json", tmp_path / "o.json",
+                                "--diagnosis", dg))
+    assert str(dg) in line and field in line, line
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_double_walls_already_converted_pass_through() -> None:
+    from driftmap.decisions.walls import DoubleWall, double_walls_of
+
+    wall = DoubleWall(np.zeros(3), np.array([0.0, 0.0, 1.0]), 0.05, (1, 2))
+    assert double_walls_of(double_walls_of([wall])) == [wall]
+
+
+@pytest.mark.parametrize(("query", "field"), [
+    ({"id": "far", "kind": "collision", "path_m": [[0, 0, 0.3], [1e6, 0, 0.3]], "footprint": {"box_m": [0.1, 0.1, 0.1]}}, "path_m"),
+    ({"id": "huge", "kind": "clearance", "points_m": [[1.5, 0, 1]], "radius_m": 1e20}, "radius_m"),
+    ({"id": "wide", "kind": "collision", "path_m": [[0, 0, 0.3], [1, 0, 0.3]], "footprint": {"cylinder_m": [1e9, 1]}}, "footprint.cylinder_m"),
+])
+def test_runaway_sizes_are_refused_through_the_cli(query: dict, field: str, gt_store: FrameStore,
+                                                   tmp_path: Path) -> None:
+    """A path far off the map (100 M sweep samples) and a radius of 1e20 m: a QueryError naming query and field."""
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [query]}))
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, "--json", tmp_path / "o.json"))
+    assert repr(query["id"]) in line and field in line, line
+
+
+def test_a_sweep_needing_too_many_placements_is_refused() -> None:
+    from driftmap.decisions import space
+
+    q = parse_queries({"queries": [{"id": "long", "kind": "collision", "path_m": [[0, 0, 0], [20_000, 0, 0]],
+                                    "footprint": {"box_m": [0.1, 0.1, 0.1]}}]}).queries[0]
+    assert space.n_path_samples(q.path_m, 0.01) == 2_000_001
+    with pytest.raises(QueryError) as err:
+        space.check_path_samples(q, 0.01)
+    assert err.value.query_id == "long" and err.value.field == "path_m"
+    space.check_path_samples(q, 1.0)
+
+
+def test_against_a_store_of_another_log_is_refused(gt_store: FrameStore, tmp_path: Path) -> None:
+    """The same frame ids with other stamps: not the same log (the first differing frame named), nothing written."""
+    log = tmp_path / "log"
+    log.mkdir()
+    for name in ("depth", "groundtruth.txt", "odometry.txt"):
+        (log / name).symlink_to(LOG / name)
+    data = json.loads((LOG / "synthetic.json").read_text())
+    for f in data["frames"]:
+        f["stamp_ns"] += 1000
+    (log / "synthetic.json").write_text(json.dumps(data))
+    build(log, tmp_path / "other", frames="0:3", poses_from_source=True, loop_closure=False)
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [{"id": "ok", "kind": "clearance", "points_m": [[1.5, 0, 1]], "radius_m": 0.1}]}))
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, "--json", tmp_path / "o.json",
+                                "--against", tmp_path / "other"))
+    assert "not of the same log" in line and "frame 0 " in line, line
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_cli_messages_of_inputs(gt_store: FrameStore, tmp_path: Path) -> None:
+    """--diagnosis equal to --queries, a missing --against-revision, a non-UTF-8 query file, a YAML id: yes."""
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [{"id": "ok", "kind": "clearance", "points_m": [[1.5, 0, 1]], "radius_m": 0.1}]}))
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, "--json", tmp_path / "o.json",
+                                "--diagnosis", q))
+    assert "the diagnosis and the queries are different files" in line and "own path" not in line, line
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", q, "--json", tmp_path / "o.json",
+                                "--against", gt_store.path, "--against-revision", 3))
+    assert "--against-revision 3" in line and "--against store" in line, line
+    latin = tmp_path / "latin.json"
+    latin.write_bytes('{"queries": [{"id": "caf\u00e9"}]}'.encode("latin-1"))
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", latin, "--json", tmp_path / "o.json"))
+    assert str(latin) in line and "UTF-8" in line, line
+    if pytest.importorskip("yaml"):
+        for value in ("yes", "2024-01-02"):
+            y = tmp_path / "q.yaml"
+            y.write_text(f"queries:\n- id: {value}\n  kind: clearance\n  points_m: [[1.5, 0, 1]]\n  radius_m: 0.1\n")
+            line = _one_error_line(_cli("decide", gt_store.path, "--queries", y, "--json", tmp_path / "o.json"))
+            assert f'id: "{value}"' in line and "quote" in line, line
+    assert not (tmp_path / "o.json").exists()

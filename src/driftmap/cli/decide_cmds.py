@@ -72,6 +72,11 @@ def decide(
                                  param_hint="--diagnosis")
     inputs = [(queries, "--queries")] + [(p, f) for p, f in ((config, "--config"), (diagnosis, "--diagnosis")) if p]
     figure = None if report is None else report / FIGURE
+    _refuse_same_input(inputs)
+    outputs = [(json_path, "--json")] + ([(report, "--report"), (figure, "--report")] if report is not None else [])
+    for store_dir in (store_path, against):
+        if store_dir is not None:
+            _refuse_store_inputs(store_dir, outputs)
     refuse_same_output([(json_path, "--json"), *inputs] + ([(figure, "--report")] if figure else []))
     check_output(json_path, "--json")
     check_output(report, "--report", folder=True)
@@ -100,12 +105,71 @@ def decide(
 
 
 def _precheck(store, query_set, volume, revisions: list[int]) -> None:
-    """Before any work: the revisions exist, and no query lies far off the map (a QueryError naming it)."""
-    from driftmap.decisions.decide import check_in_box, reach_of
+    """Before any work: the revisions exist, no query lies far off the map and no sweep needs a runaway number of
+    placements (a QueryError naming it)."""
+    from driftmap.decisions.decide import check_in_box, check_sweeps, reach_of
 
     for rev in revisions:
         store.ledger.revision(rev)
         check_in_box(query_set, *reach_of(store, rev, volume))
+    check_sweeps(query_set, store, volume)
+
+
+_INPUT_WHAT = {"--queries": "the queries", "--config": "the config", "--diagnosis": "the diagnosis"}
+
+
+def _refuse_same_input(inputs: list[tuple[Path, str]]) -> None:
+    """Two inputs naming one file (e.g. --diagnosis the query file): a one-line error saying what each should be."""
+    import os
+
+    from driftmap.errors import ConfigError
+
+    seen: dict[Path, str] = {}
+    for path, flag in inputs:
+        key = Path(os.path.abspath(path)).resolve()
+        if key in seen:
+            first = seen[key]
+            raise ConfigError(f"{path}: {flag} and {first} name the same file, but {_INPUT_WHAT.get(flag, flag)} and "
+                              f"{_INPUT_WHAT.get(first, first)} are different files ({flag} {path})")
+        seen[key] = flag
+
+
+def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:
+    """No output replaces what the store was built from (its source folder or log, a file in that folder, its
+    --poses or --calib file), --overwrite or not: ``--resume`` and ``--poses-from-source`` read them again."""
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.resume import recorded_inputs
+
+    for source, what in recorded_inputs(store_path):
+        src = source.resolve()
+        for path, flag in outputs:
+            dst = path.resolve()
+            if dst == src or (src.is_dir() and src in dst.parents):
+                raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
+
+
+def _check_same_log(store, other, other_path: Path) -> None:
+    """--against: the two stores must hold the same log -- frames in common (by id), each with the same stamp in
+    both ledgers. Else a one-line error naming the first frame that differs."""
+    import numpy as np
+
+    from driftmap.errors import ConfigError
+
+    ids_a, st_a = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
+    ids_b, st_b = np.asarray(other.ledger.frame_ids), np.asarray(other.ledger.stamps_ns)
+    shared, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
+    if len(shared) == 0:
+        def span(ids) -> str:
+            return f"frames {int(ids.min())}..{int(ids.max())}" if len(ids) else "no frames"
+
+        raise ConfigError(f"--against {other_path}: the stores are not of the same log (no frame id in common: "
+                          f"{store.path} has {span(ids_a)}, {other_path} {span(ids_b)})")
+    differ = np.flatnonzero(st_a[ia] != st_b[ib])
+    if len(differ):
+        k = int(differ[0])
+        raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {int(shared[k])} has "
+                          f"stamp {int(st_a[ia[k]])} ns in {store.path} but {int(st_b[ib[k]])} ns in {other_path}; "
+                          f"{len(differ)} of {len(shared)} shared frames differ)")
 
 
 def _ticker(progress):
@@ -139,7 +203,13 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
     if against is not None:
         with open_store(against) as other:
             other_rev = other.head if against_revision is None else against_revision
+            if against_revision is not None and not 0 <= against_revision <= other.head:
+                from driftmap.errors import StoreError
+
+                raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
+                                 f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
+            _check_same_log(store, other, against)
             a = decide(store, query_set, rev, volume, double_walls=walls(store, rev), progress=tick)
             layers = VolumeLayers.from_store(other, other_rev, volume, progress=tick)
             b = decide(other, query_set, other_rev, volume, layers=layers, double_walls=walls(other, other_rev),

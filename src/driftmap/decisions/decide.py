@@ -79,15 +79,39 @@ def reach_of(store: FrameStore, revision: int, config: VolumeConfig | None) -> t
     return origins.min(axis=0) - grow, origins.max(axis=0) + grow
 
 
+def check_sweeps(queries: Iterable[Query], store: FrameStore, config: VolumeConfig | None,
+                 decide_config: DecideConfig | None = None) -> None:
+    """Before the layers are built: no collision path needs more than :data:`space.MAX_PATH_SAMPLES` footprint
+    placements at the sweep step (the layers' half voxel by default): else a :class:`QueryError` naming it."""
+    from driftmap.config import VolumeConfig
+    from driftmap.decisions.query_file import CollisionQuery
+    from driftmap.volume.defaults import resolve_config
+
+    sweeps = [q for q in queries if isinstance(q, CollisionQuery)]
+    if not sweeps:
+        return
+    step = (decide_config or DecideConfig()).sweep_step_m
+    if step is None:
+        step = 0.5 * float(resolve_config(store, config or VolumeConfig()).voxel_size_m)
+    for q in sweeps:
+        space.check_path_samples(q, step)
+
+
 def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarray) -> None:
-    """Each query's region must reach into the box ``lo_map .. hi_map``: else a :class:`QueryError` naming it."""
+    """Each query's region must reach into the box ``lo_map .. hi_map``, and not reach far beyond it (more than the
+    box's largest side: a unit or frame mistake, and work without bound): else a :class:`QueryError` naming it."""
+    lo_map, hi_map = np.asarray(lo_map, dtype=np.float64), np.asarray(hi_map, dtype=np.float64)
+    side = float(np.max(hi_map - lo_map))
     for q in queries:
         lo, hi = q.extent_m()
+        field = "path_m" if q.kind == "collision" else _REGION_FIELD[q.kind]
+        where = (f"its {q.kind} region {np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()}",
+                 f"the map ({np.round(lo_map, 3).tolist()} .. {np.round(hi_map, 3).tolist()}, field {field})")
         if np.any(hi < lo_map) or np.any(lo > hi_map):
-            raise QueryError(
-                f"query {q.id!r}: its {q.kind} region {np.round(lo, 3).tolist()} .. {np.round(hi, 3).tolist()} lies "
-                f"outside the map ({np.round(lo_map, 3).tolist()} .. {np.round(hi_map, 3).tolist()}, field "
-                f"{_REGION_FIELD[q.kind]})", query_id=q.id, field=_REGION_FIELD[q.kind])
+            raise QueryError(f"query {q.id!r}: {where[0]} lies outside {where[1]}", query_id=q.id, field=field)
+        if np.isfinite(side) and (np.any(lo < lo_map - side) or np.any(hi > hi_map + side)):
+            raise QueryError(f"query {q.id!r}: {where[0]} reaches far outside {where[1]}: a unit or frame mistake?",
+                             query_id=q.id, field=field)
 
 
 def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path, revision: int | None = None,
@@ -108,6 +132,7 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
     t0 = time.perf_counter()
     if layers is None:
         check_in_box(qs, *reach_of(store, rev, config))
+        check_sweeps(qs, store, config, decide_config)
         from driftmap.volume.layers import VolumeLayers
 
         layers = VolumeLayers.from_store(store, rev, config, progress=progress)
@@ -131,6 +156,7 @@ def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | di
     for r in revisions:
         store.ledger.revision(int(r))
         check_in_box(qs, *reach_of(store, int(r), config))
+    check_sweeps(qs, store, config, decide_config)
     walls = list(double_walls) if double_walls is not None else [None] * len(revisions)
     if len(walls) != len(revisions):
         raise QueryError(f"double_walls: {len(walls)} entries for {len(revisions)} revisions (one per revision, None "

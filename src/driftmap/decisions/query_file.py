@@ -27,6 +27,9 @@ IGNORED_KEYS = frozenset({"note", "tags", "truth"})
 """Keys a query may carry for its author (a description, labels, the truth of a generated set); decide ignores them."""
 MAX_POINTS_PER_QUERY = 100_000
 MAX_QUERY_FILE_BYTES = 256 << 20
+MAX_LENGTH_M = 1000.0
+"""A radius, footprint size or flatness above this (m) is no robot's question: a unit mistake (and would overflow
+the voxel counts)."""
 
 
 @dataclass(frozen=True)
@@ -144,7 +147,13 @@ def load_queries(path: str | Path) -> QuerySet:
     if size > MAX_QUERY_FILE_BYTES:
         raise QueryError(f"{path}: {size:,} bytes is more than a query file may hold ({MAX_QUERY_FILE_BYTES:,})",
                          query_id=None)
-    text = path.read_text(encoding="utf-8")
+    try:
+        text = path.read_text(encoding="utf-8-sig")  # a UTF-8 byte-order mark is accepted, as config files do
+    except UnicodeDecodeError as exc:
+        raise QueryError(f"{path}: not a UTF-8 text file (byte {exc.start}: {exc.reason}); save the query file as "
+                         f"UTF-8", query_id=None) from None
+    except OSError as exc:
+        raise QueryError(f"{path}: cannot read the query file ({exc.strerror or exc})", query_id=None) from None
     if path.suffix.lower() in (".yaml", ".yml"):
         data = _parse_yaml(text, path)
     else:
@@ -211,6 +220,10 @@ def parse_query(item: Any, index: int = 0) -> Query:
         raise QueryError(f"query #{index + 1}: expected a mapping with id and kind, got {type(item).__name__}",
                          query_id=None)
     qid = item.get("id")
+    if qid is not None and not isinstance(qid, str) and not isinstance(qid, (Mapping, list)):
+        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r} "
+                         f"({type(qid).__name__}); in YAML quote it (id: \"{_yaml_text(qid)}\") so it stays text",
+                         query_id=None, field="id")
     if not isinstance(qid, str) or not qid.strip():
         raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r}", query_id=None, field="id")
     kind = item.get("kind")
@@ -227,9 +240,18 @@ def parse_query(item: Any, index: int = 0) -> Query:
     return _BUILDERS[kind](qid, item)
 
 
+def _yaml_text(value: Any) -> str:
+    """How the author probably wrote a scalar YAML turned into another type (yes -> True, 2024-01-02 -> a date)."""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if hasattr(value, "isoformat"):
+        return value.isoformat()
+    return str(value)
+
+
 def _clearance(qid: str, item: Mapping) -> ClearanceQuery:
     points = _points(qid, item, "points_m", min_count=1)
-    radius = _number(qid, item, "radius_m", lo=0.0)
+    radius = _number(qid, item, "radius_m", lo=0.0, hi=MAX_LENGTH_M)
     return ClearanceQuery(qid, "clearance", points, radius, _policy(qid, item))
 
 
@@ -247,6 +269,9 @@ def _collision(qid: str, item: Mapping) -> CollisionQuery:
     if np.any(size <= 0):
         raise QueryError(f"query {qid!r}: footprint.{key} must be positive lengths, got {size.tolist()}",
                          query_id=qid, field=f"footprint.{key}")
+    if np.any(size > MAX_LENGTH_M):
+        raise QueryError(f"query {qid!r}: footprint.{key} must be lengths <= {MAX_LENGTH_M:g} m, got "
+                         f"{size.tolist()}", query_id=qid, field=f"footprint.{key}")
     return CollisionQuery(qid, "collision", path, "box" if key == "box_m" else "cylinder",
                           tuple(float(v) for v in size), _policy(qid, item))
 
@@ -260,9 +285,9 @@ def _grasp(qid: str, item: Mapping) -> GraspQuery:
 
 def _foothold(qid: str, item: Mapping) -> FootholdQuery:
     center = _vector(qid, item["center_m"], "center_m", 3)
-    radius = _number(qid, item, "radius_m", lo=0.0, strict=True)
+    radius = _number(qid, item, "radius_m", lo=0.0, hi=MAX_LENGTH_M, strict=True)
     slope = _number(qid, item, "max_slope_deg", lo=0.0, hi=90.0)
-    flat = _number(qid, item, "max_flatness_m", lo=0.0, strict=True) if "max_flatness_m" in item else None
+    flat = _number(qid, item, "max_flatness_m", lo=0.0, hi=MAX_LENGTH_M, strict=True) if "max_flatness_m" in item else None
     min_points = _integer(qid, item, "min_points", lo=3) if "min_points" in item else None
     return FootholdQuery(qid, "foothold", center, radius, slope, flat, min_points)
 

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap.decisions.errors import QueryError
 from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
 from driftmap.volume.queries import surface_tree
 
@@ -93,6 +94,7 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
     Margin: the smallest distance between the footprint and a surface point along the whole path (negative: how
     deep the surface reaches into it)."""
     step = ctx.config.sweep_step_m or 0.5 * ctx.voxel_m
+    check_path_samples(q, step)
     samples, along = path_samples(q.path_m, step)
     tree, surface = _surface(ctx)
     signed, nearest = _footprint_distances(q, samples, tree, surface)
@@ -123,6 +125,26 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
         path_length_m=float(along[-1]), footprint=q.footprint, footprint_m=list(q.size_m),
         unknown_is=_policy(ctx, q.unknown_is), n_samples=len(samples))
     return out
+
+
+MAX_PATH_SAMPLES = 1_000_000
+"""collision: a path needing more footprint placements than this (at the sweep step) is refused, not swept."""
+
+
+def n_path_samples(path: NDArray[np.float64], step_m: float) -> int:
+    """How many points :func:`path_samples` would return (without making them)."""
+    seg = np.linalg.norm(np.diff(np.asarray(path, dtype=np.float64), axis=0), axis=1)
+    seg = seg[seg > 0]
+    return 1 + int(np.maximum(1.0, np.ceil(seg / step_m)).sum())
+
+
+def check_path_samples(q: CollisionQuery, step_m: float) -> None:
+    """A :class:`QueryError` naming the query when its path needs more than :data:`MAX_PATH_SAMPLES` placements."""
+    n = n_path_samples(q.path_m, step_m)
+    if n > MAX_PATH_SAMPLES:
+        raise QueryError(f"query {q.id!r}: path_m ({q.length_m:.6g} m) needs {n:,} footprint placements at the "
+                         f"sweep step of {step_m:g} m, more than {MAX_PATH_SAMPLES:,}: split it or check its units",
+                         query_id=q.id, field="path_m")
 
 
 def path_samples(path: NDArray[np.float64], step_m: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:

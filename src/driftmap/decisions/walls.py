@@ -30,23 +30,39 @@ class DoubleWall:
 
 
 def double_walls_of(source: Any, revision: int | None = None) -> list[DoubleWall]:
-    """Double walls from a Diagnosis, a diagnose JSON file or dict, or a list of regions (objects or dicts).
-    A diagnosis of another revision than ``revision`` is refused (its walls are elsewhere)."""
+    """Double walls from a Diagnosis, a diagnose JSON file or dict, or a list of regions (objects, dicts or
+    :class:`DoubleWall` already converted). A diagnosis of another revision than ``revision`` is refused (its walls
+    are elsewhere). A malformed diagnosis is a :class:`QueryError` naming the file (or ``the diagnosis``) and field."""
     if source is None:
         return []
+    where = "the diagnosis"
     if isinstance(source, (str, Path)):
         path = Path(source)
+        where = f"{path}"
         try:
-            source = json.loads(path.read_text(encoding="utf-8"))
+            source = json.loads(path.read_text(encoding="utf-8-sig"))
         except (OSError, ValueError) as exc:
             raise QueryError(f"{path}: cannot read the diagnosis ({exc})", query_id=None) from None
+        if not isinstance(source, dict):
+            raise QueryError(f"{path}: not a diagnosis (diagnose --json writes an object with 'revision' and "
+                             f"'double_wall', got a {type(source).__name__})", query_id=None)
     if isinstance(source, dict):
         found = source.get("revision")
+        if found is not None and (isinstance(found, bool) or not isinstance(found, int) or found < 0):
+            raise QueryError(f"{where}: field 'revision' must be a revision id (a whole number >= 0), got {found!r}",
+                             query_id=None, field="revision")
         if revision is not None and found is not None and int(found) != int(revision):
             raise QueryError(f"the diagnosis is of revision {found}, the decisions of revision {revision}: diagnose "
                              f"the same revision", query_id=None)
-        regions = (source.get("double_wall") or {}).get("regions", [])
-        return [_from_dict(r) for r in regions]
+        block = source.get("double_wall") or {}
+        if not isinstance(block, dict):
+            raise QueryError(f"{where}: field 'double_wall' must be an object with 'regions', got "
+                             f"{type(block).__name__}", query_id=None, field="double_wall")
+        regions = block.get("regions") or []
+        if not isinstance(regions, list):
+            raise QueryError(f"{where}: field 'double_wall.regions' must be a list, got {type(regions).__name__}",
+                             query_id=None, field="double_wall.regions")
+        return [_from_dict(r, where, f"double_wall.regions[{k}]") for k, r in enumerate(regions)]
     walls = getattr(source, "double_walls", None)
     if walls is not None and hasattr(walls, "regions"):
         found = getattr(source, "revision", None)
@@ -54,13 +70,54 @@ def double_walls_of(source: Any, revision: int | None = None) -> list[DoubleWall
             raise QueryError(f"the diagnosis is of revision {found}, the decisions of revision {revision}",
                              query_id=None)
         return [_from_region(r) for r in walls.regions]
-    return [_from_dict(r) if isinstance(r, dict) else _from_region(r) for r in source]
+    if isinstance(source, (str, bytes)) or not hasattr(source, "__iter__"):
+        raise QueryError(f"double walls: expected a diagnosis or a list of regions, got {type(source).__name__}",
+                         query_id=None)
+    out = []
+    for k, r in enumerate(source):
+        if isinstance(r, DoubleWall):
+            out.append(r)  # converted already (e.g. by the CLI): not again
+        elif isinstance(r, dict):
+            out.append(_from_dict(r, where, f"regions[{k}]"))
+        elif all(hasattr(r, a) for a in ("center_m", "normal", "separation_m", "frames_a", "frames_b")):
+            out.append(_from_region(r))
+        else:
+            raise QueryError(f"{where}: regions[{k}] is not a double-wall region (got {type(r).__name__})",
+                             query_id=None, field=f"regions[{k}]")
+    return out
 
 
-def _from_dict(r: dict) -> DoubleWall:
-    frames = tuple(int(f) for f in [*r.get("frames_a", []), *r.get("frames_b", [])])
-    return DoubleWall(np.asarray(r["center_m"], dtype=np.float64), np.asarray(r.get("normal", [0, 0, 1]), dtype=np.float64),
-                      float(r["separation_m"]), frames)
+def _from_dict(r: Any, where: str, at: str) -> DoubleWall:
+    if not isinstance(r, dict):
+        raise QueryError(f"{where}: field '{at}' must be an object, got {type(r).__name__}", query_id=None, field=at)
+
+    def vector(key: str, default: Any = None) -> np.ndarray:
+        v = r.get(key, default)
+        if v is None:
+            raise QueryError(f"{where}: field '{at}.{key}' is missing", query_id=None, field=f"{at}.{key}")
+        ok = isinstance(v, list) and len(v) == 3 and all(isinstance(x, (int, float)) and not isinstance(x, bool)
+                                                          for x in v)
+        out = np.asarray(v, dtype=np.float64) if ok else None
+        if out is None or not np.all(np.isfinite(out)):
+            raise QueryError(f"{where}: field '{at}.{key}' must be 3 finite numbers, got {v!r}", query_id=None,
+                             field=f"{at}.{key}")
+        return out
+
+    center, normal = vector("center_m"), vector("normal", [0, 0, 1])
+    sep = r.get("separation_m")
+    if sep is None:
+        raise QueryError(f"{where}: field '{at}.separation_m' is missing", query_id=None, field=f"{at}.separation_m")
+    if isinstance(sep, bool) or not isinstance(sep, (int, float)) or not np.isfinite(sep) or sep < 0:
+        raise QueryError(f"{where}: field '{at}.separation_m' must be a finite number >= 0, got {sep!r}",
+                         query_id=None, field=f"{at}.separation_m")
+    frames: list[int] = []
+    for key in ("frames_a", "frames_b"):
+        fs = r.get(key, [])
+        if not isinstance(fs, list) or not all(isinstance(f, int) and not isinstance(f, bool) for f in fs):
+            raise QueryError(f"{where}: field '{at}.{key}' must be a list of frame ids, got {fs!r}", query_id=None,
+                             field=f"{at}.{key}")
+        frames.extend(int(f) for f in fs)
+    return DoubleWall(center, normal, float(sep), tuple(frames))
 
 
 def _from_region(r: Any) -> DoubleWall:
