@@ -38,8 +38,6 @@ from driftmap.kernels.points import (
     nearest_bounds,
     nearest_pieces,
     nearest_run,
-    piece_boxes,
-    piece_boxes_run,
     query_count,
     query_count_run,
     query_fill,
@@ -49,6 +47,7 @@ from driftmap.kernels.points import (
     transform_pieces,
 )
 from driftmap.map.fusion import write_cloud
+from driftmap.map.piece_index import PieceIndex, parallel_pass
 from driftmap.map.segment_reads import OpenFiles, SensorBuffer
 from driftmap.map.view_types import (  # re-exported: the view's result types
     ChangeSet,
@@ -84,67 +83,6 @@ QUERY_PIECE_POINTS = 2048
 #: Query passes over fewer points than this run on the calling thread: a pass costs ~0.4 ns per point on one core,
 #: launching a parallel region ~0.2 ms.
 QUERY_PARALLEL_POINTS = 1 << 20
-
-
-def _parallel(n_pieces: int, n_points: int) -> bool:
-    """Whether a query pass over ``n_points`` in ``n_pieces`` pieces is worth a parallel region."""
-    return n_pieces > 1 and n_points >= QUERY_PARALLEL_POINTS and numba.get_num_threads() > 1
-
-
-class _PieceIndex:
-    """The map's points as pieces of :data:`QUERY_PIECE_POINTS` consecutive points of one frame, with per-piece
-    world boxes (points with a NaN coordinate left out) and whether a piece holds no NaN point. Kept up to date
-    lazily by the queries: a frame's pieces are re-measured when its pose differs (bitwise, or is NaN: stale)
-    from the pose they were measured under, since a frame's world points change only with its pose."""
-
-    def __init__(self) -> None:
-        self.piece_points = QUERY_PIECE_POINTS
-        self.T = np.zeros((0, 4, 4))
-        self.first = np.zeros(1, np.int64)  # per frame row: its first piece; first[-1] = the number of pieces
-        self.starts = np.zeros(0, np.int64)  # per piece: first and end point (rows of the world array)
-        self.stops = np.zeros(0, np.int64)
-        self.rows = np.zeros(0, np.int64)  # per piece: its frame row
-        self.boxes = np.zeros((0, 6), np.float32)
-        self.clean = np.zeros(0, np.bool_)
-
-    @property
-    def n_pieces(self) -> int:
-        return int(self.first[-1])
-
-    def update(self, view: MapView) -> _PieceIndex:
-        if self.piece_points != QUERY_PIECE_POINTS:
-            self.__init__()
-        m0, m = len(self.T), len(view.frame_ids)
-        if m > m0:  # frames added since: their pieces, to be measured below
-            size = self.piece_points
-            lo, hi = view._offsets[m0:m], view._offsets[m0 + 1 : m + 1]
-            n = -(-(hi - lo) // size)
-            owner = np.repeat(np.arange(m - m0), n)
-            first = np.concatenate([[0], np.cumsum(n)[:-1]]).astype(np.int64)
-            starts = lo[owner] + (np.arange(int(n.sum())) - first[owner]) * size
-            self.first = np.concatenate([self.first[:-1], self.n_pieces + np.concatenate([first, [n.sum()]])])
-            self.starts = np.concatenate([self.starts, starts])
-            self.stops = np.concatenate([self.stops, np.minimum(starts + size, hi[owner])])
-            self.rows = np.concatenate([self.rows, m0 + owner])
-            self.boxes = np.concatenate([self.boxes, np.empty((starts.size, 6), np.float32)])
-            self.clean = np.concatenate([self.clean, np.zeros(starts.size, np.bool_)])
-            self.T = np.concatenate([self.T, np.full((m - m0, 4, 4), np.nan)])
-        stale = np.flatnonzero(~np.all(self.T == view._T, axis=(1, 2)))
-        if stale.size:
-            n = self.first[stale + 1] - self.first[stale]
-            owner = np.repeat(np.arange(stale.size), n)
-            sel = self.first[stale][owner] + np.arange(int(n.sum())) - np.concatenate([[0], np.cumsum(n)[:-1]])[owner]
-            boxes = np.empty((sel.size, 6), np.float32)
-            clean = np.empty(sel.size, np.bool_)
-            starts, stops = self.starts[sel], self.stops[sel]
-            if _parallel(sel.size, int((stops - starts).sum())):
-                piece_boxes(view._world, starts, stops, boxes, clean, numba.get_num_threads())
-            else:
-                piece_boxes_run(view._world, starts, stops, boxes, clean, 0, sel.size)
-            self.boxes[sel] = boxes
-            self.clean[sel] = clean
-            self.T[stale] = view._T[stale]
-        return self
 
 
 class MapView:
@@ -183,7 +121,7 @@ class MapView:
         self._boxes = np.zeros((0, 6), np.float32)
         self._world = np.zeros((0, 3), np.float32)
         self._index: dict[int, int] = {}
-        self._piece_index = _PieceIndex()  # the queries' per-piece boxes, updated by the queries themselves
+        self._piece_index = PieceIndex(QUERY_PIECE_POINTS)  # the queries' per-piece boxes, updated by the queries themselves
         self.revision = 0
 
     # ------------------------------------------------------------------------------------------ building
@@ -582,7 +520,8 @@ class MapView:
     def _select(self, kind: int, q: NDArray[np.float64]) -> QueryResult:
         """The points that match the query ``kind``/``q`` (see :mod:`driftmap.kernels.points`), in map order: the pieces are sorted
         out by their boxes, then the pieces partly inside are counted and all are copied (two compiled passes)."""
-        index = self._piece_index.update(self)
+        index = self._piece_index.update(len(self.frame_ids), self._offsets, self._T, self._world,
+                                         piece_points=QUERY_PIECE_POINTS, parallel_min_points=QUERY_PARALLEL_POINTS)
         cls = np.empty(index.n_pieces, np.int8)
         classify_pieces(index.boxes, index.clean, kind, q, cls)
         sel = np.flatnonzero(cls)
@@ -594,7 +533,7 @@ class MapView:
         if part.size:
             n_part = np.empty(part.size, np.int64)
             p_starts, p_stops = starts[part], stops[part]
-            if _parallel(part.size, int((p_stops - p_starts).sum())):
+            if parallel_pass(part.size, int((p_stops - p_starts).sum()), QUERY_PARALLEL_POINTS):
                 query_count(self._world, p_starts, p_stops, kind, q, n_part, numba.get_num_threads())
             else:
                 query_count_run(self._world, p_starts, p_stops, kind, q, n_part, 0, part.size)
@@ -606,7 +545,7 @@ class MapView:
         if hit.size:
             piece_ids = self.frame_ids[index.rows[sel[hit]]]
             args = (self._world, starts[hit], stops[hit], whole[hit], piece_ids, kind, q, dst, points, ids)
-            if _parallel(hit.size, 4 * int(dst[-1])):
+            if parallel_pass(hit.size, 4 * int(dst[-1]), QUERY_PARALLEL_POINTS):
                 query_fill(*args, numba.get_num_threads())
             else:
                 query_fill_run(*args, 0, hit.size)
@@ -645,7 +584,8 @@ class MapView:
         point qualifies."""
         q = vec3_arg("nearest", "position_m", position_m)
         z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else z_range_arg("nearest", z_range_m)
-        index = self._piece_index.update(self)
+        index = self._piece_index.update(len(self.frame_ids), self._offsets, self._T, self._world,
+                                         piece_points=QUERY_PIECE_POINTS, parallel_min_points=QUERY_PARALLEL_POINTS)
         bounds = np.empty(index.n_pieces)
         nearest_bounds(index.boxes, q, z_lo, z_hi, bounds)
         order = np.argsort(bounds, kind="stable")
@@ -655,7 +595,7 @@ class MapView:
             raise StoreError(no_points)
         starts, stops = index.starts[order], index.stops[order]
         keys = np.full(order.size, INF_KEY, np.int64)  # int64 bits of the smallest squared distances
-        if _parallel(order.size, int((stops - starts).sum())):
+        if parallel_pass(order.size, int((stops - starts).sum()), QUERY_PARALLEL_POINTS):
             nearest_pieces(self._world, starts, stops, bounds[order], q, z_lo, z_hi, keys, numba.get_num_threads())
         else:
             nearest_run(self._world, starts, stops, bounds[order], q, z_lo, z_hi, keys, 0, 1)
