@@ -228,6 +228,23 @@ def test_double_walls_in_reach_bound_the_uncertainty(odo_decisions, odo_diagnosi
     assert np.percentile(unc0, 90) > 3 * np.percentile(unc1, 90)  # measured 5.3 cm vs 0.6 cm
 
 
+def test_the_loop_closures_marginals_bound_the_uncertainty(odo_decisions, odo_store: FrameStore) -> None:
+    """Revision 1 comes from the pose graph: its GTSAM marginals, kept with the revision, propagate to the evidence
+    of the decisions (measured: 251 of 333, median 1.4 mm, 90th percentile 1.9 mm); revision 0 (a pose file) has
+    none."""
+    before, after = odo_decisions
+    assert not any(d.details["uncertainty_parts"]["pose_marginal_m"] for d in before.decisions)
+    assert len(odo_store.ledger.covariances(1)) == len(odo_store)
+    marginals = [(d, d.details["uncertainty_parts"]["pose_marginal_m"]) for d in after.decisions]
+    with_marginal = [(d, m) for d, m in marginals if m is not None]
+    assert len(with_marginal) >= 0.6 * len(after.decisions)
+    values = np.array([m for _, m in with_marginal])
+    assert 1e-4 < np.median(values) < 0.02  # the loop closes to millimetres (ATE 1.6 cm at most)
+    assert all(d.uncertainty >= m for d, m in with_marginal)
+    # every decision resting on a point measured by frames has one (explore judges a region, not a point)
+    assert all(m is not None for d, m in marginals if d.kind != "explore" and d.evidence_m is not None and d.frames)
+
+
 # ------------------------------------------------------------------------------------------------ contract
 def _check_types(obj: dict, spec: dict, what: str) -> None:
     for key, typ in spec.items():

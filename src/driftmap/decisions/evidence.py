@@ -8,8 +8,13 @@ The **uncertainty** of a decision (metres) is the larger of
   median of its points' offsets along the surface normal; the spread is the distance between the nearest and the
   farthest of these placements. On a consistent map it is the depth noise of a frame's median (a few mm); where the
   frames' poses disagree -- drift, a wrong loop, a step -- it is how far apart they put the surface the decision
-  hinges on. It is the pose uncertainty of the contributing frames as it shows at the point, measured from the data
-  (GTSAM marginals are not stored with a revision);
+  hinges on. It is the pose uncertainty of the contributing frames as it shows at the point, measured from the data;
+- the *pose marginal* at its evidence point, where the revision's poses came from an optimised pose graph (the
+  loop closure stores GTSAM's marginal covariance of every keyframe with its revision; a frame between keyframes
+  takes its nearest keyframe's): each contributing frame's 6x6 covariance propagated to the evidence point
+  (``J = R [I, -[p]x]``, ``p`` the point in the frame's sensor frame), the square root of the largest eigenvalue
+  of ``J Sigma J^T``, the median over the contributing frames (the gauge is the first keyframe: it says how well
+  the graph places the evidence relative to where the map starts);
 - the separation of the largest double wall ``diagnose`` flagged within ``double_wall_reach_m`` of the query's
   region, when a diagnosis of the revision is given.
 
@@ -45,6 +50,7 @@ class DecisionContext:
     _stamps: dict[int, int] = field(default_factory=dict)
     _origins: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     _pose_revision: dict[int, int] | None = None
+    _covariances: dict[int, NDArray[np.float64]] | None = None
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.store.frame_ids, dtype=np.int64)
@@ -131,14 +137,34 @@ class DecisionContext:
             return None
         return max(placed) - min(placed)
 
+    def pose_marginal_m(self, point: NDArray[np.float64] | None, frames: list[int]) -> float | None:
+        """The median over ``frames`` of the pose covariance propagated to ``point`` (module docstring); None
+        without a point or without frames whose pose carries a covariance."""
+        if self._covariances is None:
+            self._covariances = self.store.ledger.covariances(self.revision)
+        covs = [(f, self._covariances[f]) for f in frames if f in self._covariances]
+        if point is None or not covs:
+            return None
+        T = np.stack([self.view.pose(f) for f, _ in covs])
+        R = T[:, :3, :3]
+        p = np.einsum("nji,nj->ni", R, np.asarray(point, dtype=np.float64) - T[:, :3, 3])  # R^T (x - t)
+        skew = np.zeros((len(p), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -p[:, 2], p[:, 1], -p[:, 0]
+        skew -= skew.transpose(0, 2, 1)
+        J = R @ np.concatenate([np.broadcast_to(np.eye(3), skew.shape), -skew], axis=2)  # (n, 3, 6)
+        S = J @ np.stack([c for _, c in covs]) @ J.transpose(0, 2, 1)
+        return float(np.median(np.sqrt(np.clip(np.linalg.eigvalsh(S)[:, -1], 0.0, None))))
+
     def uncertainty(self, lo: NDArray[np.float64], hi: NDArray[np.float64], point: NDArray[np.float64] | None,
-                    normal: NDArray[np.float64] | None = None) -> tuple[float | None, dict, list[DoubleWall]]:
+                    normal: NDArray[np.float64] | None = None,
+                    frames: list[int] | None = None) -> tuple[float | None, dict, list[DoubleWall]]:
         """The decision's uncertainty (module docstring), its parts, and the double walls in reach."""
         spread = self.frame_spread_m(point, normal)
+        marginal = self.pose_marginal_m(point, frames or [])
         walls = walls_in_reach(self.double_walls, lo, hi, self.config.double_wall_reach_m)
         wall_m = max((w.separation_m for w in walls), default=None)
-        parts = {"frame_spread_m": spread, "double_wall_separation_m": wall_m}
-        values = [v for v in (spread, wall_m) if v is not None]
+        parts = {"frame_spread_m": spread, "double_wall_separation_m": wall_m, "pose_marginal_m": marginal}
+        values = [v for v in (spread, wall_m, marginal) if v is not None]
         return (max(values) if values else None), parts, walls
 
     def finish(self, decision: str, failure: str | None, lo: NDArray[np.float64], hi: NDArray[np.float64],
@@ -147,7 +173,7 @@ class DecisionContext:
         """The fields every decision shares: frames, freshness, uncertainty, the failure label (a passing decision
         with a double wall in reach is labelled ``double_wall_nearby``)."""
         ids, newest = self.frames_report(frames)
-        unc, parts, walls = self.uncertainty(lo, hi, point, normal)
+        unc, parts, walls = self.uncertainty(lo, hi, point, normal, ids)
         if failure is None and walls:
             failure = "double_wall_nearby"
         return {"decision": decision, "failure_label": failure, "frames": ids, "stamp_ns_newest": newest,

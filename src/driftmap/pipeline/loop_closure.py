@@ -3,14 +3,16 @@ registration, a GTSAM pose graph with calibrated information, and the correction
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import time
+from types import MappingProxyType
 
 import numpy as np
 
 from driftmap import geometry
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, PoseGraphError
 from driftmap.frame import Frame, PoseSource, SensorKind
 from driftmap.map.view import MapView
 from driftmap.pipeline.build_config import BuildConfig, BuildResult, ProgressCallback
@@ -270,7 +272,7 @@ def _record_graph_verdicts(result: BuildResult, opt: PoseGraphResult) -> None:
 def _store_correction(store: FrameStore, result: BuildResult, opt: PoseGraphResult) -> None:
     """The optimised keyframe poses as a new ``loop_closure`` revision (propagated to the other frames) applied to
     the map; the largest correction into ``result``."""
-    revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True,
+    revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True, covariances=opt.covariances,
                                   note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
     changes = MapView.from_store(store, 0).apply(revision.revision_id)
     result.loop_revision = revision.revision_id
@@ -325,6 +327,10 @@ def optimize_calibrated(keyframes: list[Keyframe], edges: list[Edge],
                        "; ".join(opt.warnings) or "see the pose graph's log")
     result.information_scale = {g.value: s for g, s in scale.items() if g is not EdgeGroup.FALLBACK}
     logger.info("information calibration: odometry x%.3g, loops x%.3g", scale[EdgeGroup.ODOMETRY], scale[EdgeGroup.LOOP])
+    try:  # the keyframes' uncertainty, kept with the revision (decisions propagate it to the points)
+        opt = dataclasses.replace(opt, covariances=MappingProxyType(graph.marginal_covariances(opt.poses)))
+    except PoseGraphError as exc:
+        logger.warning("loop closure: no pose uncertainty for the revision (%s)", exc)
     return opt
 
 

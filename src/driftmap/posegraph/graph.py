@@ -27,6 +27,7 @@ from driftmap.posegraph.measurements import (
 from driftmap.posegraph.result import Initialization, Optimizer, PoseGraphResult, ProgressCallback
 from driftmap.posegraph.robust import CHI2_6DOF_99, RobustKernel
 from driftmap.posegraph.solvers import diagnose_loops, lm_params, run_gnc, run_isam2, run_lm
+from driftmap.posegraph.tangent import TangentOrder, reorder_6x6
 
 __all__ = ["PoseGraph", "optimize_g2o"]
 
@@ -158,6 +159,18 @@ class PoseGraph:
         if missing:
             raise PoseGraphError(f"poses are missing {len(missing)} node(s), e.g. {sorted(missing)[:5]}")
         return values_from_poses({k: np.asarray(poses[k], dtype=np.float64) for k in self._nodes})
+
+    def marginal_covariances(self, poses: Mapping[int, ArrayLike]) -> dict[int, NDArray[np.float64]]:
+        """Each node's marginal covariance at ``poses`` (an optimum), from ``gtsam.Marginals`` of the graph
+        linearised there: 6x6 in driftmap order ``[translation, rotation]`` (m^2, rad^2), in the node's own frame
+        (GTSAM's right perturbation ``T Exp(xi)``), relative to the priors (the gauge). Raises
+        :class:`PoseGraphError` when GTSAM cannot factor the system (an under-constrained graph)."""
+        graph, _ = self.to_gtsam()
+        values = self._values_for(poses)
+        marginals = gtsam_call("marginal covariances", lambda: gtsam.Marginals(graph, values))
+        return {k: reorder_6x6(gtsam_call("marginal covariance", lambda k=k: marginals.marginalCovariance(k)),
+                               TangentOrder.ROTATION_TRANSLATION, TangentOrder.TRANSLATION_ROTATION)
+                for k in self._nodes}
 
     # -- optimisation --------------------------------------------------------------------------------------
 

@@ -110,6 +110,8 @@ class PoseGraphResult:
     n_edges: int
     gnc_edge_weights: tuple[float, ...] | None = None
     warnings: tuple[str, ...] = field(default=())
+    covariances: Mapping[int, NDArray[np.float64]] | None = None
+    """Each node's marginal covariance at the optimum when asked for (:meth:`PoseGraph.marginal_covariances`)."""
 
     @property
     def rejected_loops(self) -> tuple[LoopResidual, ...]:

@@ -354,12 +354,15 @@ class FrameStore:
         return self.ledger.commit(revision)
 
     def add_revision(self, poses: Mapping[int, NDArray[np.float64]], *, source: PoseSource | str, parent: int | None = None,
-                     propagate: bool = True, note: str = "") -> Revision:
+                     propagate: bool = True, note: str = "",
+                     covariances: Mapping[int, NDArray[np.float64]] | None = None) -> Revision:
         """Store a correction as a new revision. Poses given for a subset of frames (keyframes) propagate to
-        the others when ``propagate`` (see :meth:`PoseLedger.plan_correction`)."""
+        the others when ``propagate`` (see :meth:`PoseLedger.plan_correction`); ``covariances``: the 6x6
+        uncertainty of given poses (:class:`~driftmap.store.revision.Revision`, e.g. a pose graph's marginals)."""
         self._writable()
         source = parse_enum(PoseSource, source, f"{self.path}: add_revision source")
-        revision = self.ledger.plan_correction(poses, source=source, parent=parent, propagate=propagate, note=note)
+        revision = self.ledger.plan_correction(poses, source=source, parent=parent, propagate=propagate, note=note,
+                                               covariances=covariances)
         return self._persist(revision)
 
     def rollback(self, to: int, *, note: str = "") -> Revision:

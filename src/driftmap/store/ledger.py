@@ -241,10 +241,12 @@ class PoseLedger:
         propagate: bool = True,
         note: str = "",
         created_ns: int | None = None,
+        covariances: Mapping[int, ArrayLike] | None = None,
     ) -> Revision:
         """A new revision (not yet committed) setting ``poses`` (``frame_id -> T_world_sensor``) on top of
         ``parent`` (default: head). With ``propagate`` every other frame gets the interpolated world-frame
         correction of the keyframes around it in time (module docstring); otherwise only ``poses`` change.
+        ``covariances``: the 6x6 uncertainty of some of ``poses`` (:class:`Revision`).
 
         Raises StoreError for unknown frames or parent and TransformError for a non-rigid pose.
         """
@@ -277,6 +279,7 @@ class PoseLedger:
             note=note,
             set_directly=given,
             propagated=propagated,
+            covariances=covariances or {},
         )
         logger.debug(
             "planned revision %d on %d (%s): %d set, %d propagated",
@@ -313,6 +316,34 @@ class PoseLedger:
             revision.revision_id, parent, revision.source.value, len(revision.set_directly), len(revision.propagated),
         )
         return revision
+
+    def covariances(self, revision_id: int) -> dict[int, NDArray[np.float64]]:
+        """The pose uncertainty of each frame in ``revision_id``, where the revision that last set the frame's pose
+        (on its ancestry) came with one (:attr:`Revision.covariances`, 6x6 ``[translation, rotation]``). A frame
+        that revision propagated takes the covariance of the revision's keyframe nearest to it in time. Frames
+        whose pose came from a revision without covariances (the odometry, a pose file) are absent."""
+        rid = self._require_revision(revision_id)
+        by_id = {r.revision_id: r for r in self._committed}
+        out: dict[int, NDArray[np.float64]] = {}
+        seen: set[int] = set()
+        rev = by_id.get(rid)
+        while rev is not None and rev.revision_id > 0:
+            fresh = [int(f) for f in rev.changed_frame_ids if int(f) not in seen]
+            seen.update(fresh)
+            if rev.covariances and fresh:
+                keys = np.array(sorted(rev.covariances), dtype=np.int64)
+                key_stamps = self.stamps_ns[self._index_of(keys)]
+                by_time = np.argsort(key_stamps, kind="stable")
+                keys, key_stamps = keys[by_time], key_stamps[by_time]
+                stamps = self.stamps_ns[self._index_of(np.array(fresh, dtype=np.int64))]
+                pos = np.clip(np.searchsorted(key_stamps, stamps), 1, max(len(keys) - 1, 1))
+                left = np.clip(pos - 1, 0, len(keys) - 1)
+                right = np.clip(pos, 0, len(keys) - 1)
+                nearest = np.where(np.abs(stamps - key_stamps[left]) <= np.abs(key_stamps[right] - stamps), left, right)
+                for f, k in zip(fresh, nearest.tolist(), strict=True):
+                    out[f] = rev.covariances[int(keys[k])]
+            rev = by_id.get(rev.parent_id) if rev.parent_id is not None else None
+        return out
 
     def plan_rollback(self, to: int, *, note: str = "", created_ns: int | None = None) -> Revision:
         """A new revision on head that restores revision ``to`` exactly: it sets the pose of ``to`` for every

@@ -62,7 +62,10 @@ class Revision:
     ``set_directly`` holds the poses a caller gave (``frame_id -> T_world_sensor``), ``propagated`` the poses
     derived from them; both are read-only mappings of read-only 4x4 float64 arrays and never share a frame.
     ``restores`` is the revision a rollback restores (``None`` otherwise). Revision 0 has no parent and sets the
-    frames' own poses. Instances compare equal when every field is equal, matrices bit for bit.
+    frames' own poses. ``covariances`` (optional) holds the uncertainty of poses set directly, as the pose graph
+    that made them gives it (GTSAM marginals): ``frame_id -> 6x6`` in driftmap order ``[translation, rotation]``
+    (m^2, rad^2), in the frame's own sensor frame. Instances compare equal when every field is equal, matrices bit
+    for bit.
     """
 
     revision_id: int
@@ -73,6 +76,7 @@ class Revision:
     set_directly: Mapping[int, NDArray[np.float64]] = field(default_factory=dict, repr=False)
     propagated: Mapping[int, NDArray[np.float64]] = field(default_factory=dict, repr=False)
     restores: int | None = None
+    covariances: Mapping[int, NDArray[np.float64]] = field(default_factory=dict, repr=False)
     # sorted changed ids, their poses and whether each was set directly (derived, for fast array access)
     _ids: NDArray[np.int64] = field(init=False, repr=False)
     _poses: NDArray[np.float64] = field(init=False, repr=False)
@@ -107,6 +111,7 @@ class Revision:
         setattr_(self, "restores", restores)
         setattr_(self, "set_directly", MappingProxyType(dict(zip(direct_ids.tolist(), direct_poses, strict=True))))
         setattr_(self, "propagated", MappingProxyType(dict(zip(prop_ids.tolist(), prop_poses, strict=True))))
+        setattr_(self, "covariances", MappingProxyType(_covariance_table(self.covariances, direct_ids, rid)))
         setattr_(self, "_ids", readonly(ids[order]))
         setattr_(self, "_poses", readonly(np.concatenate([direct_poses, prop_poses])[order]))
         direct = np.concatenate([np.ones(len(direct_ids), dtype=bool), np.zeros(len(prop_ids), dtype=bool)])
@@ -142,6 +147,8 @@ class Revision:
             and np.array_equal(self._ids, other._ids)
             and np.array_equal(self._direct, other._direct)
             and self._poses.tobytes() == other._poses.tobytes()
+            and sorted(self.covariances) == sorted(other.covariances)
+            and all(self.covariances[k].tobytes() == other.covariances[k].tobytes() for k in self.covariances)
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking payload; compare, don't hash
@@ -156,7 +163,7 @@ class Revision:
             return {"frame_ids": ids.tolist(), "T_world_sensor": poses.reshape(-1, 16).tolist()}
 
         direct = self._direct
-        return {
+        out = {
             "schema_version": REVISION_SCHEMA_VERSION,
             "revision_id": self.revision_id,
             "parent_id": self.parent_id,
@@ -167,6 +174,10 @@ class Revision:
             "set_directly": table(self._ids[direct], self._poses[direct]),
             "propagated": table(self._ids[~direct], self._poses[~direct]),
         }
+        if self.covariances:  # absent when none: revisions without keep the layout they always had
+            ids = sorted(self.covariances)
+            out["covariances"] = {"frame_ids": ids, "covariance_6x6": [self.covariances[k].ravel().tolist() for k in ids]}
+        return out
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> Revision:
@@ -204,6 +215,7 @@ class Revision:
 
         try:
             return cls(
+                covariances=_covariances_json(data.get("covariances"), rid),
                 revision_id=data["revision_id"],
                 parent_id=data["parent_id"],
                 source=data["source"],
@@ -215,6 +227,45 @@ class Revision:
             )
         except TransformError as exc:
             raise StoreError(f"revision {rid}: damaged pose in JSON: {exc}") from exc
+
+
+def _covariance_table(covariances: Mapping[Any, ArrayLike], set_ids: NDArray[np.int64],
+                      rid: int) -> dict[int, NDArray[np.float64]]:
+    """Validated read-only 6x6 covariances of frames set directly: finite, symmetric (symmetrised), no negative
+    variance."""
+    if not isinstance(covariances, Mapping):
+        raise StoreError(f"revision {rid}: covariances must be a mapping frame_id -> 6x6")
+    out: dict[int, NDArray[np.float64]] = {}
+    for key, value in covariances.items():
+        fid = as_int(key, f"revision {rid}: covariance frame id")
+        if fid not in set_ids:
+            raise StoreError(f"revision {rid}: a covariance for frame {fid}, whose pose the revision does not set")
+        try:
+            cov = np.array(value, dtype=np.float64).reshape(6, 6)
+        except (TypeError, ValueError) as exc:
+            raise StoreError(f"revision {rid}: covariance of frame {fid} is not 6x6 numbers") from exc
+        scale = float(np.abs(cov).max()) if np.all(np.isfinite(cov)) else np.inf
+        if not np.isfinite(scale) or float(np.abs(cov - cov.T).max()) > 1e-9 * max(scale, 1e-12) \
+                or np.any(np.diag(cov) < 0):
+            raise StoreError(f"revision {rid}: covariance of frame {fid} is not a finite symmetric 6x6 with "
+                             "non-negative variances")
+        out[fid] = readonly(0.5 * (cov + cov.T))
+    return out
+
+
+def _covariances_json(part: Any, rid: Any) -> dict[int, Any]:
+    if part is None:
+        return {}
+    if not isinstance(part, Mapping) or not isinstance(part.get("frame_ids"), list) \
+            or not isinstance(part.get("covariance_6x6"), list):
+        raise StoreError(f"revision {rid}: covariances must hold the lists 'frame_ids' and 'covariance_6x6'")
+    ids, covs = part["frame_ids"], part["covariance_6x6"]
+    if len(ids) != len(covs) or any(not isinstance(c, list) or len(c) != 36 for c in covs) \
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for c in covs for x in c):
+        raise StoreError(f"revision {rid}: covariances: one list of 36 numbers per frame id")
+    if any(isinstance(i, bool) or not isinstance(i, int) for i in ids) or len(set(ids)) != len(ids):
+        raise StoreError(f"revision {rid}: covariances: frame ids must be distinct integers")
+    return dict(zip(ids, covs, strict=True))
 
 
 # --------------------------------------------------------------------------------------------------------------
