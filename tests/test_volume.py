@@ -162,6 +162,22 @@ def test_invalid_pixels_far_points_and_points_at_the_origin(gt_store: FrameStore
     assert len(observe(at_origin, T, None, cfg).ends_m) == len(obs.ends_m)
 
 
+def test_a_frame_whose_depth_touches_no_block_is_integrated_as_free_space(gt_store: FrameStore, tmp_path) -> None:
+    """Every point of a depth frame beyond the max range (the decision sweep's structured dropout left such a frame):
+    Open3D's block selection aborts on it ('No block is touched'); the layers take its rays as free space up to the
+    max range and no TSDF block, as for a frame with no point at all."""
+    frame = gt_store.frame(int(gt_store.frame_ids[0]))
+    far = dataclasses.replace(frame, points_sensor=frame.points_sensor * 20.0, attributes=PointAttributes())
+    empty = dataclasses.replace(frame, frame_id=frame.frame_id + 1, stamp_ns=frame.stamp_ns + 1,
+                                points_sensor=np.zeros((0, 3), np.float32), attributes=PointAttributes())
+    with FrameStore.create(tmp_path / "far") as store:
+        store.append(far)
+        store.append(empty)
+    layers = VolumeLayers.from_store(FrameStore.open(tmp_path / "far"), 0,
+                                     VolumeConfig(max_range_m=2.0, voxel_size_m=0.05, truncation_m=0.15))
+    assert layers.stats().free > 0 and layers.stats().occupied == 0
+
+
 @pytest.mark.slow
 def test_occupancy_agrees_with_octomap_on_the_same_rays(gt_store: FrameStore) -> None:
     """OctoMap's insertPointCloud on the same rays (every 6th frame: OctoMap takes ~2 s a frame): the occupied /

@@ -150,6 +150,9 @@ def _intrinsics_option(text: str) -> Any:
         return text
     if len(numbers) not in (4, 6):
         raise ConfigError(f"depth.intrinsics: {text!r} has {len(numbers)} numbers; give fx,fy,cx,cy[,width,height]")
+    if any(not math.isfinite(v) or v != int(v) or v <= 0 for v in numbers[4:]):
+        raise ConfigError(f"depth.intrinsics: {text!r}: width and height are whole numbers of pixels, got "
+                          f"{', '.join(parts[4:])}")
     return numbers[:4] + [int(v) for v in numbers[4:]]
 
 
@@ -351,7 +354,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     try:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (some editors write one) is not a setting
         data = tomllib.loads(text) if is_toml else json.loads(text)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         kind = "" if is_toml or path.suffix.lower() == ".json" else " (config files are read as TOML when named .toml, else as JSON)"
         raise ConfigError(f"{path}: cannot read config ({exc}){kind}") from exc
     if not isinstance(data, dict):
@@ -443,7 +446,7 @@ def env_table(table: str) -> dict[str, Any]:
         if raw.strip()[:1] in ("[", "{"):
             try:
                 node[keys[-1]] = json.loads(raw)
-            except ValueError as exc:
+            except (ValueError, RecursionError) as exc:
                 raise ConfigError(f"environment {name}: {table}.{'.'.join(keys)}: not valid JSON ({exc})") from None
         else:
             node[keys[-1]] = raw

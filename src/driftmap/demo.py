@@ -238,7 +238,7 @@ def _check_results_folder(out: Path) -> None:
         return
     try:
         earlier = "store" in json.loads((out / "summary.json").read_text()).get("files", {})
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, RecursionError, AttributeError):
         earlier = False
     if not earlier:
         raise ConfigError(f"{out}: is not empty and holds no earlier demo result (summary.json); give a new or empty "

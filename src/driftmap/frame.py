@@ -100,6 +100,9 @@ class PinholeIntrinsics:
             raise IntrinsicsError(f"pixel stride must be a positive integer, got {stride}")
         if stride == 1:
             return self
+        if 2 * stride > min(self.width, self.height):
+            raise IntrinsicsError(f"pixel stride {stride} leaves fewer than 2 rows or columns of a {self.width}x"
+                                  f"{self.height} image (build.pixel_stride: keep it below half the image's shorter side)")
         return PinholeIntrinsics(
             fx=self.fx / stride,
             fy=self.fy / stride,

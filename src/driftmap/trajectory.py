@@ -460,6 +460,12 @@ def read_matrix4x4(path: str | Path) -> Trajectory:
         raise SourceError(f"{path}:{linenos[4 * k + 3]}: the last row of a 4x4 pose block must start with 0 0 0, "
                           f"got {' '.join(repr(float(v)) for v in last[k])} (block {k}, starting on line {block_lines[k]})")
     stamped = bool(np.any(poses[:, 3, 3] != 1.0))
+    ones = np.flatnonzero(poses[:, 3, 3] == 1.0)
+    if stamped and len(poses) > 2 and len(ones) > len(poses) // 2:  # mostly 0 0 0 1: a damaged block, not stamps
+        k = int(np.flatnonzero(poses[:, 3, 3] != 1.0)[0])
+        raise SourceError(f"{path}:{linenos[4 * k + 3]}: the last row of block {k} (starting on line {block_lines[k]}) "
+                          f"is 0 0 0 {stamp_texts[k]}, but {len(ones)} of the {len(poses)} blocks end in 0 0 0 1: "
+                          f"expected 0 0 0 1 there (or a stamp in every block's last row)")
     poses[:, 3, 3] = 1.0
     bad, _ = geometry.rigid_stack_problems(poses)
     if bad.size:  # as_rigid names what is wrong with the first such block

@@ -204,7 +204,7 @@ def convert(
     source: Annotated[Path, typer.Argument(help="Data-set folder or log to convert.")],
     out: Annotated[Path, typer.Argument(metavar="OUT.mcap", help="MCAP file to write (ROS 2 messages).")],
     format: Annotated[Optional[str], typer.Option("--format", help="Source format (default: detected).")] = None,
-    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
+    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames (Python slicing: a negative index counts from the end, -3: is the last three).")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing OUT.mcap; without it an existing file is refused before anything is read.")] = False,
     sensor: Annotated[Optional[str], typer.Option("--sensor", help=SENSOR_HELP)] = None,
     topic: Annotated[Optional[str], typer.Option("--topic", help=TOPIC_HELP)] = None,
@@ -318,7 +318,7 @@ def build(
     poses: Annotated[Optional[Path], typer.Option("--poses", help="Use these poses (format detected: TUM, EuRoC and 4x4 blocks with stamps by stamp; KITTI and 4x4 blocks without stamps row = frame_id; Redwood .log by its frame ids).")] = None,
     poses_from_source: Annotated[bool, typer.Option("--poses-from-source", help="Use the source's own poses (log odometry or ground truth).")] = False,
     no_loop_closure: Annotated[bool, typer.Option("--no-loop-closure", help="Skip loop closure and the pose graph.")] = False,
-    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames.")] = None,
+    frames: Annotated[Optional[str], typer.Option("--frames", help="START:STOP[:STEP] of the source's frames (Python slicing: a negative index counts from the end, -3: is the last three).")] = None,
     resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
@@ -332,6 +332,7 @@ def build(
 
     format = _source_format(source, format)
     refuse_inside_store(out, "--out", output_is_store=True)  # --resume continues a store; none is made inside one
+    _refuse_inside_source(out, source)  # as convert, export and batch do
     from driftmap.store.frame_store import creation_leftovers
 
     if out.is_dir() and not (out / MANIFEST).exists() and any(out.iterdir()) and not creation_leftovers(out):

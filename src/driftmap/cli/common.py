@@ -134,6 +134,19 @@ def refuse_same_output(outputs: list[tuple[Path, str]]) -> None:
         seen[key] = flag
 
 
+def refuse_output_on_input(path: Path, flag: str, inputs: list[tuple[Path, str]]) -> None:
+    """An output that is one of the command's own inputs (the same path, a link to it, or a folder holding it)
+    would destroy what it is computed from: a one-line error, before any work."""
+    from driftmap.errors import ConfigError
+
+    out = Path(os.path.abspath(path)).resolve()
+    for source, what in inputs:
+        src = Path(os.path.abspath(source)).resolve()
+        same = out == src or (out.exists() and src.exists() and os.path.samefile(out, src))
+        if same or src.is_relative_to(out):
+            raise ConfigError(f"{path}: {flag} is {what} itself; write the output to another path")
+
+
 def refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
     """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
     from driftmap.errors import ConfigError

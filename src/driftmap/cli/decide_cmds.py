@@ -48,6 +48,7 @@ def decide(
     compare_revisions: Annotated[str | None, typer.Option("--compare", metavar="A,B", help="Decide on revisions A and B of STORE (the layers updated from A to B, not rebuilt) and list the decisions that flipped; the JSON's decisions are B's.")] = None,
     against: Annotated[Path | None, typer.Option("--against", metavar="OTHER_STORE", help="Also decide on another store built from the same log (its latest revision, or --against-revision) and list the decisions that flipped from STORE to it.")] = None,
     against_revision: Annotated[int | None, typer.Option("--against-revision", min=0, help="The revision of --against (default: its latest).")] = None,
+    same_log: Annotated[bool, typer.Option("--same-log", help="--against: the two stores hold the same log read from two places (a copied or moved log): skip the check that their frames were read from the same files.")] = False,
     diagnose: Annotated[bool, typer.Option("--diagnose", help="Run diagnose on each decided revision first: double walls in reach of a query bound its uncertainty and label it double_wall_nearby.")] = False,
     diagnosis: Annotated[Path | None, typer.Option("--diagnosis", help="The double walls from a diagnosis JSON (diagnose --json) of the decided revision, instead of --diagnose.")] = None,
     config: Annotated[Path | None, typer.Option("--config", help="Config file (JSON or TOML) whose [volume] table sets the volumetric layers (driftmap config --show).")] = None,
@@ -91,7 +92,8 @@ def decide(
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
         with progress_bar() as progress:
             tick = _ticker(progress)
-            result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick)
+            result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
+                          same_log)
     decisions, comparison, layers = result
     _write(json_path, decisions, comparison)
     if figure is not None:
@@ -148,9 +150,11 @@ def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> N
                 raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
 
 
-def _check_same_log(store, other, other_path: Path) -> None:
+def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> None:
     """--against: the two stores must hold the same log -- frames in common (by id), each with the same stamp in
-    both ledgers. Else a one-line error naming the first frame that differs."""
+    both ledgers and, unless ``same_log``, read from the same file (the provenance both stores record; logs whose
+    stamps start alike, as every default synthetic log does, differ there). Else a one-line error naming the first
+    frame that differs."""
     import numpy as np
 
     from driftmap.errors import ConfigError
@@ -170,6 +174,18 @@ def _check_same_log(store, other, other_path: Path) -> None:
         raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {int(shared[k])} has "
                           f"stamp {int(st_a[ia[k]])} ns in {store.path} but {int(st_b[ib[k]])} ns in {other_path}; "
                           f"{len(differ)} of {len(shared)} shared frames differ)")
+    if same_log:
+        return
+
+    def uri(s, fid: int) -> str | None:
+        return (s.frame_info(fid).get("provenance") or {}).get("source_uri")
+
+    for fid in shared.tolist():
+        ua, ub = uri(store, fid), uri(other, fid)
+        if ua is not None and ub is not None and ua != ub:
+            raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {fid} was read from "
+                              f"{ua} for {store.path} but from {ub} for {other_path}); if it is one log read from two "
+                              f"places, pass --same-log")
 
 
 def _ticker(progress):
@@ -183,7 +199,8 @@ def _ticker(progress):
     return tick
 
 
-def _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, given_walls, tick):
+def _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, given_walls, tick,
+         same_log=False):
     """The decision sets (one, or two and their comparison) and the layers of the last."""
     from driftmap.decisions import compare, decide, decide_revisions
     from driftmap.volume.layers import VolumeLayers
@@ -209,7 +226,7 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                 raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
-            _check_same_log(store, other, against)
+            _check_same_log(store, other, against, same_log)
             a = decide(store, query_set, rev, volume, double_walls=walls(store, rev), progress=tick)
             layers = VolumeLayers.from_store(other, other_rev, volume, progress=tick)
             b = decide(other, query_set, other_rev, volume, layers=layers, double_walls=walls(other, other_rev),

@@ -23,6 +23,7 @@ from driftmap.cli.common import (
     open_store,
     progress_bar,
     refuse_existing,
+    refuse_output_on_input,
     writing_output,
     refuse_same_output,
 )
@@ -60,13 +61,19 @@ def diagnose(
     from driftmap.pipeline.diagnose import GT_FORMATS, is_diagnosis_file, run_diagnose
 
     gt_format = None if gt_format is None else choice(gt_format, GT_FORMATS, "--gt-format")
-    refuse_same_output([(p, f) for p, f in ((json_path, "--json"), (gt, "--gt"), (config, "--config"), (calib, "--calib"))
-                        if p is not None])  # an output never replaces an input
+    refuse_same_output([(p, f) for p, f in ((json_path, "--json"), (report, "--report"), (gt, "--gt"),
+                                            (config, "--config"), (calib, "--calib"))
+                        if p is not None])  # an output never replaces an input, nor another output
     if json_path.is_file() and not is_diagnosis_file(json_path):
         refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it
     check_output(report, "--report", folder=True)
     with open_store(store_path) as store, progress_bar() as progress:
+        from driftmap.errors import ConfigError
+
+        for rev, flag in ((revision, "--revision"), (compare_revision, "--compare-revision")):
+            if rev is not None and not 0 <= rev <= store.head:  # before the first diagnosis, not after it
+                raise ConfigError(f"{flag} {rev}: {store_path} has revisions 0..{store.head}")
         tasks: dict[str, int] = {}
 
         def tick(stage: str, done: int, total: int | None) -> None:
@@ -211,6 +218,7 @@ def perturb(
     from driftmap.errors import ConfigError
 
     check_output(poses_out, "POSES_OUT")
+    refuse_output_on_input(poses_out, "POSES_OUT", [(poses_in, "POSES_IN")])
     refuse_existing(poses_out, "POSES_OUT", overwrite)
     if (step_m is not None or step_deg is not None) and step_frame is None:
         raise ConfigError("--step-m / --step-deg need --step-frame")
@@ -222,6 +230,13 @@ def perturb(
                              (drift_axis, "--drift-axis", drift_deg_per_m)):
         if used and not any(parse_vector(text, flag)):
             raise ConfigError(f"{flag}: a drift needs a non-zero direction, got {text!r}")
+    if step_frame is not None:
+        moved = step_m is not None and any(parse_vector(step_m, "--step-m"))
+        turn = 0.0 if step_deg is None else float(np.linalg.norm(parse_vector(step_deg, "--step-deg")))
+        turned = turn > 0 and abs(turn - 360.0 * round(turn / 360.0)) > 1e-9
+        if not moved and not turned and not drift_percent_per_m and not drift_deg_per_m:
+            raise ConfigError("nothing to perturb: the step is zero" + (f" (a rotation of {turn:g} deg is none)"
+                                                                       if turn else ""))
     perturbation = PosePerturbation(
         step_index=step_frame,
         step_m=None if step_m is None else parse_vector(step_m, "--step-m"),

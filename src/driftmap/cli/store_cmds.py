@@ -137,6 +137,14 @@ def export(
         voxel_size_m = settings.map.export_voxel_size_m
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
+    from driftmap.volume.export import MESH_SUFFIXES, OCTOMAP_SUFFIX
+
+    for path, suffixes, what, flag in ((mesh_path, MESH_SUFFIXES, "the mesh is written as", "--mesh"),
+                                       (octomap_path, (OCTOMAP_SUFFIX,), "the OctoMap is written as", "--octomap"),
+                                       (mcap_path, (".mcap",), "the log is written as", "--mcap")):
+        if path is not None and path.suffix.lower() not in suffixes:  # before the layers are built, not after
+            raise typer.BadParameter(f"{path}: {what} {' or '.join(suffixes)} (got {path.suffix or 'no suffix'!r})",
+                                     param_hint=flag)
     volume_outputs = [(mesh_path, "--mesh"), (octomap_path, "--octomap"), (grid2d_path, "--grid2d")]
     if grid2d_path is not None:
         volume_outputs.append((grid2d_path.with_suffix(".pgm"), "--grid2d (its PGM image)"))

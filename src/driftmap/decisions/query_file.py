@@ -162,6 +162,8 @@ def load_queries(path: str | Path) -> QuerySet:
         except json.JSONDecodeError as exc:
             raise QueryError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})",
                              query_id=None) from None
+        except (ValueError, RecursionError) as exc:  # an integer of thousands of digits, nesting beyond the stack
+            raise QueryError(f"{path}: cannot read the query file ({_reading_problem(exc)})", query_id=None) from None
     return parse_queries(data, source=str(path))
 
 
@@ -175,6 +177,16 @@ def _parse_yaml(text: str, path: Path) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise QueryError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})", query_id=None) from None
+    except (ValueError, RecursionError) as exc:
+        raise QueryError(f"{path}: cannot read the query file ({_reading_problem(exc)})", query_id=None) from None
+
+
+def _reading_problem(exc: Exception) -> str:
+    if isinstance(exc, RecursionError):
+        return "nested too deeply: a query file is a list of flat queries"
+    if "digits" in str(exc):
+        return "a number of thousands of digits"
+    return str(exc).splitlines()[0]
 
 
 def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
@@ -226,6 +238,9 @@ def parse_query(item: Any, index: int = 0) -> Query:
                          query_id=None, field="id")
     if not isinstance(qid, str) or not qid.strip():
         raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r}", query_id=None, field="id")
+    if any(ord(c) < 32 or ord(c) == 127 for c in qid):
+        raise QueryError(f"query #{index + 1}: 'id' {qid!r} holds a line break or control character; ids are one "
+                         f"line of text (they name the query in every report line)", query_id=None, field="id")
     kind = item.get("kind")
     if kind not in KINDS:
         raise QueryError(f"query {qid!r}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})", query_id=qid, field="kind")

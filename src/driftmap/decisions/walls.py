@@ -41,7 +41,7 @@ def double_walls_of(source: Any, revision: int | None = None) -> list[DoubleWall
         where = f"{path}"
         try:
             source = json.loads(path.read_text(encoding="utf-8-sig"))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, RecursionError) as exc:
             raise QueryError(f"{path}: cannot read the diagnosis ({exc})", query_id=None) from None
         if not isinstance(source, dict):
             raise QueryError(f"{path}: not a diagnosis (diagnose --json writes an object with 'revision' and "

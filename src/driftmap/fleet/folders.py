@@ -95,7 +95,7 @@ def completed_result(folder: Path, expected_hash: str | None = None, *, verify: 
     recorded row too (:func:`damage`): a log whose store was damaged or changed since is not complete."""
     if not all((folder / f).exists() for f in LOG_FILES):
         return None
-    with contextlib.suppress(OSError, ValueError):
+    with contextlib.suppress(OSError, ValueError, RecursionError):
         result = json.loads((folder / RESULT_FILE).read_text())
         if (isinstance(result, dict) and isinstance(result.get("row"), dict) and result["row"].get("status") == "ok"
                 and (expected_hash is None or result.get("config_hash") == expected_hash)):
@@ -121,7 +121,7 @@ def damage(folder: Path, row: dict[str, Any]) -> str | None:
         return f"its store holds {frames} frames, but its result records {row.get('frames')}"
     try:
         json.loads((folder / "diagnosis.json").read_text())
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         return f"its diagnosis.json cannot be read ({exc})"
     exports = row.get("exports")
     missing = [f for f in exports.values() if not (folder / f).exists()] if isinstance(exports, dict) else []

@@ -17,6 +17,7 @@ name (its folder or file name, ``--name`` in a list file; a repeated name gets `
 from __future__ import annotations
 
 import glob
+import logging
 import math
 import re
 import shlex
@@ -26,6 +27,8 @@ from typing import Any
 
 from driftmap.errors import ConfigError
 from driftmap.fleet.folders import MARKER, TMP_DIR
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["LIST_SUFFIXES", "LogSpec", "expand_inputs", "log_name", "parse_log_options", "read_list_file"]
 
@@ -105,6 +108,22 @@ def _check_value(option: str, value: str, where: str) -> None:
             raise ConfigError(f"{where}: --period-s: the scan period must be a positive number, got {value!r}")
     elif option == "--pose-from-tf" and (len(value.split(",")) != 2 or not all(p.strip() for p in value.split(","))):
         raise ConfigError(f"{where}: --pose-from-tf: expected 'PARENT,CHILD' (two frame names), got {value!r}")
+    elif option == "--frames":
+        from driftmap.errors import SourceError
+        from driftmap.sources.base import parse_frame_slice
+
+        try:
+            selection = parse_frame_slice(value)
+        except SourceError as exc:
+            raise ConfigError(f"{where}: {exc}") from None
+        if selection is not None and selection.start is not None and selection.stop is not None \
+                and selection.start >= 0 and selection.stop >= 0 and selection.stop <= selection.start:
+            raise ConfigError(f"{where}: --frames {value!r} selects no frame (STOP is not after START)")
+    elif option == "--gt-format":
+        from driftmap.diagnostics.ground_truth import GT_FORMATS
+
+        if value not in GT_FORMATS:
+            raise ConfigError(f"{where}: --gt-format: {value!r} is not one of {', '.join(GT_FORMATS)}")
     elif option == "--name":
         if value in RESERVED_NAMES or value in (TMP_DIR, MARKER):
             reserved = ", ".join(sorted(RESERVED_NAMES | {TMP_DIR, MARKER}))
@@ -237,7 +256,7 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
         raise ConfigError("no inputs: give log folders or files, globs, or a text file listing logs")
     skip = None if exclude is None else exclude.resolve()
     specs: list[LogSpec] = []
-    seen: set[tuple[Any, ...]] = set()
+    seen: dict[tuple[Any, ...], str] = {}
     for text in inputs:
         for path, options, where in _expand_one(str(text)):
             resolved = path.resolve()
@@ -248,8 +267,11 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
             spec = LogSpec(name=options.get("name") or log_name(resolved), input=str(resolved),
                            origin=where, **{k: v for k, v in options.items() if k != "name"})
             key = tuple(sorted(spec.options_record().items())) + (spec.name,)
-            if key not in seen:
-                seen.add(key)
+            if key in seen:
+                logger.warning("%s: %s is named again with the same options (first at %s): it runs once", where,
+                               path, seen[key])
+            else:
+                seen[key] = where
                 specs.append(spec)
     if not specs:
         raise ConfigError(f"no log among the inputs ({', '.join(map(str, inputs))})")

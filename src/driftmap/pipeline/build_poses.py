@@ -25,11 +25,25 @@ def check_first_frame_poses(src: FrameSource, pose_of: Callable[[Frame], np.ndar
     ``--poses-from-source``)."""
     if pose_of is None and not poses_from_source:
         return
-    first = src.frame(0)
+    first = _first_readable(src)
     if pose_of is not None:
         pose_of(first)  # raises naming the pose file and the frame
     elif first.pose.source is PoseSource.NONE:
         raise SourceError(no_pose_message(src, first.frame_id))
+
+
+def _first_readable(src: FrameSource) -> Frame:
+    """The first selected frame; in lenient mode the first one that reads (the build skips the others with their
+    reasons, so the check must too)."""
+    if not src.lenient:
+        return src.frame(0)
+    problem: SourceError | None = None
+    for index in range(len(src)):
+        try:
+            return src.frame(index)
+        except SourceError as exc:
+            problem = problem or exc
+    raise problem if problem is not None else SourceError(f"{src.uri}: no frame to read")
 
 
 def log_ground_truth_lookup(src: FrameSource, path: Path, format: str | None) -> Callable[[Frame], np.ndarray] | None:

@@ -173,7 +173,7 @@ def is_diagnosis_file(path: str | Path) -> bool:
     """``path`` holds an earlier ``diagnose --json`` (which a new diagnosis may replace without ``--overwrite``)."""
     try:
         data = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return False
     return isinstance(data, dict) and {"revision", "double_wall"} <= set(data)
 

@@ -43,7 +43,7 @@ def store_origin(store_dir: str | Path) -> dict[str, Any] | None:
         record = json.loads((Path(store_dir) / BUILD_SOURCE_FILE).read_text())
         fmt = registered_formats().get(str(record.get("format")))
         path = Path(record["path"])
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    except (OSError, ValueError, RecursionError, KeyError, TypeError, AttributeError):
         return None
     if fmt is not None and fmt.origin_of is not None:
         named = fmt.origin_of(path)
@@ -131,7 +131,8 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
     traj = pose_rows_in_sensor_frame(store, path, read_trajectory(path, fmt), fmt, kitti_frame=kitti_frame,
                                      calib_file=calib_file)
     mode = PoseMatchMode.STAMP if has_stamps(traj, fmt) else PoseMatchMode.INDEX
-    matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+    matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns,
+                              where=str(path))
     if not matched.poses:
         why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
         raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")

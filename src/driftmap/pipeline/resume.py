@@ -61,7 +61,7 @@ def check_recorded_source(out: Path, record: dict[str, Any]) -> dict[str, Any] |
         recorded = json.loads(file.read_text())
     except FileNotFoundError:
         return None
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, RecursionError) as exc:
         raise StoreError(f"{file}: unreadable build source record ({exc})") from exc
     if recorded.get("path") != record["path"] or recorded.get("format") != record["format"]:
         raise ConfigError(
@@ -195,7 +195,7 @@ def recorded_inputs(store_path: str | Path) -> list[tuple[Path, str]]:
     An export must not replace them: ``--resume`` and ``--poses-from-source`` read them again."""
     try:
         record = json.loads((Path(store_path) / BUILD_SOURCE_FILE).read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return []
     if not isinstance(record, dict):
         return []

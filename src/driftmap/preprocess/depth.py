@@ -315,6 +315,7 @@ def depth_frame(
     pixel_stride: int = 1,
     base_frame: str = "base_link",
     flags: tuple[str, ...] = (),
+    check_scale: bool = True,
 ) -> Frame:
     """Validate and back-project one depth image into a :class:`Frame` (points in the sensor frame).
 
@@ -323,7 +324,8 @@ def depth_frame(
     ``pixel_stride`` > 1 keeps every ``pixel_stride``-th pixel in both directions (a cheap, exact
     pre-downsampling: the frame carries the matching subsampled intrinsics, and its quality counts refer
     to the sampled pixels). ``flags`` (e.g. a source's notes on the message) follow the monitor's flag in the
-    frame's quality flags; ``base_frame`` names the frame ``T_base_sensor`` maps into.
+    frame's quality flags; ``base_frame`` names the frame ``T_base_sensor`` maps into. ``check_scale=False`` skips
+    :func:`backproject`'s plausibility check of the depth scale (``depth.check_scale = false``).
     """
     if pixel_stride != 1:
         intrinsics.check_image_shape(np.shape(depth), f"frame {frame_id}")
@@ -333,7 +335,7 @@ def depth_frame(
             color_rgb = np.ascontiguousarray(np.asarray(color_rgb)[::pixel_stride, ::pixel_stride])
     what = f"frame {frame_id}" + (f" ({provenance.source_uri})" if provenance else "")
     result = backproject(depth, intrinsics, depth_scale=depth_scale, min_depth_m=min_depth_m,
-                         max_depth_m=max_depth_m, what=what)
+                         max_depth_m=max_depth_m, check_scale=check_scale, what=what)
     if monitor is not None:
         reason = monitor.update(result.invalid_fraction, what)
         flags = ((reason,) if reason else ()) + tuple(flags)

@@ -295,7 +295,7 @@ def looks_like_store_folder(path: Path) -> bool:
         if manifest.is_file() and manifest.stat().st_size <= _MAX_MANIFEST_BYTES:
             try:
                 data = json.loads(manifest.read_bytes())
-            except ValueError:
+            except (ValueError, RecursionError):
                 data = None
             if isinstance(data, dict) and data.get("format") == _STORE_FORMAT:
                 return True

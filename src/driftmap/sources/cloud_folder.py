@@ -39,7 +39,13 @@ from driftmap.errors import ConfigError, NotACloudFile, SourceError, TransformEr
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_headers import CloudHeader, check_cloud_file
-from driftmap.sources.point_fields import POINT_TIME_FIELDS, checked_normals, measured_points, point_time_offsets_ns
+from driftmap.sources.point_fields import (
+    POINT_TIME_FIELDS,
+    checked_intensity,
+    checked_normals,
+    measured_points,
+    point_time_offsets_ns,
+)
 from driftmap.sources.stamps import (
     MAX_STAMP_NS,
     STAMP_FILE_NAMES,
@@ -528,7 +534,7 @@ class CloudFolder(FrameSource):
 
         attrs: dict[str, Any] = {}
         if "intensity" in cloud.point:
-            attrs["intensity"] = kept(cloud.point["intensity"].numpy().reshape(-1).astype(np.float32))
+            attrs["intensity"] = checked_intensity(kept(cloud.point["intensity"].numpy().reshape(-1)), what)
         if "colors" in cloud.point:
             colors = cloud.point["colors"].numpy()
             if colors.dtype != np.uint8:  # Open3D reads colours as floats in 0..1

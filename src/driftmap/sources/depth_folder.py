@@ -236,7 +236,7 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
         data = json.loads(file.read_text())
     except FileNotFoundError:
         raise SourceError(f"{file}: intrinsics file not found") from None
-    except (OSError, ValueError) as exc:  # ValueError: JSON that does not parse, text that is not UTF-8
+    except (OSError, ValueError, RecursionError) as exc:  # ValueError: JSON that does not parse, text that is not UTF-8
         raise SourceError(f"{file}: cannot read intrinsics JSON ({exc})") from exc
     try:
         m = [float(v) for v in data["intrinsic_matrix"]]
@@ -389,6 +389,7 @@ class DepthFolderSource(FrameSource):
                 monitor=self._monitor,
                 pixel_stride=self.pixel_stride,
                 color_rgb=color,
+                check_scale=self.sensor_range_m is not None,  # depth.check_scale = false turns off both checks
             )
         return self._flag_mostly_invalid(frame, file)
 

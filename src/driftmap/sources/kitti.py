@@ -40,7 +40,7 @@ from driftmap.errors import ConfigError, SourceError, TransformError, parse_enum
 from driftmap.frame import Frame, PointAttributes, PoseSource, Provenance, SensorKind
 from driftmap.sources.base import FrameSource, register_source, same_file_or_copy
 from driftmap.sources.cloud_folder import numbered_files, opener_for, pose_or_none
-from driftmap.sources.point_fields import measured_points
+from driftmap.sources.point_fields import checked_intensity, measured_points
 from driftmap.sources.stamps import (
     check_increasing_stamps,
     check_seconds_period,
@@ -580,7 +580,8 @@ class KittiOdometry(FrameSource):
             sensor_kind=SensorKind.LIDAR,
             points_sensor=scan[:, :3],
             pose=pose,
-            attributes=PointAttributes(intensity=scan[:, 3] if scan.shape[1] == 4 else None),
+            attributes=PointAttributes(intensity=checked_intensity(scan[:, 3] if scan.shape[1] == 4 else None,
+                                                                   f"{file} (frame {frame_id})")),
             provenance=Provenance(str(file.resolve()), frame_id),
             sensor_frame="velodyne",
         )

@@ -239,6 +239,19 @@ def checked_normals(normals: NDArray | None, what: str, warned: set[str] | None 
     return None
 
 
+def checked_intensity(intensity: NDArray | None, what: str) -> NDArray[np.float32] | None:
+    """``intensity`` (float32) when every value is finite; otherwise ``None`` and a warning naming ``what`` (the
+    file and frame): a field with NaN / inf values is not a measurement to keep (the points stay)."""
+    if intensity is None:
+        return None
+    values = np.asarray(intensity, dtype=np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(values)))
+    if bad:
+        logger.warning("%s: intensity not used (%d of %d values are NaN or infinite)", what, bad, len(values))
+        return None
+    return values
+
+
 def _offsets_ns(values: NDArray, stamp_ns: int, reference: PointTimeReference, field: str,
                 what: str) -> tuple[NDArray[np.float64] | NDArray[np.int64], str]:
     """Per-point times -> ns relative to the frame stamp (not yet checked), and how they were read."""

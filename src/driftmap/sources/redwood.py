@@ -68,7 +68,7 @@ def _find_intrinsics_json(folder: Path) -> Path | None:
         try:
             if "intrinsic_matrix" in json.loads(candidate.read_text()):
                 return candidate
-        except (OSError, ValueError):
+        except (OSError, ValueError, RecursionError):
             continue
     return None
 

@@ -153,7 +153,7 @@ def _clear_earlier_log(out: Path, overwrite: bool) -> None:
         return
     try:
         earlier = json.loads((out / METADATA_FILE).read_text()).get("format") == FORMAT_NAME
-    except (OSError, ValueError, AttributeError):
+    except (OSError, ValueError, RecursionError, AttributeError):
         earlier = False
     if not earlier:
         raise SourceError(f"{out}: is not empty and holds no synthetic log ({METADATA_FILE}); give a new or empty folder")
@@ -251,7 +251,7 @@ class SyntheticLog(FrameSource):
             self.meta = json.loads(meta_file.read_text())
         except FileNotFoundError as exc:
             raise SourceError(f"{meta_file}: not a driftmap synthetic log (metadata file missing)") from exc
-        except (OSError, ValueError) as exc:  # JSON that does not parse, text that is not UTF-8
+        except (OSError, ValueError, RecursionError) as exc:  # JSON that does not parse, text that is not UTF-8
             raise SourceError(f"{meta_file}: corrupt metadata ({exc})") from exc
         if not isinstance(self.meta, dict) or self.meta.get("format") != FORMAT_NAME:
             found = self.meta.get("format") if isinstance(self.meta, dict) else type(self.meta).__name__

@@ -223,9 +223,11 @@ def check_config_fields(config: SyntheticLogConfig) -> None:
     for name in ("fx", "fy", "depth_scale", "max_range_m", "circle_radius_m", "loop_turns", "lidar_max_range_m",
                  "lidar_fov_deg"):
         _number(config, name, 0.0, open_lo=True)
-    for name in ("cx", "cy", "camera_height_m", "camera_pitch_down_deg", "yaw_drift_deg_per_m", "scale_drift_percent",
+    for name in ("cx", "cy", "camera_height_m", "camera_pitch_down_deg", "yaw_drift_deg_per_m",
                  "lidar_rosette_k", "turn_in_place_deg_per_frame"):
         _number(config, name)
+    _number(config, "scale_drift_percent", -100.0, open_lo=True,
+            why=" (at -100 % the odometry stands still, below it runs backwards)")
     for name in ("odometry_noise_m", "odometry_noise_deg", "lidar_range_sigma_m"):
         _number(config, name, 0.0)
     _number(config, "dropout_fraction", 0.0, 1.0)

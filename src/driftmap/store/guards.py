@@ -35,7 +35,7 @@ def _manifest_says_store(file: Path) -> bool | None:
         if file.stat().st_size > _MAX_MANIFEST_PROBE_BYTES:
             return None
         data = json.loads(file.read_bytes())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     return isinstance(data, dict) and data.get("format") == FORMAT_NAME
 

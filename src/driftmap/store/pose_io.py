@@ -76,7 +76,8 @@ def import_poses(store: PoseFileStore, file: str | Path, *, format: TrajectoryFo
     if rows_in_sensor_frame is not None:
         trajectory = rows_in_sensor_frame(trajectory, fmt.value)
     ledger = store.ledger
-    matched = match_pose_rows(trajectory, fmt.value, ledger.frame_ids, ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+    matched = match_pose_rows(trajectory, fmt.value, ledger.frame_ids, ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns,
+                              where=str(file))
     if not matched.poses:
         why = f" ({stamp_ranges_text(trajectory, ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
         raise StoreError(f"{file}: no row matched a stored frame (match by {mode.value}){why}; nothing imported")

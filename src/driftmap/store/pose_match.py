@@ -47,6 +47,7 @@ def match_pose_rows(
     *,
     match: PoseMatchMode | str,
     max_dt_ns: int = 10_000_000,
+    where: str = "the pose file",
 ) -> PoseMatch:
     """:func:`match_trajectory` for a pose file read as ``format`` (``correct``, ``diagnose --gt``): a Redwood
     ``.log`` names its frames (the ``i`` of each ``i j n`` line), so ``match="index"`` takes those ids rather than
@@ -57,7 +58,7 @@ def match_pose_rows(
         named = trajectory.frame_ids if trajectory.frame_ids is not None else np.arange(len(trajectory))
         return match_trajectory(Trajectory(np.asarray(named, dtype=np.int64), trajectory.poses, trajectory.frame_ids),
                                 ids, ids, match=PoseMatchMode.STAMP, max_dt_ns=0)  # the same id, exactly
-    return match_trajectory(trajectory, frame_ids, stamps_ns, match=mode, max_dt_ns=max_dt_ns)
+    return match_trajectory(trajectory, frame_ids, stamps_ns, match=mode, max_dt_ns=max_dt_ns, where=where)
 
 
 def stamp_ranges_text(trajectory: Trajectory, stamps_ns: ArrayLike) -> str:
@@ -75,6 +76,7 @@ def match_trajectory(
     *,
     match: PoseMatchMode | str,
     max_dt_ns: int = 10_000_000,
+    where: str = "the pose file",
 ) -> PoseMatch:
     """Match the rows of ``trajectory`` to stored frames (``frame_ids`` with their ``stamps_ns``).
 
@@ -103,6 +105,7 @@ def match_trajectory(
         max_dt = as_int(max_dt_ns, "max_dt_ns")
         if max_dt < 0:
             raise StoreError(f"max_dt_ns must be >= 0, got {max_dt}")
+        _refuse_conflicting_rows(trajectory, where)
         if n_rows == 0 or len(ids) == 0:
             frame_idx, row_of = np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
         else:
@@ -148,3 +151,15 @@ def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps:
     first[1:] = row[order][1:] != row[order][:-1]
     frame_idx = np.sort(order[first])
     return frame_idx, row[frame_idx]
+
+
+def _refuse_conflicting_rows(trajectory: Trajectory, where: str) -> None:
+    """Two rows with one stamp but different poses leave a frame at that instant with two poses: refused, naming the
+    rows (1-based among the pose rows). The same row written twice (the TUM fr2_desk ground truth has one) is fine."""
+    stamps = np.asarray(trajectory.stamps_ns, dtype=np.int64)
+    for k in np.flatnonzero(np.diff(stamps) == 0).tolist():
+        a, b = trajectory.poses[k], trajectory.poses[k + 1]
+        if not np.allclose(a, b, rtol=0.0, atol=1e-9):
+            moved = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
+            raise StoreError(f"{where}: pose rows {k + 1} and {k + 2} share the stamp {int(stamps[k])} ns but give different "
+                             f"poses ({moved:.3g} m apart): which one is the frame's? Remove one of them")

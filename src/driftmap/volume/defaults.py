@@ -52,7 +52,7 @@ def _odometry_max_range(store: FrameStore) -> float | None:
     path = store.path / BUILD_SUMMARY
     try:
         summary = json.loads(path.read_text())
-    except (OSError, ValueError):
+    except (OSError, ValueError, RecursionError):
         return None
     odometry = summary.get("odometry_config") or {}
     value = odometry.get("max_range_m")

@@ -490,10 +490,19 @@ def tsdf_blocks(obs: Observation, voxel_size_m: float, truncation_m: float, max_
     fx, fy, cx, cy = obs.intrinsics
     K = o3c.Tensor(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
     E = o3c.Tensor(np.linalg.inv(obs.T_world_sensor))
-    depth_max = float(max_range_m) if max_range_m is not None else float(np.max(obs.depth_m)) + 1.0
-    blocks = _block_finder(voxel_size_m).compute_unique_block_coordinates(
-        o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(obs.depth_m))), K, E, 1.0, depth_max,
-        truncation_m / voxel_size_m)
+    depth = obs.depth_m
+    valid = np.isfinite(depth) & (depth > 0)
+    if not valid.any():  # a frame with no depth left (all dropped out, all beyond range): no block to touch
+        return np.zeros((0, 3), dtype=np.int32)
+    depth_max = float(max_range_m) if max_range_m is not None else float(np.max(depth[valid])) + 1.0
+    try:
+        blocks = _block_finder(voxel_size_m).compute_unique_block_coordinates(
+            o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth))), K, E, 1.0, depth_max,
+            truncation_m / voxel_size_m)
+    except RuntimeError as exc:  # Open3D aborts when no depth lies within depth_max
+        if "No block is touched" not in str(exc):
+            raise
+        return np.zeros((0, 3), dtype=np.int32)
     return blocks.numpy()  # int32 (N, 3), as Open3D gives them
 
 

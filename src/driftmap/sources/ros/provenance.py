@@ -34,7 +34,7 @@ def export_entry(path: Path, record: dict[str, str] | None, topic: str, count: i
         return None
     try:
         sensors = json.loads(record.get("sensors", "[]"))
-    except json.JSONDecodeError as exc:
+    except (ValueError, RecursionError) as exc:
         logger.warning("%s: unreadable %s metadata (%s); ignored", path, EXPORT_METADATA_NAME, exc)
         return None
     entry = next((s for s in sensors if s.get("topic") == topic), None)
@@ -58,7 +58,7 @@ def parse_origin(record: dict[str, str]) -> dict[str, Any] | None:
     well formed."""
     try:
         origin = json.loads(record.get("origin", "null"))
-    except json.JSONDecodeError:
+    except (ValueError, RecursionError):
         return None
     ok = isinstance(origin, dict) and isinstance(origin.get("format"), str) and isinstance(origin.get("path"), str)
     if ok and not isinstance(origin.get("options", {}), dict):
