@@ -31,20 +31,16 @@ QUERIES = ROOT / "datasets" / "synthetic-loop-queries.json"
 
 
 def table(result: dict) -> str:
-    rows = ["| assumption | unit | flipped % at each magnitude (mean over seeds) | median / max margin change at the largest (cm or deg) | Spearman |",
-            "|---|---|---|---|---|"]
+    rows = ["| assumption | unit | flipped % at each magnitude (mean over seeds) | Spearman (magnitude, flipped fraction; every seed) |",
+            "|---|---|---|---|"]
     for name, rho in result["spearman"].items():
         runs = [r for r in result["runs"] if r["assumption"] == name]
-        mags = sorted({r["magnitude"] for r in runs})
         cells = []
-        for m in mags:
+        for m in sorted({r["magnitude"] for r in runs}):
             f = [r["flipped_fraction"] for r in runs if r["magnitude"] == m]
             cells.append(f"{m:g}: {100 * np.mean(f):.1f}")
-        top = [r for r in runs if r["magnitude"] == mags[-1]]
-        med = np.median([r["median_abs_margin_delta"] or 0.0 for r in top])
-        mx = max(r["max_abs_margin_delta"] or 0.0 for r in top)
         rho_text = "n/a (nothing flipped)" if rho is None else f"{rho:.2f}"
-        rows.append(f"| `{name}` | {ASSUMPTIONS[name].unit} | {', '.join(cells)} | {100 * med:.2f} / {100 * mx:.1f} | {rho_text} |")
+        rows.append(f"| `{name}` | {ASSUMPTIONS[name].unit} | {', '.join(cells)} | {rho_text} |")
     return "\n".join(rows) + "\n"
 
 

@@ -110,12 +110,12 @@ ASSUMPTIONS: dict[str, Assumption] = {a.name: a for a in (
     Assumption("dropout_random", "fraction", (0.5, 0.7, 0.85, 0.95), perturb_points=_dropout_random),
     Assumption("dropout_structured", "fraction", (0.25, 0.5, 0.75, 0.9), perturb_points=_dropout_structured,
                needs_image=True),
-    Assumption("occlusion", "fraction of the image", (0.1, 0.2, 0.35, 0.5), perturb_points=_occlusion,
+    Assumption("occlusion", "fraction of the image", (0.2, 0.35, 0.5, 0.7), perturb_points=_occlusion,
                needs_image=True),
     Assumption("depth_scale", "%", (0.5, 1.0, 2.0, 4.0), perturb_points=_depth_scale),
     Assumption("pose_drift", "%/m", (0.5, 1.0, 2.0, 4.0), perturb_poses=_pose_drift),
-    Assumption("motion", "cm", (1.0, 2.0, 4.0, 8.0), perturb_poses=_motion),
-    Assumption("focal_length", "%", (0.5, 1.0, 2.0, 4.0), perturb_points=_focal_length, needs_image=True),
+    Assumption("motion", "cm", (2.0, 4.0, 8.0, 16.0), perturb_poses=_motion),
+    Assumption("focal_length", "%", (2.0, 4.0, 8.0, 16.0), perturb_points=_focal_length, needs_image=True),
     Assumption("extrinsic_rotation", "deg", (0.25, 0.5, 1.0, 2.0), perturb_points=_extrinsic_rotation),
 )}
 
@@ -167,8 +167,9 @@ class SweepRun:
     seed: int
     flipped_fraction: float
     flipped: list[str]
-    median_abs_margin_delta: float | None
-    max_abs_margin_delta: float | None
+    median_abs_margin_delta_m: float | None
+    """over the decisions whose margin is a length (clearance, collision)"""
+    max_abs_margin_delta_m: float | None
 
     def to_json(self) -> dict:
         return dict(self.__dict__)
@@ -220,7 +221,8 @@ def sweep(store: FrameStore, queries, work_dir: str | Path, *, revision: int | N
                         copy.append(frame)
                 comparison = compare(result.baseline, decide(FrameStore.open(path), qs, 0))
                 shutil.rmtree(path, ignore_errors=True)
-                deltas = np.abs([v for v in comparison.margin_deltas.values() if v is not None])
+                metric = {q.id for q in qs if q.kind in ("clearance", "collision")}
+                deltas = np.abs([v for k, v in comparison.margin_deltas.items() if v is not None and k in metric])
                 run = SweepRun(name, float(magnitude), int(seed), comparison.flipped_fraction, comparison.flipped_ids(),
                                float(np.median(deltas)) if len(deltas) else None,
                                float(deltas.max()) if len(deltas) else None)
