@@ -319,6 +319,21 @@ def test_sparse_points_get_nan_normal_and_zero_confidence() -> None:
     assert np.all(np.isfinite(result.normals[:-1]))
 
 
+
+def test_the_capped_neighbour_count_masks_exactly_as_counting_every_neighbour() -> None:
+    """The sparse mask counts neighbours only up to min_neighbors (a dense map's 3 cm ball holds thousands): the
+    same points are masked as by scipy's full count, points on the radius itself included."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(3)
+    pts = (rng.random((4000, 3)) * 0.3).astype(np.float32)
+    pts[:1500] = np.round(pts[:1500], 2)  # repeated points and neighbours exactly on the radius
+    for min_neighbors in (1, 5, 12):
+        result = estimate_normals(pts, k=20, radius_m=0.02, min_neighbors=min_neighbors)
+        full = cKDTree(pts.astype(np.float64)).query_ball_point(pts.astype(np.float64), 0.02, return_length=True)
+        np.testing.assert_array_equal(result.n_neighbors, np.minimum(full, min_neighbors))
+        np.testing.assert_array_equal(np.isnan(result.normals[:, 0]), full < min_neighbors)
+
 def test_frame_with_normals_attaches_sensor_frame_normals() -> None:
     pts = _plane_z2(2000)
     frame = make_frame(pts, a_pose(), attributes=PointAttributes(intensity=np.ones(len(pts), np.float32)))

@@ -98,7 +98,7 @@ class DecisionContext:
     # ------------------------------------------------------------------------------------------- frames
     def frames_report(self, frames: NDArray[np.int64] | list[int]) -> tuple[list[int], int | None]:
         """Sorted unique frame ids and the stamp of the newest (None without frames)."""
-        ids = sorted({int(f) for f in np.asarray(frames, dtype=np.int64).ravel()})
+        ids = np.unique(np.asarray(frames, dtype=np.int64).ravel()).tolist()  # sorted, as Python ints
         stamps = [self._stamps[f] for f in ids if f in self._stamps]
         return ids, (max(stamps) if stamps else None)
 

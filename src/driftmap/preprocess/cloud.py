@@ -170,7 +170,9 @@ class NormalsResult:
     ``normals``: unit vectors oriented towards the viewpoint (NaN where too few neighbours).
     ``curvature``: surface variation ``l0 / (l0 + l1 + l2)`` of the neighbourhood covariance (0 on a plane,
     1/3 for isotropic scatter). ``confidence``: ``1 - l0 / l1`` in [0, 1]; near 0 the normal direction is
-    ill-defined (edges, thin structures, sparse areas).
+    ill-defined (edges, thin structures, sparse areas). ``n_neighbors`` (with ``radius_m``): the points within the
+    radius, the point itself included, counted up to ``min_neighbors`` (all that decides a NaN normal; counting every
+    neighbour of a dense map cost most of a query).
     """
 
     normals: NDArray[np.float32]
@@ -218,7 +220,10 @@ def estimate_normals(
     normals[flip] *= -1.0
     counts = None
     if radius_m is not None:
-        counts = cKDTree(pts).query_ball_point(pts, radius_m, return_length=True).astype(np.int32)
+        k_min = max(int(min_neighbors), 1)
+        dist, _ = cKDTree(pts).query(pts, k=k_min, distance_upper_bound=np.nextafter(radius_m, np.inf))
+        within = np.asarray(dist).reshape(len(pts), k_min) <= radius_m  # as query_ball_point: distance <= radius
+        counts = within.sum(axis=1).astype(np.int32)
         sparse = counts < min_neighbors
         normals[sparse] = np.nan
         confidence[sparse] = 0.0
