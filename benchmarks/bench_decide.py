@@ -64,10 +64,8 @@ machine is shared, so the load averages before and after timing are kept too.
 from __future__ import annotations
 
 import cProfile
-import io
 import itertools
 import os
-import pstats
 import statistics
 import tempfile
 import time
@@ -75,7 +73,7 @@ from collections import defaultdict
 from pathlib import Path
 
 import numpy as np
-from _harness import check, time_per_item
+from _harness import check, time_per_item, top_functions
 from scipy.spatial import cKDTree
 
 from driftmap.datasets import shared_datasets_dir
@@ -305,13 +303,7 @@ def _profile_top(store: FrameStore, qs: QuerySet, layers: VolumeLayers, n: int =
     decide(store, QuerySet(picked), layers=layers)
     profile.disable()
     total = time.perf_counter() - t0
-    stats = pstats.Stats(profile, stream=io.StringIO())
-    rows = sorted(stats.stats.items(), key=lambda kv: -kv[1][2])  # by tottime
-    top = []
-    for (file, line, func), (_, ncalls, tottime, cumtime, _) in rows[:n]:
-        where = f"{Path(file).name}:{line}" if file != "~" else "builtin"
-        top.append(f"{func} ({where}) calls {ncalls} tottime {tottime:.3f} s cumtime {cumtime:.3f} s")
-    return {"queries": len(picked), "seconds": total, "top_by_tottime": top}
+    return {"queries": len(picked), "seconds": total, "top_by_tottime": top_functions(profile, n)}
 
 
 # ------------------------------------------------------------------------------------------------------ the check

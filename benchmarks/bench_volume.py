@@ -44,8 +44,6 @@ import contextlib
 import cProfile
 import functools
 import gc
-import io
-import pstats
 import statistics
 import tempfile
 import time
@@ -58,7 +56,7 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 import pyoctomap
-from _harness import _minor_page_faults, check
+from _harness import _minor_page_faults, check, top_functions
 
 import driftmap.volume.defaults as volume_defaults
 import driftmap.volume.layers as layers_mod
@@ -423,16 +421,6 @@ def _split(total_s: float, stages: dict[str, float]) -> dict[str, Any]:
     return out
 
 
-def _top_functions(profile: cProfile.Profile, n: int = 10) -> list[str]:
-    stats = pstats.Stats(profile, stream=io.StringIO())
-    rows = sorted(stats.stats.items(), key=lambda kv: -kv[1][2])  # by tottime
-    out = []
-    for (file, line, func), (_, ncalls, tottime, cumtime, _) in rows[:n]:
-        where = f"{Path(file).name}:{line}" if file != "~" else "builtin"
-        out.append(f"{func} ({where}) calls {ncalls} tottime {tottime:.3f} s cumtime {cumtime:.3f} s")
-    return out
-
-
 def bench_correction(quick: bool, label: str, make_store: Callable[[Path], None], repeats: int) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="driftmap-bench-volume-") as tmp:
         path = Path(tmp) / label
@@ -524,7 +512,7 @@ def bench_correction(quick: bool, label: str, make_store: Callable[[Path], None]
                                                                      timings["rebuild_from_store"]["samples_s"])],
                     "ratio_instrumented_run": apply_s / rebuild_s,
                     "store_build_s": build_s, "first_layers_build_s": first_build_s,
-                    "time_split_s": split, "update_profile_top_tottime": _top_functions(profile)},
+                    "time_split_s": split, "update_profile_top_tottime": top_functions(profile)},
     }
     return [correction, memory]
 

@@ -230,17 +230,17 @@ def perturb(
                              (drift_axis, "--drift-axis", drift_deg_per_m)):
         if used and not any(parse_vector(text, flag)):
             raise ConfigError(f"{flag}: a drift needs a non-zero direction, got {text!r}")
+    step_vec = None if step_m is None else parse_vector(step_m, "--step-m")
+    rot_vec = None if step_deg is None else parse_vector(step_deg, "--step-deg")
     if step_frame is not None:
-        moved = step_m is not None and any(parse_vector(step_m, "--step-m"))
-        turn = 0.0 if step_deg is None else float(np.linalg.norm(parse_vector(step_deg, "--step-deg")))
+        moved = step_vec is not None and any(step_vec)
+        turn = 0.0 if rot_vec is None else float(np.linalg.norm(rot_vec))
         turned = turn > 0 and abs(turn - 360.0 * round(turn / 360.0)) > 1e-9
         if not moved and not turned and not drift_percent_per_m and not drift_deg_per_m:
             raise ConfigError("nothing to perturb: the step is zero" + (f" (a rotation of {turn:g} deg is none)"
                                                                        if turn else ""))
     perturbation = PosePerturbation(
-        step_index=step_frame,
-        step_m=None if step_m is None else parse_vector(step_m, "--step-m"),
-        step_deg=None if step_deg is None else parse_vector(step_deg, "--step-deg"),
+        step_index=step_frame, step_m=step_vec, step_deg=rot_vec,
         drift_percent_per_m=drift_percent_per_m, drift_direction=parse_vector(drift_direction, "--drift-direction"),
         drift_deg_per_m=drift_deg_per_m, drift_axis=parse_vector(drift_axis, "--drift-axis"),
     )
