@@ -344,6 +344,8 @@ def test_resume_keeps_the_odometry_settings_of_the_build(lidar_log: Path, tmp_pa
     import json
 
     from driftmap.pipeline.build import build
+    from driftmap.pipeline.resume import PRE_PLANE_REFINE_KISS, recorded_odometry
+    from driftmap.store.frame_store import FrameStore
     from driftmap.registration.odometry import OdometryConfig
 
     store = tmp_path / "store"
@@ -360,7 +362,17 @@ def test_resume_keeps_the_odometry_settings_of_the_build(lidar_log: Path, tmp_pa
     summary_file.write_text(json.dumps(legacy))
     again = build(lidar_log, store, resume=True, loop_closure=False, source_options={"sensor": "lidar"})
     assert again.n_frames_new == 20
-    assert again.odometry_config == OdometryConfig.for_sensor(SensorKind.LIDAR).model_dump(mode="json")
+    before_refine = OdometryConfig.for_sensor(SensorKind.LIDAR).model_copy(update=PRE_PLANE_REFINE_KISS)
+    assert again.odometry_config == before_refine.model_dump(mode="json")
+    # recorded before the point-to-plane refinement existed: resumed without it, with the fitness floor of then
+    old = json.loads(summary_file.read_text())
+    old["odometry_config"] = {k: v for k, v in old["odometry_config"].items() if k not in PRE_PLANE_REFINE_KISS}
+    summary_file.write_text(json.dumps(old))
+    with FrameStore.open(store) as opened:
+        last = recorded_odometry(opened)
+    assert last is not None and last.kiss_refine_plane is False and last.tracking_min_fitness == 0.5
+    assert last.voxel_size_m == old["odometry_config"]["voxel_size_m"]
+    assert first.odometry_config["kiss_refine_plane"] is True and first.odometry_config["tracking_min_fitness"] == 0.25
 
 
 def test_indoor_lidar_loop_closure_removes_the_double_walls(lidar_log: Path, tmp_path: Path) -> None:

@@ -165,6 +165,10 @@ def remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> None
     logger.warning("build failed before any frame was stored: removed the empty store it created at %s", out)
 
 
+PRE_PLANE_REFINE_KISS = {"kiss_refine_plane": False, "tracking_min_fitness": 0.5}
+"""The KISS-ICP settings of builds recorded before ``kiss_refine_plane`` existed: resumed as they were built."""
+
+
 def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
     """The odometry settings an earlier build of ``store`` used (``build_summary.json``), for ``--resume``:
     defaults chosen from the scene are not chosen again (a store built before they were is resumed with its
@@ -172,9 +176,15 @@ def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
     try:
         summary = json.loads((store.path / "build_summary.json").read_text())
         if "odometry_config" not in summary:  # written before the settings were recorded: the sensor's defaults
-            return OdometryConfig.for_sensor(store.frame(int(store.frame_ids[0])).sensor_kind)
-        recorded = summary["odometry_config"]
-        return None if recorded is None else OdometryConfig.model_validate(recorded)
+            recorded = OdometryConfig.for_sensor(store.frame(int(store.frame_ids[0])).sensor_kind).model_dump(mode="json")
+            recorded = {k: v for k, v in recorded.items() if k not in PRE_PLANE_REFINE_KISS}
+        else:
+            recorded = summary["odometry_config"]
+        if recorded is None:
+            return None
+        if recorded.get("method") == "kiss" and "kiss_refine_plane" not in recorded:  # before the refinement
+            recorded = {**recorded, **PRE_PLANE_REFINE_KISS}
+        return OdometryConfig.model_validate(recorded)
     except (OSError, ValueError, AttributeError):
         return None
 
