@@ -509,3 +509,27 @@ def test_cli_messages_of_inputs(gt_store: FrameStore, tmp_path: Path) -> None:
             line = _one_error_line(_cli("decide", gt_store.path, "--queries", y, "--json", tmp_path / "o.json"))
             assert f'id: "{value}"' in line and "quote" in line, line
     assert not (tmp_path / "o.json").exists()
+
+
+def test_a_decide_table_in_the_config_sets_the_thresholds_through_the_cli(gt_decisions: DecisionSet, queries,
+                                                                          gt_store: FrameStore, tmp_path: Path) -> None:
+    """``decide --config`` with a ``[decide]`` table: a graspable board grasp needs more points than its ROI holds
+    and becomes too_few_points, under another settings hash; a bad threshold is one error line naming the key."""
+    graspable = next(d for d in gt_decisions.decisions if d.kind == "grasp" and d.decision == "graspable")
+    q = next(q for q in queries.queries if q.id == graspable.id)
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": q.id, "kind": "grasp", "roi_min_m": q.roi_min_m.tolist(), "roi_max_m": q.roi_max_m.tolist()}]}))
+    (tmp_path / "strict.toml").write_text("[decide]\ngrasp_min_points = 1000000\n")
+    runs = {}
+    for name, extra in (("default", []), ("strict", ["--config", tmp_path / "strict.toml"])):
+        out = _cli("decide", gt_store.path, "--queries", tmp_path / "q.json", "--json", tmp_path / f"{name}.json", *extra)
+        assert out.returncode == 0, out.stderr[-2000:]
+        runs[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    (default,), (strict,) = runs["default"]["decisions"], runs["strict"]["decisions"]
+    assert default["decision"] == "graspable" and strict["decision"] == "too_few_points"
+    assert runs["default"]["representation"]["settings_hash"] != runs["strict"]["representation"]["settings_hash"]
+    (tmp_path / "bad.toml").write_text("[decide]\ngrasp_min_points = 1\n")
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", tmp_path / "q.json", "--json",
+                                tmp_path / "bad.json", "--config", tmp_path / "bad.toml"))
+    assert "decide.grasp_min_points" in line and "bad.toml" in line, line
+    assert not (tmp_path / "bad.json").exists()

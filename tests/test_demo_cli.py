@@ -316,9 +316,10 @@ def test_config_shows_only_settings_that_take_effect() -> None:
     rows = {line.split("│")[1].strip(): line.split("│")[2].strip() for line in out.stdout.splitlines() if line.count("│") >= 3}
     assert rows["depth.min_depth_m"] == rows["depth.max_depth_m"] == rows["depth.depth_scale"] == "None"
     assert rows["map.export_voxel_size_m"] == "None" and not any(k.startswith("preprocess.") for k in rows)
-    # [volume] takes effect in `export --mesh/--octomap/--grid2d` and in the demo's volumetric layers
-    assert set(DriftmapConfig.model_fields) == {"depth", "map", "volume"}
-    assert rows["volume.voxel_size_m"] == "None"
+    # [volume] takes effect in `export --mesh/--octomap/--grid2d` and in the demo's volumetric layers; [decide] in
+    # `decide --config` (tests/test_decide.py)
+    assert set(DriftmapConfig.model_fields) == {"depth", "map", "volume", "decide"}
+    assert rows["volume.voxel_size_m"] == "None" and rows["decide.grasp_min_points"] == "30"
 
 
 def test_demo_applies_the_depth_settings(tmp_path: Path) -> None:

@@ -51,7 +51,7 @@ def decide(
     same_log: Annotated[bool, typer.Option("--same-log", help="--against: the two stores hold the same log read from two places (a copied or moved log): skip the check that their frames were read from the same files.")] = False,
     diagnose: Annotated[bool, typer.Option("--diagnose", help="Run diagnose on each decided revision first: double walls in reach of a query bound its uncertainty and label it double_wall_nearby.")] = False,
     diagnosis: Annotated[Path | None, typer.Option("--diagnosis", help="The double walls from a diagnosis JSON (diagnose --json) of the decided revision, instead of --diagnose.")] = None,
-    config: Annotated[Path | None, typer.Option("--config", help="Config file (JSON or TOML) whose [volume] table sets the volumetric layers (driftmap config --show).")] = None,
+    config: Annotated[Path | None, typer.Option("--config", help="Config file (JSON or TOML) whose [volume] table sets the volumetric layers and [decide] table the decisions' thresholds (driftmap config --show).")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --json file (and the report's figure).")] = False,
 ) -> None:
     """Decide what the map lets the robot do: clearance, collision, grasp, foothold and exploration queries, each
@@ -85,15 +85,16 @@ def decide(
     if figure is not None:
         refuse_existing(figure, "--report", overwrite)
     query_set = load_queries(queries)  # every query checked before the store is opened
-    volume = DriftmapConfig.load(config).volume
+    settings = DriftmapConfig.load(config)
+    volume, decide_config = settings.volume, settings.decide
     with open_store(store_path) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
-        _precheck(store, query_set, volume, revisions)
+        _precheck(store, query_set, volume, revisions, decide_config)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
         with progress_bar() as progress:
             tick = _ticker(progress)
             result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
-                          same_log)
+                          same_log, decide_config)
     decisions, comparison, layers = result
     _write(json_path, decisions, comparison)
     if figure is not None:
@@ -106,7 +107,7 @@ def decide(
         console.print(bold("report: ", figure))
 
 
-def _precheck(store, query_set, volume, revisions: list[int]) -> None:
+def _precheck(store, query_set, volume, revisions: list[int], decide_config=None) -> None:
     """Before any work: the revisions exist, no query lies far off the map and no sweep needs a runaway number of
     placements (a QueryError naming it)."""
     from driftmap.decisions.decide import check_in_box, check_sweeps, reach_of
@@ -114,7 +115,7 @@ def _precheck(store, query_set, volume, revisions: list[int]) -> None:
     for rev in revisions:
         store.ledger.revision(rev)
         check_in_box(query_set, *reach_of(store, rev, volume))
-    check_sweeps(query_set, store, volume)
+    check_sweeps(query_set, store, volume, decide_config)
 
 
 _INPUT_WHAT = {"--queries": "the queries", "--config": "the config", "--diagnosis": "the diagnosis"}
@@ -200,7 +201,7 @@ def _ticker(progress):
 
 
 def _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, given_walls, tick,
-         same_log=False):
+         same_log=False, decide_config=None):
     """The decision sets (one, or two and their comparison) and the layers of the last."""
     from driftmap.decisions import compare, decide, decide_revisions
     from driftmap.volume.layers import VolumeLayers
@@ -213,7 +214,7 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
         return diagnose_store(s, rev)
 
     if pair is not None:
-        (a, b), layers = decide_revisions(store, query_set, list(pair), volume,
+        (a, b), layers = decide_revisions(store, query_set, list(pair), volume, decide_config=decide_config,
                                           double_walls=[walls(store, pair[0]), walls(store, pair[1])], progress=tick)
         return b, compare(a, b), layers
     rev = store.head if revision is None else revision
@@ -227,13 +228,16 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
             _check_same_log(store, other, against, same_log)
-            a = decide(store, query_set, rev, volume, double_walls=walls(store, rev), progress=tick)
+            a = decide(store, query_set, rev, volume, decide_config=decide_config, double_walls=walls(store, rev),
+                       progress=tick)
             layers = VolumeLayers.from_store(other, other_rev, volume, progress=tick)
-            b = decide(other, query_set, other_rev, volume, layers=layers, double_walls=walls(other, other_rev),
+            b = decide(other, query_set, other_rev, volume, layers=layers, decide_config=decide_config,
+                       double_walls=walls(other, other_rev),
                        progress=tick)
         return b, compare(a, b), layers
     layers = VolumeLayers.from_store(store, rev, volume, progress=tick)
-    d = decide(store, query_set, rev, volume, layers=layers, double_walls=given_walls if given_walls is not None else walls(store, rev),
+    d = decide(store, query_set, rev, volume, layers=layers, decide_config=decide_config,
+               double_walls=given_walls if given_walls is not None else walls(store, rev),
                progress=tick)
     return d, None, layers
 
