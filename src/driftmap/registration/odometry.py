@@ -521,6 +521,19 @@ class KissOdometry:
             self._insert(scan_down, attempt.T_init if status is TrackingStatus.OK else None, T)
         return tracking.health(attempt, status, reason, dev_m, dev_deg, len(source), radius, degeneracy), T
 
+    def _half_voxel_clouds(self, scan_down: NDArray[np.float64], map_points: NDArray[np.float64]
+                           ) -> tuple[small_gicp.PointCloud, small_gicp.KdTree, small_gicp.PointCloud] | None:
+        """``(local map, its KD-tree, scan)`` at half the odometry voxel with normals and covariances of 10
+        neighbours, for the refinements; None when either has fewer than 10 points."""
+        v, threads = self.config.voxel_size_m, self.config.num_threads
+        target, tree = small_gicp.preprocess_points(map_points, downsampling_resolution=0.5 * v, num_neighbors=10,
+                                                    num_threads=threads)
+        source, _ = small_gicp.preprocess_points(scan_down, downsampling_resolution=0.5 * v, num_neighbors=10,
+                                                 num_threads=threads)
+        if target.size() < 10 or source.size() < 10:
+            return None
+        return target, tree, source
+
     def _refine_plane(self, attempt: tracking.Attempt, scan_down: NDArray[np.float64], map_points: NDArray[np.float64],
                       predicted: NDArray[np.float64],
                       evaluate: Callable[[NDArray[np.float64]], tracking.MapFit]) -> tracking.Attempt:
@@ -538,12 +551,10 @@ class KissOdometry:
         8.5, room rosette 74 / 55, spinning street 9.1 / 1.1, spinning room 0.33 / 0.32, the real Livox log 2.25 /
         1.55, KITTI 00 0-15 36.4 / 37.0, at 1.5-3x the odometry time."""
         v, threads = self.config.voxel_size_m, self.config.num_threads
-        target, tree = small_gicp.preprocess_points(map_points, downsampling_resolution=0.5 * v, num_neighbors=10,
-                                                    num_threads=threads)
-        source, _ = small_gicp.preprocess_points(scan_down, downsampling_resolution=0.5 * v, num_neighbors=10,
-                                                 num_threads=threads)
-        if target.size() < 10 or source.size() < 10:
+        clouds = self._half_voxel_clouds(scan_down, map_points)
+        if clouds is None:
             return attempt
+        target, tree, source = clouds
         found = []
         for start in (attempt.T_world_sensor, predicted):
             res = small_gicp.align(target, source, tree, start, registration_type="PLANE_ICP",
@@ -571,12 +582,10 @@ class KissOdometry:
         the synthetic street's odometry ATE 0.22 / 9.1 cm, the real Livox log's 1.6 / 2.2 cm, KITTI 00 0-15 0.38 /
         0.36 m, the room LiDAR 0.32 / 0.34 cm, at 1.5-2x the odometry time."""
         v, threads = self.config.voxel_size_m, self.config.num_threads
-        target, tree = small_gicp.preprocess_points(map_points, downsampling_resolution=0.5 * v, num_neighbors=10,
-                                                    num_threads=threads)
-        source, _ = small_gicp.preprocess_points(scan_down, downsampling_resolution=0.5 * v, num_neighbors=10,
-                                                 num_threads=threads)
-        if target.size() < 10 or source.size() < 10:
+        clouds = self._half_voxel_clouds(scan_down, map_points)
+        if clouds is None:
             return attempt
+        target, tree, source = clouds
         res = small_gicp.align(target, source, tree, attempt.T_world_sensor,
                                max_correspondence_distance=REFINE_CORRESPONDENCE_VOXELS * v, num_threads=threads)
         T = np.array(res.T_target_source)
