@@ -1,11 +1,15 @@
 """Drawing a point cloud without a GPU: pinhole cameras (:class:`ViewCamera`, OpenCV convention: x right, y down,
 z forward), fitting a camera to a cloud, and a numpy z-buffer renderer with eye-dome shading. The viewer
-(:mod:`driftmap.viewer`) uses it when Open3D's offscreen renderer is not available, and for its overview."""
+(:mod:`driftmap.viewer`) uses it when Open3D's offscreen renderer is not available, and for its overview; and
+whether a window can be opened at all (:func:`display_problem`)."""
 
 from __future__ import annotations
 
 import math
+import os
+import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -133,3 +137,51 @@ def _eye_dome(image: NDArray[np.uint8], zbuf: NDArray[np.float64], strength: flo
     out = image.astype(np.float64)
     out[drawn] *= np.clip(shade[drawn], 0.35, 1.0)[:, None]
     return (out + 0.5).astype(np.uint8)
+
+
+def display_available() -> bool:
+    """True when a window can be opened: macOS/Windows, or a ``DISPLAY`` / ``WAYLAND_DISPLAY`` that answers
+    (:func:`display_problem`)."""
+    return display_problem() is None
+
+
+def display_problem() -> str | None:
+    """Why no window can be opened (None: one can): on Linux neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` is set, or
+    the one set does not answer -- an X server's socket (``/tmp/.X11-unix/XN``, or TCP port 6000+N of its host, as
+    over ``ssh -X``) refusing a connection within a second, a Wayland socket missing. Open3D given an unreachable
+    ``DISPLAY`` falls back to EGL and can hang for ever."""
+    if sys.platform in ("darwin", "win32"):
+        return None
+    wayland, display = os.environ.get("WAYLAND_DISPLAY"), os.environ.get("DISPLAY")
+    if wayland:
+        path = Path(wayland) if os.path.isabs(wayland) else Path(os.environ.get("XDG_RUNTIME_DIR", "/run/user")) / wayland
+        if path.exists():
+            return None
+        if not display:
+            return f"WAYLAND_DISPLAY={wayland} is set but its socket {path} does not exist"
+    if not display:
+        return "DISPLAY / WAYLAND_DISPLAY are unset"
+    return None if _x_display_answers(display) else f"DISPLAY={display} is set but no X server answers there"
+
+
+def _x_display_answers(display: str) -> bool:
+    import re
+    import socket
+
+    match = re.fullmatch(r"(?P<host>[^:]*):(?P<n>\d+)(\.\d+)?", display.strip())
+    if match is None:
+        return False
+    host, n = match["host"], int(match["n"])
+    if host in ("", "unix"):
+        targets = [(socket.AF_UNIX, f"/tmp/.X11-unix/X{n}"), (socket.AF_UNIX, f"\0/tmp/.X11-unix/X{n}")]
+    else:
+        targets = [(socket.AF_INET6 if ":" in host else socket.AF_INET, (host, 6000 + n))]
+    for family, address in targets:
+        try:
+            with socket.socket(family, socket.SOCK_STREAM) as sock:
+                sock.settimeout(1.0)
+                sock.connect(address)
+                return True
+        except OSError:
+            continue
+    return False

@@ -48,7 +48,15 @@ from driftmap.errors import ConfigError, StoreError  # noqa: E402
 from driftmap.frame import SensorKind  # noqa: E402
 from driftmap.map.view import MapView  # noqa: E402
 from driftmap.preprocess.scene import LIDAR_OUTDOOR_P99_RANGE_M, scan_reach_m  # noqa: E402
-from driftmap.render import BACKGROUND_RGB, ViewCamera, fit_camera, look_along, render_software  # noqa: E402,F401
+from driftmap.render import (  # noqa: E402,F401
+    BACKGROUND_RGB,
+    ViewCamera,
+    display_available,
+    display_problem,
+    fit_camera,
+    look_along,
+    render_software,
+)
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
 if TYPE_CHECKING:
@@ -138,13 +146,6 @@ class ViewResult:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def display_available() -> bool:
-    """True when a window can be opened: macOS/Windows, or ``DISPLAY``/``WAYLAND_DISPLAY`` set."""
-    if sys.platform in ("darwin", "win32"):
-        return True
-    return bool(os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))
 
 
 def store_sensor_kind(store: FrameStore) -> SensorKind:
@@ -567,11 +568,13 @@ def _resolve_backend(backend: str, headless: bool | None, out_dir: Path | None, 
     """The backend to use and whether to render headless, or a :class:`ConfigError` for what does not fit."""
     if backend not in BACKENDS:
         raise ConfigError(f"--backend must be one of {', '.join(BACKENDS)}, got {backend!r}")
-    has_display = display_available()
+    problem = display_problem()
     if headless is None:
-        headless = not has_display
-    elif not headless and not has_display:
-        raise ConfigError("no display (DISPLAY / WAYLAND_DISPLAY are unset): render headless PNG views instead (headless=True; CLI: --headless, or leave --no-headless out)")
+        headless = problem is not None
+        if problem is not None and (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+            logger.warning("no window: %s; rendering headless PNG views", problem)
+    elif not headless and problem is not None:
+        raise ConfigError(f"no display ({problem}): render headless PNG views instead (headless=True; CLI: --headless, or leave --no-headless out)")
     if backend == "auto":
         backend = "open3d" if headless else "window"
     if backend == "window" and headless:

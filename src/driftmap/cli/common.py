@@ -122,8 +122,10 @@ def finite(value: Any) -> Any:
     return value
 
 
-def refuse_same_output(outputs: list[tuple[Path, str]]) -> None:
-    """Two output options naming one file (one would replace the other): a one-line error naming both."""
+def refuse_same_output(outputs: list[tuple[Path, str]], folders: tuple[str, ...] = ()) -> None:
+    """Two output options naming one file (one would replace the other), or an output inside another that is a file
+    (the flags in ``folders`` name folders, which may hold the others): a one-line error naming both, before any
+    work."""
     from driftmap.errors import ConfigError
 
     seen: dict[Path, str] = {}
@@ -132,6 +134,11 @@ def refuse_same_output(outputs: list[tuple[Path, str]]) -> None:
         if key in seen:
             raise ConfigError(f"{path}: {seen[key]} and {flag} name the same file; give each output its own path")
         seen[key] = flag
+    for key, flag in seen.items():
+        for other, other_flag in seen.items():
+            if other_flag not in folders and other != key and key.is_relative_to(other):
+                raise ConfigError(f"{key}: {flag} would lie inside {other}, the file {other_flag} writes; give each "
+                                  f"output its own path")
 
 
 def refuse_output_on_input(path: Path, flag: str, inputs: list[tuple[Path, str]]) -> None:

@@ -35,6 +35,9 @@ def _pair(text: str | None) -> tuple[int, int] | None:
     a, b = int(parts[0]), int(parts[1])
     if a < 0 or b < 0:
         raise typer.BadParameter(f"revision ids are >= 0, got {text!r}", param_hint="--compare")
+    if a == b:
+        raise typer.BadParameter(f"compares revision {a} with itself ({text!r}): name two revisions",
+                                 param_hint="--compare")
     return a, b
 
 
@@ -78,7 +81,8 @@ def decide(
     for store_dir in (store_path, against):
         if store_dir is not None:
             _refuse_store_inputs(store_dir, outputs)
-    refuse_same_output([(json_path, "--json"), *inputs] + ([(figure, "--report")] if figure else []))
+    refuse_same_output([(json_path, "--json"), *inputs] + ([(report, "--report"), (figure, "--report")] if figure else []),
+                       folders=("--report",))
     check_output(json_path, "--json")
     check_output(report, "--report", folder=True)
     refuse_existing(json_path, "--json", overwrite)

@@ -63,7 +63,7 @@ def diagnose(
     gt_format = None if gt_format is None else choice(gt_format, GT_FORMATS, "--gt-format")
     refuse_same_output([(p, f) for p, f in ((json_path, "--json"), (report, "--report"), (gt, "--gt"),
                                             (config, "--config"), (calib, "--calib"))
-                        if p is not None])  # an output never replaces an input, nor another output
+                        if p is not None], folders=("--report",))  # an output never replaces an input, nor another output
     if json_path.is_file() and not is_diagnosis_file(json_path):
         refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it

@@ -23,6 +23,7 @@ from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_q
 from driftmap.decisions.records import Decision, DecisionSet, Representation
 from driftmap.decisions.settings import DecideConfig, settings_hash
 from driftmap.decisions.walls import double_walls_of
+from driftmap.store.values import as_int
 from driftmap.volume.grid import BLOCK_RESOLUTION
 
 if TYPE_CHECKING:
@@ -126,7 +127,7 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
     or dict) or a list of regions -- the double walls in reach of each query then label and bound it.
     """
     qs = as_query_set(queries)
-    rev = store.head if revision is None else int(revision)
+    rev = store.head if revision is None else as_int(revision, "revision")
     store.ledger.revision(rev)  # an unknown revision: a StoreError naming it, before any work
     walls = double_walls_of(double_walls, rev)
     t0 = time.perf_counter()
@@ -153,6 +154,9 @@ def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | di
     from driftmap.volume.layers import VolumeLayers
 
     qs = as_query_set(queries)
+    revisions = [as_int(r, "revisions") for r in revisions]
+    if not revisions:
+        raise QueryError("decide_revisions: no revision given (revisions is empty)", query_id=None)
     for r in revisions:
         store.ledger.revision(int(r))
         check_in_box(qs, *reach_of(store, int(r), config))

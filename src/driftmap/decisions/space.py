@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
-from driftmap.volume.queries import surface_tree
+from driftmap.volume.queries import surface_box_distances, surface_tree, surface_voxel_reach_m
 
 if TYPE_CHECKING:
     from driftmap.decisions.evidence import DecisionContext
@@ -41,14 +41,13 @@ def _surface(ctx: DecisionContext) -> tuple[object | None, NDArray[np.float64]]:
 
 # ------------------------------------------------------------------------------------------------ clearance
 def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
-    """``blocked`` when an observed surface is closer than the radius to any point; else ``unknown`` when an
+    """``blocked`` when an observed surface is closer than the radius to any point (the distance to its voxel's cube:
+    no point measured in the voxel is nearer, so a coarse map does not call free what a point 0.1 m away blocks);
+    else ``unknown`` when an
     unknown voxel is (its centre within the radius plus half a voxel: the layers' distance to unknown space), with
     policy ``occupied``; else ``free``. Margin: the smallest clearance to a surface minus the radius."""
     tree, surface = _surface(ctx)
-    if tree is None:
-        d_surf, idx = np.full(len(q.points_m), np.inf), np.zeros(len(q.points_m), np.int64)
-    else:
-        d_surf, idx = tree.query(q.points_m)
+    d_surf, idx = surface_box_distances(ctx.layers, q.points_m)
     k = int(np.argmin(d_surf))
     margin = float(d_surf[k]) - q.radius_m
     policy = _policy(ctx, q.unknown_is)
@@ -97,7 +96,7 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
     check_path_samples(q, step)
     samples, along = path_samples(q.path_m, step)
     tree, surface = _surface(ctx)
-    signed, nearest = _footprint_distances(q, samples, tree, surface)
+    signed, nearest = _footprint_distances(q, samples, tree, surface, ctx.voxel_m)
     contact = np.flatnonzero(signed < 0)
     unknown = (np.flatnonzero(_unknown_counts(ctx.layers, q, samples) > 0) if _policy(ctx, q.unknown_is) == "occupied"
                else np.zeros(0, np.int64))
@@ -185,8 +184,9 @@ GROUP = 8
 
 
 def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: object | None,
-                         surface: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Per sample: the smallest signed distance from the footprint to a surface point and that point's index. Exact
+                         surface: NDArray[np.float64], voxel_size_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Per sample: the smallest signed distance from the footprint to a surface point, less how far a point measured
+    in that point's voxel may lie from it (:func:`surface_voxel_reach_m`), and that point's index. Exact
     wherever it can be the path's smallest or a contact (the samples whose centre lies within the footprint's
     bounding radius of the nearest centre distance) up to :data:`MARGIN_CAP_M` beyond the footprint; elsewhere the
     lower bound ``nearest surface - bounding radius`` (with the nearest point's index)."""
@@ -194,21 +194,23 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
     if tree is None:
         return np.full(n, np.inf), np.full(n, -1, np.int64)
     bound = float(np.linalg.norm(q.half_extent_m))
+    reach = surface_voxel_reach_m(surface, voxel_size_m)  # a measured point may lie this far from its voxel's mean
+    r_max = float(reach.max())
     d_centre, nearest = tree.query(samples)
-    signed = d_centre - bound
+    signed = d_centre - bound - r_max
     nearest = nearest.astype(np.int64)
-    need = np.flatnonzero(d_centre <= min(float(d_centre.min()), bound + MARGIN_CAP_M) + bound)
+    need = np.flatnonzero(d_centre <= min(float(d_centre.min()), bound + MARGIN_CAP_M) + bound + r_max)
     if len(need) == 0:
         return signed, nearest
     for start in range(0, len(need), GROUP):
         rows = need[start:start + GROUP]
         centre = samples[rows].mean(axis=0)
         spread = float(np.linalg.norm(samples[rows] - centre, axis=1).max())
-        reach = spread + bound + min(float(d_centre[rows].max()), bound + MARGIN_CAP_M)
-        cand = np.asarray(tree.query_ball_point(centre, reach), dtype=np.int64)
+        within = spread + bound + r_max + min(float(d_centre[rows].max()), bound + MARGIN_CAP_M)
+        cand = np.asarray(tree.query_ball_point(centre, within), dtype=np.int64)
         if len(cand) == 0:
             continue
-        d = footprint_signed_distances(q, samples[rows], surface[cand])
+        d = footprint_signed_distances(q, samples[rows], surface[cand]) - reach[cand][None, :]
         j = np.argmin(d, axis=1)
         signed[rows] = d[np.arange(len(rows)), j]
         nearest[rows] = cand[j]

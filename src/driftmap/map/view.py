@@ -84,6 +84,8 @@ QUERY_PIECE_POINTS = 2048
 #: launching a parallel region ~0.2 ms.
 QUERY_PARALLEL_POINTS = 1 << 20
 
+NEAREST_MAX_COORDINATE_M = 1e150  # nearest(): a position farther out (or not finite) is refused: squares overflow
+
 
 class MapView:
     """World points of a set of frames in one pose revision.
@@ -583,6 +585,9 @@ class MapView:
         the first in that frame. Points with a NaN coordinate are left out. Raises :class:`StoreError` when no
         point qualifies."""
         q = vec3_arg("nearest", "position_m", position_m)
+        if not np.all(np.abs(q) <= NEAREST_MAX_COORDINATE_M):  # squared distances would overflow to inf
+            raise ConfigError(f"nearest: position_m must be finite, within +-{NEAREST_MAX_COORDINATE_M:g} m, got "
+                              f"{q.tolist()}")
         z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else z_range_arg("nearest", z_range_m)
         index = self._piece_index.update(len(self.frame_ids), self._offsets, self._T, self._world,
                                          piece_points=QUERY_PIECE_POINTS, parallel_min_points=QUERY_PARALLEL_POINTS)

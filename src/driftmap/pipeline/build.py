@@ -180,6 +180,22 @@ def _open_store(out: Path, new_store: bool, src: FrameSource, record: dict[str, 
     return store, recorded
 
 
+STORED_POSE_TOLERANCE_M = 1e-6
+"""``--resume`` with given poses: a stored frame's pose and the source's may differ by this (m, and rad) at most."""
+
+
+def _check_stored_pose(src: FrameSource, store: FrameStore, frame: Frame, T_source: np.ndarray) -> None:
+    """``--resume`` taking poses from the source or a file: a frame stored before must have the pose the source gives
+    it now, else the store would mix two versions of the poses (a ground-truth file edited between the runs)."""
+    T_stored = store.poses(0)[int(np.searchsorted(store.frame_ids, frame.frame_id))]
+    moved_m = float(np.linalg.norm(T_stored[:3, 3] - T_source[:3, 3]))
+    turned = float(np.abs(T_stored[:3, :3] - T_source[:3, :3]).max())
+    if moved_m > STORED_POSE_TOLERANCE_M or turned > STORED_POSE_TOLERANCE_M:
+        raise SourceError(f"{src.uri}: --resume: frame {frame.frame_id} is stored with another pose than the one the "
+                          f"source gives it now ({moved_m:.6g} m apart): the poses changed since the store was built, "
+                          f"and resuming would mix both versions; build into a new --out")
+
+
 def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Callable[[Frame], np.ndarray] | None,
            poses_from_source: bool, loop_closure: bool, tick: ProgressCallback, stages: dict[str, float],
            inject_wrong_loop: tuple[int, int, np.ndarray] | None, *,
@@ -208,6 +224,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         if done == 1 and loop_closure and frame.sensor_kind is not SensorKind.LIDAR:
             check_place_descriptor(config.loop_closure, frame)  # before anything is stored
         if frame.frame_id in existing:
+            if poses_from_source or pose_of is not None:
+                _check_stored_pose(src, store, frame, poser.pose(frame)[0])
             tick("frames", done, n_total)
             continue
         t_b = time.perf_counter()
@@ -226,6 +244,10 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     logger.info("stored %d new frames in %.1f s", n_new, time.perf_counter() - t0)
     if src.skipped:
         logger.warning("%d frames skipped (lenient): %s", len(src.skipped), src.skipped[:5])
+        if len(store) == 0:
+            frame_index, reason = src.skipped[0]
+            raise SourceError(f"every frame read was skipped ({len(src.skipped)}; --lenient), so nothing was stored; "
+                              f"the first, frame {frame_index}: {reason}")
     result = BuildResult(
         store=str(store.path), n_frames=len(store), n_frames_new=n_new,
         mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,

@@ -73,6 +73,7 @@ from driftmap.store.manifest import (
     write_manifest,
 )
 from driftmap.store.opening import load_segments
+from driftmap.store.values import as_int
 from driftmap.store.pose_io import TrajectoryFormat, export_trajectory, import_poses, warn_about_revision
 from driftmap.store.reading import frame_from_ref, release_maps, segment_map
 from driftmap.store.recovery import recover_open_segments, recover_store
@@ -309,7 +310,7 @@ class FrameStore:
 
     def _ref(self, frame_id: int) -> StoredFrameRef:
         try:
-            return self._refs[int(frame_id)]
+            return self._refs[as_int(frame_id, "frame_id")]
         except KeyError:
             raise StoreError(f"{self.path}: no frame {frame_id} in the store") from None
 

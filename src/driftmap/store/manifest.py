@@ -89,7 +89,7 @@ def read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
                                     f"holds {len(segments)} segment file(s){fix}", path=file, offset=None)
         raise StoreError(f"{file}: format {manifest.get('format')!r} is not {FORMAT_NAME!r}")
     if manifest.get("version") != FORMAT_VERSION:
-        raise StoreError(f"{file}: store format version {manifest.get('version')} is not supported "
+        raise StoreError(f"{file}: store format version {manifest.get('version')!r} is not supported "
                          f"(this driftmap reads version {FORMAT_VERSION})")
     segments = manifest.get("segments")
     shape_ok = (isinstance(manifest.get("store_uuid"), str) and isinstance(segments, list)

@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from driftmap.errors import ConfigError
+from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import SensorKind
 from driftmap.preprocess.noise import NoiseModel
 from driftmap.preprocess.scene import lidar_frames, lidar_odometry_scale, sample_positions, scene_reach
@@ -31,6 +31,8 @@ def resolve_config(store: FrameStore, config: VolumeConfig) -> VolumeConfig:
     LiDAR's voxel scaled with the scene as the odometry's lengths are, and the odometry's max range (recorded in
     ``build_summary.json``). A LiDAR store whose range cannot be told is a :class:`ConfigError` (its rays would set
     the grid's extent: set ``volume.max_range_m``)."""
+    if len(store) == 0:
+        raise StoreError(f"{store.path}: the store holds no frames: there is no map to build volumetric layers of")
     first = store.frame(int(store.frame_ids[0]))
     if first.sensor_kind is not SensorKind.LIDAR:
         voxel = config.resolved(first.sensor_kind).voxel_size_m

@@ -51,6 +51,36 @@ def surface_tree(layers: Layers) -> cKDTree | None:
     return _cached(layers, "surface_tree", build)
 
 
+def surface_voxel_reach_m(surface_m: NDArray[np.float64], voxel_size_m: float) -> NDArray[np.float64]:
+    """Per observed-surface point (a voxel's mean, :func:`surface_tree`), the distance to its voxel's farthest corner:
+    no point measured in the voxel lies farther from the mean (at most a voxel diagonal)."""
+    lo = np.floor(surface_m / voxel_size_m) * voxel_size_m
+    far = np.maximum(surface_m - lo, lo + voxel_size_m - surface_m)
+    return np.linalg.norm(np.clip(far, 0.0, voxel_size_m), axis=1)
+
+
+def surface_box_distances(layers: Layers, points_m: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Per point, the distance to the nearest observed-surface voxel's cube and the index (into
+    :func:`surface_tree`'s data) of that voxel's mean: a lower bound on the distance to any point measured in it, for
+    decisions that must not call a space free on the strength of a voxel's mean (``inf`` / -1 with no surface)."""
+    pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
+    tree = surface_tree(layers)
+    if tree is None:
+        return np.full(len(pts), np.inf), np.full(len(pts), -1, np.int64)
+    vs = layers.grid.voxel_size_m
+    surface = np.asarray(tree.data)
+    d_mean, _ = tree.query(pts)
+    out_d, out_i = np.empty(len(pts)), np.empty(len(pts), np.int64)
+    for k, cand in enumerate(tree.query_ball_point(pts, d_mean + np.sqrt(3.0) * vs)):
+        cand = np.asarray(cand, dtype=np.int64)
+        lo = np.floor(surface[cand] / vs) * vs
+        gap = np.maximum(np.maximum(lo - pts[k], pts[k] - (lo + vs)), 0.0)
+        d = np.linalg.norm(gap, axis=1)
+        j = int(np.argmin(d))
+        out_d[k], out_i[k] = d[j], cand[j]
+    return out_d, out_i
+
+
 def unknown_distance_grid(layers: Layers) -> NDArray[np.float32]:
     """Per grid voxel, the distance (metres) from its centre to the nearest face of a never-observed voxel (0 in one)."""
     def build() -> NDArray[np.float32]:

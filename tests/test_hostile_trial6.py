@@ -1,0 +1,190 @@
+"""The sixth hostile-input trial (issue 22; about 555 runs, docs/bad-input.md): the broken (B) and weak (W) cases it
+found outside the readers (those are in tests/test_hostile_trial6_sources.py), through the path the user took.
+B1 a coarse map calling free a sphere 0.1 m from a measured point; B2 ``decide`` on an empty store and a lenient
+build that skipped every frame; B4 ``view`` hanging on an unreachable ``DISPLAY``; B5 ``--resume`` mixing two
+versions of the source's poses; B7 float frame ids and revisions truncated."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from driftmap.errors import DriftmapError, StoreError
+from driftmap.map.view import MapView
+from driftmap.pipeline.build import build
+from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
+from driftmap.store.frame_store import FrameStore
+
+
+def _cli(*args: object, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, env={**os.environ, "COLUMNS": "200", **(env or {})})
+
+
+def _error(out: subprocess.CompletedProcess) -> str:
+    """The one-line error of a refused command (exit 1 or 2, no traceback), whitespace joined."""
+    assert out.returncode in (1, 2), (out.returncode, out.stdout[-1500:], out.stderr[-1500:])
+    assert "Traceback" not in out.stderr and "Traceback" not in out.stdout
+    return " ".join(out.stderr.split())
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A 10-frame synthetic log, a store of it placed with the ground truth, and one with a corrected revision."""
+    root = tmp_path_factory.mktemp("trial6")
+    log = generate_synthetic_log(root / "log", SyntheticLogConfig(n_frames=10, seed=3))
+    build(log, root / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
+    return {"root": root, "log": log, "gt": root / "gt"}
+
+
+def _near_queries(store_path: Path, out: Path) -> list[np.ndarray]:
+    """Clearance queries of radius 0.2 m whose point lies 0.1 m from a measured map point (MapView.nearest)."""
+    with FrameStore.open(store_path) as store:
+        view = MapView.from_store(store, 0)
+        queries, points = [], []
+        for k, p in enumerate(([0.5, 0.5, 1.0], [0.0, 0.0, 0.5], [1.0, -1.0, 1.0], [-1.0, 1.0, 1.2])):
+            hit = np.asarray(view.nearest(p).point_world, dtype=np.float64)
+            away = np.asarray(p) - hit
+            c = hit + 0.1 * away / np.linalg.norm(away)
+            points.append(hit)
+            queries.append({"id": f"near{k}", "kind": "clearance", "points_m": [c.tolist()], "radius_m": 0.2})
+    out.write_text(json.dumps({"queries": queries}))
+    return points
+
+
+def test_t6_b1_a_coarse_map_never_calls_free_a_sphere_holding_a_measured_point(logs: dict, tmp_path: Path) -> None:
+    """Clearance was measured to each occupied voxel's mean point: at 0.5 m voxels three of four spheres of radius
+    0.2 m around a point 0.1 m from a measured one were free. Now the distance is to the voxel's cube: blocked at
+    every voxel size, and a collision sweep through the same point is never clear."""
+    hits = _near_queries(logs["gt"], tmp_path / "q.json")
+    for voxel in (0.02, 0.5, 1.0):
+        cfg = tmp_path / f"v{voxel}.toml"
+        cfg.write_text(f"[volume]\nvoxel_size_m = {voxel}\n")
+        out = _cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / f"d{voxel}.json",
+                   "--config", cfg)
+        assert out.returncode == 0, out.stderr[-2000:]
+        decisions = json.loads((tmp_path / f"d{voxel}.json").read_text())["decisions"]
+        assert [d["decision"] for d in decisions] == ["blocked"] * 4, (voxel, decisions)
+        assert all(d["details"]["clearance_m"] <= 0.1 + 1e-9 for d in decisions), voxel
+    p = hits[0]
+    sweep = {"queries": [{"id": "sweep", "kind": "collision", "path_m": [(p - [0.5, 0, 0]).tolist(), (p + [0.5, 0, 0]).tolist()],
+                          "footprint": {"box_m": [0.1, 0.1, 0.1]}, "unknown_is": "free"}]}
+    (tmp_path / "s.json").write_text(json.dumps(sweep))
+    (tmp_path / "v1.toml").write_text("[volume]\nvoxel_size_m = 1.0\n")
+    out = _cli("decide", logs["gt"], "--queries", tmp_path / "s.json", "--json", tmp_path / "s_out.json",
+               "--config", tmp_path / "v1.toml")
+    assert out.returncode == 0, out.stderr[-2000:]
+    (d,) = json.loads((tmp_path / "s_out.json").read_text())["decisions"]
+    assert d["decision"] == "blocked", d
+
+
+def test_t6_b2_w1_a_lenient_build_that_skipped_every_frame_fails_and_decide_refuses_an_empty_store(
+        logs: dict, tmp_path: Path) -> None:
+    folder = tmp_path / "faces"
+    folder.mkdir()
+    for k in range(3):  # PLY files with a face element only: no point to read
+        (folder / f"{k}.ply").write_text("ply\nformat ascii 1.0\nelement face 1\nproperty list uchar int "
+                                         "vertex_indices\nend_header\n3 0 1 2\n")
+    out = _cli("build", folder, "--out", tmp_path / "st", "--lenient", "--period-s", "0.1", "--no-loop-closure")
+    line = _error(out)
+    assert "every frame read was skipped (3" in line and "frame 0" in line, line
+    assert not (tmp_path / "st").exists()  # the empty store it made is removed
+    empty = FrameStore.create(tmp_path / "empty")
+    empty.close()
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    line = _error(_cli("decide", tmp_path / "empty", "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json"))
+    assert "holds no frames" in line and str(tmp_path / "empty") in line, line
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_t6_b4_view_does_not_hang_on_a_display_nobody_answers(logs: dict, tmp_path: Path) -> None:
+    """DISPLAY set to a display no X server serves (a stale ssh -X): PNG views and a warning, not a hang."""
+    out = _cli("view", logs["gt"], "--out", tmp_path / "views", env={"DISPLAY": ":97"}, timeout=240)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "DISPLAY=:97 is set but no X server answers" in " ".join(out.stderr.split())
+    assert list((tmp_path / "views").glob("*.png"))
+    line = _error(_cli("view", logs["gt"], "--out", tmp_path / "v2", "--no-headless", env={"DISPLAY": ":97"}))
+    assert "no display (DISPLAY=:97 is set but no X server answers there)" in line, line
+
+
+def test_t6_b5_resume_refuses_poses_that_changed_in_the_source(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """7-Scenes frames 0-4 whose frame 1 has no pose file: the build stops after frame 0; the file comes back but
+    frame 0's pose moved by 1 m. --resume --poses-from-source refuses to mix the two versions (naming the frame)."""
+    log = tmp_path / "log"
+    log.mkdir()
+    shutil.copy(sevenscenes_dir / "camera-intrinsics.txt", log)
+    for k in range(5):
+        for kind in ("depth.png", "pose.txt"):
+            shutil.copy(sevenscenes_dir / f"frame-{k:06d}.{kind}", log)
+    pose1 = (log / "frame-000001.pose.txt").read_text()
+    (log / "frame-000001.pose.txt").unlink()
+    out = _cli("build", log, "--out", tmp_path / "st", "--poses-from-source", "--no-loop-closure")
+    assert out.returncode == 1 and "frame-000001.pose.txt" in out.stderr, out.stderr[-1500:]
+    with FrameStore.open(tmp_path / "st") as store:
+        assert list(store.frame_ids) == [0]
+    (log / "frame-000001.pose.txt").write_text(pose1)
+    pose0 = (log / "frame-000000.pose.txt").read_text()
+    T = np.loadtxt(log / "frame-000000.pose.txt")
+    T[0, 3] += 1.0
+    np.savetxt(log / "frame-000000.pose.txt", T)
+    line = _error(_cli("build", log, "--out", tmp_path / "st", "--poses-from-source", "--no-loop-closure", "--resume"))
+    assert "--resume: frame 0 is stored with another pose" in line and "1 m apart" in line, line
+    (log / "frame-000000.pose.txt").write_text(pose0)  # the file as it was: the resume completes
+    out = _cli("build", log, "--out", tmp_path / "st", "--poses-from-source", "--no-loop-closure", "--resume")
+    assert out.returncode == 0, out.stderr[-1500:]
+    with FrameStore.open(tmp_path / "st") as store:
+        assert list(store.frame_ids) == [0, 1, 2, 3, 4]
+
+
+def test_t6_b7_float_and_bool_ids_and_revisions_are_refused(logs: dict) -> None:
+    from driftmap.decisions import decide, decide_revisions
+    from driftmap.decisions.errors import QueryError
+
+    queries = {"queries": [{"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}
+    with FrameStore.open(logs["gt"]) as store:
+        for bad in (2.9, -0.5, True, np.float64(4.7)):
+            with pytest.raises(StoreError, match="frame_id must be an integer"):
+                store.frame(bad)
+            with pytest.raises(StoreError, match="frame_id must be an integer"):
+                store.frame_info(bad)
+        assert store.frame(np.int64(2)).frame_id == 2
+        with pytest.raises(StoreError, match="revision must be an integer"):
+            decide(store, queries, revision=0.9)
+        with pytest.raises(QueryError, match="revisions is empty"):
+            decide_revisions(store, queries, [])
+        with pytest.raises(DriftmapError, match="position_m must be finite"):
+            MapView.from_store(store, 0).nearest([np.inf, 0, 0])
+        with pytest.raises(DriftmapError, match="position_m must be finite"):
+            MapView.from_store(store, 0).nearest([1e300, 0, 0])
+
+
+def test_t6_w3_outputs_inside_each_other_are_refused_before_any_work(logs: dict, tmp_path: Path) -> None:
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    line = _error(_cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "a.json",
+                       "--report", tmp_path / "a.json"))
+    assert "--json and --report name the same file" in line, line
+    line = _error(_cli("diagnose", logs["gt"], "--json", tmp_path / "d.json", "--report", tmp_path / "d.json" / "sub"))
+    assert "--report would lie inside" in line and "the file --json writes" in line, line
+    line = _error(_cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "b.json",
+                       "--compare", "0,0"))
+    assert "with itself" in line, line
+    assert not list(tmp_path.glob("*.json.*")) and not (tmp_path / "a.json").exists() and not (tmp_path / "d.json").exists()
+
+
+def test_t6_w13_a_string_store_version_is_quoted(logs: dict, tmp_path: Path) -> None:
+    copy = tmp_path / "st"
+    shutil.copytree(logs["gt"], copy)
+    manifest = json.loads((copy / "store.json").read_text())
+    manifest["version"] = str(manifest["version"])
+    (copy / "store.json").write_text(json.dumps(manifest))
+    line = _error(_cli("info", copy))
+    assert f"store format version '{manifest['version']}' is not supported" in line, line
