@@ -188,3 +188,51 @@ def test_t6_w13_a_string_store_version_is_quoted(logs: dict, tmp_path: Path) -> 
     (copy / "store.json").write_text(json.dumps(manifest))
     line = _error(_cli("info", copy))
     assert f"store format version '{manifest['version']}' is not supported" in line, line
+
+
+def test_t6_w7_w8_duplicate_keys_and_a_truncation_below_a_voxel_are_refused(logs: dict, tmp_path: Path) -> None:
+    (tmp_path / "dup.json").write_text('{"volume": {"voxel_size_m": 0.05, "voxel_size_m": 0.2}}')
+    line = _error(_cli("export", logs["gt"], "--mesh", tmp_path / "m.ply", "--config", tmp_path / "dup.json"))
+    assert "dup.json" in line and "'voxel_size_m' appears twice" in line, line
+    query = '"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2, "radius_m": 5'
+    (tmp_path / "q.json").write_text('{"queries": [{' + query + '}]}')
+    (tmp_path / "q.yaml").write_text("queries:\n  - id: c\n    kind: clearance\n    points_m: [[0, 0, 1]]\n"
+                                     "    radius_m: 0.2\n    radius_m: 5\n")
+    for q in ("q.json", "q.yaml"):
+        line = _error(_cli("decide", logs["gt"], "--queries", tmp_path / q, "--json", tmp_path / "o.json"))
+        assert q in line and "'radius_m' appears twice" in line, line
+    (tmp_path / "trunc.toml").write_text("[volume]\ntruncation_m = 0.001\nvoxel_size_m = 0.05\n")
+    line = _error(_cli("export", logs["gt"], "--mesh", tmp_path / "m.ply", "--config", tmp_path / "trunc.toml"))
+    assert "volume.truncation_m (0.001 m) must be at least one voxel" in line, line
+    assert not (tmp_path / "m.ply").exists()
+
+
+def test_t6_w11_w12_w14_list_lines_perturb_vectors_and_correct_sources(logs: dict, tmp_path: Path) -> None:
+    log, gt = logs["log"], logs["log"] / "groundtruth.txt"
+    for text, expected in ((f"{log} --poses {gt} --poses-from-source", "--poses and --poses-from-source"),
+                           (f"{log} --frames 0:3 --frames 0:4", "--frames is given twice")):
+        (tmp_path / "list.txt").write_text(text + "\n")
+        line = _error(_cli("batch", tmp_path / "list.txt", "--out", tmp_path / "fleet"))
+        assert f"{tmp_path / 'list.txt'}:1" in line and expected in line, line
+    line = _error(_cli("perturb", gt, tmp_path / "p.txt", "--step-frame", 3, "--step-m", "1e12,0,0"))
+    assert "--step-m: a step of 1e+12 m" in line, line
+    line = _error(_cli("perturb", gt, tmp_path / "p.txt", "--drift-percent-per-m", 1, "--drift-direction", "1e-300,0,0"))
+    assert line.startswith("error: --drift-direction: a drift needs a non-zero direction"), line
+    assert not (tmp_path / "p.txt").exists()
+    copy = tmp_path / "st"
+    shutil.copytree(logs["gt"], copy)
+    line = _error(_cli("correct", copy, "--poses", gt, "--source", "rollback"))
+    assert "'rollback' is not one of" in line, line
+    with FrameStore.open(copy) as store:
+        assert store.head == 0
+
+
+def test_t6_w15_decide_against_a_store_missing_frames_warns(logs: dict, tmp_path: Path) -> None:
+    build(logs["log"], tmp_path / "half", poses_file=logs["log"] / "groundtruth.txt", loop_closure=False, frames="0:5")
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    out = _cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json",
+               "--against", tmp_path / "half")
+    assert out.returncode == 0, out.stderr[-2000:]
+    err = " ".join(out.stderr.split())
+    assert "the stores share 5 frames" in err and "holds 10" in err and "frames are missing" in err, err

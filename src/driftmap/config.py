@@ -35,6 +35,7 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from driftmap.errors import ConfigError
+from driftmap.files import json_loads_unique
 from driftmap.frame import SensorKind
 
 ENV_PREFIX = "DRIFTMAP_"
@@ -256,6 +257,10 @@ class VolumeConfig(SettingsModel):
         if voxel is None:
             voxel = DEPTH_VOXEL_SIZE_M if sensor is not SensorKind.LIDAR else LIDAR_VOXEL_PER_SCALE_M * scene_scale
         max_range = self.max_range_m if self.max_range_m is not None else sensor_max_range_m
+        if self.truncation_m is not None and self.truncation_m < voxel:
+            raise ConfigError(f"volume.truncation_m ({self.truncation_m} m) must be at least one voxel "
+                              f"(volume.voxel_size_m {voxel} m; default {TRUNCATION_VOXELS} voxels): a thinner band "
+                              f"leaves the TSDF no zero crossing to mesh")
         if max_range is not None and not self.min_range_m < max_range:
             raise ConfigError(f"volume.min_range_m ({self.min_range_m} m) must be less than the max range "
                               f"({max_range} m, the sensor's): no ray would carve or mark anything")
@@ -372,7 +377,7 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     is_toml = path.suffix.lower() == ".toml"
     try:
         text = path.read_text(encoding="utf-8-sig")  # a byte-order mark (some editors write one) is not a setting
-        data = tomllib.loads(text) if is_toml else json.loads(text)
+        data = tomllib.loads(text) if is_toml else json_loads_unique(text)
     except (OSError, ValueError, RecursionError) as exc:
         kind = "" if is_toml or path.suffix.lower() == ".json" else " (config files are read as TOML when named .toml, else as JSON)"
         raise ConfigError(f"{path}: cannot read config ({exc}){kind}") from exc

@@ -62,3 +62,23 @@ def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
+
+
+class DuplicateKeyError(ValueError):
+    """A JSON object naming one key twice (json.loads would keep the last silently)."""
+
+
+def _unique_object(pairs: list[tuple[str, object]]) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for key, value in pairs:
+        if key in out:
+            raise DuplicateKeyError(f"the key {key!r} appears twice in one object (which one is meant?)")
+        out[key] = value
+    return out
+
+
+def json_loads_unique(text: str) -> object:
+    """``json.loads`` refusing an object that names a key twice (:class:`DuplicateKeyError`), as TOML does."""
+    import json
+
+    return json.loads(text, object_pairs_hook=_unique_object)

@@ -173,6 +173,13 @@ def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> N
 
         raise ConfigError(f"--against {other_path}: the stores are not of the same log (no frame id in common: "
                           f"{store.path} has {span(ids_a)}, {other_path} {span(ids_b)})")
+    if len(shared) < max(len(ids_a), len(ids_b)):
+        import logging
+
+        logging.getLogger(__name__).warning(
+            "--against %s: the stores share %d frames, but %s holds %d and %s %d: decisions may differ because frames "
+            "are missing, not only because poses moved", other_path, len(shared), store.path, len(ids_a), other_path,
+            len(ids_b))
     differ = np.flatnonzero(st_a[ia] != st_b[ib])
     if len(differ):
         k = int(differ[0])

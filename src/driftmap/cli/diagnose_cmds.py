@@ -199,6 +199,12 @@ def view(
         console.print(f"  {name:10s} {path}", highlight=False)
 
 
+MAX_STEP_M = 1e8
+"""``perturb --step-m``: at most this long (poses beyond ``geometry.MAX_TRANSLATION_M`` are refused by every reader)."""
+MIN_DIRECTION_NORM = 1e-9
+"""``perturb --drift-direction`` / ``--drift-axis``: shorter vectors are no direction."""
+
+
 @app.command()
 def perturb(
     poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
@@ -228,9 +234,13 @@ def perturb(
         raise ConfigError("nothing to perturb: give a step (--step-frame with --step-m/--step-deg) or a drift")
     for text, flag, used in ((drift_direction, "--drift-direction", drift_percent_per_m),
                              (drift_axis, "--drift-axis", drift_deg_per_m)):
-        if used and not any(parse_vector(text, flag)):
-            raise ConfigError(f"{flag}: a drift needs a non-zero direction, got {text!r}")
+        if used and not float(np.linalg.norm(parse_vector(text, flag))) >= MIN_DIRECTION_NORM:
+            raise ConfigError(f"{flag}: a drift needs a non-zero direction (length >= {MIN_DIRECTION_NORM:g}), got "
+                              f"{text!r}")
     step_vec = None if step_m is None else parse_vector(step_m, "--step-m")
+    if step_vec is not None and float(np.linalg.norm(step_vec)) > MAX_STEP_M:
+        raise ConfigError(f"--step-m: a step of {float(np.linalg.norm(step_vec)):g} m would put poses where no pose "
+                          f"file reader takes them (at most {MAX_STEP_M:g} m)")
     rot_vec = None if step_deg is None else parse_vector(step_deg, "--step-deg")
     if step_frame is not None:
         moved = step_vec is not None and any(step_vec)

@@ -45,7 +45,8 @@ def correct(
 
     format = choice(format, tuple(f.value for f in TrajectoryFormat), "--format")
     match = None if match is None else choice(match, ("stamp", "index"), "--match")
-    source = choice(source, tuple(s.value for s in PoseSource if s is not PoseSource.NONE), "--source")
+    source = choice(source, tuple(s.value for s in PoseSource if s not in (PoseSource.NONE, PoseSource.ROLLBACK)),
+                    "--source")  # a rollback revision restores an earlier one (driftmap rollback), not a file's poses
     with open_store(store_path, "a") as store:
         revision, matched = import_pose_file(store, poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
                                                source=source, propagate=not no_propagate, kitti_frame=kitti_frame,

@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.decisions.errors import QueryError
+from driftmap.files import json_loads_unique
 
 KINDS = ("clearance", "collision", "grasp", "foothold", "explore")
 UNKNOWN_POLICIES = ("occupied", "free")
@@ -158,7 +159,7 @@ def load_queries(path: str | Path) -> QuerySet:
         data = _parse_yaml(text, path)
     else:
         try:
-            data = json.loads(text)
+            data = json_loads_unique(text)
         except json.JSONDecodeError as exc:
             raise QueryError(f"{path}: not valid JSON ({exc.msg} at line {exc.lineno}, column {exc.colno})",
                              query_id=None) from None
@@ -173,8 +174,17 @@ def _parse_yaml(text: str, path: Path) -> Any:
     except ImportError:
         raise QueryError(f"{path}: reading a YAML query file needs PyYAML (pip install pyyaml); or give the same "
                          f"queries as JSON", query_id=None) from None
+    class UniqueKeyLoader(yaml.SafeLoader):
+        def construct_mapping(self, node, deep=False):  # noqa: ANN001, ANN202 - PyYAML's signature
+            keys = [self.construct_object(k, deep=True) for k, _ in node.value]
+            for k in keys:
+                if keys.count(k) > 1:
+                    raise yaml.constructor.ConstructorError(None, None, f"the key {k!r} appears twice in one "
+                                                            f"mapping (which one is meant?)", node.start_mark)
+            return super().construct_mapping(node, deep=deep)
+
     try:
-        return yaml.safe_load(text)
+        return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
     except yaml.YAMLError as exc:
         raise QueryError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})", query_id=None) from None
     except (ValueError, RecursionError) as exc:

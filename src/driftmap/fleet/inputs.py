@@ -148,6 +148,8 @@ def parse_log_options(words: list[str], where: str, base: Path) -> dict[str, Any
             known = ", ".join(LIST_OPTIONS)
             raise ConfigError(f"{where}: unknown option {word!r} (a list-file line takes a log path, then any of {known})")
         key, takes_value = LIST_OPTIONS[option]
+        if key in fields:
+            raise ConfigError(f"{where}: {option} is given twice (which one is meant?)")
         if not takes_value:
             if inline:
                 raise ConfigError(f"{where}: {option} takes no value")
@@ -164,6 +166,8 @@ def parse_log_options(words: list[str], where: str, base: Path) -> dict[str, Any
         if key in PATH_OPTIONS:
             value = str((base / value).absolute())
         fields[key] = float(value) if key == "period_s" else value
+    if fields.get("poses") is not None and fields.get("poses_from_source"):
+        raise ConfigError(f"{where}: --poses and --poses-from-source both say where the poses come from: give one")
     return fields
 
 
