@@ -236,3 +236,16 @@ def test_t6_w15_decide_against_a_store_missing_frames_warns(logs: dict, tmp_path
     assert out.returncode == 0, out.stderr[-2000:]
     err = " ".join(out.stderr.split())
     assert "the stores share 5 frames" in err and "holds 10" in err and "frames are missing" in err, err
+
+
+def test_t6_w16_a_diagnosis_of_another_store_is_refused(logs: dict, tmp_path: Path) -> None:
+    build(logs["log"], tmp_path / "half", poses_file=logs["log"] / "groundtruth.txt", loop_closure=False, frames="0:5")
+    assert _cli("diagnose", logs["gt"], "--json", tmp_path / "dg.json").returncode == 0
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    line = _error(_cli("decide", tmp_path / "half", "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json",
+                       "--diagnosis", tmp_path / "dg.json"))
+    assert "dg.json: --diagnosis is not of" in line and "frame 5 is not in the store" in line, line
+    out = _cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json",
+               "--diagnosis", tmp_path / "dg.json")
+    assert out.returncode == 0, out.stderr[-1500:]

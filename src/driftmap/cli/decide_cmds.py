@@ -94,6 +94,8 @@ def decide(
     with open_store(store_path) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
         _precheck(store, query_set, volume, revisions, decide_config)
+        if diagnosis is not None:
+            _check_diagnosis_frames(store, diagnosis)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
         with progress_bar() as progress:
             tick = _ticker(progress)
@@ -109,6 +111,29 @@ def decide(
     console.print(bold("decisions: ", json_path))
     if figure is not None:
         console.print(bold("report: ", figure))
+
+
+def _check_diagnosis_frames(store, diagnosis: Path) -> None:
+    """--diagnosis must be of this store's log: every frame it lists is in the store with the same stamp (a
+    diagnosis of another store, or of a store of other frames, would put its double walls in the wrong place)."""
+    import json
+
+    import numpy as np
+
+    from driftmap.errors import ConfigError
+
+    try:
+        frames = json.loads(diagnosis.read_text(encoding="utf-8-sig")).get("frames") or []
+        listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in frames}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError, RecursionError):
+        return  # unreadable or malformed: double_walls_of names the problem
+    ids, stamps = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
+    ours = dict(zip(ids.tolist(), stamps.tolist()))
+    for fid, stamp in listed.items():
+        if ours.get(fid) != stamp:
+            what = "is not in the store" if fid not in ours else f"has stamp {ours[fid]} ns in the store, {stamp} ns there"
+            raise ConfigError(f"{diagnosis}: --diagnosis is not of {store.path} (its frame {fid} {what}): diagnose "
+                              f"this store")
 
 
 def _precheck(store, query_set, volume, revisions: list[int], decide_config=None) -> None:

@@ -52,8 +52,8 @@ def double_walls_of(source: Any, revision: int | None = None) -> list[DoubleWall
             raise QueryError(f"{where}: field 'revision' must be a revision id (a whole number >= 0), got {found!r}",
                              query_id=None, field="revision")
         if revision is not None and found is not None and int(found) != int(revision):
-            raise QueryError(f"the diagnosis is of revision {found}, the decisions of revision {revision}: diagnose "
-                             f"the same revision", query_id=None)
+            raise QueryError(f"{where}: the diagnosis is of revision {found}, the decisions of revision {revision}: "
+                             f"diagnose the same revision", query_id=None)
         block = source.get("double_wall") or {}
         if not isinstance(block, dict):
             raise QueryError(f"{where}: field 'double_wall' must be an object with 'regions', got "
