@@ -198,6 +198,14 @@ def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> N
 
         raise ConfigError(f"--against {other_path}: the stores are not of the same log (no frame id in common: "
                           f"{store.path} has {span(ids_a)}, {other_path} {span(ids_b)})")
+    differ = np.flatnonzero(st_a[ia] != st_b[ib])
+    if len(differ):
+        k = int(differ[0])
+        raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {int(shared[k])} has "
+                          f"stamp {int(st_a[ia[k]])} ns in {store.path} but {int(st_b[ib[k]])} ns in {other_path}; "
+                          f"{len(differ)} of {len(shared)} shared frames differ)")
+    if not same_log:
+        _check_same_files(store, other, other_path, shared)
     if len(shared) < max(len(ids_a), len(ids_b)):
         import logging
 
@@ -205,14 +213,11 @@ def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> N
             "--against %s: the stores share %d frames, but %s holds %d and %s %d: decisions may differ because frames "
             "are missing, not only because poses moved", other_path, len(shared), store.path, len(ids_a), other_path,
             len(ids_b))
-    differ = np.flatnonzero(st_a[ia] != st_b[ib])
-    if len(differ):
-        k = int(differ[0])
-        raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {int(shared[k])} has "
-                          f"stamp {int(st_a[ia[k]])} ns in {store.path} but {int(st_b[ib[k]])} ns in {other_path}; "
-                          f"{len(differ)} of {len(shared)} shared frames differ)")
-    if same_log:
-        return
+
+
+def _check_same_files(store, other, other_path: Path, shared) -> None:
+    """--against without --same-log: every shared frame was read from the same file for both stores."""
+    from driftmap.errors import ConfigError
 
     def uri(s, fid: int) -> str | None:
         return (s.frame_info(fid).get("provenance") or {}).get("source_uri")
