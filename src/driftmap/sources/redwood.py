@@ -59,18 +59,79 @@ PRIMESENSE_DEFAULT = PinholeIntrinsics(fx=525.0, fy=525.0, cx=319.5, cy=239.5, w
 # ---- the Redwood source -----------------------------------------------------------------------------------------
 
 
-def _find_intrinsics_json(folder: Path) -> Path | None:
-    preferred = [folder / n for n in ("camera_primesense.json", "camera_intrinsic.json", "intrinsic.json")]
-    for candidate in preferred:
-        if candidate.is_file():
-            return candidate
+INTRINSICS_JSON_NAMES = ("camera_primesense.json", "camera_intrinsic.json", "intrinsic.json")
+"""The intrinsics JSON names a Redwood folder uses, in order of preference; any other ``*.json`` with an
+``intrinsic_matrix`` is a candidate too."""
+
+
+def _intrinsics_json_candidates(folder: Path) -> list[Path]:
+    """Every intrinsics JSON of the folder: the :data:`INTRINSICS_JSON_NAMES` that exist, in that order, then the
+    other ``*.json`` files that hold an ``intrinsic_matrix``, sorted."""
+    found = [folder / n for n in INTRINSICS_JSON_NAMES if (folder / n).is_file()]
     for candidate in sorted(folder.glob("*.json")):
+        if candidate.name in INTRINSICS_JSON_NAMES:
+            continue
         try:
             if "intrinsic_matrix" in json.loads(candidate.read_text()):
-                return candidate
-        except (OSError, ValueError, RecursionError):
+                found.append(candidate)
+        except (OSError, ValueError, TypeError, RecursionError):
             continue
-    return None
+    return found
+
+
+def _camera_tuple(intrinsics: PinholeIntrinsics) -> tuple[float, ...]:
+    i = intrinsics
+    return (i.fx, i.fy, i.cx, i.cy, i.width, i.height)
+
+
+def _read_folder_intrinsics(folder: Path) -> tuple[Path, PinholeIntrinsics] | None:
+    """The intrinsics JSON of the folder and its values; two JSONs that give different values are refused naming
+    both (which camera is it?); a second JSON with the same values, or one that does not read, is ignored (the
+    unreadable one with a warning)."""
+    candidates = _intrinsics_json_candidates(folder)
+    if not candidates:
+        return None
+    chosen = candidates[0]
+    intrinsics = read_open3d_intrinsics(chosen)
+    for other in candidates[1:]:
+        try:
+            values = read_open3d_intrinsics(other)
+        except SourceError as exc:
+            logger.warning("%s: ignored (the intrinsics come from %s): %s", other, chosen.name, exc)
+            continue
+        if _camera_tuple(values) != _camera_tuple(intrinsics):
+            def show(i: PinholeIntrinsics) -> str:
+                return f"fx={i.fx:g} fy={i.fy:g} cx={i.cx:g} cy={i.cy:g} {i.width}x{i.height}"
+
+            raise SourceError(
+                f"{folder}: two intrinsics JSONs with different values: {chosen} ({show(intrinsics)}) and {other} "
+                f"({show(values)}); remove the wrong one or choose with --intrinsics FILE (intrinsics=)"
+            )
+        logger.debug("%s: same intrinsics as %s", other, chosen)
+    return chosen, intrinsics
+
+
+def read_redwood_poses(file: Path) -> Trajectory:
+    """A Redwood ``.log`` (``trajectory.log``, ``odometry.log``) whose blocks each name a different frame id.
+
+    :func:`driftmap.trajectory.read_redwood_log` keeps the blocks as written; the source looks poses up by frame id,
+    so a frame id named by two blocks would silently take one of the two poses. It is refused instead, naming the
+    file, the frame id and the header lines of both blocks (as a TUM stamp written twice with two poses is)."""
+    traj = read_pose_file(read_redwood_log, file)
+    ids = traj.frame_ids.tolist() if traj.frame_ids is not None else []
+    first: dict[int, int] = {}
+    for block, frame_id in enumerate(ids):
+        if frame_id not in first:
+            first[frame_id] = block
+            continue
+        # the header line of block b is the (5 b)-th non-empty line (read_redwood_log's own layout)
+        headers = [n for n, line in enumerate(read_lines(file, "Redwood .log trajectory"), start=1) if line.strip()][::5]
+        raise SourceError(
+            f"{file}:{headers[block]}: frame id {frame_id} is named by two pose blocks, at lines "
+            f"{headers[first[frame_id]]} and {headers[block]} (each 'i j n' header must name a different frame; "
+            f"which pose is frame {frame_id}'s?)"
+        )
+    return traj
 
 
 class RedwoodRgbd(DepthFolderSource):
@@ -119,16 +180,20 @@ class RedwoodRgbd(DepthFolderSource):
                            self.path, depth_scale)
         self.color = color
         self.poses_from_ground_truth = poses_from_ground_truth
-        self.intrinsics_file = _find_intrinsics_json(self.path)
+        self.intrinsics_file: Path | None = None
         self.intrinsics = self._resolve_intrinsics(intrinsics)
         self._entries = self._read_entries(lenient)
         self._read_poses(trajectory, odometry)
 
     def _resolve_intrinsics(self, value: Any) -> PinholeIntrinsics:
         if value is not None:
+            if isinstance(value, (str, Path)):
+                self.intrinsics_file = Path(value)
             return intrinsics_from_option(value, str(self.path))
-        if self.intrinsics_file is not None:
-            return read_open3d_intrinsics(self.intrinsics_file)
+        found = _read_folder_intrinsics(self.path)
+        if found is not None:
+            self.intrinsics_file, intrinsics = found
+            return intrinsics
         logger.warning("%s: no intrinsics JSON; using the PrimeSense default 525/525/319.5/239.5", self.path)
         return PRIMESENSE_DEFAULT
 
@@ -177,7 +242,7 @@ class RedwoodRgbd(DepthFolderSource):
         self.trajectory_file = self.path / trajectory
         self._gt: dict[int, NDArray[np.float64]] | None = None
         if self.trajectory_file.is_file():
-            gt = read_pose_file(read_redwood_log, self.trajectory_file)
+            gt = read_redwood_poses(self.trajectory_file)
             self._gt = dict(zip(gt.frame_ids.tolist(), gt.poses, strict=True))
             missing = [i for i in ids if i not in self._gt]
             if missing:
@@ -188,7 +253,7 @@ class RedwoodRgbd(DepthFolderSource):
         self.odometry_file = self.path / odometry
         self._odometry: dict[int, NDArray[np.float64]] | None = None
         if self.odometry_file.is_file():
-            odo = read_pose_file(read_redwood_log, self.odometry_file)
+            odo = read_redwood_poses(self.odometry_file)
             self._odometry = dict(zip(odo.frame_ids.tolist(), odo.poses, strict=True))
 
     def _count(self) -> int:

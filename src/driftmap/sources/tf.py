@@ -39,22 +39,51 @@ def normalize_frame(frame: str) -> str:
     return str(frame).lstrip("/")
 
 
+QUATERNION_NORM_TOLERANCE = 1e-2
+"""A quaternion read from a log must have ``abs(|q| - 1) <= QUATERNION_NORM_TOLERANCE`` (then it is normalised).
+Looser than the pose files' 1e-3 (:mod:`driftmap.trajectory`): a log's publishers are not ours to fix and some
+write quaternions of a few digits; a norm as far from 1 as this is a writer's bug (an unnormalised or half-filled
+quaternion), not rounding."""
+
+
 def transforms_from_tum(
-    translations_m: ArrayLike, quats_xyzw: ArrayLike, what: str = "transform"
+    translations_m: ArrayLike,
+    quats_xyzw: ArrayLike,
+    what: str = "transform",
+    *,
+    stamps_ns: ArrayLike | None = None,
+    norm_tolerance: float | None = QUATERNION_NORM_TOLERANCE,
 ) -> NDArray[np.float64]:
     """(N, 4, 4) transforms from (N, 3) translations and (N, 4) ``x y z w`` quaternions (normalised here).
 
-    Raises :class:`TfError` naming ``what`` when a quaternion is zero or not finite.
+    Raises :class:`TfError` naming ``what`` (and the sample's stamp, when ``stamps_ns`` are given) when a quaternion
+    is zero or not finite, or its norm is off 1 by more than ``norm_tolerance`` (``None``: any non-zero norm).
     """
     t = np.asarray(translations_m, dtype=np.float64).reshape(-1, 3)
     q = np.asarray(quats_xyzw, dtype=np.float64).reshape(-1, 4)
+    stamps = None if stamps_ns is None else np.asarray(stamps_ns, dtype=np.int64).reshape(-1)
+
+    def sample(k: int) -> str:
+        if stamps is None or k >= len(stamps):
+            return f"sample {k}"
+        return f"sample {k} (stamp {_fmt_ns(int(stamps[k]))})"
+
     norms = np.linalg.norm(q, axis=1)
     bad = np.flatnonzero(~np.isfinite(norms) | (norms < 1e-12) | ~np.all(np.isfinite(t), axis=1))
     if bad.size:
         raise TfError(
-            f"{what}: sample {int(bad[0])} has a zero or non-finite quaternion/translation "
+            f"{what}: {sample(int(bad[0]))} has a zero or non-finite quaternion/translation "
             f"(q={q[bad[0]].tolist()}, t={t[bad[0]].tolist()})"
         )
+    if norm_tolerance is not None:
+        off = np.flatnonzero(np.abs(norms - 1.0) > norm_tolerance)
+        if off.size:
+            k = int(off[0])
+            more = f"; {off.size} such samples" if off.size > 1 else ""
+            raise TfError(
+                f"{what}: {sample(k)} has a quaternion of norm {norms[k]:.4f}, expected 1 (within "
+                f"{norm_tolerance:g}; q={q[k].tolist()}){more}"
+            )
     T = np.tile(np.eye(4), (len(t), 1, 1))
     if len(t):
         T[:, :3, :3] = Rotation.from_quat(q / norms[:, None]).as_matrix()

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.errors import SourceError, TfError
+from driftmap.errors import ConfigError, SourceError, TfError
 from driftmap.frame import PoseEstimate, PoseSource
 from driftmap.sources.ros.backend import Backend, TopicInfo
 from driftmap.sources.ros.containers import open_backend
@@ -68,23 +68,52 @@ def load_tf(
         if info.msgtype != TF_MESSAGE:
             raise SourceError(f"{backend.path}: topic {topic} has type {info.msgtype}, expected {TF_MESSAGE}")
         samples: dict[tuple[str, str], tuple[list[int], list[list[float]], list[list[float]]]] = {}
+        parent_of: dict[str, tuple[str, str]] = {}  # child -> (parent, where it was first given)
         for raw in backend.stream([topic]):
             msg = backend.decode(raw)
-            with message_fields(f"{backend.path}: {topic} message logged at {raw.log_time_ns} ns"):
+            where = f"{backend.path}: {topic} message logged at {raw.log_time_ns} ns"
+            with message_fields(where):
                 for tr in msg.transforms:
                     parent, child = normalize_frame(tr.header.frame_id), normalize_frame(tr.child_frame_id)
+                    header_ns = stamp_ns_of(tr.header.stamp)
+                    if child not in parent_of:
+                        _check_new_edge(buffer, parent, child, f"{where} (stamp {header_ns} ns)")
+                        parent_of[child] = (parent, f"the message logged at {raw.log_time_ns} ns")
+                    elif parent_of[child][0] != parent:
+                        first_parent, first_where = parent_of[child]
+                        raise TfError(
+                            f"{where} (stamp {header_ns} ns): frame {child!r} has two parents, {first_parent!r} "
+                            f"(since {first_where}) and {parent!r} (a TF tree gives every frame one parent)"
+                        )
                     t, q = tr.transform.translation, tr.transform.rotation
                     entry = samples.setdefault((parent, child), ([], [], []))
-                    entry[0].append(stamp_ns_of(tr.header.stamp) if stamp is StampSource.HEADER else raw.log_time_ns)
+                    entry[0].append(header_ns if stamp is StampSource.HEADER else raw.log_time_ns)
                     entry[1].append([float(t.x), float(t.y), float(t.z)])
                     entry[2].append([float(q.x), float(q.y), float(q.z), float(q.w)])
         for (parent, child), (stamps, trans, quats) in samples.items():
-            T = transforms_from_tum(trans, quats, what=f"{backend.path}: {topic} {parent} -> {child}")
-            if is_static:
-                buffer.add_static(parent, child, T[-1])  # the last one published wins, as in tf2
-            else:
-                buffer.add_samples(parent, child, stamps, T)
+            what = f"{backend.path}: {topic} {parent} -> {child}"
+            T = transforms_from_tum(trans, quats, what=what, stamps_ns=stamps)
+            try:
+                if is_static:
+                    buffer.add_static(parent, child, T[-1])  # the last one published wins, as in tf2
+                else:
+                    buffer.add_samples(parent, child, stamps, T)
+            except TfError as exc:  # already checked per message; kept so that no TF error loses the file
+                raise TfError(f"{what}: {exc}") from None
     return buffer
+
+
+def _check_new_edge(buffer: TfBuffer, parent: str, child: str, where: str) -> None:
+    """The first ``parent -> child`` transform of a topic: refused when the frame is its own parent or already has
+    another parent in ``buffer`` (from another TF topic), naming ``where`` (file, topic, message, stamp)."""
+    if parent == child:
+        raise TfError(f"{where}: transform {parent} -> {child}: a frame cannot be its own parent")
+    known = buffer.parent(child)
+    if known is not None and known != parent:
+        raise TfError(
+            f"{where}: frame {child!r} has two parents, {known!r} (from an earlier TF topic) and {parent!r} "
+            f"(a TF tree gives every frame one parent)"
+        )
 
 
 def read_tf(path: str | Path, *, format: str | None = None, stamp: StampSource = StampSource.HEADER) -> TfBuffer:
@@ -135,7 +164,7 @@ def load_pose_topic(
             f"{backend.path}: topic {topic} changes frames (parents {sorted(parents)}, children {sorted(children)})"
         )
     child = children.pop() if children else (child_frame or topic.strip("/"))
-    T = transforms_from_tum(trans, quats, what=f"{backend.path}: {topic}")
+    T = transforms_from_tum(trans, quats, what=f"{backend.path}: {topic}", stamps_ns=stamps)
     series = TransformSeries.from_samples(parents.pop(), child, stamps, T, what=f"{backend.path}#{topic}")
     if len(series) < len(stamps):
         logger.warning(
@@ -209,11 +238,63 @@ class SensorPoses:
             self.world_frame, body = self.odometry.parent_frame, self.odometry.child_frame
         elif pose_from_tf is not None:
             self.world_frame, body = normalize_frame(pose_from_tf[0]), normalize_frame(pose_from_tf[1])
+            self._check_pose_from_tf_frames(self.world_frame, body)
         self.body_frame = body
         """The frame the pose input gives the pose of (``None`` without a pose input)."""
         self.base_frame = normalize_frame(base_frame if base_frame is not None else body or default_base_frame)
         self._no_pose_estimate: PoseEstimate | None = None
         self._read_tf(backend)
+        if pose_from_tf is not None:
+            self._check_world_frame_place()
+
+    def _flag(self) -> str:
+        assert self.pose_from_tf is not None
+        return f"--pose-from-tf {self.pose_from_tf[0]},{self.pose_from_tf[1]} (pose_from_tf)"
+
+    def _check_pose_from_tf_frames(self, world: str, body: str) -> None:
+        """A world frame equal to the body or the sensor frame makes no pose: every pose would be the identity."""
+        if world == body:
+            raise ConfigError(
+                f"{self.path}: {self._flag()}: the world frame and the child frame are both {world!r}, which makes "
+                f"no pose (every pose would be the identity); give PARENT,CHILD as the fixed world frame and the "
+                f"moving frame, e.g. odom,base_link"
+            )
+        if world == self.first_sensor_frame:
+            raise ConfigError(
+                f"{self.path}: {self._flag()}: the world frame {world!r} is the frame of the sensor topic "
+                f"{self.topic} itself, so every pose would be the identity; PARENT must be a fixed frame such as "
+                f"odom or map (PARENT,CHILD swapped?)"
+            )
+
+    def _check_world_frame_place(self) -> None:
+        """Refuse a world frame that lies below the body or the sensor frame in the TF tree: it moves with the sensor,
+        so the "pose" is a constant extrinsic (the usual cause: PARENT and CHILD swapped); warn when the whole path
+        from the world frame to the sensor is static (every frame then gets the same pose)."""
+        tf, world, body = self.tf, self.world_frame, self.body_frame
+        if tf is None or world is None or body is None:
+            return
+        chain, frame = [world], world
+        while (parent := tf.parent(frame)) is not None and parent not in chain:
+            chain.append(parent)
+            frame = parent
+        for moving, what in ((body, "the child frame"), (self.first_sensor_frame, "the sensor frame")):
+            if moving in chain[1:]:
+                path = " -> ".join(reversed(chain[: chain.index(moving) + 1]))
+                raise ConfigError(
+                    f"{self.path}: {self._flag()}: the world frame {world!r} lies below {what} {moving!r} in the TF "
+                    f"tree ({path}), so it moves with the sensor and gives no pose; PARENT must be a fixed frame "
+                    f"above it (did you mean --pose-from-tf {body},{world}?)"
+                )
+        try:
+            static = tf.is_static(world, self.first_sensor_frame)
+        except TfError:
+            return
+        if static:
+            logger.warning(
+                "%s: %s: every edge from %r to the sensor frame %r is static (/tf_static), so every frame of %s "
+                "gets the same pose; is %r really the fixed world frame?",
+                self.path, self._flag(), world, self.first_sensor_frame, self.topic, world,
+            )
 
     def _read_tf(self, backend: Backend) -> None:
         """Read the TF the options need and check that the frames are connected (errors name both frames).
@@ -258,6 +339,15 @@ class SensorPoses:
 
     def pose(self, m: int, stamp_ns: int, sensor_frame: str) -> tuple[PoseEstimate, NDArray[np.float64]]:
         """The pose estimate ``T_world_sensor`` and ``T_base_sensor`` of message ``m``."""
+        try:
+            return self._pose(m, stamp_ns, sensor_frame)
+        except TfError as exc:
+            changed = ""
+            if sensor_frame != self.first_sensor_frame:
+                changed = f", frame_id {sensor_frame!r} (changed from {self.first_sensor_frame!r})"
+            raise TfError(f"{self.path}: {self.topic} message {m} (stamp {stamp_ns} ns{changed}): {exc}") from None
+
+    def _pose(self, m: int, stamp_ns: int, sensor_frame: str) -> tuple[PoseEstimate, NDArray[np.float64]]:
         tf = self.tf
         if self.base_frame == sensor_frame:
             T_base_sensor = np.eye(4)
