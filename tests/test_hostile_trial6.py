@@ -249,3 +249,37 @@ def test_t6_w16_a_diagnosis_of_another_store_is_refused(logs: dict, tmp_path: Pa
     out = _cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json",
                "--diagnosis", tmp_path / "dg.json")
     assert out.returncode == 0, out.stderr[-1500:]
+
+
+def test_t6_w5_w20_kitti_gaps_warn_frames_are_digits_and_same_log_needs_against(kitti_dir: Path, logs: dict,
+                                                                                 tmp_path: Path) -> None:
+    kit = tmp_path / "kit"
+    (kit / "velodyne").mkdir(parents=True)
+    for k in (0, 1, 3):  # scan 2 missing
+        shutil.copy(kitti_dir / "velodyne" / f"{k:06d}.bin", kit / "velodyne")
+    shutil.copy(kitti_dir / "calib.txt", kit)
+    (kit / "times.txt").write_text("".join(line + "\n" for line in (kitti_dir / "times.txt").read_text().split("\n")[:4]))
+    out = _cli("build", kit, "--out", tmp_path / "st", "--no-loop-closure")
+    assert out.returncode == 0, out.stderr[-2000:]
+    err = " ".join(out.stderr.split())
+    assert "velodyne/ has no scan 000002.bin (1 missing" in err, err
+    with FrameStore.open(tmp_path / "st") as store:
+        assert list(store.frame_ids) == [0, 1, 3]
+    line = _error(_cli("build", logs["log"], "--out", tmp_path / "st2", "--frames", "1_0:12"))
+    assert "--frames '1_0:12'" in line and "digits only" in line, line
+    (tmp_path / "q.json").write_text(json.dumps({"queries": [
+        {"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    line = _error(_cli("decide", logs["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "o.json", "--same-log"))
+    assert "--same-log needs --against" in line, line
+
+
+def test_t6_w18_correct_with_a_redwood_log_naming_one_frame_twice_names_the_file_and_lines(
+        icl_dir: Path, tmp_path: Path) -> None:
+    build(icl_dir, tmp_path / "st", poses_from_source=True, loop_closure=False)
+    lines = (icl_dir / "trajectory.log").read_text().splitlines()
+    lines[5] = "0 0 1"  # block 2's header names frame 0 again
+    (tmp_path / "dup.log").write_text("\n".join(lines) + "\n")
+    line = _error(_cli("correct", tmp_path / "st", "--poses", tmp_path / "dup.log", "--format", "redwood"))
+    assert f"{tmp_path / 'dup.log'}:6: frame id 0 is named by two pose blocks, at lines 1 and 6" in line, line
+    with FrameStore.open(tmp_path / "st") as store:
+        assert store.head == 0

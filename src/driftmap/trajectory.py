@@ -363,6 +363,7 @@ def read_redwood_log(path: str | Path) -> Trajectory:
         )
     ids: list[int] = []
     poses: list[np.ndarray] = []
+    header_line: dict[int, int] = {}
     for b in range(0, len(lines), 5):
         lineno, header = lines[b]
         if len(header) != 3:
@@ -373,6 +374,10 @@ def read_redwood_log(path: str | Path) -> Trajectory:
             ids.append(int(header[0]))
         except ValueError as exc:
             raise SourceError(f"{path}:{lineno}: frame id {header[0]!r} is not an integer") from exc
+        if ids[-1] in header_line:
+            raise SourceError(f"{path}:{lineno}: frame id {ids[-1]} is named by two pose blocks, at lines "
+                              f"{header_line[ids[-1]]} and {lineno} (which one is the frame's pose?)")
+        header_line[ids[-1]] = lineno
         matrix = []
         for lineno_r, row in lines[b + 1 : b + 5]:
             if len(row) != 4:

@@ -67,6 +67,9 @@ def decide(
     if pair is not None and (revision is not None or against is not None):
         raise typer.BadParameter("--compare A,B names both revisions: give it without --revision and --against",
                                  param_hint="--compare")
+    if same_log and against is None:
+        raise typer.BadParameter("--same-log needs --against (it relaxes the check that the two stores share a log)",
+                                 param_hint="--same-log")
     if against_revision is not None and against is None:
         raise typer.BadParameter("--against-revision needs --against", param_hint="--against-revision")
     if diagnose and diagnosis is not None:

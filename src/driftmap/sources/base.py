@@ -37,6 +37,8 @@ def parse_frame_slice(spec: str | slice | None) -> slice | None:
     parts = spec.split(":")
     if not 1 <= len(parts) <= 3:
         raise SourceError(f"--frames {spec!r}: expected START:STOP[:STEP]")
+    if any(not re.fullmatch(r"\s*[+-]?\d*\s*", p) for p in parts):  # int() would take "1_0" as 10
+        raise SourceError(f"--frames {spec!r}: START, STOP and STEP must be integers (digits only)")
     try:
         values = [int(p) if p.strip() else None for p in parts]
     except ValueError as exc:

@@ -442,6 +442,12 @@ class KittiOdometry(FrameSource):
         scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin", lenient=lenient,
                                ignored=self.ignored_files)
         ids = [n for n, _ in scans]
+        gaps = sorted(set(range(ids[0], ids[-1] + 1)) - set(ids)) if ids else []
+        if gaps:  # as 7-Scenes says of its depth images: the frames keep their file numbers, the missing are none
+            shown = ", ".join(f"{n:06d}.bin" for n in gaps[:5]) + (", ..." if len(gaps) > 5 else "")
+            logger.warning("%s: velodyne/ has no scan %s (%d missing between %06d.bin and %06d.bin): they are not "
+                           "frames; the others keep their file numbers as frame ids", self.path, shown, len(gaps),
+                           ids[0], ids[-1])
         layout = parse_enum(PointLayout, point_layout, f"{self.path}: point_layout", SourceError)
         if layout is PointLayout.AUTO:
             layout, why = decide_point_layout([f for _, f in scans], self.path / "velodyne")
