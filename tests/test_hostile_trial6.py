@@ -283,3 +283,19 @@ def test_t6_w18_correct_with_a_redwood_log_naming_one_frame_twice_names_the_file
     assert f"{tmp_path / 'dup.log'}:6: frame id 0 is named by two pose blocks, at lines 1 and 6" in line, line
     with FrameStore.open(tmp_path / "st") as store:
         assert store.head == 0
+
+
+def test_t6_w4_sevenscenes_skew_and_an_implausible_field_of_view_warn(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    K = np.loadtxt(sevenscenes_dir / "camera-intrinsics.txt")
+    for name, change, expected in (("skew", (0, 1, 5.0), "skew 5 in the camera matrix is ignored"),
+                                   ("fov", (0, 0, 5.85), "fx=5.85 px gives a 178 deg horizontal field of view")):
+        log = tmp_path / name
+        log.mkdir()
+        for kind in ("depth.png", "pose.txt"):
+            shutil.copy(sevenscenes_dir / f"frame-000000.{kind}", log)
+        bad = K.copy()
+        bad[change[0], change[1]] = change[2]
+        np.savetxt(log / "camera-intrinsics.txt", bad)
+        out = _cli("build", log, "--out", tmp_path / f"st_{name}", "--poses-from-source", "--no-loop-closure")
+        err = " ".join(out.stderr.split())
+        assert expected in err and "camera-intrinsics.txt" in err, err[-2000:]

@@ -259,6 +259,8 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
 #: focal lengths a pinhole depth camera can have, pixels (below 1 px the field of view of even a 2-pixel image
 #: passes 90 degrees; beyond 1e6 px every point lands on the optical axis)
 FOCAL_RANGE_PX = (1.0, 1e6)
+MAX_PLAUSIBLE_FOV_DEG = 150.0
+"""A pinhole field of view wider than this (deg, horizontal) is warned about: a unit or image-size mistake."""
 
 
 def intrinsics_problem(intrinsics: PinholeIntrinsics) -> str | None:
@@ -278,6 +280,11 @@ def checked_intrinsics(intrinsics: PinholeIntrinsics, what: str | Path) -> Pinho
     problem = intrinsics_problem(intrinsics)
     if problem is not None:
         raise SourceError(f"{what}: unusable camera intrinsics ({problem})")
+    fov_deg = 2.0 * np.degrees(np.arctan(0.5 * intrinsics.width / intrinsics.fx))
+    if fov_deg > MAX_PLAUSIBLE_FOV_DEG:
+        logger.warning("%s: fx=%g px gives a %.0f deg horizontal field of view over %d px (pinhole depth cameras see "
+                       "55-120 deg): is fx in other units, or for another image size?", what, intrinsics.fx, fov_deg,
+                       intrinsics.width)
     return intrinsics
 
 

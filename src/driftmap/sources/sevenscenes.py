@@ -75,6 +75,9 @@ def _read_intrinsics_txt(file: Path) -> PinholeIntrinsics:
         raise SourceError(f"{file}: cannot read the camera matrix ({exc})") from exc
     if K.shape != (3, 3) or K[2].tolist() != [0.0, 0.0, 1.0]:
         raise SourceError(f"{file}: expected a 3x3 camera matrix with last row [0 0 1], got {K.tolist()}")
+    if K[0, 1] != 0 or K[1, 0] != 0:
+        logger.warning("%s: skew %g in the camera matrix is ignored (a pinhole camera without skew is assumed)",
+                       file, K[0, 1] if K[0, 1] != 0 else K[1, 0])
     return intrinsics_named(file, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], width=640, height=480)
 
 
