@@ -299,3 +299,21 @@ def test_t6_w4_sevenscenes_skew_and_an_implausible_field_of_view_warn(sevenscene
         out = _cli("build", log, "--out", tmp_path / f"st_{name}", "--poses-from-source", "--no-loop-closure")
         err = " ".join(out.stderr.split())
         assert expected in err and "camera-intrinsics.txt" in err, err[-2000:]
+
+
+def test_t6_w19_a_4x4_file_missing_a_row_in_its_first_block_names_that_block(tmp_path: Path) -> None:
+    from driftmap.errors import SourceError
+    from driftmap.trajectory import read_matrix4x4
+
+    rot = "1,0,0,{x},\n0,1,0,0,\n0,0,1,0,\n"
+    blocks = [rot.format(x=k) + f"0,0,0,{1630577759.0 + 0.5 * k},\n" for k in range(6)]
+    blocks[0] = rot.format(x=0)  # the first block lost its 0 0 0 row
+    (tmp_path / "p.csv").write_text("".join(blocks))
+    with pytest.raises(SourceError, match=r"p\.csv:1: 23 matrix rows is not a multiple of 4; the block starting on "
+                                          r"line 1 has no 0 0 0 last row .*line 4.*line 7"):
+        read_matrix4x4(tmp_path / "p.csv")
+    blocks[0] = rot.format(x=0)[: rot.format(x=0).rindex("0,0,1,0")] + "0,0,0,1630577759.0,\n"  # 3 rows, 0 0 0 early
+    (tmp_path / "q.csv").write_text("".join(blocks))
+    with pytest.raises(SourceError, match=r"q\.csv:1: .*the block starting on line 1 has only 3 row\(s\), its 0 0 0 "
+                                          r"row on line 3"):
+        read_matrix4x4(tmp_path / "q.csv")

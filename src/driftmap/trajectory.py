@@ -451,9 +451,21 @@ def read_matrix4x4(path: str | Path) -> Trajectory:
     if not rows:
         raise SourceError(f"{path}: no poses in 4x4 pose file")
     if len(rows) % 4:
-        first = linenos[len(rows) - len(rows) % 4]
+        # the first block whose bottom row (0 0 0 s) is not its 4th row is the damaged one; else the last block
+        bottoms = [k for k, r in enumerate(rows) if r[0] == r[1] == r[2] == 0.0]
+        j = next((j for j, b in enumerate(bottoms) if b != 4 * j + 3), None)
+        if j is not None and bottoms[j] < 4 * j + 3:
+            first = linenos[4 * j]
+            what = f"has only {bottoms[j] - 4 * j + 1} row(s), its 0 0 0 row on line {linenos[bottoms[j]]}"
+        elif j is not None:
+            first = linenos[4 * j]
+            what = (f"has no 0 0 0 last row where its 4th row should be (line {linenos[4 * j + 3]}); the next one "
+                    f"is on line {linenos[bottoms[j]]}")
+        else:
+            first = linenos[len(rows) - len(rows) % 4]
+            what = f"has only {len(rows) % 4} row(s)"
         raise SourceError(f"{path}:{first}: {len(rows)} matrix rows is not a multiple of 4; the block starting on "
-                          f"line {first} has only {len(rows) % 4} row(s) (4 rows per pose)")
+                          f"line {first} {what} (4 rows per pose)")
     data = np.asarray(rows)
     block_lines = linenos[::4]
     _check_finite(path, data, linenos, _MATRIX_COLUMNS)
