@@ -317,3 +317,10 @@ def test_t6_w19_a_4x4_file_missing_a_row_in_its_first_block_names_that_block(tmp
     with pytest.raises(SourceError, match=r"q\.csv:1: .*the block starting on line 1 has only 3 row\(s\), its 0 0 0 "
                                           r"row on line 3"):
         read_matrix4x4(tmp_path / "q.csv")
+
+
+def test_t6_w20_an_empty_log_file_says_it_is_empty(tmp_path: Path) -> None:
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    line = _error(_cli("build", tmp_path / "empty.mcap", "--out", tmp_path / "st"))
+    assert "empty.mcap: cannot tell the format (the file is empty: 0 bytes)" in line, line
+    assert not (tmp_path / "st").exists()

@@ -316,6 +316,8 @@ def _foreign_hint(path: Path) -> str:
             with os.scandir(path) as it:
                 suffixes = [Path(e.name).suffix.lower() for e, _ in zip(it, range(10_000)) if e.is_file()]
         else:
+            if path.is_file() and path.stat().st_size == 0:
+                return " (the file is empty: 0 bytes)"
             suffixes = [path.suffix.lower()]
     except OSError:
         return ""
