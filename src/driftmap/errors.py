@@ -176,3 +176,8 @@ class QueryError(ConfigError):
         super().__init__(message)
         self.query_id = query_id
         self.field = field
+
+
+class DuplicateKeyError(ValueError):
+    """A JSON object naming one key twice (``json.loads`` would keep the last silently): raised while a file is
+    parsed, a ``ValueError`` like every other parse error, so the readers name the file."""

@@ -15,7 +15,7 @@ import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
-from driftmap.errors import OutputWriteError
+from driftmap.errors import DuplicateKeyError, OutputWriteError
 
 
 MAX_NAME_IN_TEMP = 200
@@ -62,10 +62,6 @@ def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
-
-
-class DuplicateKeyError(ValueError):
-    """A JSON object naming one key twice (json.loads would keep the last silently)."""
 
 
 def _unique_object(pairs: list[tuple[str, object]]) -> dict[str, object]:
