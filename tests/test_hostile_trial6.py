@@ -324,3 +324,9 @@ def test_t6_w20_an_empty_log_file_says_it_is_empty(tmp_path: Path) -> None:
     line = _error(_cli("build", tmp_path / "empty.mcap", "--out", tmp_path / "st"))
     assert "empty.mcap: cannot tell the format (the file is empty: 0 bytes)" in line, line
     assert not (tmp_path / "st").exists()
+
+
+def test_t6_w20_view_reference_without_color_revision_is_refused(logs: dict, tmp_path: Path) -> None:
+    line = _error(_cli("view", logs["gt"], "--out", tmp_path / "v", "--reference", 0))
+    assert "--reference applies to --color revision" in line and "not --color frame" in line, line
+    assert not (tmp_path / "v").exists()

@@ -179,6 +179,9 @@ def view(
 
     color = choice(color, tuple(COLOR_MODES), "--color")
     backend = choice(backend, tuple(BACKENDS), "--backend")
+    if reference is not None and color != "revision":
+        raise typer.BadParameter(f"--reference applies to --color revision (the displacement from that revision), "
+                                 f"not --color {color}", param_hint="--reference")
     if voxel_size_m is not None and voxel_size_m > 1000.0:  # after 'finite', so inf says it is not finite
         raise typer.BadParameter(f"must be at most 1000 m, got {voxel_size_m}", param_hint="--voxel-size-m")
     check_output(out, "--out", folder=True)
