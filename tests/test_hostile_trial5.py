@@ -5,30 +5,19 @@ in the files driftmap reads; B3 ``perturb`` writing over its input; B4 ``decide 
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import one_error, run_cli
 
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
 
 
-def _cli(*args: object, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=600, cwd=cwd, env={**os.environ, "COLUMNS": "200"})
-
-
-def _error(out: subprocess.CompletedProcess) -> str:
-    """The one-line error of a refused command (exit 1, no traceback), whitespace joined."""
-    assert out.returncode in (1, 2), (out.returncode, out.stdout[-1500:], out.stderr[-1500:])
-    assert "Traceback" not in out.stderr and "Traceback" not in out.stdout
-    return " ".join(out.stderr.split())
+_cli, _error = run_cli, one_error
 
 
 @pytest.fixture(scope="module")

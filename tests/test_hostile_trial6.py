@@ -7,14 +7,12 @@ versions of the source's poses; B7 float frame ids and revisions truncated."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from cli_run import one_error, run_cli
 
 from driftmap.errors import DriftmapError, StoreError
 from driftmap.map.view import MapView
@@ -23,16 +21,7 @@ from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_lo
 from driftmap.store.frame_store import FrameStore
 
 
-def _cli(*args: object, env: dict | None = None, timeout: float = 600) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "driftmap.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, env={**os.environ, "COLUMNS": "200", **(env or {})})
-
-
-def _error(out: subprocess.CompletedProcess) -> str:
-    """The one-line error of a refused command (exit 1 or 2, no traceback), whitespace joined."""
-    assert out.returncode in (1, 2), (out.returncode, out.stdout[-1500:], out.stderr[-1500:])
-    assert "Traceback" not in out.stderr and "Traceback" not in out.stdout
-    return " ".join(out.stderr.split())
+_cli, _error = run_cli, one_error
 
 
 @pytest.fixture(scope="module")

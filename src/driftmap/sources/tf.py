@@ -223,14 +223,22 @@ class TfBuffer:
         T = np.asarray(T_parent_child, dtype=np.float64).reshape(-1, 4, 4)
         self._pending.setdefault(child, []).append((parent, stamps, T))  # merged with earlier samples on next use
 
-    def _check_parent(self, parent: str, child: str) -> None:
+    def _check_parent(self, parent: str, child: str, where: str = "") -> None:
+        """Refuse an edge that makes a frame its own parent or gives it a second parent (``where``: a prefix naming
+        the file, topic and message it came from)."""
+        prefix = f"{where}: " if where else ""
         if parent == child:
-            raise TfError(f"transform {parent} -> {child}: a frame cannot be its own parent")
+            raise TfError(f"{prefix}transform {parent} -> {child}: a frame cannot be its own parent")
         known = self._parent_of(child)
         if known is not None and known != parent:
             raise TfError(
-                f"frame {child!r} has two parents, {known!r} and {parent!r} (a TF tree gives every frame one parent)"
+                f"{prefix}frame {child!r} has two parents, {known!r} and {parent!r} (a TF tree gives every frame one "
+                f"parent)"
             )
+
+    def check_edge(self, parent_frame: str, child_frame: str, where: str = "") -> None:
+        """:class:`TfError` (prefixed by ``where``) if ``parent -> child`` cannot join this tree."""
+        self._check_parent(normalize_frame(parent_frame), normalize_frame(child_frame), where)
 
     def _parent_of(self, child: str) -> str | None:
         if child in self._static:

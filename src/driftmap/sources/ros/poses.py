@@ -77,7 +77,7 @@ def load_tf(
                     parent, child = normalize_frame(tr.header.frame_id), normalize_frame(tr.child_frame_id)
                     header_ns = stamp_ns_of(tr.header.stamp)
                     if child not in parent_of:
-                        _check_new_edge(buffer, parent, child, f"{where} (stamp {header_ns} ns)")
+                        buffer.check_edge(parent, child, f"{where} (stamp {header_ns} ns)")  # against other TF topics
                         parent_of[child] = (parent, f"the message logged at {raw.log_time_ns} ns")
                     elif parent_of[child][0] != parent:
                         first_parent, first_where = parent_of[child]
@@ -101,19 +101,6 @@ def load_tf(
             except TfError as exc:  # already checked per message; kept so that no TF error loses the file
                 raise TfError(f"{what}: {exc}") from None
     return buffer
-
-
-def _check_new_edge(buffer: TfBuffer, parent: str, child: str, where: str) -> None:
-    """The first ``parent -> child`` transform of a topic: refused when the frame is its own parent or already has
-    another parent in ``buffer`` (from another TF topic), naming ``where`` (file, topic, message, stamp)."""
-    if parent == child:
-        raise TfError(f"{where}: transform {parent} -> {child}: a frame cannot be its own parent")
-    known = buffer.parent(child)
-    if known is not None and known != parent:
-        raise TfError(
-            f"{where}: frame {child!r} has two parents, {known!r} (from an earlier TF topic) and {parent!r} "
-            f"(a TF tree gives every frame one parent)"
-        )
 
 
 def read_tf(path: str | Path, *, format: str | None = None, stamp: StampSource = StampSource.HEADER) -> TfBuffer:
