@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import small_gicp
+from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
 from driftmap.frame import Frame, PoseEstimate, SensorKind, TrackingHealth, TrackingStatus
@@ -163,3 +164,39 @@ def test_loop_candidates_across_a_flagged_stretch_are_refused_unverified() -> No
                           for c in across)
     before = [c for c in refused if c.b == 10]  # 0 <-> 10 does not lean on frame 15
     assert before and all(c.result is not None for c in before)
+
+
+def _wall_and_floor(n: int, rng: np.random.Generator) -> np.ndarray:
+    """The floor z = 0 and the wall x = 3: translation along y is not constrained."""
+    a, b = _plane_points(n, rng), _plane_points(n, rng)
+    return np.vstack([a, b[:, [2, 0, 1]] + [3.0, 0.0, 0.0]])
+
+
+@pytest.mark.parametrize("scene, weak_axis", [("wall_and_floor", 1), ("corner", None)])
+def test_weak_directions_keep_the_prediction_and_the_constrained_ones_the_registration(scene, weak_axis) -> None:
+    """small_gicp's point-to-plane Hessian of a scan of a wall and the floor has a free direction (world y); along it
+    the registration's translation is replaced by the prediction's, across it the registration is kept. A corner
+    constrains every direction: nothing is replaced."""
+    rng = np.random.default_rng(3)
+    world = _wall_and_floor(4000, rng) if scene == "wall_and_floor" else _box_points(4000, rng)
+    T_true = geometry.make_transform(Rotation.from_euler("xyz", (5.0, -3.0, 30.0), degrees=True), (0.5, -0.4, 1.0))
+    scan = geometry.transform_points(geometry.invert(T_true), world)
+    target, tree = small_gicp.preprocess_points(world, downsampling_resolution=0.1, num_neighbors=10)
+    source, _ = small_gicp.preprocess_points(scan, downsampling_resolution=0.1, num_neighbors=10)
+    start = T_true.copy()
+    start[:3, 3] += (0.02, 0.3, 0.0)  # 2 cm across the wall, 30 cm along it
+    res = small_gicp.align(target, source, tree, start, registration_type="PLANE_ICP", max_correspondence_distance=0.2)
+    T_reg = np.array(res.T_target_source)
+    assert abs(T_reg[0, 3] - T_true[0, 3]) < 0.005  # the wall pulls x back
+    out, weak = tracking.keep_prediction_along_weak_directions(T_reg, T_true, np.asarray(res.H), 0.11)
+    if weak_axis is None:
+        assert weak is None and np.array_equal(out, T_reg)
+        return
+    assert abs(T_reg[1, 3] - T_true[1, 3]) > 0.25  # nothing pulls y back: the registration slid with the start
+    assert weak is not None and weak.directions_world.shape == (1, 3)
+    assert abs(weak.directions_world[0, weak_axis]) > 0.99 and weak.degeneracy < 0.11
+    assert weak.replaced_m == pytest.approx(abs(T_reg[1, 3] - T_true[1, 3]), abs=0.01)
+    assert np.allclose(out[:3, 3], T_true[:3, 3], atol=0.01)  # y from the prediction, x and z the registration's
+    assert np.array_equal(out[:3, :3], T_reg[:3, :3])
+    same, none = tracking.keep_prediction_along_weak_directions(T_reg, T_true, np.asarray(res.H), 0.0)
+    assert none is None and np.array_equal(same, T_reg)  # 0: off

@@ -201,6 +201,10 @@ class TrackingStatus(enum.Enum):
     """no initial guess gave a registration that fits the map: the pose is bridged (flagged, not trusted)"""
     REINITIALISED = "reinitialised"
     """tracking restarted after lost frames: a new local map starts at the bridged pose (flagged)"""
+    DEGENERATE = "degenerate"
+    """the registration fits, but the scan leaves a direction of motion unconstrained (one surface, a corridor seen
+    by a narrow field of view): along it the pose is the motion model's prediction (bridged along that direction;
+    reported, and the trajectory still trusted by loop closure: the prediction moves it by centimetres, not metres)"""
 
 
 @dataclass(frozen=True, slots=True)

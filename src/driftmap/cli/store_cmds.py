@@ -300,6 +300,10 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
                           f"{len(tracking) - recovered - len(lost)} / {recovered} / {len(lost)}")
             if lost:
                 table.add_row("frames flagged by tracking", ", ".join(map(str, lost[:20])) + (" ..." if len(lost) > 20 else ""))
+            degenerate = [f for f, t in tracking if t.get("status") == "degenerate"]
+            if degenerate:  # counted as ok above; bridged along a direction their scan left free
+                table.add_row("frames degenerate (a direction bridged by the motion model)",
+                              ", ".join(map(str, degenerate[:20])) + (" ..." if len(degenerate) > 20 else ""))
         console.print(table)
 
 

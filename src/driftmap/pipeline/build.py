@@ -259,6 +259,10 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         logger.warning("odometry: %d of %d frames flagged (tracking lost, poses bridged): %s; loop closure does not "
                        "trust the trajectory across them", len(result.tracking["flagged"]), result.tracking["frames"],
                        ", ".join(f"{f['frame_id']} ({f['status']})" for f in result.tracking["flagged"][:10]))
+    if result.tracking["degenerate"]:
+        logger.warning("odometry: %d of %d frames degenerate (a direction of motion unconstrained by the scan, bridged "
+                       "along it by the motion model): %s", len(result.tracking["degenerate"]),
+                       result.tracking["frames"], ", ".join(str(f["frame_id"]) for f in result.tracking["degenerate"][:10]))
     if loop_closure and len(store) >= 2:
         close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)

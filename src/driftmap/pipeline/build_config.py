@@ -132,8 +132,8 @@ class BuildResult:
 
 def tracking_summary(store: FrameStore | None) -> dict[str, Any]:
     """The tracking-health records of a store's frames (:class:`driftmap.frame.TrackingHealth`, kept with each frame
-    its odometry registered): ``frames`` (with a record), ``by_status`` counts, ``flagged`` (lost / reinitialised)
-    and ``recovered`` frames with their reasons, the median fitness, the smallest degeneracy and ``per_frame``."""
+    its odometry registered): ``frames`` (with a record), ``by_status`` counts, ``flagged`` (lost / reinitialised),
+    ``recovered`` and ``degenerate`` (bridged along a direction the scan left free) frames with their reasons, the median fitness, the smallest degeneracy and ``per_frame``."""
     per_frame = []
     for fid in (store.frame_ids if store is not None else []):
         record = store.frame_info(int(fid)).get("tracking")
@@ -151,6 +151,7 @@ def tracking_summary(store: FrameStore | None) -> dict[str, Any]:
         "frames": len(per_frame), "by_status": by_status,
         "flagged": [brief(r) for r in per_frame if r["status"] in ("lost", "reinitialised")],
         "recovered": [brief(r) for r in per_frame if r["status"] == "recovered"],
+        "degenerate": [brief(r) for r in per_frame if r["status"] == "degenerate"],
         "median_fitness": float(np.median(fitness)) if fitness else None,
         "min_degeneracy": float(np.min(degeneracy)) if degeneracy else None,
         "per_frame": per_frame,

@@ -165,7 +165,9 @@ def remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> None
     logger.warning("build failed before any frame was stored: removed the empty store it created at %s", out)
 
 
-PRE_PLANE_REFINE_KISS = {"kiss_refine_plane": False, "tracking_min_fitness": 0.5}
+PRE_DEGENERATE_BRIDGE = {"tracking_degenerate_below": 0.0}
+"""The KISS-ICP settings of builds recorded before ``tracking_degenerate_below`` existed: resumed without it."""
+PRE_PLANE_REFINE_KISS = {"kiss_refine_plane": False, "tracking_min_fitness": 0.5, **PRE_DEGENERATE_BRIDGE}
 """The KISS-ICP settings of builds recorded before ``kiss_refine_plane`` existed: resumed as they were built."""
 
 
@@ -184,6 +186,8 @@ def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
             return None
         if recorded.get("method") == "kiss" and "kiss_refine_plane" not in recorded:  # before the refinement
             recorded = {**recorded, **PRE_PLANE_REFINE_KISS}
+        if recorded.get("method") == "kiss" and "tracking_degenerate_below" not in recorded:  # before the bridge
+            recorded = {**recorded, **PRE_DEGENERATE_BRIDGE}
         return OdometryConfig.model_validate(recorded)
     except (OSError, ValueError, AttributeError):
         return None

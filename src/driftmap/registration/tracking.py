@@ -97,6 +97,42 @@ def hessian_degeneracy(H: NDArray[np.float64]) -> float | None:
     return translation_degeneracy(np.asarray(H, dtype=np.float64)[3:, 3:])
 
 
+@dataclass(frozen=True, slots=True)
+class WeakDirections:
+    """What :func:`keep_prediction_along_weak_directions` replaced: the weak directions (unit vectors, world frame,
+    one per row), the smallest degeneracy among them, and how far the registration had moved along them from the
+    prediction (m)."""
+
+    directions_world: NDArray[np.float64]
+    degeneracy: float
+    replaced_m: float
+
+
+def keep_prediction_along_weak_directions(T: NDArray[np.float64], predicted: NDArray[np.float64],
+                                          H: NDArray[np.float64], min_degeneracy: float
+                                          ) -> tuple[NDArray[np.float64], WeakDirections | None]:
+    """Solution remapping (Zhang, Kaess & Singh, "On degeneracy of optimization-based state estimation problems",
+    ICRA 2016) on a registration's translation: along each eigenvector of the translational information block of
+    ``H`` (a small_gicp Hessian: tangent order rotation, translation; a right perturbation, so in the sensor frame)
+    whose ``sqrt(lambda / lambda_max)`` is below ``min_degeneracy``, the scan does not constrain the motion and the
+    translation of ``T`` is replaced by the ``predicted`` pose's; the rotation and the constrained directions stay
+    ``T``'s. Returns ``T`` unchanged and None when no direction is that weak (or the block is empty)."""
+    info = np.asarray(H, dtype=np.float64)[3:, 3:]
+    eig, vectors = np.linalg.eigh(0.5 * (info + info.T))
+    if min_degeneracy <= 0 or not np.all(np.isfinite(eig)) or eig[-1] <= 0:
+        return T, None
+    ratio = np.sqrt(np.clip(eig, 0.0, None) / eig[-1])
+    weak = ratio < min_degeneracy
+    if not weak.any():
+        return T, None
+    R = T[:3, :3]
+    d_sensor = R.T @ (T[:3, 3] - predicted[:3, 3])
+    along = vectors[:, weak] @ (vectors[:, weak].T @ d_sensor)
+    out = T.copy()
+    out[:3, 3] = T[:3, 3] - R @ along
+    return out, WeakDirections((R @ vectors[:, weak]).T, float(ratio[weak].min()), float(np.linalg.norm(along)))
+
+
 def _turn(axis: Sequence[float], deg: float) -> NDArray[np.float64]:
     T = np.eye(4)
     T[:3, :3] = Rotation.from_rotvec(np.radians(deg) * np.asarray(axis, dtype=np.float64)).as_matrix()
