@@ -256,8 +256,12 @@ def odometry_edges(keyframes: list[Keyframe], lc: LoopClosureConfig, config: Bui
 
 def _record_graph_verdicts(result: BuildResult, opt: PoseGraphResult) -> None:
     """The graph's chi2 and weight of each accepted loop into ``result.loops``; count (and log) the loops it rejected."""
+    accepted: dict[tuple[int, int], dict] = {}  # the first accepted entry per (a, b): one pass, not one per residual
+    for x in result.loops:
+        if x["accepted"]:
+            accepted.setdefault((x["a"], x["b"]), x)
     for res in opt.loop_residuals:
-        entry = next((x for x in result.loops if x["a"] == res.key_from and x["b"] == res.key_to and x["accepted"]), None)
+        entry = accepted.get((res.key_from, res.key_to))
         if entry is not None:
             entry.update(graph_chi2=res.chi2, graph_weight=res.weight, kept_by_graph=res.accepted)
         if not res.accepted:
