@@ -37,14 +37,17 @@ cached on the layers, as for a stack) and one query of each kind; the anchor's K
 
 Checks (on the results of the last timed pass; the run fails when one does not hold):
 
-* clearance: ours measures to observed-surface voxel means (occupied voxels with at least 2 hits), the anchor to raw
-  points. Where the anchor's nearest point lies in such a voxel, the margins agree within one voxel (2 cm) on
-  >= ``MIN_AGREEMENT`` of the queries, and so do the ``blocked`` decisions whose anchor margin is farther than that from
-  0 (measured: 100 %, largest difference 1.5 cm); and on every query ours is never nearer to an obstacle than the
-  nearest map point by more than the tolerance (a surface ours would invent). The other queries (39 of 300 here: 87 %
-  of all agree) have their nearest raw point in a voxel the layers carved free (other frames' rays passed through it:
-  20 % of the hit voxels of this map, e.g. a cluster of 16 points one frame saw) or that holds a single point: there
-  ours is farther by up to 23 cm, by design; the counts are in the details;
+* clearance: ours measures to the *cube* of the nearest observed-surface voxel (occupied, at least 2 hits: no point
+  measured in it is nearer), the anchor to raw points. Where the anchor's nearest point lies in such a voxel, ours is
+  at most the anchor's margin (that point's cube is at most as far) and at least it less one voxel diagonal
+  (``CLEARANCE_BAND``: the nearest cube holds measured points at most that much farther); this holds on
+  >= ``MIN_AGREEMENT`` of those queries, and so do the ``blocked`` decisions whose anchor margin is farther than the
+  band from 0; and on every query ours is never nearer to an obstacle than the nearest map point by more than the
+  band (a surface ours would invent). (Before clearance went to the cubes, the check was "within one voxel of the
+  anchor", which the cubes' up to 3.5 cm nearer margins no longer meet: 82.7 % on this run.) The other queries have
+  their nearest raw point in a voxel the layers carved free (other frames' rays passed through it: 20 % of the hit
+  voxels of this map, e.g. a cluster of 16 points one frame saw) or that holds a single point: there ours is farther
+  by up to 23 cm, by design; the counts are in the details;
 * collision: contact or not (ours: margin < 0, i.e. a surface point inside the footprint anywhere on the path,
   whatever the unknown space decided) agrees with the anchor on >= ``MIN_AGREEMENT`` of the sweeps, where the anchor's
   deepest point within the tolerance of the footprint's boundary counts as agreeing when both margins are within the
@@ -52,7 +55,7 @@ Checks (on the results of the last timed pass; the run fails when one does not h
   as surface);
 * grasp / foothold: the number of points in every ROI / patch is the same (exactly: the same points and the same
   range cut), and so is every ``too_few_points`` decision. The normals are not compared as a check (ours fits one per
-  point over 64 neighbours and takes the dominant one and the spread; the anchor one plane): their median angle and
+  1 cm voxel over its 64 nearest within 3 cm and takes the dominant one and the spread; the anchor one plane): their median angle and
   the foothold decisions' agreement are in the details.
 
 Per-query latency (``Decision.latency_s``, per kind) and ``decide``'s own split (prepare / decide) are in the details,
@@ -91,6 +94,8 @@ N_KIND = {"clearance": 300, "collision": 200, "grasp": 150, "foothold": 150, "ex
 TARGET_S = 1.0
 """the issue's target: all 1,000 queries in this many seconds"""
 MIN_AGREEMENT = 0.95
+CLEARANCE_BAND = float(np.sqrt(3.0))
+"""clearance: ours (to an observed-surface voxel's cube) may be nearer than the nearest raw point by this many voxels"""
 REPEATS, QUICK_REPEATS = 5, 1
 BUDGET_S = 900.0
 """no further repetition is started when it would take the timed passes beyond this (a pass of ``decide`` took 9-19
@@ -307,20 +312,22 @@ def _profile_top(store: FrameStore, qs: QuerySet, layers: VolumeLayers, n: int =
 
 
 # ------------------------------------------------------------------------------------------------------ the check
-def _compare(decisions, theirs: dict[str, dict], tol: float, surface_voxel) -> dict:
+def _compare(decisions, theirs: dict[str, dict], tol: float, surface_voxel, band: float) -> dict:
     """Agreement of ours with the anchor; ``surface_voxel(points)``: which points lie in a voxel the layers keep as
-    observed surface (occupied, at least ``surface_min_hits`` points)."""
+    observed surface (occupied, at least ``surface_min_hits`` points); ``band``: how much nearer than the anchor's
+    nearest point ours may measure (to a voxel's cube: a voxel diagonal)."""
     by_kind = defaultdict(list)
     for d in decisions:
         by_kind[d.kind].append((d, theirs[d.id]))
 
-    # clearance: margins within the tolerance where the anchor's nearest point is on ours' observed surface;
-    # everywhere: ours never nearer to an obstacle than a raw point by more than the tolerance
+    # clearance: where the anchor's nearest point is on ours' observed surface, ours (to the voxels' cubes) between
+    # the anchor's margin and it less the band; everywhere: ours never nearer than a raw point by more than the band
     rows = by_kind["clearance"]
+    eps = 1e-9
     delta = np.array([d.margin - a["margin"] for d, a in rows])
     on_surface = surface_voxel(np.array([a["nearest_m"] for _, a in rows]))
-    within = np.abs(delta) <= tol
-    firm = on_surface & np.array([abs(a["margin"]) > tol for _, a in rows])
+    within = (delta <= eps) & (delta >= -band - eps)
+    firm = on_surface & np.array([abs(a["margin"]) > band for _, a in rows])
     blocked_same = np.array([(d.decision == "blocked") == (a["margin"] < 0) for d, a in rows])
     worst = sorted(((float(x), d.id) for x, (d, _) in zip(delta, rows)), key=lambda t: -abs(t[0]))[:5]
     # collision: contact or not, the tolerance band judged by the margins
@@ -357,7 +364,8 @@ def _compare(decisions, theirs: dict[str, dict], tol: float, surface_voxel) -> d
     return {
         "clearance_on_surface": int(on_surface.sum()),
         "clearance_margin_agreement_on_surface": float(np.mean(within[on_surface])) if on_surface.any() else 1.0,
-        "clearance_never_nearer": float(np.mean(delta >= -tol)),
+        "clearance_never_nearer": float(np.mean(delta >= -band - eps)),
+        "clearance_band_m": band,
         "clearance_margin_agreement_all": float(np.mean(within)),
         "clearance_disagreeing_off_surface": int(np.sum(~within & ~on_surface)),
         "clearance_blocked_agreement_on_surface_outside_band": (float(np.mean(blocked_same[firm])) if firm.any()
@@ -427,16 +435,17 @@ def run(quick: bool = False) -> list[dict]:
         def surface_voxel(points: np.ndarray) -> np.ndarray:
             return np.array([tuple(k) in surface_keys for k in layers.grid.lattice_index(points).tolist()], dtype=bool)
 
-        agreement = _compare(decisions, theirs, tol, surface_voxel)
+        band = CLEARANCE_BAND * voxel
+        agreement = _compare(decisions, theirs, tol, surface_voxel, band)
         check(agreement["clearance_margin_agreement_on_surface"] >= MIN_AGREEMENT,
-              f"clearance: where the KD-tree's nearest point lies on the observed surface, margins within "
-              f"{tol * 100:.0f} cm of it on only {agreement['clearance_margin_agreement_on_surface']:.1%} of the "
+              f"clearance: where the KD-tree's nearest point lies on the observed surface, margins between its and "
+              f"{band * 100:.1f} cm less on only {agreement['clearance_margin_agreement_on_surface']:.1%} of the "
               f"queries (< {MIN_AGREEMENT:.0%}); worst {agreement['clearance_margin_delta_m']['worst']}")
         check(agreement["clearance_blocked_agreement_on_surface_outside_band"] >= MIN_AGREEMENT,
               f"clearance: blocked decisions agree with the KD-tree's on only "
               f"{agreement['clearance_blocked_agreement_on_surface_outside_band']:.1%} (< {MIN_AGREEMENT:.0%})")
         check(agreement["clearance_never_nearer"] == 1.0,
-              f"clearance: ours finds an obstacle nearer than any map point by more than {tol * 100:.0f} cm on "
+              f"clearance: ours finds an obstacle nearer than any map point by more than {band * 100:.1f} cm on "
               f"{1 - agreement['clearance_never_nearer']:.1%} of the queries: {agreement['clearance_margin_delta_m']}")
         check(agreement["collision_contact_agreement"] >= MIN_AGREEMENT,
               f"collision: contact agrees with the KD-tree sweep on only "
@@ -498,7 +507,8 @@ def run(quick: bool = False) -> list[dict]:
         "ours": ours_t,
         "anchors": timings,
         "target_ratio": TARGET_S / anchor_s,
-        "check": f"clearance: margins within {tol * 100:.0f} cm of the KD-tree's on "
+        "check": f"clearance: margins between the KD-tree's and {band * 100:.1f} cm less (a voxel diagonal: ours "
+                 f"measures to the voxels' cubes) on "
                  f"{agreement['clearance_margin_agreement_on_surface']:.1%} of the {agreement['clearance_on_surface']} "
                  f"queries whose nearest map point lies in an observed-surface voxel (blocked agrees on "
                  f"{agreement['clearance_blocked_agreement_on_surface_outside_band']:.1%} of them outside the band; "

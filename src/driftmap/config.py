@@ -306,6 +306,7 @@ class DecideConfig(SettingsModel):
     normal_radius_m: float = Field(0.03, gt=0.0, description="grasp and foothold: a point's normal is fitted to its neighbours within this radius (m)")
     normal_max_neighbors: int = Field(64, ge=5, le=1000, description="grasp and foothold: at most this many neighbours per normal")
     normal_margin_m: float = Field(0.03, ge=0.0, description="grasp and foothold: points up to this far outside the region lend their neighbourhood to the normals of the points inside")
+    normal_voxel_m: float | None = Field(0.01, gt=0.0, description="grasp and foothold: the normals are fitted on the region's points averaged per voxel of this size (m; each point takes its voxel's normal), so that the normal_max_neighbors nearest span about normal_radius_m however many frames overlap; None: on every full-resolution point (slow where frames overlap). The point counts always use every point")
     foothold_min_points: int = Field(30, ge=3, description="foothold: fewer map points than this in the patch is too_few_points")
     foothold_max_flatness_m: float = Field(0.02, gt=0.0, description="foothold: RMS distance of the patch's points from their plane above which the patch is uneven (m)")
     spread_radius_m: float = Field(0.05, gt=0.0, description="uncertainty: the map points within this radius of a decision's evidence point are grouped by frame (m)")

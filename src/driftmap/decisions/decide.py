@@ -19,6 +19,7 @@ from driftmap import __version__
 from driftmap.decisions import space, surface
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.evidence import DecisionContext
+from driftmap.decisions.point_index import point_index
 from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_queries
 from driftmap.decisions.records import Decision, DecisionSet, Representation
 from driftmap.decisions.settings import DecideConfig, settings_hash
@@ -186,7 +187,7 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
     tick = progress or (lambda stage, done, total: None)
     ctx = DecisionContext(store, layers.revision, layers, cfg, walls)
     t_all = time.perf_counter()
-    prepare(layers)
+    prepare(layers, cfg)
     prepare_s = time.perf_counter() - t_all
     decisions: list[Decision] = []
     for n, q in enumerate(qs):
@@ -205,14 +206,16 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
                        {"layers": layers_s, "prepare": prepare_s, "decide": time.perf_counter() - t_all - prepare_s})
 
 
-def prepare(layers: VolumeLayers) -> None:
-    """Build what every query reads once (the surface KD-tree, the per-column unknown counts; cached on the layers
-    until they change), so that a query's latency is its own."""
+def prepare(layers: VolumeLayers, decide_config: DecideConfig | None = None) -> None:
+    """Build what every query reads once (the surface KD-tree, the per-column unknown counts, the map points sorted
+    by cell; cached on the layers until they change), so that a query's latency is its own."""
     from driftmap.volume.queries import surface_tree
 
     surface_tree(layers)
     space.unknown_sat(layers)
+    space.surface_reach(layers)
     layers.observers(np.zeros((1, 3)))  # the sorted (voxel, frame) index the provenance lookups search
+    point_index(layers, (decide_config or DecideConfig()).range_limited_points)
 
 
 def _store_uuid(store: FrameStore) -> str | None:

@@ -29,6 +29,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap.decisions.point_index import PointIndex, point_index
 from driftmap.decisions.settings import DecideConfig
 from driftmap.decisions.walls import DoubleWall, walls_in_reach
 
@@ -51,6 +52,7 @@ class DecisionContext:
     _origins: dict[int, NDArray[np.float64]] = field(default_factory=dict)
     _pose_revision: dict[int, int] | None = None
     _covariances: dict[int, NDArray[np.float64]] | None = None
+    _point_index: PointIndex | None = None
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.store.frame_ids, dtype=np.int64)
@@ -78,22 +80,25 @@ class DecisionContext:
         return o
 
     def points_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """Full-resolution map points (float64) inside the world box and their frames; with ``range_limited_points``
-        only those within the volume's max range of their sensor (the depth the layers trust as hits)."""
-        found = self.view.query_box(lo, hi)
-        return self._in_range(found.points_world.astype(np.float64), found.frame_ids)
+        """Full-resolution map points (float64) inside the world box (inclusive) and their frames, in map order; with
+        ``range_limited_points`` only those within the volume's max range of their sensor (the depth the layers
+        trust as hits). From the :class:`~driftmap.decisions.point_index.PointIndex` of the revision: the same
+        points as ``view.query_box`` followed by the range cut."""
+        return self.point_index.box(lo, hi)
 
     def points_in_ball(self, center: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        found = self.view.query_radius(center, radius_m)
-        return self._in_range(found.points_world.astype(np.float64), found.frame_ids)
+        """As :meth:`points_in_box`, within ``radius_m`` of ``center`` (``view.query_radius``)."""
+        return self.point_index.ball(center, radius_m)
 
-    def _in_range(self, pts: NDArray[np.float64], fids: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        if not self.config.range_limited_points or self.max_range_m is None or len(pts) == 0:
-            return pts, fids
-        uniq, inv = np.unique(fids, return_inverse=True)
-        origins = np.stack([self.origin(int(f)) for f in uniq])
-        keep = np.linalg.norm(pts - origins[inv], axis=1) <= self.max_range_m
-        return pts[keep], fids[keep]
+    def frames_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.int64]:
+        """The frames of :meth:`points_in_box`, without gathering the points."""
+        return self.point_index.frames_in_box(lo, hi)
+
+    @property
+    def point_index(self) -> PointIndex:
+        if self._point_index is None:
+            self._point_index = point_index(self.layers, self.config.range_limited_points)
+        return self._point_index
 
     # ------------------------------------------------------------------------------------------- frames
     def frames_report(self, frames: NDArray[np.int64] | list[int]) -> tuple[list[int], int | None]:
@@ -131,11 +136,10 @@ class DecisionContext:
             centred = pts - pts.mean(axis=0)
             normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]
         offsets = (pts - point) @ np.asarray(normal, dtype=np.float64)
-        _, inv, counts = np.unique(fids, return_inverse=True, return_counts=True)
-        placed = [float(np.median(offsets[inv == k])) for k in np.flatnonzero(counts >= self.config.spread_min_points)]
+        placed = group_medians(offsets, fids, self.config.spread_min_points)
         if len(placed) < 2:
             return None
-        return max(placed) - min(placed)
+        return float(placed.max() - placed.min())
 
     def pose_marginal_m(self, point: NDArray[np.float64] | None, frames: list[int]) -> float | None:
         """The median over ``frames`` of the pose covariance propagated to ``point`` (module docstring); None
@@ -180,3 +184,16 @@ class DecisionContext:
                 "uncertainty": unc, "evidence_m": point,
                 "details": {"uncertainty_parts": parts, "frame_pose_revisions": self.pose_revisions(ids),
                             "double_walls_in_reach": [w.to_json() for w in walls]}}
+
+
+def group_medians(values: NDArray[np.float64], groups: NDArray[np.int64], min_count: int) -> NDArray[np.float64]:
+    """The median of ``values`` per group (``np.median``'s value: the middle one, or the mean of the two middle
+    ones) of the groups with at least ``min_count`` members, in ascending group order: one sort for all groups."""
+    order = np.lexsort((values, groups))
+    v, g = values[order], groups[order]
+    starts = np.flatnonzero(np.concatenate([[True], g[1:] != g[:-1]])) if len(g) else np.zeros(0, np.int64)
+    counts = np.diff(np.append(starts, len(g)))
+    keep = counts >= min_count
+    starts, counts = starts[keep], counts[keep]
+    lo, hi = v[starts + (counts - 1) // 2], v[starts + counts // 2]
+    return np.where(counts % 2 == 1, lo, (lo + hi) / 2.0)

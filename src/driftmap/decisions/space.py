@@ -96,7 +96,7 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
     check_path_samples(q, step)
     samples, along = path_samples(q.path_m, step)
     tree, surface = _surface(ctx)
-    signed, nearest = _footprint_distances(q, samples, tree, surface, ctx.voxel_m)
+    signed, nearest = _footprint_distances(q, samples, tree, surface, ctx.voxel_m, surface_reach(ctx.layers))
     contact = np.flatnonzero(signed < 0)
     unknown = (np.flatnonzero(_unknown_counts(ctx.layers, q, samples) > 0) if _policy(ctx, q.unknown_is) == "occupied"
                else np.zeros(0, np.int64))
@@ -169,22 +169,42 @@ def footprint_signed_distance(q: CollisionQuery, offsets: NDArray[np.float64]) -
 def footprint_signed_distances(q: CollisionQuery, centres: NDArray[np.float64], points: NDArray[np.float64]
                                ) -> NDArray[np.float64]:
     """(S, M) signed distances of ``points`` to the footprint placed at each of ``centres`` (negative inside)."""
-    offsets = points[None, :, :] - centres[:, None, :]
+    # per axis (S, M) arrays, no reduction over a last axis of 2 or 3 (the same sums and maxima, in the same order)
+    ox, oy, oz = (points[None, :, k] - centres[:, None, k] for k in range(3))
     if q.footprint == "box":
-        d = np.abs(offsets) - 0.5 * np.asarray(q.size_m)
+        half = 0.5 * np.asarray(q.size_m, dtype=np.float64)
+        d = [np.abs(ox) - half[0], np.abs(oy) - half[1], np.abs(oz) - half[2]]
     else:
         r, h = q.size_m
-        d = np.stack([np.hypot(offsets[..., 0], offsets[..., 1]) - r, np.abs(offsets[..., 2]) - 0.5 * h], axis=-1)
-    outside = np.sqrt(np.sum(np.maximum(d, 0.0) ** 2, axis=-1))
-    return np.where(np.all(d <= 0, axis=-1), d.max(axis=-1), outside)
+        d = [np.hypot(ox, oy) - r, np.abs(oz) - 0.5 * h]
+    deepest = d[0]
+    for c in d[1:]:
+        deepest = np.maximum(deepest, c)
+    out = np.maximum(d[0], 0.0) ** 2
+    for c in d[1:]:
+        out += np.maximum(c, 0.0) ** 2
+    return np.where(deepest <= 0, deepest, np.sqrt(out))
 
 
 GROUP = 8
 """collision: consecutive path samples whose surface candidates are gathered together"""
 
 
+def surface_reach(layers: VolumeLayers) -> NDArray[np.float64] | None:
+    """:func:`surface_voxel_reach_m` of every observed-surface point, cached on the layers until they change."""
+    key = "decisions_surface_reach"
+    hit = layers.cache.get(key)
+    if hit is not None and hit[0] == layers.version:
+        return hit[1]
+    tree = surface_tree(layers)
+    reach = None if tree is None else surface_voxel_reach_m(np.asarray(tree.data), layers.grid.voxel_size_m)
+    layers.cache[key] = (layers.version, reach)
+    return reach
+
+
 def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: object | None,
-                         surface: NDArray[np.float64], voxel_size_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+                         surface: NDArray[np.float64], voxel_size_m: float,
+                         reach: NDArray[np.float64] | None = None) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Per sample: the smallest signed distance from the footprint to a surface point, less how far a point measured
     in that point's voxel may lie from it (:func:`surface_voxel_reach_m`), and that point's index. Exact
     wherever it can be the path's smallest or a contact (the samples whose centre lies within the footprint's
@@ -194,7 +214,8 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
     if tree is None:
         return np.full(n, np.inf), np.full(n, -1, np.int64)
     bound = float(np.linalg.norm(q.half_extent_m))
-    reach = surface_voxel_reach_m(surface, voxel_size_m)  # a measured point may lie this far from its voxel's mean
+    if reach is None:  # a measured point may lie this far from its voxel's mean
+        reach = surface_voxel_reach_m(surface, voxel_size_m)
     r_max = float(reach.max())
     d_centre, nearest = tree.query(samples)
     signed = d_centre - bound - r_max
@@ -299,8 +320,7 @@ def explore(ctx: DecisionContext, q: ExploreQuery) -> dict:
     fraction = int(unknown_in_boxes(layers, lo[None], hi[None])[0]) / total
     margin = q.max_unknown_fraction - fraction
     decision, failure = ("go_look", "unknown_space") if margin < 0 else ("known", None)
-    _, fids = ctx.points_in_box(q.min_m, q.max_m)
-    out = ctx.finish(decision, failure, q.min_m, q.max_m, None, fids)
+    out = ctx.finish(decision, failure, q.min_m, q.max_m, None, ctx.frames_in_box(q.min_m, q.max_m))
     out["evidence_m"] = 0.5 * (q.min_m + q.max_m)
     out["margin"] = float(margin)
     out["details"].update(unknown_fraction=float(fraction), n_voxels=int(total))

@@ -3,9 +3,14 @@
 interest: contact point, normal, approach direction and how stable the normal is) and ``foothold`` (a patch: slope
 and flatness).
 
-Normals are :func:`driftmap.preprocess.cloud.estimate_normals` (Open3D's covariance normals) over neighbours within
-``normal_radius_m`` -- points up to ``normal_margin_m`` outside the region lend their neighbourhood, so a region's
-border does not tilt its normals -- each oriented towards the sensor of the frame that measured the point. The
+Normals are :func:`driftmap.preprocess.cloud.estimate_normals` (Open3D's covariance normals) over at most
+``normal_max_neighbors`` neighbours within ``normal_radius_m``, fitted on the region's points averaged per
+``normal_voxel_m`` voxel (world lattice; each point takes its voxel's normal), so that on a map where many frames
+overlap the neighbours span the intended radius rather than millimetres of depth noise -- points up to
+``normal_margin_m`` outside the region lend their neighbourhood, so a region's border does not tilt its normals --
+each oriented towards the sensor of the frame that measured the point. Point counts (``too_few_points``), the
+dominant normal's weights, the spread's percentile, the plane's offset and the flatness use every full-resolution
+point. The
 *dominant normal* is the principal direction of the points' normals (the eigenvector of the largest eigenvalue of
 ``sum n n^T``), pointing the way most of them do; the *normal spread* is the 90th percentile of the angles between
 the points' normals and it (deg): a few degrees on a plane, tens of degrees across an edge or a corner.
@@ -25,13 +30,37 @@ if TYPE_CHECKING:
     from driftmap.decisions.evidence import DecisionContext
 
 
-def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], fids: NDArray[np.int64]) -> NDArray[np.float64]:
-    """Normals of ``pts`` (NaN where too few neighbours), each towards its frame's sensor origin."""
+def voxel_means(pts: NDArray[np.float64], voxel_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """The mean point of every occupied ``voxel_m`` voxel of the world lattice (in the order of their keys) and each
+    point's voxel (an index into the means)."""
+    keys = np.floor(pts / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inv = np.unique(packed, return_inverse=True)
+    inv = inv.ravel()
+    n = np.bincount(inv)
+    means = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(n)) for k in range(3)], axis=1) / n[:, None]
+    return means, inv
+
+
+def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], fids: NDArray[np.int64],
+                      which: NDArray[np.bool_]) -> NDArray[np.float64]:
+    """Normals of ``pts[which]`` (NaN where too few neighbours), each towards its frame's sensor origin: fitted on
+    the voxel means of all of ``pts`` (``normal_voxel_m``; None: on every point)."""
     c = ctx.config
-    normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals.astype(np.float64)
-    uniq, inv = np.unique(fids, return_inverse=True)
-    origins = np.stack([ctx.origin(int(f)) for f in uniq])
-    flip = np.einsum("ij,ij->i", normals, origins[inv] - pts) < 0
+    if c.normal_voxel_m is None:  # every point's own normal (Open3D over the whole region)
+        normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals[which]
+    else:
+        fit, inv = voxel_means(pts, c.normal_voxel_m)
+        at, of_point = np.unique(inv[which], return_inverse=True)  # only the voxels holding a point inside
+        normals = estimate_normals(fit, k=c.normal_max_neighbors, radius_m=c.normal_radius_m, at=at).normals
+        normals = normals[of_point.ravel()]
+    normals = normals.astype(np.float64)
+    p, f = pts[which], fids[which]
+    uniq, inv_f = np.unique(f, return_inverse=True)
+    origins = np.stack([ctx.origin(int(x)) for x in uniq])
+    flip = np.einsum("ij,ij->i", normals, origins[inv_f.ravel()] - p) < 0
     normals[flip] *= -1.0
     return normals
 
@@ -73,7 +102,7 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
         out["evidence_m"] = 0.5 * (q.roi_min_m + q.roi_max_m)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals = _oriented_normals(ctx, pts, fids)[inside]
+    normals = _oriented_normals(ctx, pts, fids, inside)
     p_in = pts[inside]
     ok = np.all(np.isfinite(normals), axis=1)
     e, angles = dominant_normal(normals[ok])
@@ -113,7 +142,7 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
         out.update(margin=None, evidence_m=centre)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals = _oriented_normals(ctx, pts, fids)[mask]
+    normals = _oriented_normals(ctx, pts, fids, mask)
     ok = np.all(np.isfinite(normals), axis=1)
     e, _ = dominant_normal(normals[ok])
     if e[2] < 0:

@@ -188,12 +188,18 @@ def estimate_normals(
     radius_m: float | None = None,
     viewpoint: NDArray[np.floating] | None = None,
     min_neighbors: int = 5,
+    at: NDArray[np.integer] | None = None,
 ) -> NormalsResult:
     """Normals from the covariance of the ``k`` nearest neighbours (Open3D), oriented towards ``viewpoint``.
 
     The normal is the eigenvector of the smallest eigenvalue; with ``radius_m`` the search is a hybrid
     (at most ``k`` neighbours within ``radius_m``) and points with fewer than ``min_neighbors`` get a NaN
     normal and zero confidence. ``viewpoint`` defaults to the origin (the sensor, for sensor-frame points).
+
+    ``at`` (indices into ``points``): only the normals of those points, their neighbours searched among all of
+    ``points`` (the result has one row per index). The same search and covariance as Open3D's (the ``k`` nearest
+    within the radius, the point itself included; fewer than 3: an identity covariance), from one SciPy
+    ``cKDTree`` query, for a region whose border points only lend their neighbourhood.
     """
     if not 3 <= k <= 1000:
         raise ConfigError(f"normals: k must be in 3..1000, got {k}")
@@ -204,10 +210,21 @@ def estimate_normals(
     if n == 0:
         empty = np.zeros((0,), np.float32)
         return NormalsResult(np.zeros((0, 3), np.float32), empty, empty)
-    pcd = _legacy_cloud(pts)
-    param = o3d.geometry.KDTreeSearchParamKNN(k) if radius_m is None else o3d.geometry.KDTreeSearchParamHybrid(radius_m, k)
-    pcd.estimate_covariances(param)
-    cov = np.asarray(pcd.covariances)
+    counts = None
+    if at is not None:
+        at = np.asarray(at, dtype=np.int64).ravel()
+        if len(at) == 0:
+            empty = np.zeros((0,), np.float32)
+            return NormalsResult(np.zeros((0, 3), np.float32), empty, empty,
+                                 None if radius_m is None else np.zeros(0, np.int32))
+        cov, counts = _knn_covariances(pts, at, k, radius_m)
+        pts = pts[at]
+    else:
+        pcd = _legacy_cloud(pts)
+        param = (o3d.geometry.KDTreeSearchParamKNN(k) if radius_m is None
+                 else o3d.geometry.KDTreeSearchParamHybrid(radius_m, k))
+        pcd.estimate_covariances(param)
+        cov = np.asarray(pcd.covariances)
     eigval, eigvec = np.linalg.eigh(cov)  # ascending eigenvalues, batched
     normals = eigvec[:, :, 0]
     l0, l1, l2 = eigval[:, 0].clip(min=0), eigval[:, 1].clip(min=0), eigval[:, 2].clip(min=0)
@@ -218,16 +235,47 @@ def estimate_normals(
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, dtype=np.float64)
     flip = np.einsum("ij,ij->i", normals, vp - pts) < 0
     normals[flip] *= -1.0
-    counts = None
     if radius_m is not None:
         k_min = max(int(min_neighbors), 1)
-        dist, _ = cKDTree(pts).query(pts, k=k_min, distance_upper_bound=np.nextafter(radius_m, np.inf))
-        within = np.asarray(dist).reshape(len(pts), k_min) <= radius_m  # as query_ball_point: distance <= radius
-        counts = within.sum(axis=1).astype(np.int32)
+        if counts is not None and k_min <= k:  # the neighbours within the radius, found up to k >= min_neighbors
+            counts = np.minimum(counts, k_min).astype(np.int32)
+        else:
+            src = np.asarray(points, dtype=np.float64)
+            dist, _ = cKDTree(src).query(pts, k=k_min, distance_upper_bound=np.nextafter(radius_m, np.inf))
+            within = np.asarray(dist).reshape(len(pts), k_min) <= radius_m  # as query_ball_point: distance <= radius
+            counts = within.sum(axis=1).astype(np.int32)
         sparse = counts < min_neighbors
         normals[sparse] = np.nan
         confidence[sparse] = 0.0
-    return NormalsResult(normals.astype(np.float32), curvature.astype(np.float32), confidence.astype(np.float32), counts)
+    return NormalsResult(normals.astype(np.float32), curvature.astype(np.float32), confidence.astype(np.float32),
+                         counts if radius_m is not None else None)
+
+
+def _knn_covariances(pts: NDArray[np.float64], at: NDArray[np.int64], k: int, radius_m: float | None
+                     ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Open3D's neighbourhood covariances (``estimate_covariances``: the ``k`` nearest, within ``radius_m`` when
+    given, the point itself included; population covariance; identity below 3 neighbours) of ``pts[at]`` among
+    ``pts``, and how many neighbours each had (at most ``k``)."""
+    kk = min(int(k), len(pts))
+    bound = np.inf if radius_m is None else np.nextafter(radius_m, np.inf)
+    dist, idx = cKDTree(pts).query(pts[at], k=kk, distance_upper_bound=bound)
+    dist, idx = dist.reshape(len(at), kk), idx.reshape(len(at), kk)
+    valid = np.isfinite(dist) if radius_m is None else dist <= radius_m
+    n = valid.sum(axis=1)
+    # offsets from the query point (a missing neighbour: the point itself, adding nothing to the sums)
+    nb = pts[np.where(valid, idx, at[:, None])] - pts[at][:, None, :]
+    x, y, z = nb[..., 0], nb[..., 1], nb[..., 2]
+    inv = 1.0 / np.maximum(n, 1)
+    mx, my, mz = x.sum(axis=1) * inv, y.sum(axis=1) * inv, z.sum(axis=1) * inv
+    cov = np.empty((len(at), 3, 3))
+    cov[:, 0, 0] = (x * x).sum(axis=1) * inv - mx * mx
+    cov[:, 1, 1] = (y * y).sum(axis=1) * inv - my * my
+    cov[:, 2, 2] = (z * z).sum(axis=1) * inv - mz * mz
+    cov[:, 0, 1] = cov[:, 1, 0] = (x * y).sum(axis=1) * inv - mx * my
+    cov[:, 0, 2] = cov[:, 2, 0] = (x * z).sum(axis=1) * inv - mx * mz
+    cov[:, 1, 2] = cov[:, 2, 1] = (y * z).sum(axis=1) * inv - my * mz
+    cov[n < 3] = np.eye(3)
+    return cov, n
 
 
 def frame_with_normals(frame: Frame, *, k: int = 20, radius_m: float | None = None) -> tuple[Frame, NormalsResult]:
