@@ -16,20 +16,13 @@ from driftmap.errors import (
     StoreError,
     TransformError,
 )
-from driftmap.frame import (
-    Frame,
-    FrameQuality,
-    PinholeIntrinsics,
-    PointAttributes,
-    PoseEstimate,
-    PoseSource,
-    Provenance,
-    SensorKind,
-)
-
-#: Heavier entry points, imported on first use (``driftmap.FrameStore``, ``driftmap.backproject`` etc.) so that
-#: ``import driftmap`` and ``import driftmap.store`` stay light (no numba, Open3D, GTSAM or KISS-ICP).
+#: Everything but the errors is imported on first use (``driftmap.Frame``, ``driftmap.FrameStore``,
+#: ``driftmap.backproject`` etc.) so that ``import driftmap`` stays light (not even numpy: the command line takes
+#: Ctrl-C cleanly from its first moment, driftmap.cli) and ``import driftmap.store`` loads no numba, Open3D, GTSAM
+#: or KISS-ICP.
 _LAZY = {
+    **{name: "driftmap.frame" for name in ("Frame", "FrameQuality", "PinholeIntrinsics", "PointAttributes",
+                                           "PoseEstimate", "PoseSource", "Provenance", "SensorKind")},
     "BackprojectionResult": "driftmap.preprocess.depth",
     "InvalidFractionMonitor": "driftmap.preprocess.depth",
     "InvalidReason": "driftmap.preprocess.depth",

@@ -9,47 +9,95 @@ convert, build), :mod:`~driftmap.cli.store_cmds` (correct, revisions, rollback, 
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 
-from rich.text import Text
+_interrupt = {"seen": False}
+"""Set by Ctrl-C (SIGINT): whatever a library turns the interrupt into while it loads (open3d, gtsam and numpy's
+extensions raise ImportError or their own errors when interrupted mid-initialisation), the command ends as
+interrupted (exit 130), not with a traceback."""
 
-# the command modules register their commands on import, in the order --help lists them
-# isort: off
-from driftmap.cli import build_cmds  # noqa: F401
-from driftmap.cli import store_cmds  # noqa: F401
-from driftmap.cli import diagnose_cmds  # noqa: F401
-from driftmap.cli import batch_cmds  # noqa: F401
-from driftmap.cli import decide_cmds  # noqa: F401
-# isort: on
-from driftmap.cli.common import app, err_console, state
-from driftmap.errors import DriftmapError
+
+def _on_sigint(signum: int, frame: object) -> None:
+    _interrupt["seen"] = True
+    raise KeyboardInterrupt
+
+
+def _exit_interrupted() -> None:
+    sys.stderr.write("interrupted\n")  # rich may not be loaded yet
+    sys.stderr.flush()
+    import os
+
+    os._exit(130)
+
+
+if threading.current_thread() is threading.main_thread() and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    signal.signal(signal.SIGINT, _on_sigint)
+
+try:
+    from rich.text import Text
+
+    # the command modules register their commands on import, in the order --help lists them
+    # isort: off
+    from driftmap.cli import build_cmds  # noqa: F401
+    from driftmap.cli import store_cmds  # noqa: F401
+    from driftmap.cli import diagnose_cmds  # noqa: F401
+    from driftmap.cli import batch_cmds  # noqa: F401
+    from driftmap.cli import decide_cmds  # noqa: F401
+    # isort: on
+    from driftmap.cli.common import app, err_console, state
+    from driftmap.errors import DriftmapError
+except BaseException as exc:  # noqa: BLE001 - only an interrupt is handled here; everything else is re-raised
+    if _interrupt["seen"] or isinstance(exc, KeyboardInterrupt):
+        _exit_interrupted()
+    raise
 
 __all__ = ["app", "main"]
 
 
 def main() -> None:
-    """Console-script entry point: maps driftmap errors to one line and a non-zero exit."""
+    """Console-script entry point: maps driftmap errors to one line and a non-zero exit, Ctrl-C to exit 130."""
     try:
         app()
-    except DriftmapError as exc:
-        if state["debug"]:
+    except KeyboardInterrupt:
+        _interrupted()
+    except Exception as exc:
+        if _interrupt["seen"]:  # an interrupt while a library loads or works can surface as its own error
+            _interrupted()
+        if state["debug"] or not isinstance(exc, (DriftmapError, UnicodeDecodeError, OSError)):
             raise
-        _error(str(exc))
-    except UnicodeDecodeError as exc:
-        if state["debug"]:
-            raise
-        _error(f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); run with --debug to see which")
-    except OSError as exc:  # unwritable output, a directory where a file was expected, a full disk ...
-        if state["debug"]:
-            raise
+        _error(_message(exc))
+
+
+def _message(exc: Exception) -> str:
+    if isinstance(exc, UnicodeDecodeError):
+        return f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); run with --debug to see which"
+    if isinstance(exc, OSError):  # unwritable output, a directory where a file was expected, a full disk ...
         from driftmap.cli.common import os_error_hint
 
         hint = os_error_hint(exc)
-        _error((f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
-               + (f"; {hint}" if hint else ""))
-    except KeyboardInterrupt:
-        err_console.print(Text("interrupted", style="red"))
-        sys.exit(130)
+        return ((f"{exc.filename}: {exc.strerror}" if exc.filename and exc.strerror else str(exc))
+                + (f"; {hint}" if hint else ""))
+    return str(exc)
+
+
+def _interrupted() -> None:
+    err_console.print(Text("interrupted", style="red"))
+    _exit_now(130)
+
+
+def _exit_now(code: int) -> None:
+    """Exit with ``code`` without the libraries' exit handlers: an Open3D or GTSAM interrupted mid-initialisation
+    prints its memory statistics and turns the exit code into 1 at interpreter shutdown. Logs and output are
+    flushed first; driftmap registers no exit handler (stores are consistent at every write, docs/store.md)."""
+    import logging
+    import os
+
+    logging.shutdown()
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
 
 
 def _error(message: str) -> None:

@@ -121,6 +121,10 @@ def config_cmd(
     console.print(table)
 
 
+MAX_DERIVED_SYNTH_FRAMES = 20_000
+"""``synth``: a frame count derived from the speed and period (not given with --frames) above this is a typo."""
+
+
 @app.command("synth")
 def synth(
     out: Annotated[Path, typer.Argument(help="Folder to write the synthetic log to (with --fleet: a folder of N log folders).")],
@@ -189,8 +193,16 @@ def synth(
         from dataclasses import replace
 
         cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
+        if cfg.n_frames > MAX_DERIVED_SYNTH_FRAMES:
+            from driftmap.errors import ConfigError
+
+            raise ConfigError(f"the speed and period asked for need {cfg.n_frames:,} frames "
+                              f"({cfg.speed_m_per_s:g} m/s, {cfg.frame_period_ns / 1e9:g} s apart), more than the "
+                              f"{MAX_DERIVED_SYNTH_FRAMES:,} a derived frame count may reach: give a faster "
+                              f"--speed-m-per-s or a longer --period-s, or --frames N for a log that long on purpose")
     refuse_inside_store(out, "OUT")
-    with console.status(f"ray-casting the synthetic {scene}"), writing_output(out, "the synthetic log"):
+    with console.status(f"ray-casting the synthetic {scene}: {cfg.n_frames:,} frames"), \
+            writing_output(out, "the synthetic log"):
         path = generate_synthetic_log(out, cfg, overwrite=overwrite)
     console.print(bold("synthetic log: ", path.resolve()))
     console.print(f"{cfg.n_frames} frames, {cfg.frame_period_ns / 1e9:g} s apart")

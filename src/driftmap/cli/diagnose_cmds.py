@@ -216,9 +216,9 @@ def perturb(
     step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
     step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
     step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin).")] = None,
-    drift_percent_per_m: Annotated[float, typer.Option("--drift-percent-per-m", callback=finite, help="Translation drift (% of the path travelled).")] = 0.0,
+    drift_percent_per_m: Annotated[float, typer.Option("--drift-percent-per-m", min=-100.0, max=100.0, callback=finite, help="Translation drift (% of the path travelled).")] = 0.0,
     drift_direction: Annotated[str, typer.Option("--drift-direction", help="World direction of the translation drift 'x,y,z'.")] = "1,0,0",
-    drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", callback=finite, help="Rotation drift (deg per m travelled).")] = 0.0,
+    drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", min=-360.0, max=360.0, callback=finite, help="Rotation drift (deg per m travelled).")] = 0.0,
     drift_axis: Annotated[str, typer.Option("--drift-axis", help="World axis of the rotation drift 'x,y,z' (through the first position).")] = "0,0,1",
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing POSES_OUT; without it an existing file is refused.")] = False,
 ) -> None:

@@ -92,11 +92,10 @@ def check_sweeps(queries: Iterable[Query], store: FrameStore, config: VolumeConf
     sweeps = [q for q in queries if isinstance(q, CollisionQuery)]
     if not sweeps:
         return
-    step = (decide_config or DecideConfig()).sweep_step_m
-    if step is None:
-        step = 0.5 * float(resolve_config(store, config or VolumeConfig()).voxel_size_m)
+    voxel_m = float(resolve_config(store, config or VolumeConfig()).voxel_size_m)
     for q in sweeps:
-        space.check_path_samples(q, step)
+        space.check_path_samples(q, space.sweep_step(q, (decide_config or DecideConfig()).sweep_step_m, voxel_m,
+                                                     warn=False))
 
 
 def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarray) -> None:

@@ -18,6 +18,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap.voxels import ABSOLUTE_GRID
+
 if TYPE_CHECKING:
     from driftmap.map.view import MapView
     from driftmap.volume.layers import VolumeLayers
@@ -25,12 +27,14 @@ if TYPE_CHECKING:
 CELL_M = 0.05
 """the index's cell side (m): a grasp ROI or a 5 cm ball overlaps a few dozen cells, a 1 m explore box 8,000"""
 CHUNK_POINTS = 1 << 20
-_BITS = 21
-_OFFSET = 1 << (_BITS - 1)
+_CELL_LO, _CELL_HI = ABSOLUTE_GRID.lo[0], ABSOLUTE_GRID.hi[0]
+"""the cells the index keys hold per axis (:data:`~driftmap.voxels.ABSOLUTE_GRID`: +-52 km at 5 cm)"""
 
 
 def _pack(i: NDArray[np.int64], j: NDArray[np.int64], k: NDArray[np.int64]) -> NDArray[np.int64]:
-    return (((i + _OFFSET) << (2 * _BITS)) | ((j + _OFFSET) << _BITS)) | (k + _OFFSET)
+    """Cell keys on the absolute grid (sorted keys run z fastest, then y, then x); a :class:`ConfigError` for a
+    cell beyond it (a map that far from its origin)."""
+    return ABSOLUTE_GRID.pack((i, j, k), "the decisions' point index (5 cm cells)")
 
 
 def in_range_mask(points: NDArray[np.float64], frame_rows: NDArray[np.int64], origins: NDArray[np.float64],
@@ -65,6 +69,11 @@ class PointIndex:
     """per (cell, frame), the frame's row"""
 
     def __post_init__(self) -> None:
+        if len(self.points):  # the cells the points occupy: a query's cell range is cut to them
+            self._extent = (np.floor(self.points.min(axis=0).astype(np.float64) / self.cell_m).astype(np.int64),
+                            np.floor(self.points.max(axis=0).astype(np.float64) / self.cell_m).astype(np.int64))
+        else:
+            self._extent = (np.zeros(3, np.int64), np.full(3, -1, np.int64))  # a range nothing falls in
         if self.pair_keys is None:
             first = np.ones(len(self.keys), bool)
             first[1:] = (self.keys[1:] != self.keys[:-1]) | (self.rows[1:] != self.rows[:-1])
@@ -102,7 +111,12 @@ class PointIndex:
 
     # ------------------------------------------------------------------------------------------- cells
     def _cell_range(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        return np.floor(lo / self.cell_m).astype(np.int64), np.floor(hi / self.cell_m).astype(np.int64)
+        """The cells of the box ``lo .. hi`` that points occupy at all (cut to their extent, so that a box far
+        larger than the map costs what the map does; empty, ``a > b``, when it misses them)."""
+        e_lo, e_hi = self._extent
+        a = np.floor(np.maximum(lo, (e_lo - 1) * self.cell_m) / self.cell_m).astype(np.int64)
+        b = np.floor(np.minimum(hi, (e_hi + 2) * self.cell_m) / self.cell_m).astype(np.int64)
+        return np.maximum(a, e_lo - 1), np.minimum(b, e_hi + 1)
 
     def _runs(self, a: NDArray[np.int64], b: NDArray[np.int64], columns: NDArray[np.int64] | None = None,
               keys: NDArray[np.int64] | None = None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -114,8 +128,15 @@ class PointIndex:
             i, j = i.ravel(), j.ravel()
         else:
             i, j = columns[:, 0], columns[:, 1]
-        starts = np.searchsorted(keys, _pack(i, j, np.full_like(i, a[2])), "left")
-        stops = np.searchsorted(keys, _pack(i, j, np.full_like(i, b[2])), "right")
+        # a query may reach beyond the grid, where no point lies: its columns there are empty, its z range clipped
+        inside = (i >= _CELL_LO) & (i <= _CELL_HI) & (j >= _CELL_LO) & (j <= _CELL_HI)
+        if b[2] < _CELL_LO or a[2] > _CELL_HI or a[2] > b[2]:
+            inside[:] = False
+        za, zb = np.clip([a[2], b[2]], _CELL_LO, _CELL_HI)
+        starts, stops = np.zeros(len(i), np.int64), np.zeros(len(i), np.int64)
+        ii, jj = i[inside], j[inside]
+        starts[inside] = np.searchsorted(keys, _pack(ii, jj, np.full_like(ii, za)), "left")
+        stops[inside] = np.searchsorted(keys, _pack(ii, jj, np.full_like(ii, zb)), "right")
         return starts, stops
 
     @staticmethod

@@ -31,6 +31,11 @@ MAX_QUERY_FILE_BYTES = 256 << 20
 MAX_LENGTH_M = 1000.0
 """A radius, footprint size or flatness above this (m) is no robot's question: a unit mistake (and would overflow
 the voxel counts)."""
+MAX_COORDINATE_M = 1.0e6
+"""A query point farther than this (m) from the map's origin on any axis is a unit or parsing mistake (and would
+overflow the region arithmetic); decide checks the region against the map's bounds anyway."""
+MAX_MIN_POINTS = 100_000_000
+"""A ``min_points`` above this is no query's threshold (no region of a map holds that many points)."""
 
 
 @dataclass(frozen=True)
@@ -303,17 +308,17 @@ def _collision(qid: str, item: Mapping) -> CollisionQuery:
 
 def _grasp(qid: str, item: Mapping) -> GraspQuery:
     lo, hi = _box(qid, item, "roi_min_m", "roi_max_m")
-    min_points = _integer(qid, item, "min_points", lo=3) if "min_points" in item else None
+    min_points = _integer(qid, item, "min_points", lo=3, hi=MAX_MIN_POINTS) if "min_points" in item else None
     spread = _number(qid, item, "max_normal_spread_deg", lo=0.0, hi=90.0) if "max_normal_spread_deg" in item else None
     return GraspQuery(qid, "grasp", lo, hi, min_points, spread)
 
 
 def _foothold(qid: str, item: Mapping) -> FootholdQuery:
-    center = _vector(qid, item["center_m"], "center_m", 3)
+    center = _vector(qid, item["center_m"], "center_m", 3, bound=MAX_COORDINATE_M)
     radius = _number(qid, item, "radius_m", lo=0.0, hi=MAX_LENGTH_M, strict=True)
     slope = _number(qid, item, "max_slope_deg", lo=0.0, hi=90.0)
     flat = _number(qid, item, "max_flatness_m", lo=0.0, hi=MAX_LENGTH_M, strict=True) if "max_flatness_m" in item else None
-    min_points = _integer(qid, item, "min_points", lo=3) if "min_points" in item else None
+    min_points = _integer(qid, item, "min_points", lo=3, hi=MAX_MIN_POINTS) if "min_points" in item else None
     return FootholdQuery(qid, "foothold", center, radius, slope, flat, min_points)
 
 
@@ -337,9 +342,7 @@ def _number(qid: str, item: Mapping, key: str, *, lo: float | None = None, hi: f
     v = item[key]
     if not _is_number(v):
         raise QueryError(f"query {qid!r}: {key} must be a number, got {v!r}", query_id=qid, field=key)
-    v = float(v)
-    if not math.isfinite(v):
-        raise QueryError(f"query {qid!r}: {key} must be finite, got {v}", query_id=qid, field=key)
+    v = _finite(qid, key, v)
     if lo is not None and (v < lo or (strict and v == lo)):
         what = "negative" if v < 0 <= lo else f"{'<=' if strict else 'below'} {lo:g}"
         raise QueryError(f"query {qid!r}: {key} must be {'>' if strict else '>='} {lo:g}, got {v:g} ({what})",
@@ -349,19 +352,36 @@ def _number(qid: str, item: Mapping, key: str, *, lo: float | None = None, hi: f
     return v
 
 
-def _integer(qid: str, item: Mapping, key: str, *, lo: int) -> int:
+def _finite(qid: str, key: str, v: int | float) -> float:
+    """``v`` as a finite float, or a :class:`QueryError` naming the field (NaN, inf, or an integer too large for a
+    float: hundreds of digits)."""
+    try:
+        out = float(v)
+    except OverflowError:
+        raise QueryError(f"query {qid!r}: {key} must be a finite number, got an integer of {len(str(abs(v)))} digits",
+                         query_id=qid, field=key) from None
+    if not math.isfinite(out):
+        raise QueryError(f"query {qid!r}: {key} must be finite, got {out}", query_id=qid, field=key)
+    return out
+
+
+def _integer(qid: str, item: Mapping, key: str, *, lo: int, hi: int) -> int:
     v = item[key]
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
-        raise QueryError(f"query {qid!r}: {key} must be a whole number >= {lo}, got {v!r}", query_id=qid, field=key)
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo or v > hi:
+        shown = f"an integer of {len(str(abs(v)))} digits" if isinstance(v, int) and abs(v) > 10**18 else repr(v)
+        raise QueryError(f"query {qid!r}: {key} must be a whole number from {lo} to {hi:,}, got {shown}",
+                         query_id=qid, field=key)
     return int(v)
 
 
-def _vector(qid: str, value: Any, key: str, n: int) -> NDArray[np.float64]:
+def _vector(qid: str, value: Any, key: str, n: int, *, bound: float | None = None) -> NDArray[np.float64]:
+    """``n`` finite numbers; with ``bound``, each of magnitude at most ``bound`` (coordinates, m)."""
     if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != n or not all(_is_number(v) for v in value):
         raise QueryError(f"query {qid!r}: {key} must be {n} numbers, got {value!r}", query_id=qid, field=key)
-    out = np.asarray(value, dtype=np.float64)
-    if not np.all(np.isfinite(out)):
-        raise QueryError(f"query {qid!r}: {key} must be finite, got {out.tolist()}", query_id=qid, field=key)
+    out = np.array([_finite(qid, key, v) for v in value], dtype=np.float64)
+    if bound is not None and np.any(np.abs(out) > bound):
+        raise QueryError(f"query {qid!r}: {key} must be coordinates within {bound:g} m of the map's origin, got "
+                         f"{out.tolist()} (a unit mistake?)", query_id=qid, field=key)
     return out
 
 
@@ -377,12 +397,12 @@ def _points(qid: str, item: Mapping, key: str, *, min_count: int) -> NDArray[np.
     if len(value) > MAX_POINTS_PER_QUERY:
         raise QueryError(f"query {qid!r}: {key} has {len(value):,} points, more than {MAX_POINTS_PER_QUERY:,}",
                          query_id=qid, field=key)
-    return np.stack([_vector(qid, p, f"{key}[{k}]", 3) for k, p in enumerate(value)])
+    return np.stack([_vector(qid, p, f"{key}[{k}]", 3, bound=MAX_COORDINATE_M) for k, p in enumerate(value)])
 
 
 def _box(qid: str, item: Mapping, lo_key: str, hi_key: str) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    lo = _vector(qid, item[lo_key], lo_key, 3)
-    hi = _vector(qid, item[hi_key], hi_key, 3)
+    lo = _vector(qid, item[lo_key], lo_key, 3, bound=MAX_COORDINATE_M)
+    hi = _vector(qid, item[hi_key], hi_key, 3, bound=MAX_COORDINATE_M)
     if np.any(hi <= lo):
         raise QueryError(f"query {qid!r}: {hi_key} {hi.tolist()} must exceed {lo_key} {lo.tolist()} on every axis",
                          query_id=qid, field=hi_key)

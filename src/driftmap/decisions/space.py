@@ -12,6 +12,7 @@ outside the layers' grid is unknown.
 from __future__ import annotations
 
 import itertools
+import logging
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -20,6 +21,8 @@ from numpy.typing import NDArray
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
 from driftmap.volume.queries import surface_box_distances, surface_tree, surface_voxel_reach_m
+
+logger = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     from driftmap.decisions.evidence import DecisionContext
@@ -41,18 +44,19 @@ def _surface(ctx: DecisionContext) -> tuple[object | None, NDArray[np.float64]]:
 
 # ------------------------------------------------------------------------------------------------ clearance
 def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
-    """``blocked`` when an observed surface is closer than the radius to any point (the distance to its voxel's cube:
+    """``blocked`` when an observed surface is within the radius of any point (the distance to its voxel's cube:
     no point measured in the voxel is nearer, so a coarse map does not call free what a point 0.1 m away blocks);
     else ``unknown`` when an
     unknown voxel is (its centre within the radius plus half a voxel: the layers' distance to unknown space), with
-    policy ``occupied``; else ``free``. Margin: the smallest clearance to a surface minus the radius."""
+    policy ``occupied``; else ``free``. Margin: the smallest clearance to a surface minus the radius. A point inside
+    an observed surface voxel's cube has clearance 0: ``blocked`` whatever the radius (0 included), margin ``-radius``."""
     tree, surface = _surface(ctx)
     d_surf, idx = surface_box_distances(ctx.layers, q.points_m)
     k = int(np.argmin(d_surf))
     margin = float(d_surf[k]) - q.radius_m
     policy = _policy(ctx, q.unknown_is)
     n_unknown = sum(unknown_in_ball(ctx.layers, p, q.radius_m) for p in q.points_m) if policy == "occupied" else 0
-    if margin < 0:
+    if margin <= 0 and np.isfinite(margin):  # touching counts: a point inside a surface voxel is never free
         decision, failure = "blocked", "collision"
     elif n_unknown:
         decision, failure = "unknown", "unknown_space"
@@ -92,7 +96,7 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
     centre (policy ``occupied``) is ``unknown``, whichever comes first (a contact wins a tie); else ``free``.
     Margin: the smallest distance between the footprint and a surface point along the whole path (negative: how
     deep the surface reaches into it)."""
-    step = ctx.config.sweep_step_m or 0.5 * ctx.voxel_m
+    step = sweep_step(q, ctx.config.sweep_step_m, ctx.voxel_m)
     check_path_samples(q, step)
     samples, along = path_samples(q.path_m, step)
     tree, surface = _surface(ctx)
@@ -122,8 +126,25 @@ def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
         contact_distance_m=None if at is None else float(along[at]),
         stop_point_m=None if at is None else samples[at].tolist(),
         path_length_m=float(along[-1]), footprint=q.footprint, footprint_m=list(q.size_m),
-        unknown_is=_policy(ctx, q.unknown_is), n_samples=len(samples))
+        unknown_is=_policy(ctx, q.unknown_is), n_samples=len(samples), sweep_step_m=step)
     return out
+
+
+def sweep_step(q: CollisionQuery, step_m: float | None, voxel_m: float, *, warn: bool = True) -> float:
+    """The distance between footprint placements: ``step_m`` (``[decide] sweep_step_m``; default half a voxel), at
+    most the footprint's smallest extent plus half a voxel, so that no surface voxel (a cube of one voxel) lies
+    between two placements unseen -- a 30 cm step with a 2 cm footprint would sweep through a board."""
+    smallest = float(min(q.size_m)) if q.footprint == "box" else float(min(2.0 * q.size_m[0], q.size_m[1]))
+    cap = smallest + 0.5 * voxel_m
+    if step_m is None:
+        return min(0.5 * voxel_m, cap)
+    if step_m > cap:
+        if warn:
+            logger.warning("query %r: sweep_step_m %g m is longer than the footprint's smallest extent (%g m) plus half "
+                           "a voxel: swept every %g m instead, so that no obstacle lies between two placements",
+                           q.id, step_m, smallest, cap)
+        return cap
+    return float(step_m)
 
 
 MAX_PATH_SAMPLES = 1_000_000

@@ -32,6 +32,7 @@ from driftmap.decisions.query_file import (
     parse_query,
 )
 from driftmap.decisions.settings import DecideConfig
+from driftmap.decisions.space import sweep_step
 from driftmap.decisions.synthetic_truth import (
     SceneTruth,
     clearance_truth,
@@ -263,7 +264,7 @@ class Generator:
         if isinstance(q, CollisionQuery):
             if self._near_glass(lo, hi) or np.any(self.truth.distance(q.path_m[:1]) < 0):
                 return None
-            return collision_truth(self.truth, q, self.tol.footprint_m, self.cfg.sweep_step_m or 0.5 * self.truth.voxel_m)
+            return collision_truth(self.truth, q, self.tol.footprint_m, sweep_step(q, self.cfg.sweep_step_m, self.truth.voxel_m))
         if isinstance(q, GraspQuery):
             return grasp_truth(self.truth, q, self.tol.roi_m)
         if isinstance(q, FootholdQuery):

@@ -212,7 +212,7 @@ def _seen_surface(truth: SceneTruth, lo: NDArray[np.float64], hi: NDArray[np.flo
 
 
 def clearance_truth(truth: SceneTruth, q: ClearanceQuery, delta_m: float) -> dict | None:
-    """``blocked`` when a seen surface is closer than the radius to a point, else ``unknown`` when unseen space is
+    """``blocked`` when a seen surface is within the radius of a point, else ``unknown`` when unseen space is
     within it, else ``free``; None when that changes with the radius grown or shrunk by ``delta_m``. A solid within
     the radius whose near side nobody saw is unseen space (the map cannot know it): ``physically_blocked`` records
     the geometry alone."""
@@ -222,7 +222,7 @@ def clearance_truth(truth: SceneTruth, q: ClearanceQuery, delta_m: float) -> dic
     d = float(truth.distance(q.points_m).min())
 
     def label(r: float) -> str:
-        if d_seen < r:
+        if d_seen <= r:
             return "blocked"
         return "unknown" if _ball_unseen(truth, q.points_m, r) else "free"
 

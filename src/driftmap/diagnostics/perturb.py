@@ -118,6 +118,10 @@ def linear_drift(poses: ArrayLike, *, percent_per_m: float = 0.0, direction: Arr
     return E @ T
 
 
+PERTURBATION_BOUNDS = (("drift_percent_per_m", 100.0, "% of the path"), ("drift_deg_per_m", 360.0, "deg per m"))
+"""The magnitudes a :class:`PosePerturbation` takes (per component)."""
+
+
 @dataclass(frozen=True)
 class PosePerturbation:
     """A composition of the pose perturbations above (applied in the order: step, rotation step, drift)."""
@@ -135,6 +139,11 @@ class PosePerturbation:
             value = getattr(self, name)
             if value is not None and not np.all(np.isfinite(np.asarray(value, dtype=np.float64))):
                 raise ConfigError(f"PosePerturbation.{name}: must be finite, got {value!r}")
+        for name, bound, unit in PERTURBATION_BOUNDS:
+            value = getattr(self, name)
+            if value is not None and np.any(np.abs(np.asarray(value, dtype=np.float64)) > bound):
+                raise ConfigError(f"PosePerturbation.{name}: must be within +-{bound:g} {unit}, got {value!r} (a unit "
+                                  f"mistake? no pose estimate drifts or jumps that far)")
         for name, used in (("drift_direction", self.drift_percent_per_m), ("drift_axis", self.drift_deg_per_m)):
             if used and not np.linalg.norm(np.asarray(getattr(self, name), dtype=np.float64)) > 0:
                 raise ConfigError(f"PosePerturbation.{name}: a drift needs a non-zero direction, got {getattr(self, name)!r}")

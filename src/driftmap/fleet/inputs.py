@@ -10,7 +10,8 @@ glob and optional per-log options::
     tum/fr1_desk        --format tum --name desk
 
 A mistake in a list file is a :class:`~driftmap.errors.ConfigError` naming the file and the line. Each log gets a
-name (its folder or file name, ``--name`` in a list file; a repeated name gets ``-2``, ``-3`` ...): its results go to
+name (its folder or file name, ``--name`` in a list file; a repeated folder name gets ``-2``, ``-3`` ... with a
+warning, a repeated ``--name`` is an error): its results go to
 ``DIR/<name>/``. The same log with the same options given twice is run once.
 """
 
@@ -219,8 +220,17 @@ def _expand_one(text: str) -> list[tuple[Path, dict[str, Any], str]]:
     return [(p, {}, text) for p in _matches(text, Path.cwd(), "input")]
 
 
-def _unique_names(specs: list[LogSpec]) -> list[LogSpec]:
-    """Repeated names get ``-2``, ``-3`` ... in input order (so a rerun names every log as before)."""
+def _unique_names(specs: list[LogSpec], named: set[int]) -> list[LogSpec]:
+    """Repeated default names (two folders called ``log``) get ``-2``, ``-3`` ... in input order (so a rerun names
+    every log as before), with a warning; a name given with ``--name`` (``named``: the specs' indices) is the
+    user's: repeated, it is a :class:`ConfigError` naming both places, never renamed."""
+    first: dict[str, LogSpec] = {}
+    for k, spec in enumerate(specs):
+        if k in named and spec.name in first:
+            raise ConfigError(f"{spec.origin}: --name {spec.name!r} is used again (first by {first[spec.name].input} "
+                              f"at {first[spec.name].origin}): each log's results need a folder of their own; "
+                              f"choose another name")
+        first.setdefault(spec.name, spec)
     taken = {s.name for s in specs}
     seen: set[str] = set()
     out = []
@@ -231,6 +241,8 @@ def _unique_names(specs: list[LogSpec]) -> list[LogSpec]:
             while f"{spec.name}-{k}" in taken or f"{spec.name}-{k}" in seen:
                 k += 1
             name = f"{spec.name}-{k}"
+            logger.warning("%s: a log named %r is in the batch already; %s runs as %r (give --name in a list file "
+                           "to choose)", spec.origin, spec.name, spec.input, name)
         seen.add(name)
         out.append(spec if name == spec.name else replace(spec, name=name))
     return out
@@ -260,6 +272,7 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
         raise ConfigError("no inputs: give log folders or files, globs, or a text file listing logs")
     skip = None if exclude is None else exclude.resolve()
     specs: list[LogSpec] = []
+    named: set[int] = set()  # the specs whose name was given with --name
     seen: dict[tuple[Any, ...], str] = {}
     for text in inputs:
         for path, options, where in _expand_one(str(text)):
@@ -276,7 +289,9 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
                                path, seen[key])
             else:
                 seen[key] = where
+                if options.get("name"):
+                    named.add(len(specs))
                 specs.append(spec)
     if not specs:
         raise ConfigError(f"no log among the inputs ({', '.join(map(str, inputs))})")
-    return _unique_names(specs)
+    return _unique_names(specs, named)

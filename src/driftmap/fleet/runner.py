@@ -109,6 +109,10 @@ def _token_mode() -> None:
             Config.initialize("")
 
 
+MAX_WORKERS_PER_CPU = 4
+"""Embedded Ray: at most this many logs at once per CPU of this machine (``--workers`` beyond is refused)."""
+
+
 def plan_workers(workers: int | None, threads: int | None, ray_address: str | None,
                  cpus: int | None = None) -> tuple[int, int]:
     """``(workers, threads per log)``: on this machine, ``workers`` (default: one per CPU) x ``threads`` (default:
@@ -118,6 +122,11 @@ def plan_workers(workers: int | None, threads: int | None, ray_address: str | No
         raise ConfigError(f"--workers: must be >= 1, got {workers}")
     cpus = cpus or os.cpu_count() or 1
     if ray_address is None:
+        if workers is not None and workers > MAX_WORKERS_PER_CPU * cpus:
+            raise ConfigError(f"--workers {workers}: this machine has {cpus} CPU{'s' if cpus > 1 else ''}; an embedded "
+                              f"Ray runs at most {MAX_WORKERS_PER_CPU} logs per CPU at once "
+                              f"({MAX_WORKERS_PER_CPU * cpus}: each log holds its frames in memory); give fewer "
+                              f"--workers, or --ray-address for a cluster")
         w = workers or cpus
         return w, threads or max(1, cpus // w)
     t = threads or 1

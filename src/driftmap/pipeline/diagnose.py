@@ -95,6 +95,10 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
         raise DriftmapError(f"{store.path}: the store has no frames")
     if gt is None and (kitti_frame != "auto" or calib is not None or gt_format is not None):
         raise ConfigError("--gt-format / --kitti-frame / --calib describe the --gt FILE; give one")
+    diagnosed = store.head if revision is None else revision
+    if compare_revision is not None and compare_revision == diagnosed:
+        raise ConfigError(f"--compare-revision {compare_revision} is the revision diagnosed (--revision, default the "
+                          f"head): a comparison needs another revision ({store.path} has 0..{store.head})")
     cfg = diagnose_config(store, config_file, points_per_frame)
     ground_truth = (read_ground_truth(store, gt, gt_format or "tum", kitti_frame=kitti_frame, calib_file=calib)
                     if gt is not None else None)

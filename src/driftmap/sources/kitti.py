@@ -556,9 +556,27 @@ class KittiOdometry(FrameSource):
                 f"truncated or not a KITTI scan"
             )
         try:
-            return np.fromfile(file, dtype="<f4").reshape(-1, layout.columns)
+            raw = np.fromfile(file, dtype="<f4")
         except (OSError, ValueError) as exc:
             raise SourceError(f"{file}: cannot read scan of frame {frame_id} ({exc})") from exc
+        if size % 48 == 0:  # the size fits the other layout too: the data must not read as a scan only in that one
+            self._check_scan_layout(raw[: LAYOUT_SAMPLE_BYTES // 4].tobytes(), file, frame_id)
+        return raw.reshape(-1, layout.columns)
+
+    def _check_scan_layout(self, sample: bytes, file: Path, frame_id: int) -> None:
+        """:class:`SourceError` when a scan whose size fits both layouts reads as a LiDAR scan only in the other one
+        (an x, y, z file among x, y, z, intensity scans, read as the folder's layout, would be stored scrambled)."""
+        layout = self.point_layout
+        other = PointLayout.XYZ if layout is PointLayout.XYZI else PointLayout.XYZI
+        own_misfit, other_misfit = _layout_misfit(sample, layout), _layout_misfit(sample, other)
+        if own_misfit is None or other_misfit is None:
+            return
+        if other_misfit < 0.5 and own_misfit >= 4 * other_misfit:
+            raise SourceError(
+                f"{file}: frame {frame_id} reads as a LiDAR scan only as {other.value} ({other.spelled}: neighbouring "
+                f"points {other_misfit:.3g} of the range apart, {own_misfit:.3g} as {layout.value}), but the folder's "
+                f"scans are {layout.value} ({self.point_layout_reason}): the folder mixes layouts; convert the scan, "
+                f"remove it, or skip it with --lenient (--point-layout cannot read both)")
 
     def _load(self, index: int) -> Frame:
         frame_id, file, stamp_ns = self._entries[index]
