@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from driftmap import geometry
 from driftmap.config import DepthConfig
 from driftmap.errors import ConfigError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
@@ -202,7 +203,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
            source_record: dict[str, Any] | None = None,
            pose_of_source: PoseSource = PoseSource.EXTERNAL_FILE) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
-    poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing)
+    poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing, tick)
     n_total = len(src)
     invalid: list[float] = []
     n_new = 0
@@ -239,6 +240,9 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         tick("frames", done, n_total)
     pose_source, odometry, odometry_config, scene = poser.source, poser.odometry, poser.odometry_config, poser.scene
     stages["read+validate"] = t_read
+    if poser.retrack_seconds is not None:  # timed within the first new frame's pose: reported on its own
+        stages["re-tracking"] = poser.retrack_seconds
+        t_odom -= poser.retrack_seconds
     stages["odometry" if pose_source is PoseSource.ODOMETRY else "poses"] = t_odom
     stages["store"] = t_store
     logger.info("stored %d new frames in %.1f s", n_new, time.perf_counter() - t0)
@@ -271,19 +275,21 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     return result
 
 
-def _scene_sample(src: FrameSource, store: FrameStore, first: Frame, config: BuildConfig) -> list[Frame]:
+def _scene_sample(src: FrameSource, first: Frame, config: BuildConfig) -> list[Frame]:
     """Frames spread over the log whose reach sets the odometry's lengths (LiDAR; :mod:`driftmap.preprocess.scene`):
-    the stored ones and the source's, ``first`` (the frame being registered) among them. A source whose length is
-    unknown gives only ``first`` (and the stored frames)."""
+    the source's, or only ``first`` (the first frame the odometry registers) when the source's length is unknown.
+    Never the stored frames: a resumed build that has no record of its lengths (killed before it wrote
+    ``build_summary.json``) chooses them again from the frames the killed build chose them from (its store was empty
+    then), so that the re-tracked odometry is the killed build's."""
     if first.sensor_kind is not SensorKind.LIDAR:
         return [first]
-    sample = [store.frame(int(store.frame_ids[k])) for k in sample_positions(len(store))]
     try:
         n = len(src)
     except SourceError:
         n = 0
-        logger.warning("%s: the number of frames is unknown, so the LiDAR odometry's lengths come from frame %d%s",
-                       src.uri, first.frame_id, " and the stored frames" if sample else " alone")
+        logger.warning("%s: the number of frames is unknown, so the LiDAR odometry's lengths come from frame %d alone",
+                       src.uri, first.frame_id)
+    sample = []
     for k in sample_positions(n):
         try:
             sample.append(_with_sensor_error(src.frame(k), config))
@@ -308,20 +314,37 @@ def _with_sensor_error(frame: Frame, config: BuildConfig) -> Frame:
     return frame
 
 
+RETRACK_TOLERANCE = 1e-9
+"""``--resume`` with our odometry: a re-tracked stored frame whose pose differs from its stored one by more than this
+(m, and rotation-matrix entries) is a disagreement (reported, and the new frames anchored to the stored poses). With
+``--threads 1`` they agree to the bit; with more threads the registration's partial sums arrive in varying order."""
+
+
 class _Poser:
     """The revision-0 pose of each new frame: from the pose file or the log's ground truth (``pose_of``), from the
     source (``--poses-from-source``), or from the odometry, made on the first frame that needs it (its lengths from
-    frames spread over the log, or as recorded on ``--resume``, then seeded with the last stored frames)."""
+    frames spread over the log, or as recorded on ``--resume``).
+
+    ``--resume`` (our odometry, frames stored): the odometry re-tracks every stored frame first, in the store's order
+    (:meth:`_retrack`), so that its whole state -- local map, adaptive threshold, motion model, the refinements'
+    previous scan, the recent fitness, the lost-frame count -- is the one the interrupted build had when it stopped,
+    and the new frames get the poses an uninterrupted build gives them."""
 
     def __init__(self, src: FrameSource, store: FrameStore, config: BuildConfig,
                  pose_of: Callable[[Frame], np.ndarray] | None, poses_from_source: bool, pose_of_source: PoseSource,
-                 existing: set[int]) -> None:
+                 existing: set[int], tick: ProgressCallback | None = None) -> None:
         self.src, self.store, self.config, self.existing = src, store, config, existing
         self.pose_of, self.poses_from_source = pose_of, poses_from_source
+        self.tick = tick or (lambda stage, done, total: None)
         self.source = pose_of_source if pose_of else PoseSource.ODOMETRY
         self.odometry: KissOdometry | GicpMapOdometry | None = None
         self.odometry_config: dict[str, Any] | None = None
         self.scene: dict[str, Any] | None = None
+        self.retrack_seconds: float | None = None
+        """How long re-tracking the stored frames took (None: there was none)."""
+        self._anchor: np.ndarray | None = None
+        """Applied to the odometry's new poses when the re-tracked stored poses disagreed with the stored ones (see
+        :meth:`_retrack`); None: they agreed (the odometry's poses are stored as they are)."""
 
     def pose(self, frame: Frame) -> tuple[np.ndarray, Any]:
         """``(T_world_sensor, tracking health or None)`` of ``frame``."""
@@ -335,21 +358,66 @@ class _Poser:
         if self.odometry is None:
             self.odometry = self._make_odometry(frame)
         step = self.odometry.register(frame)
+        if self._anchor is not None:
+            return self._anchor @ step.T_world_sensor, step.health
         return step.T_world_sensor, step.health
 
     def _make_odometry(self, frame: Frame) -> KissOdometry | GicpMapOdometry:
         store, config = self.store, self.config
         cfg = config.odometry or (recorded_odometry(store) if self.existing else None)
         if cfg is None:
-            sample = _scene_sample(self.src, store, frame, config)
+            # the frame the odometry starts at: on --resume the first stored one, where the interrupted build started
+            first = store.frame(int(store.frame_ids[0])) if self.existing else frame
+            sample = _scene_sample(self.src, first, config)
             reach = scene_reach(lidar_frames(sample))
             self.scene = None if reach is None else reach.to_json()
             cfg = OdometryConfig.for_frames(sample)
         if config.num_threads is not None:
             cfg = cfg.model_copy(update={"num_threads": config.num_threads})
-        odometry = make_odometry(cfg)
         self.odometry_config = cfg.model_dump(mode="json")
-        if self.existing:
-            last = sorted(self.existing)[-config.resume_seed_frames:]
-            odometry.seed((store.frame(fid), store.poses(0)[np.searchsorted(store.frame_ids, fid)]) for fid in last)
+        if not self.existing:
+            return make_odometry(cfg)
+        odometry = make_odometry(cfg, store.poses(0)[0])  # the first stored pose: the origin the build started from
+        self._retrack(odometry)
         return odometry
+
+    def _retrack(self, odometry: KissOdometry | GicpMapOdometry) -> None:
+        """Register every stored frame again (read back from the store: the frames exactly as the interrupted build
+        registered them, after its sensor-error perturbation) in the store's order, writing nothing, and compare the
+        poses with the stored revision-0 ones. The stored poses stay the truth of the stored frames. When they
+        disagree (beyond :data:`RETRACK_TOLERANCE`: more than one thread, or a store built by another version), a
+        warning gives the largest difference, and the new frames' poses are anchored to the last stored frame's stored
+        pose (the odometry's motion from it is kept), so that revision 0 has no jump where the build resumed."""
+        store = self.store
+        ids, stored = store.frame_ids, store.poses(0)
+        n = len(ids)
+        if "resume_seed_frames" in self.config.model_fields_set:
+            logger.info("build.resume_seed_frames is not used: --resume re-tracks every stored frame")
+        logger.info("re-tracking %d stored frames for an exact resume", n)
+        t0 = time.perf_counter()
+        worst_m = worst_entry = worst_deg = 0.0
+        worst_id, n_exact = None, 0
+        for k, fid in enumerate(ids):
+            T = odometry.register(store.frame(int(fid))).T_world_sensor
+            if np.array_equal(T, stored[k]):
+                n_exact += 1
+            else:
+                moved_m = float(np.linalg.norm(T[:3, 3] - stored[k][:3, 3]))
+                if worst_id is None or moved_m > worst_m:
+                    worst_id, worst_m = int(fid), moved_m
+                worst_entry = max(worst_entry, float(np.abs(T[:3, :3] - stored[k][:3, :3]).max()))
+                worst_deg = max(worst_deg, geometry.rotation_angle_deg(T, stored[k]))
+            self.tick("re-tracking", k + 1, n)
+        self.retrack_seconds = time.perf_counter() - t0
+        if max(worst_m, worst_entry) <= RETRACK_TOLERANCE:
+            logger.info("re-tracked %d stored frames in %.1f s: %d poses equal to the bit, the others within %.2g m / "
+                        "%.2g deg of the stored ones", n, self.retrack_seconds, n_exact, worst_m, worst_deg)
+            return
+        threads = odometry.config.num_threads
+        why = (f"the registration ran on {threads} threads, whose partial sums arrive in varying order (--threads 1 "
+               f"repeats a build to the bit)" if threads > 1 else
+               "the stored frames were registered otherwise (another driftmap version or odometry settings?)")
+        logger.warning("resume: re-tracking the %d stored frames gave poses up to %.3g m / %.3g deg (frame %s) from "
+                       "the stored ones (%d equal to the bit): %s. The stored poses are kept; the new frames continue "
+                       "from the last stored frame's stored pose", n, worst_m, worst_deg, worst_id, n_exact, why)
+        self._anchor = stored[-1] @ geometry.invert(T)

@@ -40,7 +40,7 @@ class BuildConfig(SettingsModel):
     odometry_edge_max_disagreement_m: float = Field(0.1, gt=0.0, description="GICP may refine an odometry edge by at most this (m)")
     fallback_sigma_translation: float = Field(0.02, gt=0.0, description="odometry edge sigma when registration fails: fraction of the motion + 1 cm")
     fallback_sigma_rotation_deg: float = Field(1.0, gt=0.0, description="odometry edge rotation sigma when registration fails (deg)")
-    resume_seed_frames: int = Field(10, ge=1, description="stored frames used to re-seed odometry on --resume")
+    resume_seed_frames: int = Field(10, ge=1, description="not used (kept so that configs setting it still load): --resume re-tracks every stored frame with the odometry, which continues exactly as an uninterrupted build (it used to re-seed the odometry from this many stored frames)")
     odometry_edge_window: int = Field(3, ge=1, description="pose graph: each keyframe is linked to the next this many keyframes")
     odometry_edges: Literal["auto", "trajectory", "registration"] = Field(
         "auto", description="odometry edge measurement: the revision-0 relative pose (trajectory), the keyframe GICP (registration), "
@@ -111,7 +111,7 @@ class BuildResult:
     scene_reach: dict[str, Any] | None = None
     """How far the LiDAR scene reaches (:class:`driftmap.preprocess.scene.SceneReach`: the median over frames spread
     across the log of their 99th range percentile, which scaled the odometry's default lengths); None when the
-    lengths were not chosen from the scene (depth cameras, a config, a resumed build)."""
+    lengths were not chosen from the scene (depth cameras, a config, a resumed build that recorded them)."""
     tracking: dict[str, Any] = field(default_factory=lambda: tracking_summary(None))
     """How the odometry's registrations went (:func:`tracking_summary`): counts per status, the flagged and the
     recovered frames with their reasons, fitness and degeneracy, and one record per frame."""

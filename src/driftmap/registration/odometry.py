@@ -7,8 +7,9 @@
   revisited place snap back to the geometry already mapped.
 * :class:`KissOdometry` (default for LiDAR) wraps KISS-ICP.
 
-Both time each step and can be re-seeded from stored frames and poses so that ``build --resume`` continues
-where a build stopped. :func:`make_odometry` picks the implementation named by the configuration.
+Both time each step. Their state is built only by registering frames: ``build --resume`` registers the stored
+frames again (``pipeline/build.py``) to continue exactly where a build stopped. :func:`make_odometry` picks the
+implementation named by the configuration.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from __future__ import annotations
 import enum
 import logging
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -241,7 +242,7 @@ class GicpMapOdometry:
         self.seconds = 0.0
         self.n_coarse = 0
         self._last_hessian = np.zeros((6, 6))
-        self._n_tracked = 0  # frames with a known motion model (a resumed build starts warm)
+        self._n_tracked = 0  # frames registered so far (while under 3, the coarse map is tried too)
 
     def _clouds(self, frame: Frame) -> tuple[small_gicp.PointCloud, small_gicp.PointCloud, int]:
         c = self.config
@@ -311,23 +312,6 @@ class GicpMapOdometry:
         self._fine.insert(fine, T)
         self._coarse.insert(coarse, T)
         self._last = T
-
-    def seed(self, frames_with_poses: Iterable[tuple[Frame, NDArray[np.float64]]]) -> None:
-        """Rebuild the map and motion model from frames already registered (for ``--resume``):
-        ``frames_with_poses`` are the last frames in order with their stored ``T_world_sensor``."""
-        n = 0
-        prev = None
-        for frame, T in frames_with_poses:
-            fine, coarse, _ = self._clouds(frame)
-            T = _nearest_rigid(T)
-            if prev is not None:
-                self._delta = geometry.invert(prev) @ T
-            self._insert(fine, coarse, T)
-            prev = T
-            n += 1
-        if n:
-            self._n_tracked = max(self._n_tracked, n)  # the motion model is known: no start-up coarse search
-            logger.info("odometry re-seeded from %d stored frames", n)
 
     @property
     def fps(self) -> float:
@@ -637,30 +621,6 @@ class KissOdometry:
         kiss.local_map.update(scan_down, T)
         kiss.last_delta = geometry.invert(kiss.last_pose) @ T
         kiss.last_pose = T
-
-    def seed(self, frames_with_poses: Iterable[tuple[Frame, NDArray[np.float64]]]) -> None:
-        """Rebuild the local map and motion model from frames already registered (for ``--resume``).
-
-        ``frames_with_poses`` are the last frames in order with their stored ``T_world_sensor``.
-        """
-        items = list(frames_with_poses)
-        if not items:
-            return
-        self._prev_scan = None  # the stored poses give the motion model
-        T0 = items[0][1]
-        self._T_world_odom = T0.copy()
-        kiss = self._kiss
-        prev = None
-        for frame, T in items:
-            pts, _ = self._points(frame)
-            pose = geometry.invert(T0) @ T
-            _, frame_down = kiss.voxelize(kiss.preprocessor.preprocess(pts, np.zeros(len(pts)), np.eye(4)))
-            kiss.local_map.update(frame_down, pose)
-            if prev is not None:
-                kiss.last_delta = geometry.invert(prev) @ pose
-            kiss.last_pose = pose
-            prev = pose
-        logger.info("odometry re-seeded from %d stored frames", len(items))
 
     @property
     def fps(self) -> float:
