@@ -30,6 +30,7 @@ import numpy as np
 import open3d as o3d
 from numpy.typing import NDArray
 from pydantic import ConfigDict, Field
+from scipy.spatial import cKDTree
 
 from driftmap import geometry
 from driftmap.config import SettingsModel, Threads
@@ -246,20 +247,29 @@ def _viewing_angle_deg(T_a: NDArray[np.float64], T_b: NDArray[np.float64]) -> fl
 
 
 def proximity_candidates(keyframes: Sequence[Keyframe], config: LoopClosureConfig) -> list[tuple[int, int]]:
-    """Pairs (older, newer) of keyframe list positions that odometry places close together, at least
-    ``min_gap_s`` apart in time (or ``min_gap_frames`` in frame numbers, when set)."""
-    pos = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
+    """Pairs (older, newer) of keyframe list positions that odometry places close together (nearer than
+    ``proximity_radius_m``, viewing directions within ``proximity_max_angle_deg``), at least ``min_gap_s`` apart in
+    time (or ``min_gap_frames`` in frame numbers, when set); per newer keyframe the
+    ``max_candidates_per_keyframe`` nearest (ties: the older first). The neighbours come from one KD-tree over the
+    positions, so the cost grows with the keyframes and their neighbours, not with their square."""
+    if len(keyframes) < 2:
+        return []
+    T = np.array([k.T_world_sensor for k in keyframes])
+    pos, view_z = T[:, :3, 3], T[:, :3, 2]
     at = _gap_positions(keyframes, config)
+    threshold = gap_threshold(config)
     pairs = []
-    for j in range(len(keyframes)):
-        older = _older(at, j, config)
+    for j, near in enumerate(cKDTree(pos).query_ball_point(pos, config.proximity_radius_m, return_sorted=True)):
+        older = np.asarray(near, dtype=np.intp)
+        older = older[at[older] <= at[j] - threshold]
         if older.size == 0:
             continue
         d = np.linalg.norm(pos[older] - pos[j], axis=1)
-        ok = older[d < config.proximity_radius_m]
-        ok = [i for i in ok if _viewing_angle_deg(keyframes[i].T_world_sensor, keyframes[j].T_world_sensor) < config.proximity_max_angle_deg]
-        ok.sort(key=lambda i: np.linalg.norm(pos[i] - pos[j]))
-        pairs += [(i, j) for i in ok[: config.max_candidates_per_keyframe]]
+        angle = np.degrees(np.arccos(np.clip(view_z[older] @ view_z[j], -1.0, 1.0)))
+        keep = (d < config.proximity_radius_m) & (angle < config.proximity_max_angle_deg)
+        older, d = older[keep], d[keep]
+        nearest = older[np.argsort(d, kind="stable")[: config.max_candidates_per_keyframe]]  # ties: older first
+        pairs += [(int(i), j) for i in nearest]
     return pairs
 
 
@@ -393,12 +403,14 @@ def make_keyframe(frame_id: int, index: int, T_world_sensor: NDArray[np.float64]
                     int(stamp_ns), context)
 
 
-def untrusted_between(a: Keyframe, b: Keyframe, flagged: Mapping[int, int], config: LoopClosureConfig) -> list[int]:
+def untrusted_between(a: Keyframe, b: Keyframe, flagged: Mapping[int, int], config: LoopClosureConfig,
+                      rows: NDArray[np.int64] | None = None) -> list[int]:
     """Frame ids of the ``flagged`` frames (``{position: frame id}``, tracking lost) in the odometry stretch that a
     candidate between keyframes ``a`` and ``b`` leans on: from ``a``'s cloud to ``b``'s (``submap_radius_frames``
-    on each side)."""
+    on each side). ``rows``: ``flagged``'s keys sorted, when the caller asks for many candidates."""
     lo, hi = a.index - config.submap_radius_frames, b.index + config.submap_radius_frames
-    return [fid for row, fid in sorted(flagged.items()) if lo <= row <= hi]
+    rows = np.array(sorted(flagged), dtype=np.int64) if rows is None else rows
+    return [flagged[int(row)] for row in rows[np.searchsorted(rows, lo, "left"):np.searchsorted(rows, hi, "right")]]
 
 
 def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
@@ -417,8 +429,9 @@ def find_loops(keyframes: Sequence[Keyframe], config: LoopClosureConfig, *,
     else:
         todo += [(i, j, CandidateKind.DESCRIPTOR, None) for i, j in descriptor_candidates(keyframes, config, set(prox))]
     out = []
+    flagged_rows = np.array(sorted(flagged or {}), dtype=np.int64)
     for n, (i, j, kind, guess) in enumerate(todo):
-        lost = untrusted_between(keyframes[i], keyframes[j], flagged or {}, config)
+        lost = untrusted_between(keyframes[i], keyframes[j], flagged or {}, config, flagged_rows)
         if lost:
             cand = LoopCandidate(keyframes[i].frame_id, keyframes[j].frame_id, kind, False,
                                  f"the odometry between them is flagged (tracking lost at frame(s) "
