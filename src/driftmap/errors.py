@@ -131,6 +131,10 @@ class OutputInsideStoreError(ConfigError):
         self.store = store
 
 
+class MergeError(DriftmapError):
+    """``driftmap merge``: no session could be connected to the first one (no consistent loop between them)."""
+
+
 class EmptyExportError(DriftmapError):
     """An export has nothing to write (no frames, no points); nothing was written."""
 

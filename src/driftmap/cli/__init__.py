@@ -4,7 +4,9 @@ Only this package prints and exits: library errors (:class:`DriftmapError`) beco
 ``--debug`` shows the traceback and debug logs. Each command parses its flags, calls one library function and
 renders what it returns; the commands live by group in :mod:`~driftmap.cli.build_cmds` (demo, config, synth,
 convert, build), :mod:`~driftmap.cli.store_cmds` (correct, revisions, rollback, export, info, recover) and
-:mod:`~driftmap.cli.diagnose_cmds` (diagnose, view, perturb); :mod:`~driftmap.cli.common` holds what they share.
+:mod:`~driftmap.cli.diagnose_cmds` (diagnose, view, perturb), :mod:`~driftmap.cli.batch_cmds` (batch),
+:mod:`~driftmap.cli.decide_cmds` (decide) and :mod:`~driftmap.cli.merge_cmds` (merge); :mod:`~driftmap.cli.common`
+holds what they share.
 """
 
 from __future__ import annotations
@@ -45,6 +47,7 @@ try:
     from driftmap.cli import diagnose_cmds  # noqa: F401
     from driftmap.cli import batch_cmds  # noqa: F401
     from driftmap.cli import decide_cmds  # noqa: F401
+    from driftmap.cli import merge_cmds  # noqa: F401
     # isort: on
     from driftmap.cli.common import app, err_console, state
     from driftmap.errors import DriftmapError

@@ -30,6 +30,8 @@ BUILD_CONFIG_FILE = "build_config.json"
 """the settings ``build`` ran with"""
 BUILD_SUMMARY_FILE = "build_summary.json"
 """what ``build`` found: frames, tracking health, the odometry's settings, loops, timings"""
+MERGE_SUMMARY_FILE = "merge_summary.json"
+"""what ``merge`` found: the sessions, their origins, the loops between them, the merge revision"""
 
 
 def segment_name(index: int) -> str:

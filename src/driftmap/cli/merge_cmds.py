@@ -1,0 +1,70 @@
+"""``driftmap merge``: sessions of one place (stores) into one merged store (docs/merge.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Optional
+
+import typer
+from rich.table import Table
+from rich.text import Text
+
+from driftmap.cli.common import app, bold, console, err_console, progress_bar
+
+
+@app.command()
+def merge(
+    stores: Annotated[list[Path], typer.Argument(metavar="STORE_A STORE_B [STORE_C ...]", help="Stores of the same place, one per session; session 0 (the first) keeps its frame.")],
+    out: Annotated[Path, typer.Option("--out", help="The merged store to create (a new folder; the sources are never modified).")],
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [build] table sets the loop-closure and pose-graph settings (as for build).")] = None,
+) -> None:
+    """Merge sessions of one place: loops between sessions from the place descriptors, one pose graph, a new store
+    holding every connected session's frames with the merged poses as a revision."""
+    from driftmap.pipeline.build import BuildConfig
+    from driftmap.pipeline.merge import merge_stores
+
+    cfg = BuildConfig.load(config)
+    with progress_bar() as progress:
+        tasks: dict[str, int] = {}
+
+        def tick(stage: str, done: int, total: int | None) -> None:
+            if stage not in tasks:
+                tasks[stage] = progress.add_task(stage, total=total)
+            progress.update(tasks[stage], completed=done, total=total)
+
+        result = merge_stores(stores, out, config=cfg, progress=tick)
+
+    sessions = Table(title=f"driftmap merge -> {out}")
+    for col in ("session", "store", "frames", "keyframes", "head revision", "connected", "frame ids"):
+        sessions.add_column(col, justify="left" if col in ("store", "connected") else "right")
+    for s in result.sessions:
+        ids = f"{s.frame_id_offset}+" if s.connected else "-"
+        sessions.add_row(str(s.session), s.store, str(s.n_frames), str(s.n_keyframes), f"{s.head_revision} ({s.head_source})",
+                         "yes" if s.connected else "NO", ids)
+    console.print(sessions)
+    loops = Table(title="loops between sessions")
+    for col in ("sessions", "tried", "verified", "accepted", "connected"):
+        loops.add_column(col, justify="right")
+    for p in result.pairs:
+        loops.add_row(f"{p['session_a']}-{p['session_b']}", str(p["tried"]), str(p["verified"]), str(p["accepted"]),
+                      "yes" if p["connected"] else "no")
+    console.print(loops)
+    rows = [
+        ("frames in the merged store", str(result.n_frames)),
+        ("merge revision", "-" if result.revision_id is None else str(result.revision_id)),
+        ("graph error before / after", "-" if result.graph_error_before is None else f"{result.graph_error_before:.4g} / {result.graph_error_after:.4g}"),
+        ("loops rejected by the graph", str(result.loops_rejected_by_graph)),
+        ("largest move of a session-0 frame", "-" if result.max_session0_shift_m is None else f"{result.max_session0_shift_m:.3f} m"),
+    ]
+    rows += [(f"time: {k}", f"{v:.2f} s") for k, v in result.seconds_per_stage.items()]
+    summary = Table(title="merge")
+    summary.add_column("quantity")
+    summary.add_column("value", justify="right")
+    for k, v in rows:
+        summary.add_row(k, v)
+    console.print(summary)
+    for s in result.sessions:
+        if not s.connected:
+            err_console.print(Text.assemble(("not connected:", "yellow"), f" session {s.session} ({s.store}): {s.reason}"),
+                              highlight=False)
+    console.print(bold("store: ", Path(result.out).resolve(), " (merge_summary.json saved in it)"))

@@ -1,0 +1,208 @@
+"""Loops between sessions for ``driftmap merge``: candidates from the place descriptors only (no shared frame or
+start pose is assumed), verified as ``build`` verifies its own, then a consensus check per session pair, and which
+sessions that connects to session 0.
+
+* **Candidates.** Every keyframe of the newer session ``j`` is compared with every keyframe of the older session
+  ``i``: on depth cameras by the shape descriptor (:func:`driftmap.registration.loops.shape_descriptor`, the L1
+  distance gate ``descriptor_max_distance``; the pair is then aligned globally by FPFH + RANSAC inside
+  :func:`~driftmap.registration.loops.verify`), on LiDAR by the Scan Context (ring-key pre-selection, the full
+  distance gate ``scan_context_max_distance`` and the yaw of the best column shift as the initial guess), the
+  ``descriptor_candidates`` best per keyframe, as in ``build``.
+* **Verification.** :func:`~driftmap.registration.loops.verify` with the same gates (convergence, fitness, RMSE).
+  Its agreement-with-odometry gate has no meaning between sessions (no odometry links them): it is opened
+  (``path_length_m = inf``), and the consensus check below takes its place.
+* **Consensus.** Each verified loop ``a <-> b`` says where session ``j``'s world lies in session ``i``'s:
+  ``T_i_j = T_wi_a @ T_a_b @ inv(T_wj_b)``. Two loops agree when their ``T_i_j`` place both loops' ``b`` keyframes
+  within ``max_correction_m`` plus ``descriptor_max_drift_fraction`` of the path (in both sessions) between the two
+  loops, and turn them alike within ``max_correction_deg``: what the two sessions' residual drift allows. The largest
+  set of loops agreeing with one of them is kept; the others are refused ("inconsistent"). A pair of sessions is
+  connected by at least :data:`MIN_CONSISTENT_LOOPS` agreeing loops: a single loop has nothing to be checked against.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from driftmap import geometry
+from driftmap.registration.loops import CandidateKind, Keyframe, LoopCandidate, LoopClosureConfig, verify
+from driftmap.registration.place import scan_context_distance, yaw_guess
+
+logger = logging.getLogger(__name__)
+
+MIN_CONSISTENT_LOOPS = 2
+"""A pair of sessions is connected by at least this many verified loops that agree on where one lies in the other."""
+
+
+@dataclass
+class PairLoops:
+    """The loops tried between two sessions (``session_a`` older, ``session_b`` newer)."""
+
+    session_a: int
+    session_b: int
+    candidates: int = 0
+    """pairs of keyframes whose place descriptors matched (each was verified)"""
+    verified: list[LoopCandidate] = field(default_factory=list)
+    """candidates that passed the registration gates"""
+    consistent: list[LoopCandidate] = field(default_factory=list)
+    """verified loops in the largest agreeing set: the graph's loop edges"""
+    T_a_b: NDArray[np.float64] | None = None
+    """where session b's world lies in session a's (``T_worlda_worldb``) by the consensus' best loop; None: not
+    connected"""
+    records: list[dict] = field(default_factory=list)
+    """one record per candidate (frame ids, kind, verdict, reason, fitness, RMSE)"""
+
+    @property
+    def connected(self) -> bool:
+        return len(self.consistent) >= MIN_CONSISTENT_LOOPS
+
+    def why_not_connected(self) -> str:
+        if self.connected:
+            return ""
+        if self.candidates == 0:
+            return "no keyframe pair had matching place descriptors"
+        if not self.verified:
+            return f"none of the {self.candidates} candidate loops passed verification"
+        if len(self.consistent) < MIN_CONSISTENT_LOOPS:
+            return (f"{len(self.verified)} of {self.candidates} candidates verified, but only {len(self.consistent)} "
+                    f"agree on the alignment (at least {MIN_CONSISTENT_LOOPS} needed: one loop cannot be checked)")
+        return ""
+
+    def summary(self) -> dict:
+        return {"session_a": self.session_a, "session_b": self.session_b, "tried": self.candidates,
+                "verified": len(self.verified), "accepted": len(self.consistent), "connected": self.connected,
+                "reason": self.why_not_connected(), "loops": self.records,
+                "T_a_b": None if self.T_a_b is None else [float(v) for v in self.T_a_b.ravel()]}
+
+
+def cross_candidates(older: Sequence[Keyframe], newer: Sequence[Keyframe],
+                     lc: LoopClosureConfig) -> list[tuple[int, int, CandidateKind, NDArray[np.float64] | None]]:
+    """``(i, j, kind, initial T_a_b or None)``: positions in ``older`` and ``newer`` whose place descriptors match
+    (module docstring); per keyframe of ``newer`` the ``descriptor_candidates`` best within the gate."""
+    if not older or not newer or lc.descriptor_candidates == 0:
+        return []
+    out: list[tuple[int, int, CandidateKind, NDArray[np.float64] | None]] = []
+    if lc.place_descriptor == "scan_context":
+        contexts_a = [k.scan_context for k in older]
+        ring_a = np.array([c.ring_key for c in contexts_a])  # type: ignore[union-attr]
+        for j, kb in enumerate(newer):
+            cb = kb.scan_context
+            if cb is None or cb.is_empty:
+                continue
+            by_ring = np.argsort(np.linalg.norm(ring_a - cb.ring_key, axis=1), kind="stable")
+            near = by_ring[: lc.scan_context_ring_candidates]
+            scored = sorted((*scan_context_distance(contexts_a[i], cb), int(i)) for i in near)  # type: ignore[arg-type]
+            for distance, yaw, i in scored[: lc.descriptor_candidates]:
+                if distance <= lc.scan_context_max_distance:
+                    out.append((i, j, CandidateKind.SCAN_CONTEXT, yaw_guess(yaw)))
+        return out
+    desc_a = np.array([k.descriptor for k in older])
+    for j, kb in enumerate(newer):
+        dist = np.abs(desc_a - kb.descriptor).sum(axis=1)
+        for i in np.argsort(dist, kind="stable")[: lc.descriptor_candidates]:
+            if dist[i] <= lc.descriptor_max_distance:
+                out.append((int(i), j, CandidateKind.DESCRIPTOR, None))
+    return out
+
+
+def _path(keyframes: Sequence[Keyframe]) -> NDArray[np.float64]:
+    """Distance travelled to each keyframe along its session (m)."""
+    if not keyframes:
+        return np.zeros(0)
+    p = np.array([k.T_world_sensor[:3, 3] for k in keyframes])
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(p, axis=0), axis=1))])
+
+
+def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], newer: Sequence[Keyframe],
+                    lc: LoopClosureConfig, progress: Callable[[int, int], None] | None = None) -> PairLoops:
+    """Candidates between two sessions, verified, and their consensus (module docstring)."""
+    pair = PairLoops(session_a, session_b)
+    todo = cross_candidates(older, newer, lc)
+    pair.candidates = len(todo)
+    by_id_a = {k.frame_id: n for n, k in enumerate(older)}
+    by_id_b = {k.frame_id: n for n, k in enumerate(newer)}
+    for n, (i, j, kind, guess) in enumerate(todo):
+        cand = verify(older[i], newer[j], kind, lc, path_length_m=math.inf, init_T_a_b=guess)
+        pair.records.append({"a": cand.a, "b": cand.b, "kind": kind.value, "verified": cand.accepted,
+                             "accepted": False, "reason": cand.reason,
+                             "fitness": None if cand.result is None else cand.result.fitness,
+                             "rmse_m": None if cand.result is None else cand.result.rmse_m})
+        if cand.accepted:
+            pair.verified.append(cand)
+        if progress:
+            progress(n + 1, len(todo))
+    if not pair.verified:
+        return pair
+    path_a, path_b = _path(older), _path(newer)
+    align = []
+    for c in pair.verified:
+        ka, kb = older[by_id_a[c.a]], newer[by_id_b[c.b]]
+        assert c.T_a_b is not None
+        align.append(ka.T_world_sensor @ c.T_a_b @ geometry.invert(kb.T_world_sensor))
+    n = len(pair.verified)
+    agree = np.zeros((n, n), dtype=bool)
+    for p in range(n):
+        for q in range(n):
+            agree[p, q] = _agree(pair.verified[p], pair.verified[q], align[p], align[q], older, newer, by_id_a,
+                                 by_id_b, path_a, path_b, lc)
+    fitness = np.array([c.result.fitness if c.result is not None else 0.0 for c in pair.verified])
+    # the loop that most others agree with (ties: the best fitting), and every loop agreeing with it
+    best = max(range(n), key=lambda p: (int(agree[p].sum()), float(fitness[p])))
+    keep = np.flatnonzero(agree[best])
+    pair.consistent = [pair.verified[int(q)] for q in keep]
+    pair.T_a_b = align[best]
+    kept = {(c.a, c.b) for c in pair.consistent}
+    for r in pair.records:
+        if (r["a"], r["b"]) in kept:
+            r["accepted"] = True
+        elif r["verified"]:
+            r["reason"] = (f"passed the registration gates, but disagrees with the {len(keep)} agreeing loops on "
+                           f"where session {session_b} lies in session {session_a}")
+    logger.info("sessions %d <-> %d: %d candidates, %d verified, %d agree%s", session_a, session_b, pair.candidates,
+                len(pair.verified), len(pair.consistent),
+                "" if pair.connected else f" (not connected: {pair.why_not_connected()})")
+    return pair
+
+
+def _agree(p: LoopCandidate, q: LoopCandidate, T_p: NDArray[np.float64], T_q: NDArray[np.float64],
+           older: Sequence[Keyframe], newer: Sequence[Keyframe], by_id_a: dict[int, int], by_id_b: dict[int, int],
+           path_a: NDArray[np.float64], path_b: NDArray[np.float64], lc: LoopClosureConfig) -> bool:
+    """Two loops' alignments place both loops' newer keyframes alike, within what the drift between them allows."""
+    if p is q:
+        return True
+    ia, ja = by_id_a[p.a], by_id_b[p.b]
+    ib, jb = by_id_a[q.a], by_id_b[q.b]
+    travelled = abs(path_a[ia] - path_a[ib]) + abs(path_b[ja] - path_b[jb])
+    allowed_m = lc.max_correction_m + lc.descriptor_max_drift_fraction * travelled
+    D = T_p @ geometry.invert(T_q)
+    for k in (ja, jb):
+        x = T_q @ newer[k].T_world_sensor[:, 3]
+        if float(np.linalg.norm((D @ x - x)[:3])) > allowed_m:
+            return False
+    return geometry.rotation_angle_deg(T_p, T_q) <= lc.max_correction_deg
+
+
+def connected_sessions(n_sessions: int, pairs: Sequence[PairLoops]) -> tuple[list[int], dict[int, NDArray[np.float64]]]:
+    """The sessions connected to session 0 through pairs with enough agreeing loops, in session order, and for each
+    the initial ``T_world0_worldk`` chained along the connecting pairs (breadth first from session 0)."""
+    T: dict[int, NDArray[np.float64]] = {0: np.eye(4)}
+    frontier = [0]
+    while frontier:
+        nxt = []
+        for s in frontier:
+            for pair in pairs:
+                if not pair.connected or pair.T_a_b is None:
+                    continue
+                if pair.session_a == s and pair.session_b not in T:
+                    T[pair.session_b] = T[s] @ pair.T_a_b
+                    nxt.append(pair.session_b)
+                elif pair.session_b == s and pair.session_a not in T:
+                    T[pair.session_a] = T[s] @ geometry.invert(pair.T_a_b)
+                    nxt.append(pair.session_a)
+        frontier = nxt
+    return sorted(k for k in T if k < n_sessions), T
