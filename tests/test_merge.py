@@ -212,3 +212,33 @@ def _fast_config(tmp_path: Path) -> Path:
     path = tmp_path / "fast.toml"
     path.write_text("[build]\nodometry_edge_window = 1\n")
     return path
+
+
+def test_cli_info_lists_sessions_and_export_writes_one_sessions_trajectory(sessions: dict, merged: dict,
+                                                                          tmp_path: Path) -> None:
+    """``info`` has a row per session (frames, source store, its revision); ``export --trajectory --session K`` writes
+    only session K's frames with their own stamps (so rows match ground truth by stamp) and the merged head poses;
+    a missing session, a store no merge made and ``--session`` without ``--trajectory`` are refused, nothing
+    written."""
+    out = run_cli("info", merged["out"])
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = " ".join(out.stdout.replace("\u2502", " ").split())  # the table's column bars
+    with FrameStore.open(sessions["A"]) as a, FrameStore.open(sessions["B"]) as b:
+        n_a, n_b, stamps_b = len(a), len(b), b.ledger.stamps_ns.copy()
+    assert f"session 0 {n_a} frames from {sessions['A'].resolve()}" in text
+    assert f"session 1 {n_b} frames from {sessions['B'].resolve()}" in text
+    file = tmp_path / "b.tum"
+    out = run_cli("export", merged["out"], "--trajectory", file, "--session", "1")
+    assert out.returncode == 0, out.stderr[-2000:]
+    traj = read_trajectory(file, "tum")
+    assert np.array_equal(traj.stamps_ns, stamps_b)
+    with FrameStore.open(merged["out"]) as m:
+        head = m.poses(m.head)[m.frame_ids >= SESSION_ID_STRIDE]
+    assert np.allclose(traj.poses[:, :3, 3], head[:, :3, 3], atol=1e-6)
+    assert "sessions 0, 1" in one_error(run_cli("export", merged["out"], "--trajectory", tmp_path / "c.tum",
+                                                "--session", "5"))
+    assert "not a merged store" in one_error(run_cli("export", sessions["A"], "--trajectory", tmp_path / "d.tum",
+                                                     "--session", "0"))
+    out = run_cli("export", merged["out"], "--map", tmp_path / "m.ply", "--session", "1")
+    assert out.returncode == 2 and "--trajectory" in out.stderr
+    assert not any((tmp_path / n).exists() for n in ("c.tum", "d.tum", "m.ply"))

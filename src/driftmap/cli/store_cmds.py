@@ -110,6 +110,7 @@ def export(
     grid2d_path: Annotated[Optional[Path], typer.Option("--grid2d", help="Write a 2-D occupancy map OUT.yaml + OUT.pgm (ROS map_server format, trinary free / occupied / unknown) of the --band-m height band.")] = None,
     band_m: Annotated[Optional[str], typer.Option("--band-m", metavar="ZMIN,ZMAX", help="World-z band of --grid2d and of the MCAP's 2-D grid (m; default: every observed height).")] = None,
     no_volume: Annotated[bool, typer.Option("--no-volume", help="--mcap without the volumetric layers (the TSDF mesh and the 2-D grid are otherwise added).")] = False,
+    session: Annotated[Optional[int], typer.Option("--session", min=0, metavar="K", help="A merged store (driftmap merge): --trajectory holds only session K's frames (default: every session, in session order).")] = None,
 ) -> None:
     """Export the map (world frame of a revision), the trajectory, a Foxglove MCAP and the volumetric layers (TSDF
     mesh, OctoMap tree, 2-D occupancy map)."""
@@ -118,6 +119,8 @@ def export(
     outputs_given = (map_path, trajectory, mcap_path, mesh_path, octomap_path, grid2d_path)
     if all(p is None for p in outputs_given):
         raise typer.BadParameter("nothing to export: give --map, --trajectory, --mcap, --mesh, --octomap and/or --grid2d")
+    if session is not None and trajectory is None:
+        raise typer.BadParameter("selects the frames of the trajectory: give --trajectory with it", param_hint="--session")
     band = _band(band_m)
     if band is not None and grid2d_path is None and mcap_path is None:
         raise typer.BadParameter("the height band of the 2-D grid: give --grid2d or --mcap with it", param_hint="--band-m")
@@ -162,9 +165,15 @@ def export(
     with open_store(store_path) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
+        if session is not None:
+            from driftmap.pipeline.merge import session_frame_ids
+
+            session_ids = session_frame_ids(store, session)  # before anything is written
         if trajectory is not None:
-            store.export_trajectory(trajectory, revision=rev, format=format)
-            console.print(f"trajectory (revision {rev}, {format}): {trajectory}")
+            store.export_trajectory(trajectory, revision=rev, format=format,
+                                    frame_ids=None if session is None else session_ids)
+            console.print(f"trajectory (revision {rev}, {format}{'' if session is None else f', session {session}'}): "
+                          f"{trajectory}")
         if map_path is not None:
             from driftmap.map.view import MapView
 
@@ -281,6 +290,13 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         n_points = sum(int(i["points"]["n_points"]) for i in infos)
         table.add_row("frames", str(len(infos)))
         table.add_row("frame ids", f"{int(store.frame_ids[0])} .. {int(store.frame_ids[-1])}" if infos else "-")
+        from driftmap.pipeline.merge import frame_origin
+
+        origins = [frame_origin(i.get("provenance")) for i in infos]
+        if infos and all(o is not None for o in origins):  # a merged store: one row per session
+            for k in sorted({o.session for o in origins}):  # type: ignore[union-attr]
+                mine = [o for o in origins if o.session == k]  # type: ignore[union-attr]
+                table.add_row(f"session {k}", f"{len(mine)} frames from {mine[0].store} (revision {mine[0].revision})")
         table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
         if stamps:
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")

@@ -64,7 +64,8 @@ from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
 
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
-           "MergeResult", "SessionReport", "frame_origin", "merge_stores", "session_of"]
+           "MergeResult", "SessionReport", "frame_origin", "merge_stores", "session_frame_ids", "session_of",
+           "store_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -105,6 +106,30 @@ def frame_origin(provenance: Provenance | dict | None) -> FrameOrigin | None:
     return FrameOrigin(session=int(q["session"]), store=q["store"], store_uuid=q["uuid"], revision=int(q["revision"]),
                        frame_id=int(q["frame_id"]), source_uri=q.get("origin"),
                        index=int(q["origin_index"]) if "origin_index" in q else None)
+
+
+def store_sessions(store: FrameStore) -> dict[int, list[int]]:
+    """The sessions of a merged store: ``{session: [frame ids in store order]}`` from each frame's provenance
+    (:func:`frame_origin`); ``{}`` for a store that no merge made."""
+    sessions: dict[int, list[int]] = {}
+    for fid in store.frame_ids:
+        origin = frame_origin(store.frame_info(int(fid)).get("provenance"))
+        if origin is None:
+            return {}
+        sessions.setdefault(origin.session, []).append(int(fid))
+    return sessions
+
+
+def session_frame_ids(store: FrameStore, session: int) -> list[int]:
+    """The frame ids of ``session`` in a merged store; :class:`ConfigError` naming the store when it is not a merged
+    one or has no such session (``export --session``)."""
+    sessions = store_sessions(store)
+    if not sessions:
+        raise ConfigError(f"--session {session}: {store.path} is not a merged store (driftmap merge makes one): it "
+                          f"has no sessions")
+    if session not in sessions:
+        raise ConfigError(f"--session {session}: {store.path} holds sessions {', '.join(map(str, sorted(sessions)))}")
+    return sessions[session]
 
 
 def session_of(frame_id: int) -> tuple[int, int]:

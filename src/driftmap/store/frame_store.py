@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import logging
 import mmap
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -401,12 +401,13 @@ class FrameStore:
                             rows_in_sensor_frame=rows_in_sensor_frame)
 
     def export_trajectory(self, file: str | Path, *, revision: int | None = None,
-                          format: TrajectoryFormat | str = TrajectoryFormat.TUM) -> Path:
+                          format: TrajectoryFormat | str = TrajectoryFormat.TUM,
+                          frame_ids: Sequence[int] | None = None) -> Path:
         """Write the poses of a revision: TUM with the frames' stamps, or KITTI one row per stored frame in
         frame order (which reads back as row i = frame_id i only when the ids are 0..N-1: a warning otherwise).
-        A path inside a store folder is refused; the file is written under a temporary name and renamed into
-        place."""
-        return export_trajectory(self, file, revision=revision, format=format)
+        ``frame_ids``: only these frames (in store order; e.g. one session of a merged store). A path inside a
+        store folder is refused; the file is written under a temporary name and renamed into place."""
+        return export_trajectory(self, file, revision=revision, format=format, frame_ids=frame_ids)
 
     # ------------------------------------------------------------------------------------------ closing
 

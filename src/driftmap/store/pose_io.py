@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Protocol
 
@@ -141,13 +141,20 @@ def warn_about_revision(store: PoseFileStore, revision: Revision, what: str, *, 
 
 
 def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int | None,
-                      format: TrajectoryFormat | str) -> Path:
+                      format: TrajectoryFormat | str, frame_ids: Sequence[int] | None = None) -> Path:
     """:meth:`FrameStore.export_trajectory <driftmap.store.frame_store.FrameStore.export_trajectory>`."""
     fmt = parse_enum(TrajectoryFormat, format, f"{file}: format")
     if fmt not in (TrajectoryFormat.TUM, TrajectoryFormat.KITTI):
         raise ConfigError(f"{file}: trajectories are exported as tum or kitti, not {fmt.value}")
     ledger = store.ledger
     ids = ledger.frame_ids
+    rows = np.arange(len(ids))
+    if frame_ids is not None:  # a subset (a merged store's session), in store order
+        wanted = np.unique(np.asarray(frame_ids, dtype=np.int64))
+        rows = np.searchsorted(ids, wanted)
+        if len(wanted) and (rows.max() >= len(ids) or not np.array_equal(ids[np.minimum(rows, len(ids) - 1)], wanted)):
+            raise ConfigError(f"{file}: frame ids {id_sample(np.setdiff1d(wanted, ids))} are not in store {store.path}")
+        ids = ids[rows]
     if fmt is TrajectoryFormat.KITTI and not np.array_equal(ids, np.arange(len(ids))):
         # KITTI has neither stamps nor ids: the readers (correct, build --poses, diagnose --gt) take row i as
         # frame_id i, so this file does not read back onto these frames
@@ -159,8 +166,8 @@ def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int |
     if len(ids) == 0:
         raise EmptyStoreError(f"store {store.path} has no frames in revision {rev}: no trajectory to export "
                               f"(nothing written to {file})", store=store.path, revision=rev)
-    poses = store.poses(rev)
-    traj = Trajectory(ledger.stamps_ns.copy(), poses, ids.copy())
+    poses = store.poses(rev)[rows]
+    traj = Trajectory(ledger.stamps_ns[rows].copy(), poses, ids.copy())
     file = Path(file)
     refuse_inside_store(file, "trajectory export")  # never into a store folder (any store)
     # written under a temporary name and renamed into place (write_tum / write_kitti)
