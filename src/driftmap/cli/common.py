@@ -12,7 +12,7 @@ import logging
 import math
 import os
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, Optional
@@ -120,6 +120,16 @@ def finite(value: Any) -> Any:
         if v is not None and not math.isfinite(v):
             raise typer.BadParameter(f"must be a finite number, got {v}")
     return value
+
+
+def finite_within(lo: float, hi: float, unit: str) -> Callable[[Any], Any]:
+    """A callback: :func:`finite`, then within ``lo .. hi`` (a usage error naming the bounds and ``unit``)."""
+    def check(value: Any) -> Any:
+        finite(value)
+        if value is not None and not lo <= value <= hi:
+            raise typer.BadParameter(f"must be within {lo:g} .. {hi:g} {unit}, got {value:g}")
+        return value
+    return check
 
 
 def refuse_same_output(outputs: list[tuple[Path, str]], folders: tuple[str, ...] = ()) -> None:
