@@ -29,6 +29,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     source_options,
+    stage_ticker,
     writing_output,
 )
 from driftmap.errors import DriftmapError
@@ -49,12 +50,7 @@ def demo(
     check_output(out, "--out", folder=True)
 
     with progress_bar() as progress:
-        tasks: dict[str, int] = {}
-
-        def tick(stage: str, done: int, total: int | None) -> None:
-            if stage not in tasks:
-                tasks[stage] = progress.add_task(stage, total=total)
-            progress.update(tasks[stage], completed=done, total=total)
+        tick = stage_ticker(progress)
 
         result = run_demo(out, log_path=log, max_frames=frames, progress=tick)
     before = result.diagnosis_before
@@ -368,12 +364,7 @@ def build(
 
         cfg = cfg.model_copy(update={"num_threads": check_threads(threads, "--threads")})
     with progress_bar() as progress:
-        tasks: dict[str, int] = {}
-
-        def tick(stage: str, done: int, total: int | None) -> None:
-            if stage not in tasks:
-                tasks[stage] = progress.add_task(stage, total=total)
-            progress.update(tasks[stage], completed=done, total=total)
+        tick = stage_ticker(progress)
 
         try:
             result = run_build(source, out, format=format, config=cfg, poses_file=poses, poses_from_source=poses_from_source,

@@ -201,6 +201,19 @@ def progress_bar() -> Progress:
     )
 
 
+def stage_ticker(progress: Progress, names: dict[str, str] | None = None) -> Callable[[str, int, int | None], None]:
+    """The ``progress(stage, done, total)`` callback the library takes: one bar per stage (``names`` renames stages
+    for the screen)."""
+    tasks: dict[str, int] = {}
+
+    def tick(stage: str, done: int, total: int | None) -> None:
+        name = (names or {}).get(stage, stage)
+        if name not in tasks:
+            tasks[name] = progress.add_task(name, total=total)
+        progress.update(tasks[name], completed=done, total=total)
+    return tick
+
+
 KITTI_FRAME_HELP = ("Frame of a KITTI pose file on a store of KITTI Velodyne scans: auto (the data set's own cam0 "
                      "poses.txt is converted to the Velodyne frame, any other file is taken as Velodyne poses) | "
                      "velodyne (rows as they are) | cam0 (converted with calib.txt Tr).")

@@ -20,6 +20,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     refuse_same_output,
+    stage_ticker,
 )
 
 FIGURE = "decisions.png"
@@ -101,7 +102,7 @@ def decide(
             _check_diagnosis_frames(store, diagnosis)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
         with progress_bar() as progress:
-            tick = _ticker(progress)
+            tick = stage_ticker(progress, {"volume": "volumetric layers", "decide": "decisions"})
             result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
                           same_log, decide_config)
     decisions, comparison, layers = result
@@ -231,17 +232,6 @@ def _check_same_files(store, other, other_path: Path, shared) -> None:
             raise ConfigError(f"--against {other_path}: the stores are not of the same log (frame {fid} was read from "
                               f"{ua} for {store.path} but from {ub} for {other_path}); if it is one log read from two "
                               f"places, pass --same-log")
-
-
-def _ticker(progress):
-    tasks: dict[str, int] = {}
-
-    def tick(stage: str, done: int, total: int | None) -> None:
-        name = {"volume": "volumetric layers", "decide": "decisions"}.get(stage, stage)
-        if name not in tasks:
-            tasks[name] = progress.add_task(name, total=total)
-        progress.update(tasks[name], completed=done, total=total)
-    return tick
 
 
 def _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, given_walls, tick,

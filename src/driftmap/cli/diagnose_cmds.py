@@ -25,8 +25,9 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     refuse_output_on_input,
-    writing_output,
     refuse_same_output,
+    stage_ticker,
+    writing_output,
 )
 
 if TYPE_CHECKING:
@@ -75,12 +76,7 @@ def diagnose(
         for rev, flag in ((revision, "--revision"), (compare_revision, "--compare-revision")):
             if rev is not None and not 0 <= rev <= store.head:  # before the first diagnosis, not after it
                 raise ConfigError(f"{flag} {rev}: {store_path} has revisions 0..{store.head}")
-        tasks: dict[str, int] = {}
-
-        def tick(stage: str, done: int, total: int | None) -> None:
-            if stage not in tasks:
-                tasks[stage] = progress.add_task(stage, total=total)
-            progress.update(tasks[stage], completed=done, total=total)
+        tick = stage_ticker(progress)
 
         run = run_diagnose(store, json_path, revision=revision, gt=gt, gt_format=gt_format, report_dir=report,
                            compare_revision=compare_revision, points_per_frame=points_per_frame,

@@ -9,7 +9,7 @@ import typer
 from rich.table import Table
 from rich.text import Text
 
-from driftmap.cli.common import app, bold, console, err_console, progress_bar
+from driftmap.cli.common import app, bold, console, err_console, progress_bar, stage_ticker
 
 
 @app.command()
@@ -25,12 +25,7 @@ def merge(
 
     cfg = BuildConfig.load(config)
     with progress_bar() as progress:
-        tasks: dict[str, int] = {}
-
-        def tick(stage: str, done: int, total: int | None) -> None:
-            if stage not in tasks:
-                tasks[stage] = progress.add_task(stage, total=total)
-            progress.update(tasks[stage], completed=done, total=total)
+        tick = stage_ticker(progress)
 
         result = merge_stores(stores, out, config=cfg, progress=tick)
 
