@@ -91,12 +91,15 @@ def _interrupted() -> None:
 
 
 def _exit_now(code: int) -> None:
-    """Exit with ``code`` without the libraries' exit handlers: an Open3D or GTSAM interrupted mid-initialisation
-    prints its memory statistics and turns the exit code into 1 at interpreter shutdown. Logs and output are
-    flushed first; driftmap registers no exit handler (stores are consistent at every write, docs/store.md)."""
+    """Exit with ``code``. Without Ray loaded, without the interpreter's shutdown: an Open3D or GTSAM interrupted
+    mid-initialisation prints its memory statistics from its C++ destructors and turns the exit code into 1 (the
+    logs and output are flushed first). With Ray loaded (``batch``), through the normal shutdown: Ray's exit handler
+    stops the processes an embedded Ray started, which would otherwise outlive this one."""
     import logging
     import os
 
+    if "ray" in sys.modules:
+        sys.exit(code)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()

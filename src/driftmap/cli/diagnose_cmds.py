@@ -234,7 +234,7 @@ def perturb(
         raise ConfigError("nothing to perturb: give a step (--step-frame with --step-m/--step-deg) or a drift")
     for text, flag, used in ((drift_direction, "--drift-direction", drift_percent_per_m),
                              (drift_axis, "--drift-axis", drift_deg_per_m)):
-        if used and not float(np.linalg.norm(parse_vector(text, flag))) >= MIN_DIRECTION_NORM:
+        if used and not float(np.hypot.reduce(parse_vector(text, flag))) >= MIN_DIRECTION_NORM:  # no overflow at 1e300
             raise ConfigError(f"{flag}: a drift needs a non-zero direction (length >= {MIN_DIRECTION_NORM:g}), got "
                               f"{text!r}")
     step_vec = None if step_m is None else parse_vector(step_m, "--step-m")

@@ -97,6 +97,16 @@ def rotation_step(poses: ArrayLike, at_index: int, rotvec_deg: ArrayLike) -> NDA
     return T
 
 
+def _unit(v: NDArray[np.float64], what: str) -> NDArray[np.float64]:
+    """``v`` scaled to length 1 (scaled by its largest component first, so that components of 1e300 do not overflow
+    the norm into a zero vector); :class:`ConfigError` for a zero vector."""
+    big = float(np.max(np.abs(v)))
+    if not big > 0:
+        raise ConfigError(f"linear_drift: the {what} must be non-zero, got {v.tolist()}")
+    v = v / big
+    return v / np.linalg.norm(v)
+
+
 def linear_drift(poses: ArrayLike, *, percent_per_m: float = 0.0, direction: ArrayLike = (1.0, 0.0, 0.0),
                  deg_per_m: float = 0.0, axis: ArrayLike = (0.0, 0.0, 1.0)) -> NDArray[np.float64]:
     """An error growing linearly with the distance travelled (see the module docstring).
@@ -104,11 +114,7 @@ def linear_drift(poses: ArrayLike, *, percent_per_m: float = 0.0, direction: Arr
     Frame k is moved by ``E_k = [R(axis, deg_per_m * s_k) about the first origin] + percent_per_m/100 * s_k * direction``.
     """
     T = _poses(poses)
-    d = _vector(direction, "direction")
-    a = _vector(axis, "axis")
-    if np.linalg.norm(d) == 0 or np.linalg.norm(a) == 0:
-        raise ConfigError("linear_drift: direction and axis must be non-zero")
-    d, a = d / np.linalg.norm(d), a / np.linalg.norm(a)
+    d, a = _unit(_vector(direction, "direction"), "direction"), _unit(_vector(axis, "axis"), "axis")
     s = path_length_m(T)
     pivot = T[0, :3, 3].copy() if len(T) else np.zeros(3)
     R = Rotation.from_rotvec(np.radians(deg_per_m * s)[:, None] * a).as_matrix()
@@ -145,7 +151,7 @@ class PosePerturbation:
                 raise ConfigError(f"PosePerturbation.{name}: must be within +-{bound:g} {unit}, got {value!r} (a unit "
                                   f"mistake? no pose estimate drifts or jumps that far)")
         for name, used in (("drift_direction", self.drift_percent_per_m), ("drift_axis", self.drift_deg_per_m)):
-            if used and not np.linalg.norm(np.asarray(getattr(self, name), dtype=np.float64)) > 0:
+            if used and not np.max(np.abs(np.asarray(getattr(self, name), dtype=np.float64))) > 0:
                 raise ConfigError(f"PosePerturbation.{name}: a drift needs a non-zero direction, got {getattr(self, name)!r}")
 
     def apply(self, poses: ArrayLike) -> NDArray[np.float64]:

@@ -141,12 +141,17 @@ def _start_ray(ray: Any, ray_address: str | None, workers: int, threads: int) ->
     if ray_address is None:
         try:
             ray.init(address="local", num_cpus=workers * threads, **quiet)  # a new Ray, even with a cluster here
+        except KeyboardInterrupt:  # Ctrl-C while Ray starts: stop what it started (its agents outlive us otherwise)
+            with contextlib.suppress(Exception):
+                ray.shutdown()
+            raise
         except Exception as exc:  # Ray raises a bare Exception ("timed out during startup"), among others
             _shutdown_quietly(ray)
             raise DriftmapError(f"Ray could not start here ({workers} workers x {threads} threads): "
                                 f"{_first_line(exc)}; no log was run (a loaded or small machine: try fewer --workers, "
                                 f"and check /tmp/ray/session_latest/logs)") from exc
         return True
+    _probe_address(ray_address)
     try:
         ray.init(address=ray_address, **quiet)
     except (ConnectionError, ValueError, RuntimeError) as exc:
@@ -165,6 +170,34 @@ def _first_line(exc: BaseException) -> str:
     """An exception's message on one line (Ray's run to many lines): its first line, or its type."""
     lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
     return lines[0].rstrip(".") if lines else type(exc).__name__
+
+
+PROBE_TIMEOUT_S = 5.0
+"""``--ray-address HOST:PORT``: how long the cluster's port may take to accept a connection before the batch gives
+up (Ray itself waits for its GCS and then keeps the batch waiting for ever)."""
+
+
+def _probe_address(ray_address: str) -> None:
+    """:class:`ConfigError` when nothing accepts a TCP connection at ``HOST:PORT`` (also ``ray://HOST:PORT``) within
+    :data:`PROBE_TIMEOUT_S`; ``auto`` and addresses without a port are left to Ray."""
+    import socket
+    from urllib.parse import urlsplit
+
+    text = ray_address if "://" in ray_address else f"tcp://{ray_address}"
+    try:
+        parts = urlsplit(text)
+        host, port = parts.hostname, parts.port
+    except ValueError:
+        return
+    if not host or port is None:
+        return
+    try:
+        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"--ray-address {ray_address}: nothing answers at {host}:{port} ({exc.strerror or exc}); is "
+                          f"'ray start --head' running there (its GCS port, 6379 by default, or the client port "
+                          f"10001 for ray://)?") from None
 
 
 def _shutdown_quietly(ray: Any) -> None:

@@ -203,6 +203,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
            source_record: dict[str, Any] | None = None,
            pose_of_source: PoseSource = PoseSource.EXTERNAL_FILE) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
+    last_stored = max(existing) if existing else -1
     poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing, tick)
     n_total = len(src)
     invalid: list[float] = []
@@ -229,6 +230,12 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
                 _check_stored_pose(src, store, frame, poser.pose(frame)[0])
             tick("frames", done, n_total)
             continue
+        if existing and poser.source is PoseSource.ODOMETRY and frame.frame_id < last_stored:
+            raise ConfigError(
+                f"{src.uri}: --resume would add frame {frame.frame_id} after frame {last_stored}, the last stored one: "
+                f"the odometry tracks forward in time from the stored frames and cannot place a frame before them "
+                f"(this --frames selection holds frames the stored selection skipped). Frame {frame.frame_id} was not stored; build "
+                f"them into another --out, or resume with a selection that starts after frame {last_stored}")
         t_b = time.perf_counter()
         T, health = poser.pose(frame)
         t_c = time.perf_counter()

@@ -1,0 +1,70 @@
+"""The eighth hostile-input trial (issue 22; about 480 runs, docs/bad-input.md): the broken cases it found, through
+the path the user took. B2 a drift direction of 1e300 overflowing the norm into no drift; B3 ``--resume`` with a
+selection holding frames before the last stored one; B5 ``batch --ray-address`` where nothing listens."""
+
+from __future__ import annotations
+
+import socket
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_run import one_error, run_cli
+
+from driftmap.pipeline.build import build
+from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
+from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import read_trajectory
+
+
+@pytest.fixture(scope="module")
+def log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return generate_synthetic_log(tmp_path_factory.mktemp("trial8") / "log", SyntheticLogConfig(n_frames=12, seed=3))
+
+
+def test_t8_b2_a_huge_drift_direction_or_axis_is_a_direction(log: Path, tmp_path: Path) -> None:
+    """--drift-direction 1e300,0,0 overflowed the norm (inf), the direction became 0 and the 'perturbed' file equalled
+    its input (exit 0). A direction is scaled by its largest component first: the same drift as 1,0,0."""
+    gt = log / "groundtruth.txt"
+    for flag, huge, unit, drift in (("--drift-direction", "1e300,0,0", "1,0,0", "--drift-percent-per-m"),
+                                    ("--drift-axis", "0,0,1e300", "0,0,1", "--drift-deg-per-m")):
+        outputs = []
+        for k, vector in enumerate((huge, unit)):
+            out = tmp_path / f"{flag[2:]}-{k}.tum"
+            done = run_cli("perturb", gt, out, drift, "5", flag, vector)
+            assert done.returncode == 0, done.stderr[-2000:]
+            assert "RuntimeWarning" not in done.stderr
+            outputs.append(read_trajectory(out, "tum").poses)
+        assert np.allclose(outputs[0], outputs[1], atol=1e-9)
+        assert np.abs(outputs[0][:, :3, 3] - read_trajectory(gt, "tum").poses[:, :3, 3]).max() > 1e-3 \
+            or not np.allclose(outputs[0][:, :3, :3], read_trajectory(gt, "tum").poses[:, :3, :3])
+
+
+def test_t8_b3_resume_refuses_frames_before_the_last_stored_one(log: Path, tmp_path: Path) -> None:
+    """Built with --frames 0:12:2, then resumed with every frame: the odd frames were appended after frame 10 and
+    tracked backwards from it (steps of metres, exit 0). With the odometry placing the frames the resume is refused
+    naming the frame and the last stored one, the store unchanged; a selection after the stored frames resumes."""
+    store = tmp_path / "s"
+    build(log, store, frames="0:8:2", loop_closure=False)
+    with FrameStore.open(store) as s:
+        before = s.poses(0).copy()
+    line = one_error(run_cli("build", log, "--out", store, "--no-loop-closure", "--resume"))
+    assert "would add frame 1 after frame 6" in line and "another --out" in line, line
+    with FrameStore.open(store) as s:
+        assert s.frame_ids.tolist() == [0, 2, 4, 6] and np.array_equal(s.poses(0), before)
+    done = run_cli("build", log, "--out", store, "--no-loop-closure", "--resume", "--frames", "8:12")
+    assert done.returncode == 0, done.stderr[-2000:]
+    with FrameStore.open(store) as s:
+        assert s.frame_ids.tolist() == [0, 2, 4, 6, 8, 9, 10, 11]
+
+
+def test_t8_b5_a_ray_address_where_nothing_listens_is_refused(log: Path, tmp_path: Path) -> None:
+    """batch --ray-address HOST:PORT with nothing listening waited for ever after Ray's GCS time-out. The port is
+    tried first (5 s): one error line naming the address, nothing written."""
+    with socket.socket() as s:  # a port nobody listens on: bound, then closed
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    line = one_error(run_cli("batch", log, "--out", tmp_path / "fleet", "--ray-address", f"127.0.0.1:{port}",
+                             timeout=120))
+    assert f"--ray-address 127.0.0.1:{port}: nothing answers" in line, line
+    assert not (tmp_path / "fleet" / "fleet.json").exists()
