@@ -47,8 +47,8 @@ def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
     """``blocked`` when an observed surface is within the radius of any point (the distance to its voxel's cube:
     no point measured in the voxel is nearer, so a coarse map does not call free what a point 0.1 m away blocks);
     else ``unknown`` when an
-    unknown voxel is (its centre within the radius plus half a voxel: the layers' distance to unknown space), with
-    policy ``occupied``; else ``free``. Margin: the smallest clearance to a surface minus the radius. A point inside
+    unknown voxel is (its cube within the radius; the voxel holding a point always), with policy ``occupied``; else
+    ``free``. Margin: the smallest clearance to a surface minus the radius. A point inside
     an observed surface voxel's cube has clearance 0: ``blocked`` whatever the radius (0 included), margin ``-radius``."""
     tree, surface = _surface(ctx)
     d_surf, idx = surface_box_distances(ctx.layers, q.points_m)
@@ -73,27 +73,31 @@ def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
 
 
 def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: float) -> int:
-    """How many unknown voxels (or voxels outside the grid) have their centre within ``radius_m`` plus half a voxel
-    of ``point`` (their nearest face within ``radius_m``, as the layers' distance to unknown space counts it)."""
+    """How many unknown voxels (or voxels outside the grid) have their cube within ``radius_m`` of ``point`` (the
+    voxel holding the point always: a point inside unknown space is never free, whatever the radius)."""
     vs = layers.grid.voxel_size_m
-    reach = radius_m + 0.5 * vs
-    lo = np.ceil((point - reach) / vs - 0.5).astype(np.int64)
-    hi = np.floor((point + reach) / vs - 0.5).astype(np.int64)
+    lo = np.floor((point - radius_m) / vs).astype(np.int64)
+    hi = np.floor((point + radius_m) / vs).astype(np.int64)
     gx, gy = (a.ravel() for a in np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij"))
-    rho2 = ((gx + 0.5) * vs - point[0]) ** 2 + ((gy + 0.5) * vs - point[1]) ** 2
-    keep = rho2 < reach * reach
+    rho2 = _gap(gx, point[0], vs) ** 2 + _gap(gy, point[1], vs) ** 2  # to each column's square
+    keep = rho2 <= radius_m * radius_m
     gx, gy = gx[keep], gy[keep]
-    dz = np.sqrt(reach * reach - rho2[keep])
-    z0 = np.ceil((point[2] - dz) / vs - 0.5).astype(np.int64)
-    z1 = np.floor((point[2] + dz) / vs - 0.5).astype(np.int64)
+    dz = np.sqrt(np.maximum(radius_m * radius_m - rho2[keep], 0.0))
+    z0 = np.floor((point[2] - dz) / vs).astype(np.int64)
+    z1 = np.floor((point[2] + dz) / vs).astype(np.int64)
     return unknown_in_columns(layers, gx, gy, z0, z1)
+
+
+def _gap(cells: NDArray[np.int64], x: float | NDArray[np.float64], vs: float) -> NDArray[np.float64]:
+    """Distance along one axis from ``x`` to the cells ``[k vs, (k + 1) vs]`` (0 inside)."""
+    return np.maximum(np.maximum(cells * vs - x, x - (cells + 1) * vs), 0.0)
 
 
 # ------------------------------------------------------------------------------------------------ collision
 def collision(ctx: DecisionContext, q: CollisionQuery) -> dict:
     """Sweep the footprint (centred on the path) along the path every ``sweep_step_m``; the first place where an
-    observed surface point lies inside it is a contact (``blocked``), the first where it holds an unknown voxel's
-    centre (policy ``occupied``) is ``unknown``, whichever comes first (a contact wins a tie); else ``free``.
+    observed surface point lies inside it is a contact (``blocked``), the first where it overlaps an unknown voxel
+    (policy ``occupied``) is ``unknown``, whichever comes first (a contact wins a tie); else ``free``.
     Margin: the smallest distance between the footprint and a surface point along the whole path (negative: how
     deep the surface reaches into it)."""
     step = sweep_step(q, ctx.config.sweep_step_m, ctx.voxel_m)
@@ -260,18 +264,19 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
 
 
 def _unknown_counts(layers: VolumeLayers, q: CollisionQuery, samples: NDArray[np.float64]) -> NDArray[np.int64]:
-    """Per sample, how many unknown voxel centres (or voxels outside the grid) the footprint holds: one summed-volume
-    lookup per sample for a box, one per column of its cross-section for a cylinder."""
+    """Per sample, how many unknown voxels (or voxels outside the grid) the footprint overlaps (their cubes, not only
+    their centres: a footprint smaller than a voxel inside unknown space is never clear): one summed-volume lookup
+    per sample for a box, one per column of its cross-section for a cylinder."""
     vs, half = layers.grid.voxel_size_m, q.half_extent_m
-    lo = np.ceil((samples - half) / vs - 0.5).astype(np.int64)
-    hi = np.floor((samples + half) / vs - 0.5).astype(np.int64)
+    lo = np.floor((samples - half) / vs).astype(np.int64)
+    hi = np.floor((samples + half) / vs).astype(np.int64)
     if q.footprint == "box":
         return unknown_in_boxes(layers, lo, hi)
     n = int((hi[:, :2] - lo[:, :2]).max()) + 1
     grid = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
     cols = lo[:, None, :2] + grid[None]  # (S, n*n, 2) candidate columns
-    centre = (cols + 0.5) * vs - samples[:, None, :2]
-    inside = (np.sum(centre**2, axis=-1) <= q.size_m[0] ** 2) & np.all(cols <= hi[:, None, :2], axis=-1)
+    gap2 = _gap(cols[..., 0], samples[:, None, 0], vs) ** 2 + _gap(cols[..., 1], samples[:, None, 1], vs) ** 2
+    inside = (gap2 <= q.size_m[0] ** 2) & np.all(cols <= hi[:, None, :2], axis=-1)
     which, k = np.nonzero(inside)
     boxes_lo = np.column_stack([cols[which, k], lo[which, 2]])
     boxes_hi = np.column_stack([cols[which, k], hi[which, 2]])

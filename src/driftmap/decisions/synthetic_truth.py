@@ -191,15 +191,15 @@ def _true_depth(scene: o3d.t.geometry.RaycastingScene, glass_ids: set[int], T: N
 
 # ---------------------------------------------------------------------------------------------------- truths
 def _ball_unseen(truth: SceneTruth, points: NDArray[np.float64], radius_m: float) -> bool:
-    """Whether an unseen lattice voxel's nearest face lies within ``radius_m`` of any point (as the layers'
-    distance to unknown space: centre distance minus half a voxel)."""
+    """Whether an unseen lattice voxel's cube lies within ``radius_m`` of any point (as the map's clearance counts
+    unknown space; the voxel holding a point always)."""
     vs = truth.voxel_m
-    reach = radius_m + 0.5 * vs
     for p in points:
-        lo = np.floor((p - reach) / vs).astype(np.int64)
-        hi = np.floor((p + reach) / vs).astype(np.int64)
+        lo = np.floor((p - radius_m) / vs).astype(np.int64)
+        hi = np.floor((p + radius_m) / vs).astype(np.int64)
         idx = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
-        near = np.linalg.norm((idx + 0.5) * vs - p, axis=1) - 0.5 * vs < radius_m
+        gap = np.maximum(np.maximum(idx * vs - p, p - (idx + 1) * vs), 0.0)
+        near = np.linalg.norm(gap, axis=1) <= radius_m
         if not np.all(truth.seen_at(idx[near])):
             return True
     return False
@@ -272,14 +272,12 @@ def _footprint_hits_solid(truth: SceneTruth, q: CollisionQuery, s: NDArray[np.fl
 def _footprint_unseen(truth: SceneTruth, q: CollisionQuery, s: NDArray[np.float64]) -> bool:
     vs = truth.voxel_m
     half = q.half_extent_m
-    lo = np.ceil((s - half) / vs - 0.5).astype(np.int64)
-    hi = np.floor((s + half) / vs - 0.5).astype(np.int64)
-    if np.any(hi < lo):
-        return False
+    lo = np.floor((s - half) / vs).astype(np.int64)  # the voxels whose cubes the footprint overlaps, as the map's sweep
+    hi = np.floor((s + half) / vs).astype(np.int64)
     idx = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), axis=-1).reshape(-1, 3)
     if q.footprint == "cylinder":
-        inside = footprint_signed_distance(q, (idx + 0.5) * vs - s) <= 0
-        idx = idx[inside]
+        gap = np.maximum(np.maximum(idx[:, :2] * vs - s[:2], s[:2] - (idx[:, :2] + 1) * vs), 0.0)
+        idx = idx[np.linalg.norm(gap, axis=1) <= q.size_m[0]]
     return not bool(np.all(truth.seen_at(idx)))
 
 
