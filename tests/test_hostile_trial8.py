@@ -95,3 +95,21 @@ def test_t8_b1_a_sphere_or_sweep_inside_unknown_space_is_never_free(tmp_path: Pa
     assert d["region"]["details"]["unknown_fraction"] == 1.0, d["region"]  # the place is unknown space
     for qid in ("r0", "r5mm", "sweep", "cyl"):
         assert d[qid]["decision"] == "unknown" and d[qid]["failure_label"] == "unknown_space", d[qid]
+
+
+def test_t8_w3_w4_w7_an_empty_yaml_file_a_yaml_exponent_string_and_a_bound_are_named(log: Path, tmp_path: Path) -> None:
+    """W4 an empty YAML query file ("'queries' must be a list, got NoneType"); W3 `radius_m: 1e-1`, which PyYAML
+    reads as a string, refused without saying why; W7 `--drift-percent-per-m 100.0001` refused as "got 100"."""
+    pytest.importorskip("yaml")
+    from driftmap.decisions.errors import QueryError
+    from driftmap.decisions.query_file import load_queries
+
+    (tmp_path / "empty.yaml").write_text("# nothing yet\n")
+    with pytest.raises(QueryError, match="the query file is empty"):
+        load_queries(tmp_path / "empty.yaml")
+    (tmp_path / "e.yaml").write_text("queries:\n  - id: c\n    kind: clearance\n    points_m: [[0, 0, 1]]\n"
+                                     "    radius_m: 1e-1\n")
+    with pytest.raises(QueryError, match=r"radius_m must be a number, got '1e-1' \(a number written as text.*0\.1"):
+        load_queries(tmp_path / "e.yaml")
+    out = run_cli("perturb", log / "groundtruth.txt", tmp_path / "p.tum", "--drift-percent-per-m", "100.0001")
+    assert out.returncode == 2 and "got 100.0001" in " ".join(out.stderr.split())

@@ -127,7 +127,7 @@ def finite_within(lo: float, hi: float, unit: str) -> Callable[[Any], Any]:
     def check(value: Any) -> Any:
         finite(value)
         if value is not None and not lo <= value <= hi:
-            raise typer.BadParameter(f"must be within {lo:g} .. {hi:g} {unit}, got {value:g}")
+            raise typer.BadParameter(f"must be within {lo:g} .. {hi:g} {unit}, got {value!r}")
         return value
     return check
 

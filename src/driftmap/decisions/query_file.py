@@ -206,6 +206,8 @@ def _reading_problem(exc: Exception) -> str:
 
 def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
     """Check the parsed file (``{"queries": [...]}``, or a bare list of queries) and build the queries."""
+    if data is None:  # an empty (or comments-only) YAML file
+        raise QueryError(f"{source}: the query file is empty (expected {{\"queries\": [...]}})", query_id=None)
     items = data.get("queries") if isinstance(data, Mapping) else data
     if isinstance(data, Mapping) and "queries" not in data:
         raise QueryError(f"{source}: no 'queries' list (expected {{\"queries\": [...]}})", query_id=None)
@@ -341,7 +343,15 @@ def _number(qid: str, item: Mapping, key: str, *, lo: float | None = None, hi: f
             strict: bool = False) -> float:
     v = item[key]
     if not _is_number(v):
-        raise QueryError(f"query {qid!r}: {key} must be a number, got {v!r}", query_id=qid, field=key)
+        hint = ""
+        if isinstance(v, str):
+            try:
+                float(v)
+                hint = (" (a number written as text: quoted, or in YAML 1.1 an exponent without a decimal point such "
+                        "as 1e-1, which PyYAML reads as a string; write 0.1 or 1.0e-1)")
+            except ValueError:
+                pass
+        raise QueryError(f"query {qid!r}: {key} must be a number, got {v!r}{hint}", query_id=qid, field=key)
     v = _finite(qid, key, v)
     if lo is not None and (v < lo or (strict and v == lo)):
         what = "negative" if v < 0 <= lo else f"{'<=' if strict else 'below'} {lo:g}"
