@@ -66,3 +66,16 @@ def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> 
 def kitchen_cloud(kitchen: FrameStore) -> DiagnosticCloud:
     """The default diagnostic samples of ``kitchen``."""
     return DiagnosticCloud.from_store(kitchen)
+
+
+@pytest.fixture(scope="session")
+def room10(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A 10-frame synthetic room log (seed 3) and a store of it placed with its ground truth (no loop closure):
+    built once for the hostile-trial tests, which read them only (a test that writes copies them first)."""
+    from driftmap.pipeline.build import build
+    from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
+
+    root = tmp_path_factory.mktemp("room10")
+    log = generate_synthetic_log(root / "log", SyntheticLogConfig(n_frames=10, seed=3))
+    build(log, root / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
+    return {"root": root, "log": log, "gt": root / "gt"}

@@ -17,7 +17,6 @@ from cli_run import one_error, run_cli
 from driftmap.errors import DriftmapError, StoreError
 from driftmap.map.view import MapView
 from driftmap.pipeline.build import build
-from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
 
 
@@ -25,12 +24,10 @@ _cli, _error = run_cli, one_error
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A 10-frame synthetic log, a store of it placed with the ground truth, and one with a corrected revision."""
-    root = tmp_path_factory.mktemp("trial6")
-    log = generate_synthetic_log(root / "log", SyntheticLogConfig(n_frames=10, seed=3))
-    build(log, root / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
-    return {"root": root, "log": log, "gt": root / "gt"}
+def logs(room10: dict[str, Path]) -> dict[str, Path]:
+    """A 10-frame synthetic room log and a store of it placed with the ground truth (conftest.py's ``room10``,
+    built once for the trials)."""
+    return room10
 
 
 def _near_queries(store_path: Path, out: Path) -> list[np.ndarray]:

@@ -20,18 +20,13 @@ import pytest
 from cli_run import one_error, run_cli
 
 from driftmap.map.view import MapView
-from driftmap.pipeline.build import build
-from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
 
 
 @pytest.fixture(scope="module")
-def logs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A 10-frame synthetic room log and a store of it placed with the ground truth."""
-    root = tmp_path_factory.mktemp("trial7")
-    log = generate_synthetic_log(root / "log", SyntheticLogConfig(n_frames=10, seed=3))
-    build(log, root / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
-    return {"root": root, "log": log, "gt": root / "gt"}
+def logs(room10: dict[str, Path]) -> dict[str, Path]:
+    """A 10-frame synthetic room log and a store of it placed with the ground truth. (conftest.py's ``room10``, built once for the trials)."""
+    return room10
 
 
 def _surface_points(store_path: Path) -> list[np.ndarray]:

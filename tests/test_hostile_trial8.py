@@ -70,15 +70,13 @@ def test_t8_b5_a_ray_address_where_nothing_listens_is_refused(log: Path, tmp_pat
     assert not (tmp_path / "fleet" / "fleet.json").exists()
 
 
-def test_t8_b1_a_sphere_or_sweep_inside_unknown_space_is_never_free(tmp_path: Path) -> None:
+def test_t8_b1_a_sphere_or_sweep_inside_unknown_space_is_never_free(room10: dict[str, Path], tmp_path: Path) -> None:
     """Unknown space was counted by voxel centres only: a point at the corner of eight unknown voxels is 0.87 voxel
     from every centre, so a sphere under 7 mm or a 5 mm box swept through it was `free` while `explore` of the same
     place said every voxel is unknown. Now the voxels' cubes count (the one holding the point always): `unknown`,
     and the clearance, sweep and explore answers agree."""
     import json
 
-    log = generate_synthetic_log(tmp_path / "log", SyntheticLogConfig(n_frames=10, seed=3))
-    build(log, tmp_path / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
     p = [-0.46, -0.82, 1.08]  # the trial's place: a corner of the default 2 cm grid, in space no frame saw
     queries = [{"id": "r0", "kind": "clearance", "points_m": [p], "radius_m": 0.0},
                {"id": "r5mm", "kind": "clearance", "points_m": [p], "radius_m": 0.005},
@@ -89,7 +87,7 @@ def test_t8_b1_a_sphere_or_sweep_inside_unknown_space_is_never_free(tmp_path: Pa
                {"id": "region", "kind": "explore", "min_m": [p[0] - 0.02, p[1] - 0.02, p[2] - 0.02],
                 "max_m": [p[0] + 0.02, p[1] + 0.02, p[2] + 0.02], "max_unknown_fraction": 0.3}]
     (tmp_path / "q.json").write_text(json.dumps({"queries": queries}))
-    out = run_cli("decide", tmp_path / "gt", "--queries", tmp_path / "q.json", "--json", tmp_path / "d.json")
+    out = run_cli("decide", room10["gt"], "--queries", tmp_path / "q.json", "--json", tmp_path / "d.json")
     assert out.returncode == 0, out.stderr[-2000:]
     d = {x["id"]: x for x in json.loads((tmp_path / "d.json").read_text())["decisions"]}
     assert d["region"]["details"]["unknown_fraction"] == 1.0, d["region"]  # the place is unknown space
