@@ -1,16 +1,23 @@
 """The eighth hostile-input trial (issue 22; about 480 runs, docs/bad-input.md): the broken cases it found, through
 the path the user took. B2 a drift direction of 1e300 overflowing the norm into no drift; B3 ``--resume`` with a
-selection holding frames before the last stored one; B5 ``batch --ray-address`` where nothing listens."""
+selection holding frames before the last stored one; B4 Ctrl-C while the embedded Ray starts; B5 ``batch
+--ray-address`` where nothing listens."""
 
 from __future__ import annotations
 
+import os
+import signal
 import socket
+import subprocess
+import sys
+import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_run import one_error, run_cli
 
+from driftmap.fleet.reaper import descendants
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
@@ -111,3 +118,69 @@ def test_t8_w3_w4_w7_an_empty_yaml_file_a_yaml_exponent_string_and_a_bound_are_n
         load_queries(tmp_path / "e.yaml")
     out = run_cli("perturb", log / "groundtruth.txt", tmp_path / "p.tum", "--drift-percent-per-m", "100.0001")
     assert out.returncode == 2 and "got 100.0001" in " ".join(out.stderr.split())
+
+
+def _ray_processes() -> set[int]:
+    """The pids of the Ray processes running on this machine (GCS, raylet, its agents and workers)."""
+    found = set()
+    for entry in os.listdir("/proc"):
+        try:
+            with open(f"/proc/{entry}/cmdline", "rb") as f:
+                cmdline = f.read().replace(b"\0", b" ")
+        except OSError:
+            continue
+        if cmdline.startswith(b"ray::") or b"/ray/core/src/ray/" in cmdline or b"/ray/_private/" in cmdline \
+                or b"/ray/dashboard/" in cmdline or b"/ray/autoscaler/" in cmdline:
+            found.add(int(entry))
+    return found
+
+
+@pytest.mark.slow
+def test_t8_b4_ctrl_c_while_the_embedded_ray_starts_leaves_no_process(log: Path, tmp_path: Path) -> None:
+    """SIGINT at several moments of a batch's start (importing Ray, ray.init starting the GCS, the raylet and its
+    agents, the first task): exit 130, no Ray process left running (the DashboardAgent and RuntimeEnvAgent were
+    re-parented to PID 1 and ran for good), no fleet.json named unless written, no .fleet-tmp left behind."""
+    pytest.importorskip("ray")
+    before = _ray_processes()
+    for k, delay in enumerate((2.5, 4.0, 5.5, 7.0, 9.0)):
+        out = tmp_path / f"b{k}"
+        proc = subprocess.Popen([sys.executable, "-m", "driftmap.cli", "batch", str(log), "--out", str(out),
+                                 "--workers", "1"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        time.sleep(delay)
+        proc.send_signal(signal.SIGINT)
+        output, _ = proc.communicate(timeout=180)
+        if proc.returncode == 0:  # the batch finished first: nothing to check at this delay
+            continue
+        assert proc.returncode in (130, -signal.SIGINT), (delay, proc.returncode, output[-2000:])
+        assert "Traceback" not in output, (delay, output[-2000:])
+        left = _ray_processes() - before
+        for _ in range(50):  # what Ray stops itself may take a moment
+            if not left:
+                break
+            time.sleep(0.1)
+            left = _ray_processes() - before
+        assert not left, (delay, left, output[-2000:])
+        if "fleet.json" in output:
+            assert (out / "fleet.json").is_file(), (delay, output[-2000:])
+        assert not (out / ".fleet-tmp").exists(), delay
+        if not (out / "fleet.json").exists():  # nothing ran: a rerun needs no --resume
+            assert not out.exists() or "--resume" in output, (delay, output[-2000:])
+
+
+def test_descendants_follow_the_whole_tree_and_prune() -> None:
+    """The reaper's process walk: a grandchild is found through its parent; a pruned child hides its subtree."""
+    child = subprocess.Popen(["sh", "-c", "sleep 30 & wait"])
+    try:
+        for _ in range(50):
+            found = descendants()
+            if len(found) >= 2:
+                break
+            time.sleep(0.05)
+        assert child.pid in found and len(set(found) - {child.pid}) >= 1, found
+        assert child.pid not in descendants(prune={child.pid})
+        assert not set(descendants(prune={child.pid})) & set(descendants(child.pid))
+    finally:
+        for pid in descendants(child.pid):
+            os.kill(pid, signal.SIGKILL)
+        child.kill()
+        child.wait()

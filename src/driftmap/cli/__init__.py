@@ -65,6 +65,10 @@ def main() -> None:
         app()
     except KeyboardInterrupt:
         _interrupted()
+    except SystemExit as exc:  # typer turns a Ctrl-C inside a command into Exit(130): end it the same way
+        if _interrupt["seen"] and exc.code == 130:
+            _interrupted()
+        raise
     except Exception as exc:
         if _interrupt["seen"]:  # an interrupt while a library loads or works can surface as its own error
             _interrupted()
@@ -91,15 +95,14 @@ def _interrupted() -> None:
 
 
 def _exit_now(code: int) -> None:
-    """Exit with ``code``. Without Ray loaded, without the interpreter's shutdown: an Open3D or GTSAM interrupted
-    mid-initialisation prints its memory statistics from its C++ destructors and turns the exit code into 1 (the
-    logs and output are flushed first). With Ray loaded (``batch``), through the normal shutdown: Ray's exit handler
-    stops the processes an embedded Ray started, which would otherwise outlive this one."""
+    """Exit with ``code`` without the interpreter's shutdown (the logs and output are flushed first): an Open3D or
+    GTSAM interrupted mid-initialisation prints its memory statistics from its C++ destructors and turns the exit
+    code into 1, and Ray's C++ exit handler can crash (SIGSEGV in its core worker's destructor) after a Ray whose
+    start was interrupted. ``batch`` has stopped its embedded Ray, and every process Ray left running, before this
+    (driftmap.fleet.reaper)."""
     import logging
     import os
 
-    if "ray" in sys.modules:
-        sys.exit(code)
     logging.shutdown()
     sys.stdout.flush()
     sys.stderr.flush()

@@ -27,6 +27,17 @@ def _number(value: Any, scale: float = 1.0, digits: int = 2) -> str:
     return "-" if value is None else f"{scale * value:.{digits}f}"
 
 
+def _interrupted_line(out: Path) -> str:
+    """What an interrupted batch left: ``fleet.json`` is named only where it was written (a Ctrl-C while Ray starts
+    comes before any log)."""
+    if (out / "fleet.json").is_file():
+        return (f"interrupted: the logs that finished are in {out}, the others left nothing behind (see "
+                f"{out / 'fleet.json'}); continue with --resume")
+    if out.is_dir():
+        return f"interrupted before any log ran: no log was written to {out}; continue with --resume"
+    return "interrupted before any log ran: nothing was written"
+
+
 def _summary_table(rows: list[dict], out: Path) -> Table:
     table = Table(title=f"driftmap batch -> {out}")
     for col in ("log", "status", "frames", "time (s)", "drift (%/m)", "doubled (%)", "smearing (mm)", "ATE (cm)"):
@@ -78,9 +89,7 @@ def batch(
             raise
         except KeyboardInterrupt:
             progress.stop()
-            err_console.print(Text(f"interrupted: the logs that finished are in {out}, the others left nothing "
-                                   f"behind (see {out / 'fleet.json'}); continue with --resume", style="yellow"),
-                              highlight=False)
+            err_console.print(Text(_interrupted_line(out), style="yellow"), highlight=False)
             raise
     console.print(_summary_table(result.rows, out))
     console.print(f"{result.workers} workers, {result.threads} thread{'s' if result.threads > 1 else ''} each"

@@ -65,6 +65,8 @@ def clean_temp(out_dir: Path) -> list[str]:
         for entry in sorted(tmp.iterdir()):
             removed.append(entry.name)
             shutil.rmtree(entry, ignore_errors=True) if entry.is_dir() else entry.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # not left behind empty
+            tmp.rmdir()
     return removed
 
 

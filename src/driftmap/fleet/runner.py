@@ -33,6 +33,7 @@ from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
 from driftmap.fleet.folders import clean_temp, completed_result, prepare_out_dir
 from driftmap.fleet.inputs import LogSpec
+from driftmap.fleet.reaper import adopt_orphans, descendants, interrupts_deferred, stop_descendants
 from driftmap.fleet.report import write_fleet_json, write_fleet_report
 from driftmap.fleet.task import LogHook, empty_row, failed_row, run_log
 
@@ -298,11 +299,15 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     tick = progress or (lambda p: None)
     started = False
     w, t = plan_workers(workers, config.fleet.threads_per_log, ray_address)
+    embedded = bool(todo) and ray_address is None and not ray.is_initialized()
+    earlier = set(descendants()) if embedded else set()
+    if embedded:
+        adopt_orphans()  # an agent whose raylet dies first stays ours to stop (see driftmap.fleet.reaper)
     try:
         if todo:
             try:
                 started = _start_ray(ray, ray_address, w, t)
-            except DriftmapError:
+            except (DriftmapError, KeyboardInterrupt):
                 if fresh:  # nothing ran: leave no batch folder behind (a rerun needs no --resume)
                     shutil.rmtree(out_dir, ignore_errors=True)
                 raise
@@ -323,10 +328,13 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
         else:
             tick(state)
     finally:
-        if started:
-            ray.shutdown()
-        if out_dir.is_dir():
-            clean_temp(out_dir)
+        with interrupts_deferred():  # a second Ctrl-C does not cut the clean-up short
+            if started:
+                ray.shutdown()
+            if embedded:  # also after Ctrl-C inside ray.init, before `started` was set
+                stop_descendants(keep=earlier)
+            if out_dir.is_dir():
+                clean_temp(out_dir)
     ordered = [rows[n] for n in names]
     files = {"fleet_json": write_fleet_json(out_dir, ordered, w, ray_address, threads=t)}
     files.update(write_fleet_report(out_dir, ordered))

@@ -1,0 +1,149 @@
+"""Leaving no process behind: the processes an embedded Ray starts (GCS, raylet, its agents and workers) are all
+descendants of this one; an interrupted ``ray.init`` or a shutdown racing with the raylet can leave the agents the
+raylet started re-parented to PID 1, running for good.
+
+:func:`adopt_orphans` makes this process a *child subreaper* (Linux ``prctl(PR_SET_CHILD_SUBREAPER)``): a
+descendant whose parent dies is re-parented to this process instead of PID 1, so it stays a descendant.
+:func:`stop_descendants` then terminates (SIGTERM, then SIGKILL after a grace period) and reaps every descendant
+still running. Elsewhere than Linux both do nothing (the embedded Ray's own shutdown is all there is).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import ctypes
+import logging
+import os
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+
+__all__ = ["adopt_orphans", "descendants", "interrupts_deferred", "stop_descendants"]
+
+logger = logging.getLogger(__name__)
+
+PR_SET_CHILD_SUBREAPER = 36
+GRACE_S = 2.0
+"""How long descendants get to stop after SIGTERM before SIGKILL."""
+
+
+def adopt_orphans() -> bool:
+    """Make this process the child subreaper of its descendants; True if it now is (Linux only)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
+    except (OSError, AttributeError):  # no prctl here
+        return False
+
+
+def _parents() -> dict[int, int]:
+    """pid -> parent pid of every process readable in /proc."""
+    parents = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat", "rb") as f:
+                stat = f.read()
+        except OSError:  # gone meanwhile
+            continue
+        # the name (field 2) is in parentheses and may hold spaces or ')': the fields after its last ')'
+        fields = stat[stat.rfind(b")") + 2:].split()
+        if len(fields) > 1:
+            parents[int(entry)] = int(fields[1])
+    return parents
+
+
+def descendants(pid: int | None = None, prune: frozenset[int] | set[int] = frozenset()) -> list[int]:
+    """The pids of every descendant of ``pid`` (this process by default), leaving out those in ``prune`` and their
+    own descendants; [] where /proc is missing."""
+    root = os.getpid() if pid is None else pid
+    if not os.path.isdir("/proc"):
+        return []
+    children: dict[int, list[int]] = {}
+    for child, parent in _parents().items():
+        children.setdefault(parent, []).append(child)
+    found, stack = [], [root]
+    while stack:
+        for child in children.get(stack.pop(), []):
+            if child in prune:
+                continue
+            found.append(child)
+            stack.append(child)
+    return found
+
+
+def _reap(pids: list[int]) -> None:
+    """Collect the exit status of those of ``pids`` that are children of this process and have ended (orphans
+    adopted as a subreaper become zombies); never ``waitpid(-1)``, which would take a child another part of the
+    program waits for."""
+    for pid in pids:
+        with contextlib.suppress(ChildProcessError, OSError):
+            os.waitpid(pid, os.WNOHANG)
+
+
+def _signal_all(pids: list[int], sig: int) -> None:
+    for pid in pids:
+        with contextlib.suppress(ProcessLookupError, PermissionError):
+            os.kill(pid, sig)
+
+
+def stop_descendants(keep: frozenset[int] | set[int] = frozenset(), grace_s: float = GRACE_S) -> int:
+    """Terminate every descendant of this process still running except those in ``keep`` and their own descendants
+    (pass the descendants it had before the embedded Ray started: a cluster or a helper started earlier is not
+    this Ray's) -- SIGTERM, then SIGKILL after ``grace_s`` -- and reap them; the number that had to be stopped."""
+    if not sys.platform.startswith("linux"):
+        return 0
+
+    def running() -> list[int]:
+        found = descendants(prune=keep)
+        _reap(found)
+        return [p for p in found if _alive(p)]
+
+    left = running()
+    if not left:
+        return 0
+    logger.info("stopping %d process(es) the embedded Ray left running: %s", len(left), left)
+    _signal_all(left, signal.SIGTERM)
+    deadline = time.monotonic() + grace_s
+    while (stubborn := running()) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if stubborn:
+        _signal_all(stubborn, signal.SIGKILL)
+        for _ in range(40):
+            if not running():
+                break
+            time.sleep(0.05)
+    return len(left)
+
+
+def _alive(pid: int) -> bool:
+    """True unless ``pid`` has ended (a zombie has ended: it only waits to be reaped)."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read()
+    except OSError:
+        return False
+    fields = stat[stat.rfind(b")") + 2:].split()
+    return bool(fields) and fields[0] != b"Z"
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C (SIGINT) while the block runs -- the clean-up after a first Ctrl-C, which a second one must
+    not cut short -- and raise ``KeyboardInterrupt`` after it if one came. Outside the main thread, nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    seen = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: seen.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if seen:
+        raise KeyboardInterrupt
