@@ -60,7 +60,6 @@ def decide(
 ) -> None:
     """Decide what the map lets the robot do: clearance, collision, grasp, foothold and exploration queries, each
     with its margin, uncertainty, failure label, contributing frames, freshness and latency."""
-    from driftmap.config import DriftmapConfig
     from driftmap.decisions.query_file import load_queries
     from driftmap.decisions.walls import double_walls_of
 
@@ -93,7 +92,9 @@ def decide(
     if figure is not None:
         refuse_existing(figure, "--report", overwrite)
     query_set = load_queries(queries)  # every query checked before the store is opened
-    settings = DriftmapConfig.load(config)
+    settings = _load_settings(config)
+    if diagnosis is not None:
+        _check_diagnosis_shape(diagnosis)
     volume, decide_config = settings.volume, settings.decide
     with open_store(store_path) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
@@ -115,6 +116,51 @@ def decide(
     console.print(bold("decisions: ", json_path))
     if figure is not None:
         console.print(bold("report: ", figure))
+
+
+def _load_settings(config: Path | None):
+    """The settings (defaults, ``--config``, the environment); the file's ``[decide]`` thresholds must be numbers
+    as written (not ``"0.1"`` in quotes, nor ``true``), like a query file's."""
+    from driftmap.config import DriftmapConfig, split_config_file
+    from driftmap.decisions.settings import check_decide_table
+
+    if config is not None:
+        check_decide_table(split_config_file(config)[0].get("decide"), config)
+    return DriftmapConfig.load(config)
+
+
+def _check_diagnosis_shape(diagnosis: Path) -> None:
+    """--diagnosis is what diagnose --json writes: an object with a 'revision' id and a 'double_wall' object with
+    its 'regions' list. Any other object ({}, a synthetic.json, a build_summary.json) would decide as if the map had
+    no double wall: refused naming the file and what is missing. An unreadable file or a non-object is left to
+    :func:`~driftmap.decisions.walls.double_walls_of`, which names it."""
+    from driftmap.decisions.errors import QueryError
+
+    try:
+        data = json.loads(diagnosis.read_text(encoding="utf-8-sig"))
+    except (OSError, ValueError, RecursionError):
+        return
+    if not isinstance(data, dict):
+        return
+    missing = [f"'{key}'" for key in ("revision", "double_wall") if key not in data]
+    problems = [f"it has no {' and no '.join(missing)}"] if missing else []
+    rev, block = data.get("revision"), data.get("double_wall")
+    if "revision" in data and (isinstance(rev, bool) or not isinstance(rev, int) or rev < 0):
+        problems.append(f"its 'revision' is {_brief(rev)}, not a revision id (a whole number >= 0)")
+    if "double_wall" in data and not isinstance(block, dict):
+        problems.append(f"its 'double_wall' is {_brief(block)}, not an object with 'regions'")
+    elif isinstance(block, dict) and not isinstance(block.get("regions"), list):
+        problems.append("its 'double_wall' has no 'regions' list")
+    if problems:
+        raise QueryError(f"{diagnosis}: not a diagnosis (diagnose --json writes an object with 'revision' and "
+                         f"'double_wall'; {'; '.join(problems)})", query_id=None)
+
+
+def _brief(value) -> str:
+    """A JSON value for an error line: short ones as written, others by their type."""
+    text = json.dumps(value)
+    kinds = {dict: "an object", list: "a list", str: "a text", int: "a number", float: "a number"}
+    return text if len(text) <= 30 else kinds.get(type(value), f"a {type(value).__name__}")
 
 
 def _check_diagnosis_frames(store, diagnosis: Path) -> None:

@@ -179,17 +179,60 @@ def _parse_yaml(text: str, path: Path) -> Any:
     except ImportError:
         raise QueryError(f"{path}: reading a YAML query file needs PyYAML (pip install pyyaml); or give the same "
                          f"queries as JSON", query_id=None) from None
+    merge_tag, error = "tag:yaml.org,2002:merge", yaml.constructor.ConstructorError
+
     class UniqueKeyLoader(yaml.SafeLoader):
-        def construct_mapping(self, node, deep=False):  # noqa: ANN001, ANN202 - PyYAML's signature
-            keys = [self.construct_object(k, deep=True) for k, _ in node.value]
+        """A key written twice in one mapping is refused (which one is meant?). Merge keys are standard YAML
+        (``<<: *base``, ``<<: {...}``, ``<<: [*a, *b]``): the merged keys are defaults, an explicit key overrides
+        them, and of a list the earlier mapping wins (PyYAML's own flattening lets the later one win when the keys
+        are distinct string objects)."""
+
+        def flatten_mapping(self, node) -> None:  # noqa: ANN001 - a yaml MappingNode
+            explicit, merged, merges = [], [], 0
+            for key_node, value_node in node.value:
+                if key_node.tag != merge_tag:
+                    if key_node.tag == "tag:yaml.org,2002:value":  # as PyYAML does
+                        key_node.tag = "tag:yaml.org,2002:str"
+                    explicit.append((key_node, value_node))
+                    continue
+                merges += 1
+                if merges > 1:
+                    raise error(None, None, "the merge key '<<' appears twice in one mapping (merge several "
+                                "mappings with <<: [*a, *b])", key_node.start_mark)
+                if isinstance(value_node, yaml.MappingNode):
+                    subs = [value_node]
+                elif isinstance(value_node, yaml.SequenceNode):
+                    subs = value_node.value
+                else:
+                    raise error("while constructing a mapping", node.start_mark, f"expected a mapping or list of "
+                                f"mappings for merging, but found {value_node.id}", value_node.start_mark)
+                for sub in subs:
+                    if not isinstance(sub, yaml.MappingNode):
+                        raise error("while constructing a mapping", node.start_mark, f"expected a mapping for "
+                                    f"merging, but found {sub.id}", sub.start_mark)
+                    self.flatten_mapping(sub)  # its own duplicates refused, its merges resolved
+                    merged.extend(sub.value)
+            keys = [self.construct_object(k, deep=True) for k, _ in explicit]
             for k in keys:
                 if keys.count(k) > 1:
-                    raise yaml.constructor.ConstructorError(None, None, f"the key {k!r} appears twice in one "
-                                                            f"mapping (which one is meant?)", node.start_mark)
-            return super().construct_mapping(node, deep=deep)
+                    raise error(None, None, f"the key {_shown(k)} appears twice in one mapping (which one is "
+                                f"meant?)", node.start_mark)
+            if merges:
+                seen, defaults = list(keys), []
+                for k, v in merged:  # an explicit key, or an earlier merged mapping's, wins
+                    key = self.construct_object(k, deep=True)
+                    if key not in seen:
+                        seen.append(key)
+                        defaults.append((k, v))
+                node.value = defaults + explicit
 
     try:
         return yaml.load(text, Loader=UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
+    except yaml.MarkedYAMLError as exc:
+        mark = exc.problem_mark or exc.context_mark
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark is not None else ""
+        what = exc.problem or exc.context or str(exc).splitlines()[0]
+        raise QueryError(f"{path}: not valid YAML ({what}{where})", query_id=None) from None
     except yaml.YAMLError as exc:
         raise QueryError(f"{path}: not valid YAML ({str(exc).splitlines()[0]})", query_id=None) from None
     except (ValueError, RecursionError) as exc:
@@ -217,8 +260,9 @@ def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
         raise QueryError(f"{source}: the query list is empty", query_id=None)
     queries: list[Query] = []
     seen: set[str] = set()
+    from_yaml = source.lower().endswith((".yaml", ".yml"))
     for n, item in enumerate(items):
-        query = parse_query(item, n)
+        query = parse_query(item, n, from_yaml=from_yaml)
         if query.id in seen:
             raise QueryError(f"query {query.id!r}: the id is used twice (ids name decisions: each must be unique)",
                              query_id=query.id, field="id")
@@ -243,33 +287,61 @@ _OPTIONAL = {
 }
 
 
-def parse_query(item: Any, index: int = 0) -> Query:
-    """One query (a mapping) checked and built; ``index`` names it when it has no usable id."""
+def parse_query(item: Any, index: int = 0, *, from_yaml: bool = False) -> Query:
+    """One query (a mapping) checked and built; ``index`` names it when it has no usable id; ``from_yaml``: it
+    was read from a YAML file (an id YAML turned into a number, a date or a bool gets the hint to quote it)."""
     if not isinstance(item, Mapping):
         raise QueryError(f"query #{index + 1}: expected a mapping with id and kind, got {type(item).__name__}",
                          query_id=None)
     qid = item.get("id")
     if qid is not None and not isinstance(qid, str) and not isinstance(qid, (Mapping, list)):
-        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r} "
-                         f"({type(qid).__name__}); in YAML quote it (id: \"{_yaml_text(qid)}\") so it stays text",
-                         query_id=None, field="id")
+        text = _yaml_text(qid) if from_yaml else json.dumps(str(qid))
+        if len(text) > MAX_SHOWN_CHARS:
+            hint = "in YAML quote it so it stays text" if from_yaml else "give it as a JSON string (in quotes)"
+        else:
+            hint = f"in YAML quote it (id: \"{text}\") so it stays text" if from_yaml else f"give it as a JSON string (\"id\": {text})"
+        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {_shown(qid)} "
+                         f"({type(qid).__name__}); {hint}", query_id=None, field="id")
     if not isinstance(qid, str) or not qid.strip():
-        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {qid!r}", query_id=None, field="id")
+        raise QueryError(f"query #{index + 1}: 'id' must be a non-empty string, got {_shown(qid)}", query_id=None,
+                         field="id")
     if any(ord(c) < 32 or ord(c) == 127 for c in qid):
-        raise QueryError(f"query #{index + 1}: 'id' {qid!r} holds a line break or control character; ids are one "
-                         f"line of text (they name the query in every report line)", query_id=None, field="id")
+        raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} holds a line break or control character; ids are "
+                         f"one line of text (they name the query in every report line)", query_id=None, field="id")
     kind = item.get("kind")
     if kind not in KINDS:
-        raise QueryError(f"query {qid!r}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})", query_id=qid, field="kind")
+        raise QueryError(f"query {qid!r}: unknown kind {_shown(kind)} (kinds: {', '.join(KINDS)})", query_id=qid,
+                         field="kind")
     allowed = {"id", "kind", *_REQUIRED[kind], *_OPTIONAL[kind]} | IGNORED_KEYS
     for key in item:
         if key not in allowed:
-            raise QueryError(f"query {qid!r}: unknown field {key!r} for a {kind} query (fields: "
+            raise QueryError(f"query {qid!r}: unknown field {_shown(key)} for a {kind} query (fields: "
                              f"{', '.join(sorted(allowed - IGNORED_KEYS - {'id', 'kind'}))})", query_id=qid, field=str(key))
     for key in _REQUIRED[kind]:
         if key not in item:
             raise QueryError(f"query {qid!r}: a {kind} query needs {key!r}", query_id=qid, field=key)
     return _BUILDERS[kind](qid, item)
+
+
+MAX_SHOWN_CHARS = 60
+"""A value echoed in an error line is shortened beyond this many characters (a 400-digit id is not read back)."""
+
+
+def _shown(value: Any) -> str:
+    """``repr(value)`` for an error line, shortened when long: an integer of hundreds of digits by its digit count,
+    a long text or structure by its start and length."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10**18:
+        try:
+            digits = len(str(abs(value)))
+        except ValueError:  # beyond Python's int-to-text limit
+            digits = int(abs(value).bit_length() * math.log10(2)) + 1
+        return f"an integer of {digits} digits"
+    text = repr(value)
+    if len(text) <= MAX_SHOWN_CHARS:
+        return text
+    size = f"{len(value):,} characters" if isinstance(value, str) else (
+        f"{len(value):,} items" if isinstance(value, (Sequence, Mapping)) else f"{len(text):,} characters")
+    return f"{text[:MAX_SHOWN_CHARS - 20]}... ({type(value).__name__} of {size})"
 
 
 def _yaml_text(value: Any) -> str:
@@ -295,7 +367,7 @@ def _collision(qid: str, item: Mapping) -> CollisionQuery:
     fp = item["footprint"]
     if not isinstance(fp, Mapping) or len(fp) != 1 or next(iter(fp)) not in ("box_m", "cylinder_m"):
         raise QueryError(f"query {qid!r}: footprint must be {{\"box_m\": [lx, ly, lz]}} or {{\"cylinder_m\": "
-                         f"[radius, height]}}, got {fp!r}", query_id=qid, field="footprint")
+                         f"[radius, height]}}, got {_shown(fp)}", query_id=qid, field="footprint")
     key = next(iter(fp))
     size = _vector(qid, fp[key], f"footprint.{key}", 3 if key == "box_m" else 2)
     if np.any(size <= 0):
@@ -351,7 +423,7 @@ def _number(qid: str, item: Mapping, key: str, *, lo: float | None = None, hi: f
                         "as 1e-1, which PyYAML reads as a string; write 0.1 or 1.0e-1)")
             except ValueError:
                 pass
-        raise QueryError(f"query {qid!r}: {key} must be a number, got {v!r}{hint}", query_id=qid, field=key)
+        raise QueryError(f"query {qid!r}: {key} must be a number, got {_shown(v)}{hint}", query_id=qid, field=key)
     v = _finite(qid, key, v)
     if lo is not None and (v < lo or (strict and v == lo)):
         what = "negative" if v < 0 <= lo else f"{'<=' if strict else 'below'} {lo:g}"
@@ -378,8 +450,7 @@ def _finite(qid: str, key: str, v: int | float) -> float:
 def _integer(qid: str, item: Mapping, key: str, *, lo: int, hi: int) -> int:
     v = item[key]
     if isinstance(v, bool) or not isinstance(v, int) or v < lo or v > hi:
-        shown = f"an integer of {len(str(abs(v)))} digits" if isinstance(v, int) and abs(v) > 10**18 else repr(v)
-        raise QueryError(f"query {qid!r}: {key} must be a whole number from {lo} to {hi:,}, got {shown}",
+        raise QueryError(f"query {qid!r}: {key} must be a whole number from {lo} to {hi:,}, got {_shown(v)}",
                          query_id=qid, field=key)
     return int(v)
 
@@ -387,7 +458,7 @@ def _integer(qid: str, item: Mapping, key: str, *, lo: int, hi: int) -> int:
 def _vector(qid: str, value: Any, key: str, n: int, *, bound: float | None = None) -> NDArray[np.float64]:
     """``n`` finite numbers; with ``bound``, each of magnitude at most ``bound`` (coordinates, m)."""
     if not isinstance(value, Sequence) or isinstance(value, str) or len(value) != n or not all(_is_number(v) for v in value):
-        raise QueryError(f"query {qid!r}: {key} must be {n} numbers, got {value!r}", query_id=qid, field=key)
+        raise QueryError(f"query {qid!r}: {key} must be {n} numbers, got {_shown(value)}", query_id=qid, field=key)
     out = np.array([_finite(qid, key, v) for v in value], dtype=np.float64)
     if bound is not None and np.any(np.abs(out) > bound):
         raise QueryError(f"query {qid!r}: {key} must be coordinates within {bound:g} m of the map's origin, got "
@@ -424,7 +495,7 @@ def _policy(qid: str, item: Mapping) -> str | None:
     if v is None:
         return None
     if v not in UNKNOWN_POLICIES:
-        raise QueryError(f"query {qid!r}: unknown_is must be one of {', '.join(UNKNOWN_POLICIES)}, got {v!r}",
+        raise QueryError(f"query {qid!r}: unknown_is must be one of {', '.join(UNKNOWN_POLICIES)}, got {_shown(v)}",
                          query_id=qid, field="unknown_is")
     return str(v)
 
