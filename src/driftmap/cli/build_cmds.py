@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import TYPE_CHECKING, Annotated, Optional
 
 import typer
 from rich.table import Table
@@ -26,6 +26,7 @@ from driftmap.cli.common import (
     console,
     err_console,
     finite,
+    finite_within,
     progress_bar,
     refuse_existing,
     source_options,
@@ -35,6 +36,9 @@ from driftmap.cli.common import (
 from driftmap.errors import DriftmapError
 from driftmap.store import refuse_inside_store
 from driftmap.store.layout import MANIFEST
+
+if TYPE_CHECKING:
+    from driftmap.sources.synthetic import SyntheticLogConfig
 
 
 @app.command()
@@ -119,6 +123,70 @@ def config_cmd(
 
 MAX_DERIVED_SYNTH_FRAMES = 20_000
 """``synth``: a frame count derived from the speed and period (not given with --frames) above this is a typo."""
+MIN_DERIVED_SYNTH_MOVING_SCANS = 20
+"""``synth``: a frame count derived from the speed and period must leave at least this many moving scans, else the
+odometry has too few frames to follow the path (the robot would jump metres or turn by tens of degrees from frame to
+frame: a ``--speed-m-per-s 1e9`` or ``--period-s 100`` wrote a 2-frame log). The smallest logs known to track are
+the 2 Hz ones (docs/synthetic-log.md: 24 moving scans in the room, the LiDAR); at this floor the room's robot turns
+20 deg between frames. Below about 40 frames the room's depth camera already loses track (docs/fleet.md): a warning."""
+MIN_DEPTH_ROOM_MOVING_SCANS = 39
+"""``synth``: a room log whose derived count leaves fewer moving scans than the fleet's 40-frame logs warns that the
+depth-camera odometry may lose track (the LiDAR, ``--lidar`` and ``build --sensor lidar``, tracks them)."""
+
+
+def _standing_scans(cfg: SyntheticLogConfig) -> list[str]:
+    """The options that add stationary, stop and turn scans to a derived frame count (as given)."""
+    from driftmap.sources.synthetic_motion import scans_per_turn, turn_fractions
+
+    parts = []
+    if cfg.stationary_start_frames:
+        parts.append(f"--stationary-start {cfg.stationary_start_frames}")
+    if cfg.stops:
+        parts.append(f"--stops {cfg.stops} x --stop-frames {cfg.stop_frames}")
+    turns = len(turn_fractions(cfg))
+    if turns:
+        which = f"--turns {cfg.turns_in_place}" if cfg.turns_in_place else f"{turns} x --turn-at"
+        back = "" if scans_per_turn(cfg) == cfg.turn_in_place_frames else " x 2 (each turns back)"
+        parts.append(f"{which} x --turn-frames {cfg.turn_in_place_frames}{back}")
+    return parts
+
+
+def _check_derived_frames(cfg: SyntheticLogConfig, speed_given: bool, period_given: bool) -> None:
+    """A frame count ``synth`` derived (no ``--frames``) is refused above :data:`MAX_DERIVED_SYNTH_FRAMES` or with fewer
+    moving scans than :data:`MIN_DERIVED_SYNTH_MOVING_SCANS`, naming the count, what it is made of and the options
+    that set it; a room log under :data:`MIN_DEPTH_ROOM_MOVING_SCANS` moving scans is written with a warning."""
+    from driftmap.errors import ConfigError
+    from driftmap.sources.synthetic import moving_scans, non_moving_scans, path_length_m
+
+    n, moving, standing = cfg.n_frames, moving_scans(cfg), non_moving_scans(cfg)
+    path = path_length_m(cfg)
+    period = cfg.frame_period_ns / 1e9
+    speed = f"--speed-m-per-s {cfg.speed_m_per_s:g}" if speed_given else f"the {cfg.scene}'s {cfg.speed_m_per_s:.3g} m/s"
+    apart = f"--period-s {period:g}" if period_given else f"the {cfg.scene}'s {period:g} s period"
+    made_of = (f"1 + {moving:,} moving scan{'s' * (moving != 1)}: the {path:.3g} m path at {speed} with {apart}, "
+               f"{path / moving:.3g} m a scan")
+    parts = _standing_scans(cfg)
+    if parts:
+        made_of += f"; + {standing:,} standing and turning scans: {', '.join(parts)}"
+    if n > MAX_DERIVED_SYNTH_FRAMES:
+        advice = []
+        if 1 + moving > MAX_DERIVED_SYNTH_FRAMES // 2 or not parts:
+            advice.append("a faster --speed-m-per-s or a longer --period-s")
+        if parts:
+            advice.append("fewer stationary, stop or turn scans")
+        raise ConfigError(f"the options given need {n:,} frames ({made_of}), more than the "
+                          f"{MAX_DERIVED_SYNTH_FRAMES:,} a derived frame count may reach: give "
+                          f"{' or '.join(advice)}, or --frames N for a log that long on purpose")
+    if moving < MIN_DERIVED_SYNTH_MOVING_SCANS:
+        raise ConfigError(f"the options given derive only {n:,} frames ({made_of}): too few for the odometry to follow "
+                          f"the path, which needs at least {MIN_DERIVED_SYNTH_MOVING_SCANS} moving scans: give a slower "
+                          f"--speed-m-per-s or a shorter --period-s" + ("" if speed_given else
+                          ", or --frames N to spread the path over N frames"))
+    if cfg.scene == "room" and moving < MIN_DEPTH_ROOM_MOVING_SCANS:
+        err_console.print(Text.assemble(("warning:", "yellow"), f" {n:,} frames ({made_of}): the room's robot turns "
+                                        f"{360.0 * cfg.loop_turns / moving:.0f} deg from frame to frame, further than "
+                                        f"the depth-camera odometry follows (below about 40 frames it loses track); "
+                                        f"the LiDAR (--lidar, then build --sensor lidar) tracks them"), highlight=False)
 
 
 @app.command("synth")
@@ -127,11 +195,11 @@ def synth(
     frames: Annotated[Optional[int], typer.Option("--frames", min=2, max=1_000_000, help="Number of frames (default: 60 in the room, 245 on the street; with --period-s, --stationary-start, --stops or turns: what the scene's speed needs).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Random seed.")] = 7,
     lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="Also simulate a 16-beam spinning LiDAR (implied by --lidar-pattern rosette and --point-times).")] = False,
-    yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", callback=finite, help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street).")] = None,
+    yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", callback=finite_within(-360.0, 360.0, "deg per m"), help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street; within +-360).")] = None,
     scale_drift_percent: Annotated[Optional[float], typer.Option("--scale-drift-percent", callback=finite, help="Odometry scale drift (default: 1.0).")] = None,
     scene: Annotated[str, typer.Option("--scene", help="room (a furnished room, a depth camera and with --lidar a 16-beam LiDAR) | street (a city block loop, a 32-beam car LiDAR; defaults: 245 frames, 0.02 deg/m yaw drift, 1 % scale drift).")] = "room",
     period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite, min=0.001, help="Time between frames/scans in seconds (default: 0.2 in the room, 0.1 on the street; 0.5-0.05 for 2-20 Hz). The speed stays the scene's unless --frames or --speed-m-per-s is given: at 2 Hz a scan moves 5 times as far as at 10 Hz.")] = None,
-    speed_m_per_s: Annotated[Optional[float], typer.Option("--speed-m-per-s", callback=finite, min=0.001, help="Speed along the path while moving (default: the scene's, 0.59 m/s in the room, 10 m/s on the street); the frame count follows from it (not with --frames).")] = None,
+    speed_m_per_s: Annotated[Optional[float], typer.Option("--speed-m-per-s", callback=finite, min=0.001, help="Speed along the path while moving (default: the scene's, 0.59 m/s in the room, 10 m/s on the street); the frame count follows from it (not with --frames): at least 20 moving scans, at most 20,000 frames.")] = None,
     stationary_start: Annotated[int, typer.Option("--stationary-start", min=0, metavar="N", help="The first N scans stand at the start pose (each a new noise draw); motion starts at frame N.")] = 0,
     stops: Annotated[int, typer.Option("--stops", min=0, metavar="K", help="K stops at evenly spaced places of the path (fractions j / (K + 1)); give --stop-frames.")] = 0,
     stop_frames: Annotated[int, typer.Option("--stop-frames", min=0, metavar="M", help="Scans each stop lasts.")] = 0,
@@ -166,8 +234,18 @@ def synth(
     if frames is not None and speed_m_per_s is not None:
         raise typer.BadParameter("give the frame count or the speed, not both (the speed sets the frame count)",
                                  param_hint="--speed-m-per-s")
+    # without --frames the log keeps the scene's speed: stationary, stop and turn scans are added, a period changes
+    # the frame count (not the speed); the speed is given to the config at once, so that its 60 default frames are
+    # never checked against scans they were never meant to hold
+    changes_frames = period_s is not None or stationary_start or stops or turns or turn_at
+    derived = speed_m_per_s is not None or (frames is None and bool(changes_frames))
+    if derived and speed_m_per_s is None:
+        speed_m_per_s = (SyntheticLogConfig.street() if scene == "street" else SyntheticLogConfig()).default_speed_m_per_s()
+        speed_given = False
+    else:
+        speed_given = speed_m_per_s is not None
     given = {"seed": seed, "n_frames": frames, "yaw_drift_deg_per_m": yaw_drift_deg_per_m,
-             "scale_drift_percent": scale_drift_percent}
+             "scale_drift_percent": scale_drift_percent, "speed_m_per_s": speed_m_per_s}
     motion = {"stationary_start_frames": stationary_start, "stops": stops, "stop_frames": stop_frames,
               "turn_in_place_deg_per_frame": turn_deg_per_frame, "turn_in_place_frames": turn_frames,
               "turns_in_place": turns, "turn_in_place_at": tuple(turn_at or ()),
@@ -182,20 +260,8 @@ def synth(
         defaults = SyntheticLogConfig()
         cfg = SyntheticLogConfig(lidar=lidar or pattern == "rosette" or point_times,
                                  **{k: getattr(defaults, k) if v is None else v for k, v in given.items()}, **motion)
-    # without --frames the log keeps the scene's speed: stationary, stop and turn scans are added, a period changes
-    # the frame count (not the speed)
-    changes_frames = period_s is not None or stationary_start or stops or turns or turn_at
-    if speed_m_per_s is not None or (frames is None and changes_frames):
-        from dataclasses import replace
-
-        cfg = replace(cfg, speed_m_per_s=speed_m_per_s or cfg.default_speed_m_per_s())
-        if cfg.n_frames > MAX_DERIVED_SYNTH_FRAMES:
-            from driftmap.errors import ConfigError
-
-            raise ConfigError(f"the speed and period asked for need {cfg.n_frames:,} frames "
-                              f"({cfg.speed_m_per_s:g} m/s, {cfg.frame_period_ns / 1e9:g} s apart), more than the "
-                              f"{MAX_DERIVED_SYNTH_FRAMES:,} a derived frame count may reach: give a faster "
-                              f"--speed-m-per-s or a longer --period-s, or --frames N for a log that long on purpose")
+    if derived:
+        _check_derived_frames(cfg, speed_given, period_s is not None)
     refuse_inside_store(out, "OUT")
     with console.status(f"ray-casting the synthetic {scene}: {cfg.n_frames:,} frames"), \
             writing_output(out, "the synthetic log"):

@@ -212,7 +212,7 @@ def perturb(
     format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
     step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
     step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
-    step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin).")] = None,
+    step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin; at most 360 deg long).")] = None,
     drift_percent_per_m: Annotated[float, typer.Option("--drift-percent-per-m", callback=finite_within(-100.0, 100.0, "% of the path"), help="Translation drift (% of the path travelled).")] = 0.0,
     drift_direction: Annotated[str, typer.Option("--drift-direction", help="World direction of the translation drift 'x,y,z'.")] = "1,0,0",
     drift_deg_per_m: Annotated[float, typer.Option("--drift-deg-per-m", callback=finite_within(-360.0, 360.0, "deg per m"), help="Rotation drift (deg per m travelled).")] = 0.0,
@@ -220,7 +220,7 @@ def perturb(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing POSES_OUT; without it an existing file is refused.")] = False,
 ) -> None:
     """Write a perturbed copy of a trajectory: a translation/rotation step at a frame and/or a linear drift."""
-    from driftmap.diagnostics.perturb import PosePerturbation, parse_vector, perturb_pose_file
+    from driftmap.diagnostics.perturb import MAX_STEP_DEG, PosePerturbation, parse_vector, perturb_pose_file
     from driftmap.errors import ConfigError
 
     check_output(poses_out, "POSES_OUT")
@@ -242,6 +242,10 @@ def perturb(
         raise ConfigError(f"--step-m: a step of {float(np.linalg.norm(step_vec)):g} m would put poses where no pose "
                           f"file reader takes them (at most {MAX_STEP_M:g} m)")
     rot_vec = None if step_deg is None else parse_vector(step_deg, "--step-deg")
+    if rot_vec is not None and float(np.hypot.reduce(rot_vec)) > MAX_STEP_DEG:  # no overflow at 1e300
+        raise ConfigError(f"--step-deg: a rotation step must be within {MAX_STEP_DEG:g} deg (the length of the "
+                          f"rotation vector 'rx,ry,rz'), got {step_deg!r} ({float(np.hypot.reduce(rot_vec)):g} deg; a "
+                          f"unit mistake? no pose estimate jumps by more than a full turn)")
     if step_frame is not None:
         moved = step_vec is not None and any(step_vec)
         turn = 0.0 if rot_vec is None else float(np.linalg.norm(rot_vec))

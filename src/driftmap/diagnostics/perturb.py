@@ -126,6 +126,8 @@ def linear_drift(poses: ArrayLike, *, percent_per_m: float = 0.0, direction: Arr
 
 PERTURBATION_BOUNDS = (("drift_percent_per_m", 100.0, "% of the path"), ("drift_deg_per_m", 360.0, "deg per m"))
 """The magnitudes a :class:`PosePerturbation` takes (per component)."""
+MAX_STEP_DEG = 360.0
+"""The longest rotation step (the length of ``step_deg``, degrees) a :class:`PosePerturbation` takes: a full turn."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +152,10 @@ class PosePerturbation:
             if value is not None and np.any(np.abs(np.asarray(value, dtype=np.float64)) > bound):
                 raise ConfigError(f"PosePerturbation.{name}: must be within +-{bound:g} {unit}, got {value!r} (a unit "
                                   f"mistake? no pose estimate drifts or jumps that far)")
+        if self.step_deg is not None and float(np.hypot.reduce(np.asarray(self.step_deg, dtype=np.float64))) > MAX_STEP_DEG:
+            raise ConfigError(f"PosePerturbation.step_deg: the rotation step must be within {MAX_STEP_DEG:g} deg (the "
+                              f"length of the rotation vector), got {self.step_deg!r} (a unit mistake? no pose "
+                              f"estimate jumps by more than a full turn)")
         for name, used in (("drift_direction", self.drift_percent_per_m), ("drift_axis", self.drift_deg_per_m)):
             if used and not np.max(np.abs(np.asarray(getattr(self, name), dtype=np.float64))) > 0:
                 raise ConfigError(f"PosePerturbation.{name}: a drift needs a non-zero direction, got {getattr(self, name)!r}")

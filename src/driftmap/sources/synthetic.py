@@ -54,6 +54,7 @@ from driftmap.sources.synthetic_config import (  # re-exported: the config and t
     MAX_IMAGE_SIDE,  # noqa: F401
     MAX_LIDAR_RAYS,  # noqa: F401
     MAX_SEED,  # noqa: F401
+    MAX_YAW_DRIFT_DEG_PER_M,  # noqa: F401
     MIN_FRAME_PERIOD_NS,  # noqa: F401
     SyntheticLogConfig,
     check_config_fields,  # noqa: F401

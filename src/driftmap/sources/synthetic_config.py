@@ -21,6 +21,7 @@ __all__ = [
     "MAX_IMAGE_SIDE",
     "MAX_LIDAR_RAYS",
     "MAX_SEED",
+    "MAX_YAW_DRIFT_DEG_PER_M",
     "MIN_FRAME_PERIOD_NS",
     "SyntheticLogConfig",
     "check_config_fields",
@@ -133,8 +134,10 @@ class SyntheticLogConfig:
             if not self.speed_m_per_s > 0.0:
                 raise ConfigError(f"speed_m_per_s: must be > 0, got {self.speed_m_per_s}")
             object.__setattr__(self, "n_frames", frames_for_speed(self, self.speed_m_per_s))
-            check_frame_count(self, f" (the frames speed_m_per_s={self.speed_m_per_s:g} needs at a period of "
-                                    f"{self.frame_period_ns / 1e9:g} s)")
+            check_frame_count(self, f" (derived: 1 + {moving_scans(self):,} moving scans to drive the "
+                                    f"{path_length_m(self):.3g} m path at speed_m_per_s={self.speed_m_per_s:g}, "
+                                    f"{self.frame_period_ns / 1e9:g} s apart, + {non_moving_scans(self):,} "
+                                    f"stationary, stop and turn scans)")
         elif moving_scans(self) < 1:
             raise ConfigError(f"n_frames: {self.n_frames} frames leave no moving scan after the "
                               f"{non_moving_scans(self)} stationary, stop and turn scans (give more, or speed_m_per_s)")
@@ -171,6 +174,8 @@ bytes a pixel, ~1.7 GB at this size."""
 MAX_LIDAR_RAYS = 2_000_000
 """At most this many rays per LiDAR scan (``lidar_points_per_scan``, ``lidar_beams * lidar_azimuth_steps``):
 casting one with per-point times takes ~1 kB a ray, ~2 GB at this size."""
+MAX_YAW_DRIFT_DEG_PER_M = 360.0
+"""``yaw_drift_deg_per_m`` lies within +- this (a full turn per metre; ``perturb --drift-deg-per-m`` alike)."""
 MAX_SEED = 2**63 - 1
 """numpy's seeds are integers >= 0; this bound keeps them in the int64 a JSON reader gives back."""
 
@@ -223,9 +228,11 @@ def check_config_fields(config: SyntheticLogConfig) -> None:
     for name in ("fx", "fy", "depth_scale", "max_range_m", "circle_radius_m", "loop_turns", "lidar_max_range_m",
                  "lidar_fov_deg"):
         _number(config, name, 0.0, open_lo=True)
-    for name in ("cx", "cy", "camera_height_m", "camera_pitch_down_deg", "yaw_drift_deg_per_m",
-                 "lidar_rosette_k", "turn_in_place_deg_per_frame"):
+    for name in ("cx", "cy", "camera_height_m", "camera_pitch_down_deg", "lidar_rosette_k",
+                 "turn_in_place_deg_per_frame"):
         _number(config, name)
+    _number(config, "yaw_drift_deg_per_m", -MAX_YAW_DRIFT_DEG_PER_M, MAX_YAW_DRIFT_DEG_PER_M,
+            why=" (deg per m; a unit mistake? as perturb --drift-deg-per-m)")
     _number(config, "scale_drift_percent", -100.0, open_lo=True,
             why=" (at -100 % the odometry stands still, below it runs backwards)")
     for name in ("odometry_noise_m", "odometry_noise_deg", "lidar_range_sigma_m"):
