@@ -80,6 +80,8 @@ def main() -> None:
 def _message(exc: Exception) -> str:
     if isinstance(exc, UnicodeDecodeError):
         return f"a file is not UTF-8 text ({exc.reason} at byte {exc.start}); run with --debug to see which"
+    if isinstance(exc, DriftmapError):  # its own message says it all (OutputWriteError is an OSError too)
+        return str(exc)
     if isinstance(exc, OSError):  # unwritable output, a directory where a file was expected, a full disk ...
         from driftmap.cli.common import os_error_hint
 

@@ -98,8 +98,11 @@ def source_options(sensor: Optional[str], topic: Optional[str], pose_from_tf: Op
 
     period_ns = None
     if period_s is not None:
-        if not (math.isfinite(period_s) and period_s > 0 and round(period_s * 1e9) > 0):
+        if not (math.isfinite(period_s) and period_s > 0):
             raise ConfigError(f"--period-s: the scan period must be a positive number of seconds, got {period_s:g}")
+        if round(period_s * 1e9) < 1:
+            raise ConfigError(f"--period-s: {period_s:g} s rounds to 0 ns (stamps are whole nanoseconds); the period "
+                              f"must be at least 1 ns (1e-09 s)")
         period_ns = round(period_s * 1e9)
 
     tf = None

@@ -299,12 +299,21 @@ def intrinsics_named(what: str | Path, **values: Any) -> PinholeIntrinsics:
     return checked_intrinsics(intrinsics, what)
 
 
+TUM_SETUP_NAMES = ("fr1", "fr2", "fr3")
+"""The TUM RGB-D camera setups the TUM reader takes by name (``intrinsics="fr1"``); other depth sources refuse them
+by name rather than look for a file called ``fr1``."""
+
+
 def intrinsics_from_option(value: Any, what: str, *, width: int = 640, height: int = 480) -> PinholeIntrinsics:
     """``intrinsics=`` as :class:`PinholeIntrinsics`, a mapping (``fx fy cx cy [width height]``), a sequence
     ``(fx, fy, cx, cy[, width, height])`` or the path of an Open3D intrinsics JSON."""
     if isinstance(value, PinholeIntrinsics):
         return checked_intrinsics(value, f"{what}: intrinsics option")
     if isinstance(value, (str, Path)):
+        if isinstance(value, str) and value.strip().lower() in TUM_SETUP_NAMES and not Path(value).exists():
+            raise SourceError(f"{what}: intrinsics {value!r} names a TUM RGB-D camera setup, which only TUM "
+                              f"sequences take; give this source 'fx,fy,cx,cy[,width,height]' or an Open3D "
+                              f"intrinsics JSON")
         return read_open3d_intrinsics(Path(value))
     try:
         if isinstance(value, Mapping):

@@ -437,6 +437,7 @@ class KittiOdometry(FrameSource):
         super().__init__(str(path), frames=frames, lenient=lenient)
         self.path = Path(path)
         self.poses_from_ground_truth = poses_from_ground_truth
+        self._warned_non_finite: set[int] = set()
         self.ignored_files: list[Path] = []
         """Hidden and temporary files among the scans, not read (:func:`~driftmap.sources.cloud_folder.is_ignored_file`)."""
         scans = numbered_files(self.path / "velodyne", "KITTI Velodyne scans", pattern="*.bin", lenient=lenient,
@@ -588,7 +589,8 @@ class KittiOdometry(FrameSource):
             pose = pose_or_none(None, PoseSource.NONE)
         scan = self.read_scan(index)
         finite = np.isfinite(scan[:, :3]).all(axis=1)
-        if not finite.all():  # as the cloud-folder and PointCloud2 readers: dropped and counted
+        if not finite.all() and frame_id not in self._warned_non_finite:  # dropped and counted, as the cloud-folder
+            self._warned_non_finite.add(frame_id)  # and PointCloud2 readers; said once (a pre-pass reads it too)
             logger.warning("%s: frame %d: %d of %d points have a NaN or infinite coordinate and are left out",
                            file, frame_id, int(len(scan) - finite.sum()), len(scan))
         keep = measured_points(scan[:, :3], f"{file} (frame {frame_id})")  # also: no return, too far, none left

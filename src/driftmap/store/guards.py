@@ -125,7 +125,10 @@ READ_HINT = ("check the file's permissions and the device (reading a store needs
 
 
 def store_io_error(exc: OSError, file: str | Path, action: str, store: str | Path, hint: str = RESUME_HINT) -> StoreIOError:
-    """A :class:`StoreIOError` for ``exc`` met while ``action`` (e.g. ``"appending frame 7"``) on ``file``."""
+    """A :class:`StoreIOError` for ``exc`` met while ``action`` (e.g. ``"appending frame 7"``) on ``file``; ``exc``
+    itself when it is one already (its message names the file and the step that failed)."""
+    if isinstance(exc, StoreIOError):
+        return exc
     reason = exc.strerror or str(exc) or type(exc).__name__
     if exc.errno == errno_codes.ENOSPC:
         reason = "no space left on the device"
@@ -136,6 +139,11 @@ def store_io_error(exc: OSError, file: str | Path, action: str, store: str | Pat
         # no space to free: the store cannot be written where it is (reading it still works)
         hint = ("the store cannot be written there (it can still be read: info, export, diagnose); remount it "
                 "writable or copy it to a writable place and run the command there")
+    elif exc.errno in (errno_codes.ELOOP, errno_codes.EISDIR, errno_codes.ENOTDIR):
+        # the store's own layout is damaged: running again meets the same file, freeing space does not help
+        hint = (f"{Path(file).name} is not the regular file the store expects there (a symbolic-link loop, a folder "
+                f"or a path through a file); move it aside (keep it: it may hold data) and run "
+                f"`driftmap recover {{store}}` again")
     message = f"{file}: {action} failed: {reason}{code}; {hint.format(store=store)}"
     logger.debug("%s", message, exc_info=exc)
     return StoreIOError(message, path=Path(file), errno=exc.errno)

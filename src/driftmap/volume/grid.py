@@ -63,9 +63,11 @@ class GridSpec:
                 and max(float(np.max(np.abs(lo_f))), float(np.max(np.abs(hi_f)))) < _MAX_LATTICE_INDEX):
             reach = max(float(np.max(np.abs(np.asarray(min_m, dtype=np.float64)))),
                         float(np.max(np.abs(np.asarray(max_m, dtype=np.float64)))))
+            cause = ("are the poses of this revision absurd (driftmap info, driftmap revisions)?"
+                     if reach > 1e6 or not np.isfinite(reach) else
+                     "the voxels are too small for this extent (volume.voxel_size_m)")
             raise ConfigError(f"volume: the observations reach {reach:.3g} m from the origin, beyond any grid of "
-                              f"{voxel_size_m:g} m voxels: are the poses of this revision absurd (driftmap info, "
-                              f"driftmap revisions)?")
+                              f"{voxel_size_m:g} m voxels: {cause}")
         lo = lo_f.astype(np.int64)
         hi = hi_f.astype(np.int64) + 1
         lo = (lo // BLOCK_RESOLUTION) * BLOCK_RESOLUTION

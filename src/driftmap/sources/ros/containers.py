@@ -11,6 +11,9 @@ from driftmap.sources.ros.msgtypes import FORMAT_MCAP, FORMAT_ROSBAG1, FORMAT_RO
 from driftmap.sources.ros.rosbags_backend import RosbagsBackend, rosbag2_dir
 
 
+_NAMES = {FORMAT_MCAP: "an MCAP file", FORMAT_ROSBAG1: "a ROS 1 bag", FORMAT_ROSBAG2: "a rosbag2 folder"}
+
+
 def read_magic(path: Path, n: int) -> bytes:
     try:
         with open(path, "rb") as f:
@@ -49,7 +52,11 @@ def open_backend(path: str | Path, format: str | None = None, *, lenient: bool =
     path = Path(path)
     if not path.exists():
         raise SourceError(f"{path}: no such file or folder")
-    fmt = format or detect_format(path)
+    found = detect_format(path)
+    if format is not None and found is not None and format != found:  # the bytes decide, not the flag
+        raise SourceError(f"{path}: is {_NAMES[found]} (by its first bytes or layout), not {_NAMES.get(format, repr(format))}"
+                          f"; leave the format out or give format={found!r}")
+    fmt = format or found
     if fmt == FORMAT_MCAP:
         return McapBackend(path, lenient=lenient)
     if fmt in (FORMAT_ROSBAG1, FORMAT_ROSBAG2):
