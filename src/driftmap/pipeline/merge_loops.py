@@ -3,11 +3,13 @@ start pose is assumed), verified as ``build`` verifies its own, then a consensus
 sessions that connects to session 0.
 
 * **Candidates.** Every keyframe of the newer session ``j`` is compared with every keyframe of the older session
-  ``i``: on depth cameras by the shape descriptor (:func:`driftmap.registration.loops.shape_descriptor`, the L1
-  distance gate ``descriptor_max_distance``; the pair is then aligned globally by FPFH + RANSAC inside
-  :func:`~driftmap.registration.loops.verify`), on LiDAR by the Scan Context (ring-key pre-selection, the full
-  distance gate ``scan_context_max_distance`` and the yaw of the best column shift as the initial guess), the
-  ``descriptor_candidates`` best per keyframe, as in ``build``.
+  ``i``: on depth cameras by the shape descriptor (:func:`driftmap.registration.loops.shape_descriptor`, the
+  ``session_descriptor_candidates`` best per keyframe within the L1 distance gate ``session_descriptor_max_distance``,
+  looser than ``build``'s: between sessions the descriptor is the only way to a candidate, and real depth clouds of
+  one place seen on two passes are farther apart than the synthetic room's; the pair is then aligned globally by
+  FPFH + RANSAC inside :func:`~driftmap.registration.loops.verify`), on LiDAR by the Scan Context (ring-key
+  pre-selection, the full distance gate ``scan_context_max_distance`` and the yaw of the best column shift as the
+  initial guess), the ``descriptor_candidates`` best per keyframe, as in ``build``.
 * **Verification.** :func:`~driftmap.registration.loops.verify` with the same gates (convergence, fitness, RMSE).
   Its agreement-with-odometry gate has no meaning between sessions (no odometry links them): it is opened
   (``path_length_m = inf``), and the consensus check below takes its place.
@@ -84,10 +86,12 @@ def cross_candidates(older: Sequence[Keyframe], newer: Sequence[Keyframe],
                      lc: LoopClosureConfig) -> list[tuple[int, int, CandidateKind, NDArray[np.float64] | None]]:
     """``(i, j, kind, initial T_a_b or None)``: positions in ``older`` and ``newer`` whose place descriptors match
     (module docstring); per keyframe of ``newer`` the ``descriptor_candidates`` best within the gate."""
-    if not older or not newer or lc.descriptor_candidates == 0:
+    if not older or not newer:
         return []
     out: list[tuple[int, int, CandidateKind, NDArray[np.float64] | None]] = []
     if lc.place_descriptor == "scan_context":
+        if lc.descriptor_candidates == 0:
+            return []
         contexts_a = [k.scan_context for k in older]
         ring_a = np.array([c.ring_key for c in contexts_a])  # type: ignore[union-attr]
         for j, kb in enumerate(newer):
@@ -104,8 +108,8 @@ def cross_candidates(older: Sequence[Keyframe], newer: Sequence[Keyframe],
     desc_a = np.array([k.descriptor for k in older])
     for j, kb in enumerate(newer):
         dist = np.abs(desc_a - kb.descriptor).sum(axis=1)
-        for i in np.argsort(dist, kind="stable")[: lc.descriptor_candidates]:
-            if dist[i] <= lc.descriptor_max_distance:
+        for i in np.argsort(dist, kind="stable")[: lc.session_descriptor_candidates]:
+            if dist[i] <= lc.session_descriptor_max_distance:
                 out.append((int(i), j, CandidateKind.DESCRIPTOR, None))
     return out
 
