@@ -97,3 +97,21 @@ def test_w9_a_period_that_rounds_to_no_nanosecond_says_so(kitti_dir: Path, tmp_p
     assert "--period-s: 1e-12 s rounds to 0 ns" in line and "positive" not in line, line
     line = one_error(run_cli("build", kitti_dir, "--period-s", "-1", "--out", tmp_path / "s", "--no-loop-closure"))
     assert "must be a positive number of seconds, got -1" in line, line
+
+
+def test_w13_text_where_a_number_or_flag_belongs_is_refused_in_every_table(tmp_path: Path) -> None:
+    """pydantic reads ``voxel_size_m = "0.05"`` as 0.05 m: a config file's numbers and flags must be written as
+    such in every table (names and enumerations stay text)."""
+    from driftmap.config import DriftmapConfig
+
+    cases = [('[volume]\nvoxel_size_m = "0.05"\n', 'volume.voxel_size_m: expected a number, got \'0.05\' (text, in quotes'),
+             ("[map]\nexport_voxel_size_m = true\n", "map.export_voxel_size_m: expected a number, got true"),
+             ('[volume]\nkeep_frame_voxels = "false"\n', "volume.keep_frame_voxels: expected true or false")]
+    for k, (text, expected) in enumerate(cases):
+        file = tmp_path / f"c{k}.toml"
+        file.write_text(text)
+        with pytest.raises(ConfigError, match=None) as info:
+            DriftmapConfig.load(file)
+        assert f"{file}: {expected}" in str(info.value), str(info.value)
+    (tmp_path / "ok.toml").write_text('[volume]\nunknown_is = "free"\nvoxel_size_m = 0.05\nkeep_frame_voxels = false\n')
+    assert DriftmapConfig.load(tmp_path / "ok.toml").volume.voxel_size_m == 0.05

@@ -27,6 +27,7 @@ import json
 import math
 import os
 import tomllib
+import types
 import typing
 from pathlib import Path
 from typing import Annotated, Any
@@ -332,6 +333,11 @@ class DriftmapConfig(BaseSettings):
         Raises :class:`ConfigError` with one line per problem, each naming where the value came from (the file,
         the environment variable or the command line) and the key."""
         data = split_config_file(path)[0] if path is not None else {}
+        if path is not None:
+            for name, table in data.items():
+                field = cls.model_fields.get(name)
+                if field is not None and isinstance(field.annotation, type):
+                    check_written_types(table, field.annotation, path, f"{name}.")
         _check_env_tables()
         try:
             # file values act as init values, which pydantic-settings ranks above the environment;
@@ -370,6 +376,62 @@ _REMOVED_TABLES = {
     "preprocess": "per-frame processing is not part of 'driftmap build' (the store keeps full-resolution frames), so "
                   "there are no preprocess.* settings (the library's process_frame takes driftmap.config.PreprocessConfig)",
 }
+
+
+def check_written_types(table: Any, model: type[BaseModel], where: str | Path, prefix: str = "") -> None:
+    """A config file's ``table`` (for ``model``) as the file wrote it: a number is written as a number (``0.1``, not
+    the text ``"0.1"``, which pydantic would read as 0.1) and a flag as ``true`` / ``false``, in nested tables too.
+    A :class:`ConfigError` naming the file (``where``) and the key (``prefix`` + key); other problems are left to
+    the model, which names them. Not for the environment, whose values are always text."""
+    if not isinstance(table, dict):
+        return
+    for key, value in table.items():
+        field = model.model_fields.get(key) if isinstance(key, str) else None
+        if field is None:
+            continue
+        kinds = _annotation_types(field.annotation)
+        nested = [k for k in kinds if issubclass(k, BaseModel)]
+        if nested:
+            check_written_types(value, nested[0], where, f"{prefix}{key}.")
+            continue
+        if not kinds or not kinds <= {int, float, bool, type(None)} or (value is None and type(None) in kinds):
+            continue  # text, names, enumerations, paths: text is theirs to judge
+        flag = kinds & {int, float} == set()
+        ok = isinstance(value, bool) if flag else isinstance(value, (int, float)) and not isinstance(value, bool)
+        if ok:
+            continue
+        expected = "true or false" if flag else "a number"
+        hint = ""
+        if isinstance(value, str):
+            hint = " (text, in quotes: write the number without quotes)" if not flag and _is_number_text(value) else \
+                " (text, in quotes: write true or false without quotes)" if flag and value.strip().lower() in (
+                    "true", "false") else " (text, in quotes)"
+        raise ConfigError(f"{where}: {prefix}{key}: expected {expected}, got {_shown_value(value)}{hint}")
+
+
+def _annotation_types(annotation: Any) -> set[type]:
+    """The types of an annotation (``float | None`` -> {float, NoneType}); none for ``Literal`` and the like."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return {t for a in typing.get_args(annotation) for t in _annotation_types(a)}
+    if typing.get_origin(annotation) is Annotated:
+        return _annotation_types(typing.get_args(annotation)[0])
+    return {annotation} if isinstance(annotation, type) else set()
+
+
+def _is_number_text(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _shown_value(value: Any) -> str:
+    """A value for an error line: the TOML / JSON spelling of true and false, long values shortened."""
+    if isinstance(value, bool):
+        return str(value).lower()
+    text = repr(value)
+    return text if len(text) <= 60 else f"{text[:40]}... ({len(text):,} characters)"
 
 
 def read_config_file(path: str | Path) -> dict[str, Any]:

@@ -119,13 +119,10 @@ def decide(
 
 
 def _load_settings(config: Path | None):
-    """The settings (defaults, ``--config``, the environment); the file's ``[decide]`` thresholds must be numbers
-    as written (not ``"0.1"`` in quotes, nor ``true``), like a query file's."""
-    from driftmap.config import DriftmapConfig, split_config_file
-    from driftmap.decisions.settings import check_decide_table
+    """The settings (defaults, ``--config``, the environment); the file's thresholds must be numbers as written
+    (not ``"0.1"`` in quotes, nor ``true``), like a query file's (:func:`driftmap.config.check_written_types`)."""
+    from driftmap.config import DriftmapConfig
 
-    if config is not None:
-        check_decide_table(split_config_file(config)[0].get("decide"), config)
     return DriftmapConfig.load(config)
 
 
