@@ -184,3 +184,22 @@ def test_descendants_follow_the_whole_tree_and_prune() -> None:
             os.kill(pid, signal.SIGKILL)
         child.kill()
         child.wait()
+
+
+def test_t9_a_ray_address_where_something_else_answers_is_refused(log: Path, tmp_path: Path) -> None:
+    """Hostile trial 9: a port that accepts connections but is not Ray (a web server, the dashboard) got past the
+    port probe and the batch waited for ever. The probe now asks for Ray's protocol (gRPC: an HTTP/2 SETTINGS frame
+    in answer to the preface): one error line, nothing written."""
+    import http.server
+    import threading
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), http.server.SimpleHTTPRequestHandler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        port = server.server_address[1]
+        line = one_error(run_cli("batch", log, "--out", tmp_path / "fleet", "--ray-address", f"127.0.0.1:{port}",
+                                 timeout=120))
+    finally:
+        server.shutdown()
+    assert f"--ray-address 127.0.0.1:{port}: something answers at 127.0.0.1:{port}, but not Ray" in line, line
+    assert not (tmp_path / "fleet").exists()

@@ -267,3 +267,58 @@ def test_7scenes_two_sessions_connect_with_the_merge_descriptor_gate(sevenscenes
     everything, a, b = _ate_after_aligning_session_0(tmp_path / "AB", gt)
     assert b_before > 1.0
     assert everything < 0.05 and b < 0.05, (everything, a, b)
+
+
+def test_a_merge_that_fails_while_writing_leaves_nothing_at_out(sessions: dict, tmp_path: Path,
+                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+    """A full disk while the merged store is written (hostile trial 9): a half-written store with only revision 0
+    looked like a good merge to every command. The store is written beside --out and renamed when complete: a
+    failure leaves neither it nor the scratch folder, and says so."""
+    import errno
+
+    from driftmap.pipeline import merge as merge_module
+
+    real = merge_module._copy_frames
+
+    def full_disk(merged, *args, **kwargs):
+        real(merged, *args, **kwargs)
+        raise OSError(errno.ENOSPC, "No space left on device", str(merged.path / "segment-000000.mcap"))
+
+    monkeypatch.setattr(merge_module, "_copy_frames", full_disk)
+    (tmp_path / "out").mkdir()  # an empty --out folder is allowed
+    with pytest.raises(MergeError, match="writing the merged store failed .No space left on device.; nothing was "
+                                         "written to"):
+        merge_stores([sessions["A"], sessions["B"]], tmp_path / "out", config=FAST)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and not any((tmp_path / "out").iterdir())
+
+
+def test_a_merged_store_is_not_a_merge_source_and_not_corrected_from_a_file(sessions: dict, merged: dict,
+                                                                            tmp_path: Path) -> None:
+    """Hostile trial 9: a merged store given as a source was refused for its frame ids; ``correct`` on a merged
+    store whose sessions share stamps put one session's poses on the other's frames (exit 0). Both are refused by
+    what they are; --out inside a source's log folder is refused as build refuses it."""
+    line = one_error(run_cli("merge", merged["out"], sessions["A"], "--out", tmp_path / "x"))
+    assert "is a merged store (session 0); a merged store as a source" in line, line
+    exported = tmp_path / "s1.tum"
+    assert run_cli("export", merged["out"], "--session", "1", "--trajectory", exported).returncode == 0
+    with FrameStore.open(merged["out"]) as m:
+        revisions_before = len(m.revisions)
+    line = one_error(run_cli("correct", merged["out"], "--poses", exported))
+    assert "is a merged store, whose poses are not corrected from a file yet" in line, line
+    with FrameStore.open(merged["out"]) as m:
+        assert len(m.revisions) == revisions_before
+    line = one_error(run_cli("merge", sessions["A"], sessions["B"], "--out", sessions["log"] / "merged"))
+    assert f"is inside the log folder {sessions['log']}" in line, line
+    assert not (sessions["log"] / "merged").exists()
+
+
+def test_matching_by_stamp_refuses_frames_that_share_a_stamp() -> None:
+    """Two stored frames 0.5 ms apart: a row's stamp cannot tell them apart (the nearest-stamp rule gave it to the
+    lower id silently)."""
+    from driftmap.errors import StoreError
+    from driftmap.store.pose_match import match_trajectory
+
+    traj = Trajectory(np.array([0, 100_000_000], dtype=np.int64), np.stack([np.eye(4)] * 2), None)
+    with pytest.raises(StoreError, match="frames 0 and 1000000000: 0 and 500000 ns"):
+        match_trajectory(traj, [0, 1, SESSION_ID_STRIDE], [0, 100_000_000, 500_000], match="stamp")
+    assert match_trajectory(traj, [0, 1], [0, 100_000_000], match="stamp").n_matched == 2

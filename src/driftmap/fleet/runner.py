@@ -193,12 +193,40 @@ def _probe_address(ray_address: str) -> None:
     if not host or port is None:
         return
     try:
-        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S):
-            pass
+        with socket.create_connection((host, port), timeout=PROBE_TIMEOUT_S) as conn:
+            speaks_grpc = os.environ.get("RAY_USE_TLS", "0") not in ("0", "") or _answers_http2(conn)
     except OSError as exc:
         raise ConfigError(f"--ray-address {ray_address}: nothing answers at {host}:{port} ({exc.strerror or exc}); is "
                           f"'ray start --head' running there (its GCS port, 6379 by default, or the client port "
                           f"10001 for ray://)?") from None
+    if not speaks_grpc:
+        raise ConfigError(f"--ray-address {ray_address}: something answers at {host}:{port}, but not Ray (its GCS and "
+                          f"client ports speak gRPC); is it the dashboard (8265) or another service? Give the GCS "
+                          f"port (6379 by default) or ray://HOST:10001")
+
+
+HTTP2_PREFACE = b"PRI * HTTP/2.0\r\n\r\nSM\r\n\r\n" + b"\x00\x00\x00\x04\x00\x00\x00\x00\x00"
+"""The HTTP/2 connection preface and an empty SETTINGS frame: a gRPC server (Ray's GCS, its client server) answers
+with a SETTINGS frame of its own; an HTTP/1 server, a dashboard or anything else does not."""
+
+
+def _answers_http2(conn: Any) -> bool:
+    """True when the server on ``conn`` answers the HTTP/2 preface with a SETTINGS frame (frame type 4) within
+    :data:`PROBE_TIMEOUT_S`."""
+    import socket
+
+    conn.settimeout(PROBE_TIMEOUT_S)
+    data = b""
+    try:
+        conn.sendall(HTTP2_PREFACE)
+        while len(data) < 9:
+            chunk = conn.recv(9 - len(data))
+            if not chunk:
+                break
+            data += chunk
+    except (socket.timeout, OSError):
+        return False
+    return len(data) == 9 and data[3] == 0x04
 
 
 def _shutdown_quietly(ray: Any) -> None:

@@ -31,6 +31,8 @@ import dataclasses
 import json
 import logging
 import os
+import secrets
+import shutil
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -59,7 +61,7 @@ from driftmap.registration.loops import Keyframe, LoopClosureConfig, select_keyf
 from driftmap.registration.odometry import OdometryConfig
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.guards import refuse_inside_store
-from driftmap.store.layout import MERGE_SUMMARY_FILE
+from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
 
@@ -248,6 +250,14 @@ def _check_paths(paths: list[Path], out: Path) -> None:
         if target == r or r.is_relative_to(target) or target.is_relative_to(r):
             raise ConfigError(f"--out {out}: is (or holds, or lies inside) the source store {p}; write the merged "
                               f"store elsewhere (the sources are never modified)")
+    for p in paths:  # the log folder a source was built from: the next build of it would read the merge as a frame
+        try:
+            logged = json.loads((p / BUILD_SOURCE_FILE).read_text()).get("path")
+        except (OSError, ValueError, AttributeError):
+            continue
+        if isinstance(logged, str) and Path(logged).is_dir() and Path(logged).resolve() in target.parents:
+            raise ConfigError(f"--out {out}: is inside the log folder {logged} the source store {p} was built from; "
+                              f"the next read of that folder would take it for a frame: write it elsewhere")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise ConfigError(f"--out {out}: exists; merge writes a new store (appending a session to a merged store "
                           f"is not built yet): choose another --out")
@@ -260,6 +270,9 @@ def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
     for k, (p, s) in enumerate(zip(paths, sources, strict=True)):
         if len(s) == 0:
             raise StoreError(f"{p}: the store has no frames; nothing to merge (session {k})")
+        if (p / MERGE_SUMMARY_FILE).is_file() or store_sessions(s):
+            raise ConfigError(f"{p}: is a merged store (session {k}); a merged store as a source (appending a "
+                              f"session to it) is not built yet: merge the stores of its sessions with the new one")
         if int(s.frame_ids.max()) >= SESSION_ID_STRIDE or int(s.frame_ids.min()) < 0:
             raise ConfigError(f"{p}: frame ids {int(s.frame_ids.min())}..{int(s.frame_ids.max())} are outside "
                               f"0..{SESSION_ID_STRIDE - 1}, which a merged store keeps per session")
@@ -359,8 +372,9 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
                          seconds_per_stage=stages)
     opt_poses, covariances, note = _optimise(connected, keyframes, T_align, pairs, lc, config, result, tick, stages)
     t3 = time.perf_counter()
-    with FrameStore.create(out) as merged:
-        try:
+    scratch_dir = out.parent / f".{out.name}.merge-{secrets.token_hex(4)}"  # renamed to ``out`` when complete
+    try:
+        with FrameStore.create(scratch_dir) as merged:
             _copy_frames(merged, connected, paths, sources, uuids, tick)
             stages["frames"] = time.perf_counter() - t3
             t4 = time.perf_counter()
@@ -377,10 +391,17 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
                 moved = opt_poses[first.frame_id] @ geometry.invert(first.T_world_sensor)
                 reports[k].T_merged_session = [float(v) for v in moved.ravel()]
             stages["correction"] = time.perf_counter() - t4
-        except BaseException:
-            logger.error("merge failed while writing %s; the partial store is left there", out)
-            raise
-    (out / MERGE_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
+        (scratch_dir / MERGE_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
+        if out.is_dir():  # an empty folder given as --out (checked empty before anything ran)
+            out.rmdir()
+        os.replace(scratch_dir, out)
+    except BaseException as exc:
+        shutil.rmtree(scratch_dir, ignore_errors=True)
+        if isinstance(exc, OSError):  # a full disk, a quota: nothing half-written is left to look like a merge
+            raise MergeError(f"{getattr(exc, 'filename', None) or out}: writing the merged store failed "
+                             f"({exc.strerror or type(exc).__name__}); nothing was written to {out} and the sources "
+                             f"are untouched: free space (or write elsewhere) and run the merge again") from exc
+        raise
     logger.info("merged %d sessions (%d frames) into %s: revision %s", len(connected), result.n_frames, out,
                 result.revision_id)
     return result

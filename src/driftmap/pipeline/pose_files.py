@@ -27,7 +27,7 @@ from driftmap.frame import PoseSource
 from driftmap.sources.base import registered_formats
 from driftmap.sources.kitti import KittiOrigin, kitti_origin_named, kitti_origin_of_frame_infos, kitti_rows_as_velodyne
 from driftmap.store.frame_store import FrameStore, PoseMatch, TrajectoryFormat
-from driftmap.store.layout import BUILD_SOURCE_FILE
+from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE
 from driftmap.store.ledger import PoseMatchMode, Revision, match_pose_rows, stamp_ranges_text
 from driftmap.trajectory import Trajectory, has_stamps, read_trajectory
 
@@ -109,6 +109,12 @@ def import_pose_file(store: FrameStore, file: str | Path, *, format: TrajectoryF
                      calib_file: str | Path | None = None) -> tuple[Revision, PoseMatch]:
     """``driftmap correct``: a pose file as a new revision of ``store``, its rows converted to the frames' sensor
     frame (:func:`pose_rows_in_sensor_frame`) before :meth:`FrameStore.import_poses` matches and stores them."""
+    if (Path(store.path) / MERGE_SUMMARY_FILE).is_file():
+        raise ConfigError(f"{store.path}: is a merged store, whose poses are not corrected from a file yet: its "
+                          f"sessions may share stamps (a row of {Path(file).name} could be taken for another "
+                          f"session's frame) and propagation would run across sessions; correct the session's own "
+                          f"store and merge again (rollback works on a merged store)")
+
     def converter(trajectory: Trajectory, fmt: str) -> Trajectory:
         return pose_rows_in_sensor_frame(store, file, trajectory, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
 

@@ -106,6 +106,7 @@ def match_trajectory(
         if max_dt < 0:
             raise StoreError(f"max_dt_ns must be >= 0, got {max_dt}")
         _refuse_conflicting_rows(trajectory, where)
+        _refuse_shared_stamps(ids, stamps, where)
         if n_rows == 0 or len(ids) == 0:
             frame_idx, row_of = np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
         else:
@@ -130,6 +131,23 @@ def match_trajectory(
         result.n_matched, len(ids), n_rows, mode.value, len(result.unmatched_rows),
     )
     return result
+
+
+SHARED_STAMP_NS = 1_000_000
+"""Two stored frames whose stamps are closer than this (1 ms, faster than any depth camera or LiDAR runs) cannot be
+told apart by a row's stamp: matching by stamp is refused (sessions of a merged store that share their stamps)."""
+
+
+def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], where: str) -> None:
+    order = np.argsort(stamps, kind="stable")
+    gaps = np.diff(stamps[order])
+    close = np.flatnonzero(gaps < SHARED_STAMP_NS)
+    if close.size:
+        a, b = int(ids[order[close[0]]]), int(ids[order[close[0] + 1]])
+        raise StoreError(f"{where}: cannot match rows to frames by stamp: {close.size} pair(s) of stored frames have "
+                         f"stamps less than {SHARED_STAMP_NS / 1e6:g} ms apart (frames {a} and {b}: "
+                         f"{int(stamps[order[close[0]]])} and {int(stamps[order[close[0] + 1]])} ns), so a row "
+                         f"cannot tell which it is for")
 
 
 def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps: NDArray[np.int64],
