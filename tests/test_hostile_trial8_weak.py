@@ -115,3 +115,14 @@ def test_w13_text_where_a_number_or_flag_belongs_is_refused_in_every_table(tmp_p
         assert f"{file}: {expected}" in str(info.value), str(info.value)
     (tmp_path / "ok.toml").write_text('[volume]\nunknown_is = "free"\nvoxel_size_m = 0.05\nkeep_frame_voxels = false\n')
     assert DriftmapConfig.load(tmp_path / "ok.toml").volume.voxel_size_m == 0.05
+
+
+def test_t9_w4_a_refused_list_item_is_one_error_line(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``voxel_sizes_m = [0.0]`` added pydantic's "should have at least 1 item after validation" to the item's own
+    error: a second, wrong line."""
+    config = tmp_path / "d.toml"
+    config.write_text("[diagnose.double_wall]\nvoxel_sizes_m = [0.0]\n")
+    out = run_cli("diagnose", room10["gt"], "--config", config, "--json", tmp_path / "d.json")
+    line = one_error(out)
+    assert "diagnose.double_wall.voxel_sizes_m.0: Input should be greater than 0 (got 0.0)" in line, line
+    assert "at least 1 item" not in line and not (tmp_path / "d.json").exists()

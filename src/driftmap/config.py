@@ -477,8 +477,12 @@ def validation_problems(exc: ValidationError, origin: Any, *, prefix: tuple[str,
     links. ``origin(loc)`` names where the value came from (a file, "environment", "command line");
     ``env_names`` names the environment variable of a value from the environment."""
     lines = []
-    for err in exc.errors(include_url=False):
+    errors = exc.errors(include_url=False)
+    item_locs = {tuple(str(p) for p in e["loc"][:-1]) for e in errors if e["loc"]}
+    for err in errors:
         loc = tuple(str(p) for p in err["loc"])
+        if err["type"] == "too_short" and loc in item_locs:
+            continue  # its items' errors said why: pydantic counts a list of refused items as too short as well
         key = ".".join(prefix + loc) or "(top level)"
         where = origin(loc) if callable(origin) else str(origin)
         if env_names and where == "environment":
