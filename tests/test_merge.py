@@ -322,3 +322,20 @@ def test_matching_by_stamp_refuses_frames_that_share_a_stamp() -> None:
     with pytest.raises(StoreError, match="frames 0 and 1000000000: 0 and 500000 ns"):
         match_trajectory(traj, [0, 1, SESSION_ID_STRIDE], [0, 100_000_000, 500_000], match="stamp")
     assert match_trajectory(traj, [0, 1], [0, 100_000_000], match="stamp").n_matched == 2
+
+
+def test_decide_against_compares_a_merged_store_with_its_sessions_store(sessions: dict, merged: dict,
+                                                                       tmp_path: Path) -> None:
+    """Hostile trial 9: ``decide --against`` between a merged store and the store of one of its sessions said the
+    stores were not of one log (a URL-encoded merge provenance against the file) and suggested --same-log. A merged
+    frame's source is the file its session's store read it from: session 0's frames are A's."""
+    import json
+
+    queries = tmp_path / "q.json"
+    queries.write_text(json.dumps({"queries": [{"id": "c", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]],
+                                                "radius_m": 0.2}]}))
+    out = run_cli("decide", merged["out"], "--queries", queries, "--json", tmp_path / "d.json", "--against",
+                  sessions["A"])
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "not of the same log" not in out.stderr and "driftmap-merge" not in out.stderr, out.stderr[-2000:]
+    assert (tmp_path / "d.json").is_file()

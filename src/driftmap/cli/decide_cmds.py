@@ -266,8 +266,12 @@ def _check_same_files(store, other, other_path: Path, shared) -> None:
     """--against without --same-log: every shared frame was read from the same file for both stores."""
     from driftmap.errors import ConfigError
 
-    def uri(s, fid: int) -> str | None:
-        return (s.frame_info(fid).get("provenance") or {}).get("source_uri")
+    from driftmap.pipeline.merge import frame_origin
+
+    def uri(s, fid: int) -> str | None:  # a merged store's frame: the file its session's store read it from
+        provenance = s.frame_info(fid).get("provenance") or {}
+        origin = frame_origin(provenance) if provenance.get("source_uri") else None
+        return origin.source_uri if origin is not None else provenance.get("source_uri")
 
     for fid in shared.tolist():
         ua, ub = uri(store, fid), uri(other, fid)

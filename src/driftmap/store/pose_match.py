@@ -106,7 +106,7 @@ def match_trajectory(
         if max_dt < 0:
             raise StoreError(f"max_dt_ns must be >= 0, got {max_dt}")
         _refuse_conflicting_rows(trajectory, where)
-        _refuse_shared_stamps(ids, stamps, where)
+        _refuse_shared_stamps(ids, stamps, min(SHARED_STAMP_NS, max_dt), where)
         if n_rows == 0 or len(ids) == 0:
             frame_idx, row_of = np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
         else:
@@ -138,14 +138,16 @@ SHARED_STAMP_NS = 1_000_000
 told apart by a row's stamp: matching by stamp is refused (sessions of a merged store that share their stamps)."""
 
 
-def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], where: str) -> None:
+def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], within_ns: int, where: str) -> None:
+    """Refuse stored frames whose stamps are closer than ``within_ns`` (the tolerance, at most
+    :data:`SHARED_STAMP_NS`), or equal: a row cannot tell which of them it is for."""
     order = np.argsort(stamps, kind="stable")
     gaps = np.diff(stamps[order])
-    close = np.flatnonzero(gaps < SHARED_STAMP_NS)
+    close = np.flatnonzero((gaps < within_ns) | (gaps == 0))
     if close.size:
         a, b = int(ids[order[close[0]]]), int(ids[order[close[0] + 1]])
         raise StoreError(f"{where}: cannot match rows to frames by stamp: {close.size} pair(s) of stored frames have "
-                         f"stamps less than {SHARED_STAMP_NS / 1e6:g} ms apart (frames {a} and {b}: "
+                         f"stamps less than {max(within_ns, 1) / 1e6:g} ms apart (frames {a} and {b}: "
                          f"{int(stamps[order[close[0]]])} and {int(stamps[order[close[0] + 1]])} ns), so a row "
                          f"cannot tell which it is for")
 
