@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from cli_run import one_error, run_cli
 
-from driftmap.fleet.reaper import descendants
+from driftmap.fleet.reaper import adopt_orphans, descendants, is_subreaper
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
@@ -168,7 +168,11 @@ def test_t8_b4_ctrl_c_while_the_embedded_ray_starts_leaves_no_process(log: Path,
 
 
 def test_descendants_follow_the_whole_tree_and_prune() -> None:
-    """The reaper's process walk: a grandchild is found through its parent; a pruned child hides its subtree."""
+    """The reaper's process walk: a grandchild is found through its parent; a pruned child hides its subtree; the
+    subreaper flag is set and cleared (a batch leaves a library caller's process as it found it)."""
+    if not is_subreaper():
+        assert adopt_orphans() and is_subreaper()
+        assert adopt_orphans(False) and not is_subreaper()
     child = subprocess.Popen(["sh", "-c", "sleep 30 & wait"])
     try:
         for _ in range(50):

@@ -20,23 +20,37 @@ import threading
 import time
 from collections.abc import Iterator
 
-__all__ = ["adopt_orphans", "descendants", "interrupts_deferred", "stop_descendants"]
+__all__ = ["adopt_orphans", "descendants", "interrupts_deferred", "is_subreaper", "stop_descendants"]
 
 logger = logging.getLogger(__name__)
 
 PR_SET_CHILD_SUBREAPER = 36
+PR_GET_CHILD_SUBREAPER = 37
 GRACE_S = 2.0
 """How long descendants get to stop after SIGTERM before SIGKILL."""
 
 
-def adopt_orphans() -> bool:
-    """Make this process the child subreaper of its descendants; True if it now is (Linux only)."""
+def adopt_orphans(adopt: bool = True) -> bool:
+    """Make this process the child subreaper of its descendants (``adopt=False``: no longer); True if the call
+    succeeded (Linux only)."""
     if not sys.platform.startswith("linux"):
         return False
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        return libc.prctl(PR_SET_CHILD_SUBREAPER, 1, 0, 0, 0) == 0
+        return libc.prctl(PR_SET_CHILD_SUBREAPER, int(adopt), 0, 0, 0) == 0
     except (OSError, AttributeError):  # no prctl here
+        return False
+
+
+def is_subreaper() -> bool:
+    """True when this process is already a child subreaper (set by whoever runs it, e.g. a container's init)."""
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        flag = ctypes.c_int(0)
+        return ctypes.CDLL(None, use_errno=True).prctl(PR_GET_CHILD_SUBREAPER, ctypes.byref(flag), 0, 0, 0) == 0 \
+            and flag.value != 0
+    except (OSError, AttributeError):
         return False
 
 

@@ -33,7 +33,7 @@ from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
 from driftmap.fleet.folders import clean_temp, completed_result, prepare_out_dir
 from driftmap.fleet.inputs import LogSpec
-from driftmap.fleet.reaper import adopt_orphans, descendants, interrupts_deferred, stop_descendants
+from driftmap.fleet.reaper import adopt_orphans, descendants, interrupts_deferred, is_subreaper, stop_descendants
 from driftmap.fleet.report import write_fleet_json, write_fleet_report
 from driftmap.fleet.task import LogHook, empty_row, failed_row, run_log
 
@@ -329,6 +329,7 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     w, t = plan_workers(workers, config.fleet.threads_per_log, ray_address)
     embedded = bool(todo) and ray_address is None and not ray.is_initialized()
     earlier = set(descendants()) if embedded else set()
+    was_subreaper = is_subreaper()
     if embedded:
         adopt_orphans()  # an agent whose raylet dies first stays ours to stop (see driftmap.fleet.reaper)
     try:
@@ -361,6 +362,8 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
                 ray.shutdown()
             if embedded:  # also after Ctrl-C inside ray.init, before `started` was set
                 stop_descendants(keep=earlier)
+                if not was_subreaper:
+                    adopt_orphans(False)  # a library caller's process is left as it was
             if out_dir.is_dir():
                 clean_temp(out_dir)
     ordered = [rows[n] for n in names]
