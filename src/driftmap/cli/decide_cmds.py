@@ -60,6 +60,7 @@ def decide(
 ) -> None:
     """Decide what the map lets the robot do: clearance, collision, grasp, foothold and exploration queries, each
     with its margin, uncertainty, failure label, contributing frames, freshness and latency."""
+    from driftmap.config import DriftmapConfig
     from driftmap.decisions.query_file import load_queries
     from driftmap.decisions.walls import double_walls_of
 
@@ -92,7 +93,7 @@ def decide(
     if figure is not None:
         refuse_existing(figure, "--report", overwrite)
     query_set = load_queries(queries)  # every query checked before the store is opened
-    settings = _load_settings(config)
+    settings = DriftmapConfig.load(config)  # a config file's numbers must be written as numbers (check_written_types)
     if diagnosis is not None:
         _check_diagnosis_shape(diagnosis)
     volume, decide_config = settings.volume, settings.decide
@@ -116,14 +117,6 @@ def decide(
     console.print(bold("decisions: ", json_path))
     if figure is not None:
         console.print(bold("report: ", figure))
-
-
-def _load_settings(config: Path | None):
-    """The settings (defaults, ``--config``, the environment); the file's thresholds must be numbers as written
-    (not ``"0.1"`` in quotes, nor ``true``), like a query file's (:func:`driftmap.config.check_written_types`)."""
-    from driftmap.config import DriftmapConfig
-
-    return DriftmapConfig.load(config)
 
 
 def _check_diagnosis_shape(diagnosis: Path) -> None:
