@@ -130,7 +130,7 @@ def test_t5_w4_w17_pose_files_that_contradict_themselves(logs: dict, tmp_path: P
     moved[1] = str(float(moved[1]) + 0.5)
     (tmp_path / "dup.tum").write_text("\n".join(rows[:4] + [" ".join(moved)] + rows[4:]) + "\n")
     message = _error(_cli("correct", store, "--poses", tmp_path / "dup.tum"))
-    assert "dup.tum: pose rows 4 and 5 share the stamp" in message and "0.5 m apart" in message
+    assert "dup.tum: the pose rows on lines 4 and 5 share the stamp" in message and "0.5 m apart" in message
     (tmp_path / "same.tum").write_text("\n".join(rows[:4] + [rows[3]] + rows[4:]) + "\n")  # the same row twice: fine
     assert _cli("correct", store, "--poses", tmp_path / "same.tum").returncode == 0
     poses = FrameStore.open(store).poses(0)

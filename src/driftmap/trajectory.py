@@ -35,6 +35,8 @@ class Trajectory:
     stamps_ns: NDArray[np.int64]
     poses: NDArray[np.float64]  # (N, 4, 4)
     frame_ids: NDArray[np.int64] | None = None
+    #: 1-based line in the file each row was read from (readers of stamped formats fill it), for error messages.
+    source_lines: NDArray[np.int64] | None = None
 
     def __post_init__(self) -> None:
         if self.poses.ndim != 3 or self.poses.shape[1:] != (4, 4):
@@ -190,7 +192,8 @@ def read_tum(path: str | Path) -> Trajectory:
     data = np.asarray(rows)
     _check_finite(path, data, linenos, _TUM_COLUMNS)
     _check_stamp_order(path, stamps, linenos, stamp_texts)
-    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], data[:, 3:7], linenos))
+    return Trajectory(np.asarray(stamps, dtype=np.int64), _poses_from_rows(path, data[:, :3], data[:, 3:7], linenos),
+                      source_lines=np.asarray(linenos, dtype=np.int64))
 
 
 def _format_number(value: float) -> str:
@@ -342,7 +345,8 @@ def read_euroc(path: str | Path) -> Trajectory:
     _check_stamp_order(path, stamps, linenos, stamp_texts)
     quat_wxyz = data[:, 3:7]
     return Trajectory(np.asarray(stamps, dtype=np.int64),
-                      _poses_from_rows(path, data[:, :3], quat_wxyz[:, [1, 2, 3, 0]], linenos))
+                      _poses_from_rows(path, data[:, :3], quat_wxyz[:, [1, 2, 3, 0]], linenos),
+                      source_lines=np.asarray(linenos, dtype=np.int64))
 
 
 def read_redwood_log(path: str | Path) -> Trajectory:
@@ -504,7 +508,7 @@ def read_matrix4x4(path: str | Path) -> Trajectory:
             raise SourceError(f"{path}:{linenos[4 * k + 3]}: stamp {text!r} is not a usable time ({exc})") from exc
     stamp_lines = linenos[3::4]
     _check_stamp_order(path, stamps, stamp_lines, stamp_texts)
-    return Trajectory(np.asarray(stamps, dtype=np.int64), poses)
+    return Trajectory(np.asarray(stamps, dtype=np.int64), poses, source_lines=np.asarray(block_lines, dtype=np.int64))
 
 
 def has_stamps(trajectory: Trajectory, format: str) -> bool:

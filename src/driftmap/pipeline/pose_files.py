@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import logging
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -100,7 +101,7 @@ def pose_rows_in_sensor_frame(store: FrameStore, file: str | Path, trajectory: T
         return pose_file_in_store_sensor_frame(store.path, file, trajectory)
     rows = kitti_rows_as_velodyne(file, trajectory.poses, lambda: kitti_origin_of_store(store), kitti_frame=kitti_frame,
                                   calib_file=calib_file, lidar_frames=store_holds_lidar_scans(store))
-    return Trajectory(trajectory.stamps_ns, rows, trajectory.frame_ids)
+    return replace(trajectory, poses=rows)
 
 
 def import_pose_file(store: FrameStore, file: str | Path, *, format: TrajectoryFormat | str = TrajectoryFormat.TUM,

@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -404,7 +404,7 @@ class SyntheticLog(FrameSource):
             return trajectory
         logger.info("%s is the synthetic log's depth-camera pose file: rows converted to the LiDAR frame "
                     "(T_base_lidar of %s)", poses_file, self.path / METADATA_FILE)
-        return Trajectory(trajectory.stamps_ns, trajectory.poses @ self._T_camera_lidar(), trajectory.frame_ids)
+        return replace(trajectory, poses=trajectory.poses @ self._T_camera_lidar())
 
     def odometry(self) -> Trajectory:
         """The drifting odometry as ``T_world_sensor`` of the selected frames (the frames' own pose estimates)."""

@@ -175,11 +175,15 @@ def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps:
 
 def _refuse_conflicting_rows(trajectory: Trajectory, where: str) -> None:
     """Two rows with one stamp but different poses leave a frame at that instant with two poses: refused, naming the
-    rows (1-based among the pose rows). The same row written twice (the TUM fr2_desk ground truth has one) is fine."""
+    rows by their lines in the file where the reader kept them (else 1-based among the pose rows). The same row
+    written twice (the TUM fr2_desk ground truth has one) is fine."""
     stamps = np.asarray(trajectory.stamps_ns, dtype=np.int64)
     for k in np.flatnonzero(np.diff(stamps) == 0).tolist():
         a, b = trajectory.poses[k], trajectory.poses[k + 1]
         if not np.allclose(a, b, rtol=0.0, atol=1e-9):
             moved = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
-            raise StoreError(f"{where}: pose rows {k + 1} and {k + 2} share the stamp {int(stamps[k])} ns but give different "
+            lines = trajectory.source_lines
+            rows = (f"the pose rows on lines {int(lines[k])} and {int(lines[k + 1])}" if lines is not None
+                    else f"pose rows {k + 1} and {k + 2}")
+            raise StoreError(f"{where}: {rows} share the stamp {int(stamps[k])} ns but give different "
                              f"poses ({moved:.3g} m apart): which one is the frame's? Remove one of them")
