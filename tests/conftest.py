@@ -79,3 +79,29 @@ def room10(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     log = generate_synthetic_log(root / "log", SyntheticLogConfig(n_frames=10, seed=3))
     build(log, root / "gt", poses_file=log / "groundtruth.txt", loop_closure=False)
     return {"root": root, "log": log, "gt": root / "gt"}
+
+
+# The suite runs on several pytest-xdist workers (scripts/test.sh). Tests that start or contact a Ray cluster
+# (and one that counts Ray processes machine-wide) must not overlap: they share one group, so one worker runs
+# them one after the other. Every other test is grouped by its module, so a module's session fixtures are
+# built once per worker that runs it, not once per worker.
+RAY_TESTS = (
+    "test_batch.py::",
+    "test_hostile_trial5.py::test_t5_w12_w13_batch_list_lines_are_checked_when_read",
+    "test_hostile_trial6.py::test_t6_w11_w12_w14_list_lines_perturb_vectors_and_correct_sources",
+    "test_hostile_trial7.py::test_t7_w1_w2_w3_w6_bounds_of_perturb_synth_diagnose_and_batch",
+    "test_hostile_trial8.py::test_t8_b5_",
+    "test_hostile_trial8.py::test_t8_b4_",
+    "test_hostile_trial8.py::test_t9_a_ray_address_",
+)
+
+
+@pytest.hookimpl(tryfirst=True)
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        module = item.nodeid.split("::", 1)[0]
+        if any(pattern in item.nodeid for pattern in RAY_TESTS) or item.get_closest_marker("ray"):
+            item.add_marker(pytest.mark.ray)
+            item.add_marker(pytest.mark.xdist_group("ray"))
+        else:
+            item.add_marker(pytest.mark.xdist_group(module))
