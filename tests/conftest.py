@@ -7,6 +7,13 @@ from pathlib import Path
 
 import pytest
 
+# pytest-xdist workers (scripts/test.sh) are started with COLUMNS=80, which the CLI's console reads when it is
+# imported (driftmap.cli.common: piped output is 160 columns wide unless COLUMNS says otherwise); a worker prints
+# the tables a single test process prints.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.pop("COLUMNS", None)
+    os.environ.pop("LINES", None)
+
 from driftmap.datasets import ENV_VAR, shared_datasets_dir
 from driftmap.diagnostics.double_wall import DiagnosticCloud
 from driftmap.sources.sevenscenes import SevenScenes
