@@ -270,10 +270,13 @@ def test_7scenes_two_sessions_connect_with_the_merge_descriptor_gate(sevenscenes
 
 
 def test_a_merge_that_fails_while_writing_leaves_nothing_at_out(sessions: dict, tmp_path: Path,
-                                                                monkeypatch: pytest.MonkeyPatch) -> None:
+                                                                monkeypatch: pytest.MonkeyPatch,
+                                                                caplog: pytest.LogCaptureFixture) -> None:
     """A full disk while the merged store is written (hostile trial 9): a half-written store with only revision 0
     looked like a good merge to every command. The store is written beside --out and renamed when complete: a
-    failure leaves neither it nor the scratch folder, and says so."""
+    failure leaves neither it nor the scratch folder, and says so. Trial 10 W2: the failed write broke the segment
+    writer, and closing the scratch store first warned that its segment was "left open ... driftmap recover" on a
+    folder that was then removed; the scratch store is abandoned without that warning."""
     import errno
 
     from driftmap.pipeline import merge as merge_module
@@ -282,7 +285,9 @@ def test_a_merge_that_fails_while_writing_leaves_nothing_at_out(sessions: dict, 
 
     def full_disk(merged, *args, **kwargs):
         real(merged, *args, **kwargs)
-        raise OSError(errno.ENOSPC, "No space left on device", str(merged.path / "segment-000000.mcap"))
+        error = OSError(errno.ENOSPC, "No space left on device", str(merged.path / "segment-000000.mcap"))
+        merged._writer.broken = error  # as a failed append leaves the writer
+        raise error
 
     monkeypatch.setattr(merge_module, "_copy_frames", full_disk)
     (tmp_path / "out").mkdir()  # an empty --out folder is allowed
@@ -290,6 +295,7 @@ def test_a_merge_that_fails_while_writing_leaves_nothing_at_out(sessions: dict, 
                                          "written to"):
         merge_stores([sessions["A"], sessions["B"]], tmp_path / "out", config=FAST)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and not any((tmp_path / "out").iterdir())
+    assert not [r for r in caplog.records if "left open" in r.getMessage() or "recover" in r.getMessage()]
 
 
 def test_a_merged_store_is_not_a_merge_source_and_not_corrected_from_a_file(sessions: dict, merged: dict,

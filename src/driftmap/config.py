@@ -216,7 +216,7 @@ class VolumeConfig(SettingsModel):
     """Voxel size, TSDF truncation, OctoMap's sensor model, ranges, the unknown-space policy and a memory budget."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    voxel_size_m: float | None = Field(None, ge=1e-4, description="voxel edge (m), at least 0.1 mm (finer than any depth camera resolves); None: 0.02 m for depth cameras, LiDAR 0.4 m x the scene scale (as the odometry's lengths)")
+    voxel_size_m: float | None = Field(None, ge=1e-4, le=10.0, description="voxel edge (m), at least 0.1 mm (finer than any depth camera resolves) and at most 10 m (a building in one voxel tells a planner nothing), never larger than the map; None: 0.02 m for depth cameras, LiDAR 0.4 m x the scene scale (as the odometry's lengths)")
     truncation_m: float | None = Field(None, gt=0.0, description="TSDF truncation distance (m); None: 4 voxels")
     prob_hit: float = Field(0.7, gt=0.5, lt=1.0, description="occupancy probability of a voxel a ray ends in (OctoMap's default)")
     prob_miss: float = Field(0.4, gt=0.0, lt=0.5, description="occupancy probability of a voxel a ray passes through (OctoMap's default)")

@@ -5,6 +5,7 @@ revision, and with ``--compare A,B`` or ``--against OTHER_STORE`` list the decis
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Annotated
 
@@ -31,7 +32,7 @@ def _pair(text: str | None) -> tuple[int, int] | None:
     if text is None:
         return None
     parts = [p.strip() for p in text.split(",")]
-    if len(parts) != 2 or not all(p.lstrip("-").isdigit() for p in parts):
+    if len(parts) != 2 or not all(re.fullmatch(r"-?[0-9]+", p) for p in parts):  # ASCII digits only
         raise typer.BadParameter(f"expected two revision ids A,B, got {text!r}", param_hint="--compare")
     a, b = int(parts[0]), int(parts[1])
     if a < 0 or b < 0:

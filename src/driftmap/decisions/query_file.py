@@ -308,6 +308,9 @@ def parse_query(item: Any, index: int = 0, *, from_yaml: bool = False) -> Query:
     if any(ord(c) < 32 or ord(c) == 127 for c in qid):
         raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} holds a line break or control character; ids are "
                          f"one line of text (they name the query in every report line)", query_id=None, field="id")
+    if qid != qid.strip():  # "c" and "c " would be two queries that every report line shows alike
+        raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} begins or ends with white space; ids are compared "
+                         f"exactly, so write it as {_shown(qid.strip())}", query_id=None, field="id")
     kind = item.get("kind")
     if kind not in KINDS:
         raise QueryError(f"query {qid!r}: unknown kind {_shown(kind)} (kinds: {', '.join(KINDS)})", query_id=qid,

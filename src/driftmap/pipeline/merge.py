@@ -374,7 +374,8 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
     t3 = time.perf_counter()
     scratch_dir = out.parent / f".{out.name}.merge-{secrets.token_hex(4)}"  # renamed to ``out`` when complete
     try:
-        with FrameStore.create(scratch_dir) as merged:
+        merged = FrameStore.create(scratch_dir)
+        try:
             _copy_frames(merged, connected, paths, sources, uuids, tick)
             stages["frames"] = time.perf_counter() - t3
             t4 = time.perf_counter()
@@ -391,6 +392,10 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
                 moved = opt_poses[first.frame_id] @ geometry.invert(first.T_world_sensor)
                 reports[k].T_merged_session = [float(v) for v in moved.ravel()]
             stages["correction"] = time.perf_counter() - t4
+        except BaseException:
+            merged.abandon()  # removed below: no "left open ... recover" warning for it
+            raise
+        merged.close()
         (scratch_dir / MERGE_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
         if out.is_dir():  # an empty folder given as --out (checked empty before anything ran)
             out.rmdir()

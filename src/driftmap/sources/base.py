@@ -37,8 +37,8 @@ def parse_frame_slice(spec: str | slice | None) -> slice | None:
     parts = spec.split(":")
     if not 1 <= len(parts) <= 3:
         raise SourceError(f"--frames {spec!r}: expected START:STOP[:STEP]")
-    if any(not re.fullmatch(r"\s*[+-]?\d*\s*", p) for p in parts):  # int() would take "1_0" as 10
-        raise SourceError(f"--frames {spec!r}: START, STOP and STEP must be integers (digits only)")
+    if any(not re.fullmatch(r"\s*[+-]?[0-9]*\s*", p) for p in parts):  # int() would take "1_0" as 10, "٣" as 3
+        raise SourceError(f"--frames {spec!r}: START, STOP and STEP must be integers (digits only: ASCII 0-9)")
     try:
         values = [int(p) if p.strip() else None for p in parts]
     except ValueError as exc:
@@ -281,7 +281,7 @@ FOREIGN_FORMATS: dict[tuple[str, ...], str] = {
 
 _STORE_MANIFEST = "store.json"
 _STORE_FORMAT = "driftmap-store"
-_STORE_SEGMENT = re.compile(r"segment-\d{6,}\.mcap")
+_STORE_SEGMENT = re.compile(r"segment-[0-9]{6,}\.mcap")
 _MAX_MANIFEST_BYTES = 64 << 20
 
 

@@ -68,7 +68,7 @@ CLOUD_SUFFIXES = (".ply", ".pcd")
 DEFAULT_PERIOD_NS = 100_000_000
 """Nominal 10 Hz (a spinning LiDAR) for folders whose stamps are not known."""
 
-_NUMBER = re.compile(r"(\d+)")
+_NUMBER = re.compile(r"([0-9]+)")
 
 
 # ---- helpers shared by the data-set sources ---------------------------------------------------------------------

@@ -269,7 +269,7 @@ class KittiOrigin:
         return self.poses_file is not None and same_file_or_copy(file, self.poses_file)
 
 
-_SCAN_NAME = re.compile(r"^\d+\.bin$")
+_SCAN_NAME = re.compile(r"^[0-9]+\.bin$")
 
 
 def kitti_origin_of_source(source: object) -> KittiOrigin | None:

@@ -32,7 +32,7 @@ logger = logging.getLogger(__name__)
 MAX_STAMP_NS = 2**63 - 1
 """The largest stamp a frame can carry (the store keeps int64 nanoseconds: 2262-04-11)."""
 
-_SECONDS_TEXT = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?")
+_SECONDS_TEXT = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 """A number of seconds as data files write it: digits, an optional fraction and exponent (no ``nan`` / ``inf``,
 no ``1_000``)."""
 
@@ -109,7 +109,7 @@ the units of :data:`NAME_STAMP_UNITS` (smaller numbers are frame numbers: ``0001
 #: unit of a file-name stamp -> ns per unit; the epoch ranges of the units do not overlap
 NAME_STAMP_UNITS = {"s": 1_000_000_000, "ms": 1_000_000, "us": 1_000, "ns": 1}
 
-_NAME_NUMBER = re.compile(r"\d+(?:\.\d+)?")
+_NAME_NUMBER = re.compile(r"[0-9]+(?:\.[0-9]+)?")
 
 
 def name_stamp_ns(name: str | Path) -> tuple[int, str] | None:

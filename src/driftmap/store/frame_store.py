@@ -431,6 +431,19 @@ class FrameStore:
             self._release()
             self._closed = True
 
+    def abandon(self) -> None:
+        """Release the store without finishing its segment and without the "left open" warning: for a scratch store
+        its caller removes next (a merge that failed writes nothing it would leave behind)."""
+        if self._closed:
+            return
+        try:
+            writer, self._writer = self._writer, None
+            if writer is not None:
+                writer.abandon()
+        finally:
+            self._release()
+            self._closed = True
+
     def _release(self) -> None:
         release_maps(self._segments)
         if self._lock_fh is not None:

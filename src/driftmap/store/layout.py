@@ -12,11 +12,11 @@ MANIFEST = "store.json"
 LOCK_FILE = "writer.lock"
 """held by the one process that appends (readers need no lock)"""
 SEGMENT_GLOB = "segment-*.mcap"
-SEGMENT_FILE = re.compile(r"segment-\d{6,}\.mcap")
+SEGMENT_FILE = re.compile(r"segment-[0-9]{6,}\.mcap")
 """a segment's name: ``segment-NNNNNN.mcap`` (frames and ledger records, MCAP)"""
 SEGMENT_FILES_GLOB = "segment-*"
 """every file named after a segment: the segments and the copies recovery keeps beside them"""
-SEGMENT_INDEX = re.compile(r"segment-(\d+)\.")
+SEGMENT_INDEX = re.compile(r"segment-([0-9]+)\.")
 """the index in the name of a segment or of a file named after one (``segment-000003.mcap.damaged``)"""
 DAMAGED_SUFFIX = ".damaged"
 """a damaged file that recovery replaced, kept beside it (``segment-NNNNNN.mcap.damaged``, ``store.json.damaged``)"""

@@ -149,7 +149,8 @@ def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], wit
         raise StoreError(f"{where}: cannot match rows to frames by stamp: {close.size} pair(s) of stored frames have "
                          f"stamps less than {max(within_ns, 1) / 1e6:g} ms apart (frames {a} and {b}: "
                          f"{int(stamps[order[close[0]]])} and {int(stamps[order[close[0] + 1]])} ns), so a row "
-                         f"cannot tell which it is for")
+                         f"cannot tell which it is for; match the rows by their order instead (`driftmap correct --match index`: data "
+                         f"row i is frame_id i)")
 
 
 def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps: NDArray[np.int64],

@@ -161,6 +161,12 @@ class VolumeLayers:
         ids = [int(f) for f in view.frame_ids]
         first = store.frame(ids[0])
         lo, hi = _view_bounds(view, ids, config.max_range_m)
+        extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+        if float(config.voxel_size_m) > float(np.max(extent)):
+            raise ConfigError(f"volume.voxel_size_m = {float(config.voxel_size_m):g} m is larger than the map itself "
+                              f"({extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} m): the layers would hold it in "
+                              f"one voxel; use a voxel of at most {float(np.max(extent)):.2g} m (the default: leave "
+                              f"voxel_size_m unset)")
         pad = config.padding_m + float(config.truncation_m or 0.0)
         grid = GridSpec.covering(lo, hi, float(config.voxel_size_m), padding_m=pad, budget_mb=config.memory_budget_mb)
         layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
