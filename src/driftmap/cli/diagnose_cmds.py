@@ -31,6 +31,7 @@ from driftmap.cli.common import (
 )
 
 if TYPE_CHECKING:
+    from driftmap.diagnostics.revisits import RevisitCheck
     from driftmap.diagnostics.verify import RegionCheck
     from driftmap.pipeline.diagnose import DiagnoseRun
 
@@ -110,6 +111,8 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
             f"{result.attribution.drift.noise_floor_deg:.2f} deg)")),
         ("MME / MPV", f"{result.entropy.mme:.3f} / {result.entropy.mpv_m2:.2e} m^2 (r = {result.entropy.radius_m:g} m)"),
     ]
+    if result.revisits is not None and result.revisits.config.enabled:
+        rows.append(("revisit check", _revisit_row(result.revisits)))
     if result.trajectory is not None:
         tr = result.trajectory
         rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
@@ -131,6 +134,17 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
                   "surface voxels inconsistent": "fraction_inconsistent", "drift rate": "drift_rate"}
         rows = [(k, v if k not in labels or cov.measures[labels[k]]["valid"] else f"cannot judge ({v})") for k, v in rows]
     return rows
+
+
+def _revisit_row(check: RevisitCheck) -> str:
+    """The revisit check in one cell: the disagreement and the detector's range, or why there is none."""
+    cfg = check.config
+    if not check.judged:
+        return (f"- ({len(check.counted)} of {len(check.probes)} revisiting frames registered onto the earlier map; "
+                f"{cfg.min_probes} needed)")
+    verdict = "BEYOND the detector's range" if check.beyond_detector else "within the detector's range"
+    return (f"{100 * check.disagreement_m:.1f} cm / {check.disagreement_deg:.2f} deg over {len(check.counted)} "
+            f"revisiting frames ({verdict}: {100 * cfg.max_detectable_m:.0f} cm / {cfg.max_detectable_deg:g} deg)")
 
 
 def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:

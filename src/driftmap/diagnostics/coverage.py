@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 from pydantic import ConfigDict, Field
 
 from driftmap.config import SettingsModel
+from driftmap.diagnostics.revisits import RevisitCheck
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.diagnostics.wall_results import DoubleWallResult, ScaleResult
 from driftmap.voxels import keys_on_bounding_grid, voxel_coords
@@ -175,9 +176,11 @@ class Coverage:
         }
 
 
-def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None) -> Coverage:
+def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None,
+           revisits: RevisitCheck | None = None) -> Coverage:
     """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
-    ``drift_frames`` is the number of frames the drift rate was fitted on."""
+    ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
+    disagree with the earlier map beyond what the detector sees, no headline figure is a verdict."""
     cfg = config or CoverageConfig()
     scales = [scale_coverage(placed, s, walls.config.min_points, cfg.smeared_separations) for s in walls.scales]
     counts = placed.samples.sample_counts
@@ -209,6 +212,9 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     drift = [] if drift_frames >= cfg.min_drift_frames else [
         (f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
          f"{cfg.min_drift_frames} needed): too little of the map was seen again")]
+    beyond = revisits.reason() if revisits is not None else None
+    if beyond:  # every figure compares within gates that a larger pose error escapes
+        surfaces, smear, drift = [*surfaces, beyond], [*smear, beyond], [*drift, beyond]
     measures = {name: {"valid": not reasons, "reasons": reasons} for name, reasons in (
         ("fraction_flagged", surfaces), ("fraction_inconsistent", surfaces), ("smearing_score", smear),
         ("drift_rate", drift))}

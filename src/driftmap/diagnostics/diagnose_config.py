@@ -13,6 +13,7 @@ from pydantic import ConfigDict, Field
 from driftmap.config import SettingsModel
 from driftmap.diagnostics.attribution import AttributionConfig
 from driftmap.diagnostics.coverage import CoverageConfig
+from driftmap.diagnostics.revisits import RevisitCheckConfig
 from driftmap.diagnostics.samples import SamplingConfig
 from driftmap.diagnostics.wall_results import DoubleWallConfig
 from driftmap.errors import ConfigError, StoreError
@@ -50,6 +51,7 @@ class DiagnoseConfig(SettingsModel):
     attribution: AttributionConfig = Field(default_factory=AttributionConfig)
     entropy: EntropyConfig = Field(default_factory=EntropyConfig)
     coverage: CoverageConfig = Field(default_factory=CoverageConfig)
+    revisits: RevisitCheckConfig = Field(default_factory=RevisitCheckConfig)
 
     @classmethod
     def for_sensor(cls, kind: SensorKind) -> DiagnoseConfig:
@@ -60,6 +62,8 @@ class DiagnoseConfig(SettingsModel):
                 attribution=AttributionConfig(voxel_size_m=1.0, huber_m=0.1, max_residual_m=0.5, min_jump_m=0.05,
                                               revisit_min_path_m=10.0),
                 entropy=EntropyConfig(radius_m=0.5),
+                revisits=RevisitCheckConfig(revisit_min_path_m=10.0, registration_voxel_m=0.25, coarse_gate_m=4.0,
+                                            max_detectable_m=1.0),
             )
         return cls()
 
@@ -68,9 +72,10 @@ class DiagnoseConfig(SettingsModel):
         """Defaults for a sensor whose scene reaches ``reach_m`` (:mod:`driftmap.preprocess.scene`).
 
         Depth cameras: the indoor lengths. LiDAR: its sampling, with every diagnostic length (voxel sizes, the
-        smallest separation, attribution cells and thresholds, entropy radius) the indoor one times
+        smallest separation, attribution cells and thresholds, entropy radius, the revisit check's voxel, gate and
+        detectable separation) the indoor one times
         ``f = min(5, max(1, reach / 5 m))`` and the travel lengths (visit gap, revisit path) times ``f ** 1.43``
-        (1 at f = 1, 10 at f = 5): a room reaching 5 m or less is diagnosed as a depth camera's, a scene reaching
+        (1 at f = 1, 10 at f = 5; the revisit check's travel too): a room reaching 5 m or less is diagnosed as a depth camera's, a scene reaching
         25 m or more with the outdoor lengths (2 m voxels, 10 m of travel between visits), and everything in
         between continuously."""
         if kind is not SensorKind.LIDAR:
@@ -80,7 +85,7 @@ class DiagnoseConfig(SettingsModel):
         if f >= OUTDOOR_DIAGNOSTICS_SCALE:
             return lidar
         g = f ** (math.log(10.0) / math.log(OUTDOOR_DIAGNOSTICS_SCALE))
-        dw, at, en = DoubleWallConfig(), AttributionConfig(), EntropyConfig()
+        dw, at, en, rv = DoubleWallConfig(), AttributionConfig(), EntropyConfig(), RevisitCheckConfig()
         return lidar.model_copy(update={
             "double_wall": dw.model_copy(update={"voxel_sizes_m": tuple(f * v for v in dw.voxel_sizes_m),
                                                  "min_separation_m": f * dw.min_separation_m,
@@ -90,6 +95,10 @@ class DiagnoseConfig(SettingsModel):
                                                  "min_jump_m": f * at.min_jump_m,
                                                  "revisit_min_path_m": g * at.revisit_min_path_m}),
             "entropy": en.model_copy(update={"radius_m": f * en.radius_m}),
+            "revisits": rv.model_copy(update={"revisit_min_path_m": g * rv.revisit_min_path_m,
+                                              "registration_voxel_m": f * rv.registration_voxel_m,
+                                              "coarse_gate_m": f * rv.coarse_gate_m,
+                                              "max_detectable_m": f * rv.max_detectable_m}),
         })
 
     @classmethod

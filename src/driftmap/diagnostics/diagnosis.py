@@ -5,7 +5,8 @@ the one function that runs the steps in order on samples placed with a revision'
 2. double walls and smearing (:func:`~driftmap.diagnostics.detector.detect_double_walls`);
 3. attribution: per-frame disagreement, change points, drift rate (:func:`~driftmap.diagnostics.attribution.attribute`);
 4. Mean Map Entropy / Mean Plane Variance (:func:`~driftmap.diagnostics.entropy.map_entropy`);
-5. coverage and the causes of the double walls (:func:`~driftmap.diagnostics.coverage.assess`,
+5. the revisit check (:func:`~driftmap.diagnostics.revisits.check_revisits`: pose errors beyond the detector's
+   range), coverage and the causes of the double walls (:func:`~driftmap.diagnostics.coverage.assess`,
    :func:`~driftmap.diagnostics.causes.explain_regions`);
 6. with ground truth, ATE / RPE / segment errors (:func:`~driftmap.diagnostics.ground_truth.ground_truth_errors`).
 
@@ -31,6 +32,7 @@ from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.diagnose_config import DiagnoseConfig
 from driftmap.diagnostics.entropy import MapEntropy, map_entropy
 from driftmap.diagnostics.ground_truth import MIN_GT_FRAMES, ground_truth_errors
+from driftmap.diagnostics.revisits import RevisitCheck, check_revisits
 from driftmap.diagnostics.samples import DiagnosticCloud, PlacedCloud
 from driftmap.diagnostics.verify import RegionCheck, verification_summary
 from driftmap.diagnostics.wall_results import DoubleWallResult
@@ -61,6 +63,9 @@ class Diagnosis:
     """How much of the map was judged, why the rest not, and which headline figures are a verdict."""
     causes: list[RegionCause] | None = None
     """Per double-wall region (same order), what caused it (:mod:`driftmap.diagnostics.causes`)."""
+    revisits: RevisitCheck | None = None
+    """Revisiting frames registered onto the earlier map: pose errors beyond the detector's range
+    (:mod:`driftmap.diagnostics.revisits`)."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -93,6 +98,7 @@ class Diagnosis:
             "reasons": [] if self.coverage is None else self.coverage.reasons,
             "fraction_inconsistent": None if self.coverage is None else self.coverage.fraction_inconsistent,
             "coverage": None if self.coverage is None else self.coverage.to_json(),
+            "revisit_check": None if self.revisits is None else self.revisits.to_json(),
             "n_frames": int(len(at.frame_ids)),
             "n_points_sampled": int(self.placed.samples.n_points),
             "config": self.config.model_dump(mode="json"),
@@ -145,13 +151,15 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     entropy = _timed(seconds, "mme_mpv", lambda: map_entropy(placed.points_world, radius_m=e.radius_m,
                                                              min_neighbors=e.min_neighbors, max_neighbors=e.max_neighbors,
                                                              max_query_points=e.max_query_points))
-    coverage = _timed(seconds, "coverage", lambda: assess(placed, walls, attribution.drift.n_frames, cfg.coverage))
+    revisits = _timed(seconds, "revisit_check", lambda: check_revisits(placed, cfg.revisits))
+    coverage = _timed(seconds, "coverage", lambda: assess(placed, walls, attribution.drift.n_frames, cfg.coverage,
+                                                          revisits))
     causes = _timed(seconds, "coverage", lambda: explain_regions(placed, walls))
     trajectory = None
     if ground_truth is not None:
         trajectory = _trajectory_errors(placed, cloud.n_frames, ground_truth, ground_truth_rows)
     return Diagnosis(revision, walls, attribution, entropy, trajectory, cfg, placed, seconds, coverage=coverage,
-                     causes=causes)
+                     causes=causes, revisits=revisits)
 
 
 def _trajectory_errors(placed: PlacedCloud, n_frames: int, ground_truth: NDArray[np.float64],
