@@ -126,11 +126,11 @@ def test_diagnose_ranks_a_broken_map_of_the_real_log_worse_on_every_headline_fig
     assert near and 2.0 <= float(np.linalg.norm(near[0]["step_deg"])) <= 4.0, broken["change_points"]
     assert not [c for c in lio["change_points"] if abs(c["frame_id"] - BROKEN_STEP_FRAME) <= 2]
     # the revisit check (trial 10) registers revisiting scans onto the earlier map: the LIO and odometry maps agree
-    # with themselves within a few cm (measured 3.1 cm LIO, 1.0 cm odometry), the broken one by its 3 deg step (19 cm, 3.0 deg); all
-    # within the detector's range at this scene's scale, so every figure stays a verdict
+    # with themselves within a few cm (measured 4.5 cm LIO, 1.1 cm odometry), the broken one by its 3 deg step and
+    # drift (53 cm, 2.7 deg); all within the detector's range at this scene's scale, so every figure stays a verdict
     checks = {k: balm_diagnoses[k]["revisit_check"] for k in ("lio", "odometry", "broken")}
     assert all(c["judged"] and not c["beyond_detector"] for c in checks.values()), checks
-    assert max(checks[k]["disagreement_m"] for k in ("lio", "odometry")) < 0.06, checks
+    assert max(checks[k]["disagreement_m"] for k in ("lio", "odometry")) < 0.08, checks
     assert 2.0 < checks["broken"]["disagreement_deg"] < 4.0, checks["broken"]
     assert checks["broken"]["disagreement_m"] > 3 * max(checks[k]["disagreement_m"] for k in ("lio", "odometry"))
 

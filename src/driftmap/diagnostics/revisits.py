@@ -48,7 +48,7 @@ class RevisitCheckConfig(SettingsModel):
     revisit_min_path_m: float = Field(1.0, gt=0.0, description="the earlier map holds the frames at least this much travel before the probe (m)")
     registration_voxel_m: float = Field(0.05, gt=0.0, description="finest GICP voxel (m); the coarse levels are 2x and 4x")
     coarse_gate_m: float = Field(0.8, gt=0.0, description="correspondence gate of the coarsest level and the overlap grid (m): pose errors up to about this are measured")
-    max_probes: int = Field(12, ge=1, le=1000, description="frames registered at most (those overlapping the earlier map most)")
+    max_probes: int = Field(12, ge=1, le=1000, description="frames registered at most (half those overlapping the earlier map most, half those revisiting what was seen longest ago)")
     min_overlap: float = Field(0.5, gt=0.0, le=1.0, description="a probe has at least this share of its points in coarse voxels the earlier map occupies")
     min_fitness: float = Field(0.6, gt=0.0, le=1.0, description="a registration counts with at least this share of the probe's points on the earlier map")
     min_constraint: float = Field(0.03, gt=0.0, le=1.0, description="... and sqrt(lambda_min / lambda_max) of its translational information at least this (no slide along a corridor)")
@@ -137,9 +137,11 @@ class RevisitCheck:
 
 
 def _candidates(placed: PlacedCloud, cfg: RevisitCheckConfig) -> tuple[list[tuple[int, float]], int]:
-    """``([(frame row, overlap)], n)``: the best ``max_probes`` rows by overlap with their earlier map (ties: the
-    later first) and how many rows overlapped it by ``min_overlap`` at all. A point overlaps when its coarse voxel
-    was first seen at least ``revisit_min_path_m`` of travel before its frame (one pass over all points)."""
+    """``([(frame row, overlap)], n)``: the rows to register and how many rows overlapped their earlier map by
+    ``min_overlap`` at all. A point overlaps when its coarse voxel was first seen at least ``revisit_min_path_m`` of
+    travel before its frame (one pass over all points). Half the probes are the rows that overlap most, half those
+    whose overlapping points were first seen longest ago (a loop's closing frames: on a long loop the frames that
+    overlap most are the ones just past ``revisit_min_path_m``, which see none of the loop's drift)."""
     rows, path = placed.frame_index, placed.path_length_m
     if len(rows) == 0:
         return [], 0
@@ -147,12 +149,21 @@ def _candidates(placed: PlacedCloud, cfg: RevisitCheckConfig) -> tuple[list[tupl
     inverse, _ = dense_ids(keys)
     first_path = np.full(int(inverse.max()) + 1, np.inf)
     np.minimum.at(first_path, inverse, path[rows])
-    seen_before = first_path[inverse] <= path[rows] - cfg.revisit_min_path_m
+    travelled = path[rows] - first_path[inverse]
+    seen_before = travelled >= cfg.revisit_min_path_m
     n_points = np.bincount(rows, minlength=len(path))
-    overlap = np.bincount(rows, weights=seen_before, minlength=len(path)) / np.maximum(n_points, 1)
+    n_before = np.bincount(rows, weights=seen_before, minlength=len(path))
+    overlap = n_before / np.maximum(n_points, 1)
+    mean_travel = np.bincount(rows, weights=np.where(seen_before, travelled, 0.0), minlength=len(path)) / np.maximum(n_before, 1)
     good = np.flatnonzero((overlap >= cfg.min_overlap) & (n_points >= MIN_PROBE_POINTS))
-    ranked = good[np.lexsort((-good, -overlap[good]))]
-    return [(int(r), float(overlap[r])) for r in ranked[: cfg.max_probes]], int(good.size)
+    by_overlap = good[np.lexsort((-good, -overlap[good]))]
+    by_travel = good[np.lexsort((-good, -mean_travel[good]))]
+    chosen: dict[int, None] = {}
+    for a, b in zip(by_travel, by_overlap):
+        for r in (int(a), int(b)):
+            if len(chosen) < cfg.max_probes:
+                chosen.setdefault(r, None)
+    return [(r, float(overlap[r])) for r in chosen], int(good.size)
 
 
 def _probe(placed: PlacedCloud, row: int, overlap: float, cfg: RevisitCheckConfig) -> RevisitProbe:
