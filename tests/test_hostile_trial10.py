@@ -8,6 +8,7 @@ point, drift 0, verdict valid -- better than the same map with a 3 cm step. The 
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -18,20 +19,22 @@ from cli_run import one_error, run_cli
 @pytest.fixture(scope="module")
 def stepped(tmp_path_factory: pytest.TempPathFactory) -> dict:
     """A 60-frame synthetic room stored with its ground-truth poses (revision 0), then corrected to poses with a step
-    at frame 30: revision 1 a 3 cm step, 2 a 30 cm step, 3 a 30 deg yaw step (perturb + correct, as a user would)."""
+    at frame 30: revision 1 a 3 cm step, 2 a 30 cm step, 3 a 30 deg yaw step, 4 a 3 m step, 5 a 180 deg turn (perturb
+    + correct, as a user would)."""
     root = tmp_path_factory.mktemp("trial10_b1")
     log, store = root / "log", root / "store"
     assert run_cli("synth", log, "--seed", 3).returncode == 0
     built = run_cli("build", log, "--out", store, "--poses", log / "groundtruth.txt", "--no-loop-closure")
     assert built.returncode == 0, built.stderr[-2000:]
     for name, step in (("3cm", ("--step-m", "0.03,0,0")), ("30cm", ("--step-m", "0.3,0,0")),
-                       ("30deg", ("--step-deg", "0,0,30"))):
+                       ("30deg", ("--step-deg", "0,0,30")), ("3m", ("--step-m", "3,0,0")),
+                       ("180deg", ("--step-deg", "0,0,180"))):
         poses = root / f"gt_{name}.txt"
         assert run_cli("perturb", log / "groundtruth.txt", poses, "--step-frame", 30, *step).returncode == 0
         corrected = run_cli("correct", store, "--poses", poses)
         assert corrected.returncode == 0, corrected.stderr[-2000:]
     diagnoses = {}
-    for rev in range(4):
+    for rev in range(6):
         out = root / f"diag{rev}.json"
         run = run_cli("diagnose", store, "--revision", rev, "--json", out)
         assert run.returncode == 0, run.stderr[-2000:]
@@ -64,6 +67,20 @@ def test_t10_b1_a_step_beyond_the_detectors_range_is_measured_and_the_figures_ca
         assert not any(m["valid"] for m in measures.values()), measures
         assert any("revisit check" in r and "beyond the 20 cm / 10 deg" in r for r in data["reasons"]), data["reasons"]
         assert "BEYOND the detector's range" in out and "cannot judge (" in out, out[-3000:]
+
+
+def test_t10_b1_a_step_beyond_what_the_revisit_check_reaches_is_not_judged(stepped: dict) -> None:
+    """Trial 11: a 3 m step and a 180 deg turn were beyond what the check's registration reaches from its 80 cm gate:
+    too few revisiting frames registered, the check said nothing and the map read as valid. Frames that overlap the
+    earlier map but do not fit it now make the figures say they cannot judge."""
+    for rev in (4, 5):
+        data, out = stepped[rev]
+        check = data["revisit_check"]
+        assert check["unfit"] or check["beyond_detector"], check
+        assert check["n_registered"] >= 3, check
+        assert data["valid"] is False and any("revisit check" in r for r in data["reasons"]), data["reasons"]
+        assert "cannot judge (" in out, out[-3000:]
+    assert stepped[0][0]["revisit_check"]["unfit"] is False
 
 
 def _clearance_queries(path: Path, ids: tuple[str, ...] = ("c",)) -> Path:
@@ -119,3 +136,17 @@ def test_t10_w5_decide_compare_takes_ascii_digits_only(room10: dict, tmp_path: P
         line = one_error(run_cli("decide", room10["gt"], "--queries", queries, "--json", tmp_path / "d.json",
                                  "--compare", pair))
         assert "expected two revision ids A,B" in line and "Traceback" not in line, line
+
+
+@pytest.mark.parametrize(("qid", "named"), [("c\u200b", "U+200B"), ("\ufeffc", "U+FEFF"), ("c\u202e", "U+202E"),
+                                           ("cafe\u0301", "composed form (NFC)")])
+def test_t11_w2_a_query_id_that_prints_like_another_is_refused(qid: str, named: str, tmp_path: Path) -> None:
+    """Trial 11: "c1" and "c1" + a zero-width space (or a byte-order mark, a right-to-left override, a decomposed
+    accent) were two queries that every report line shows alike."""
+    from driftmap.decisions.errors import QueryError
+    from driftmap.decisions.query_file import load_queries
+
+    queries = _clearance_queries(tmp_path / "q.json", ("c", qid))
+    with pytest.raises(QueryError, match=r"query #2: 'id' .*" + re.escape(named)):
+        load_queries(queries)
+    assert load_queries(_clearance_queries(tmp_path / "ok.json", ("c", "caf\u00e9")))  # composed, one character

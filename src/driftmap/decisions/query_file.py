@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import unicodedata
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -311,6 +312,15 @@ def parse_query(item: Any, index: int = 0, *, from_yaml: bool = False) -> Query:
     if qid != qid.strip():  # "c" and "c " would be two queries that every report line shows alike
         raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} begins or ends with white space; ids are compared "
                          f"exactly, so write it as {_shown(qid.strip())}", query_id=None, field="id")
+    invisible = [c for c in qid if unicodedata.category(c) == "Cf"]
+    if invisible:  # zero-width spaces, byte-order marks, right-to-left overrides: an id that prints like another
+        raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} holds an invisible formatting character "
+                         f"(U+{ord(invisible[0]):04X}); ids are compared exactly and every report line shows them, so "
+                         f"write it without", query_id=None, field="id")
+    if unicodedata.normalize("NFC", qid) != qid:  # "café" composed and decomposed print alike
+        raise QueryError(f"query #{index + 1}: 'id' {_shown(qid)} is not in Unicode's composed form (NFC), so it "
+                         f"prints like {_shown(unicodedata.normalize('NFC', qid))} but compares unequal; write it "
+                         f"composed", query_id=None, field="id")
     kind = item.get("kind")
     if kind not in KINDS:
         raise QueryError(f"query {qid!r}: unknown kind {_shown(kind)} (kinds: {', '.join(KINDS)})", query_id=qid,

@@ -116,8 +116,20 @@ class RevisitCheck:
         m, deg = self.disagreement_m, self.disagreement_deg
         return m is not None and deg is not None and (m > self.config.max_detectable_m or deg > self.config.max_detectable_deg)
 
+    @property
+    def unfit(self) -> bool:
+        """Frames overlap the earlier map (at least ``min_probes`` registered) but too few of them fit it: a pose
+        error beyond what the registration reaches from ``coarse_gate_m`` (a 3 m step, a 180 deg turn) cannot be
+        ruled out. Every consistent map in the tests fits 8 to 12 of its 12 probes."""
+        return len(self.probes) >= self.config.min_probes and not self.judged
+
     def reason(self) -> str | None:
         """Why the double-wall figures cannot judge this map (None when they can, as far as this check sees)."""
+        if self.unfit:
+            return (f"only {len(self.counted)} of {len(self.probes)} revisiting frames fit the earlier map (revisit "
+                    f"check; {self.config.min_probes} needed, GICP from a {100 * self.config.coarse_gate_m:.0f} cm "
+                    f"gate): a pose error larger than the check and the double-wall detector measure cannot be "
+                    f"ruled out")
         if not self.beyond_detector:
             return None
         worst = max(self.counted, key=lambda p: p.correction_m / self.config.max_detectable_m
@@ -129,7 +141,7 @@ class RevisitCheck:
                 f"double-wall detector sees, the map is inconsistent by more than its figures show")
 
     def to_json(self) -> dict:
-        return {"judged": self.judged, "beyond_detector": self.beyond_detector,
+        return {"judged": self.judged, "beyond_detector": self.beyond_detector, "unfit": self.unfit,
                 "disagreement_m": self.disagreement_m, "disagreement_deg": self.disagreement_deg,
                 "max_detectable_m": self.config.max_detectable_m, "max_detectable_deg": self.config.max_detectable_deg,
                 "n_candidates": self.n_candidates, "n_registered": len(self.probes), "n_counted": len(self.counted),
@@ -201,6 +213,6 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
     chosen, n = _candidates(placed, cfg)
     probes = [_probe(placed, row, overlap, cfg) for row, overlap in sorted(chosen)]
     check = RevisitCheck(cfg, probes, n)
-    if check.beyond_detector:
+    if check.reason():
         logger.warning("revisit check: %s", check.reason())
     return check
