@@ -12,10 +12,15 @@ figures are a verdict only when the corrections stay within what the detector ca
 (:attr:`RevisitCheckConfig.max_detectable_m`, :attr:`RevisitCheckConfig.max_detectable_deg`).
 
 The probes are chosen by overlap measured on a coarse voxel grid (``coarse_gate_m``), so a frame placed
-30 cm or 30 deg off its true place still counts as a revisit; a registration counts only with ``min_fitness``
-of its points on the earlier map and a well-constrained translation (``min_constraint``). The reported
-disagreement is the ``min_probes``-th largest correction, so one registration that slid along a corridor does
-not decide it alone.
+30 cm or 30 deg off its true place still counts as a revisit: half those that overlap most, half those revisiting
+what was seen longest ago (a loop's closing frames). A registration counts only with ``min_fitness`` of its points
+on the earlier map and a well-constrained translation (``min_constraint``). The reported disagreement is the
+``min_probes``-th largest correction, so one registration that slid along a corridor does not decide it alone;
+probes that overlap the earlier map but too few of which fit it (:attr:`RevisitCheck.unfit`: a 3 m step, a 180 deg
+turn) are a reason to judge nothing either.
+
+Known limits (docs/diagnostics.md): a probe is compared with *all* frames before its revisit path, so a step among
+the first few frames or in the last two, and on LiDAR steps that the earlier map already holds, escape it.
 """
 
 from __future__ import annotations
