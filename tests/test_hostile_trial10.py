@@ -150,3 +150,12 @@ def test_t11_w2_a_query_id_that_prints_like_another_is_refused(qid: str, named: 
     with pytest.raises(QueryError, match=r"query #2: 'id' .*" + re.escape(named)):
         load_queries(queries)
     assert load_queries(_clearance_queries(tmp_path / "ok.json", ("c", "caf\u00e9")))  # composed, one character
+
+
+def test_t11_w4_view_names_a_voxel_larger_than_the_map_and_its_flag(room10: dict, tmp_path: Path) -> None:
+    """``view --voxel-size-m 100`` drew nine dots without a word; 1e-6 was refused without naming the flag."""
+    line = one_error(run_cli("view", room10["gt"], "--voxel-size-m", 100, "--headless", "--out", tmp_path / "v"))
+    assert "--voxel-size-m 100 is larger than the map itself (" in line and "points; leave it out" in line, line
+    line = one_error(run_cli("view", room10["gt"], "--voxel-size-m", "1e-6", "--headless", "--out", tmp_path / "v"))
+    assert "view --voxel-size-m 1e-06: voxel coordinates" in line and "use a larger voxel size" in line, line
+    assert not (tmp_path / "v").exists() or not any((tmp_path / "v").iterdir())

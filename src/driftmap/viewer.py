@@ -199,7 +199,8 @@ def _downsample(store: FrameStore, revision: int, voxel_size_m: float, max_point
         fid = np.repeat(np.asarray(chunk, np.int64), [len(p) for p in parts])
         ok = np.all(np.isfinite(pts), axis=1)
         pts, fid = pts[ok], fid[ok]
-        keys = voxel_keys(pts, voxel_size_m, grid=ABSOLUTE_GRID, what="view")  # compared across chunks below
+        keys = voxel_keys(pts, voxel_size_m, grid=ABSOLUTE_GRID,  # compared across chunks below
+                          what=f"view --voxel-size-m {voxel_size_m:g}")
         sel = random_per_key(keys, rng)
         kept_p.append(pts[sel])
         kept_f.append(fid[sel])
@@ -315,6 +316,11 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     if color == "revision":
         ref = store.revisions[rev].parent_id if reference_revision is None else _check_revision(store, reference_revision, "--reference")
     points, frame_ids, n_map = _downsample(store, rev, vs, max_points, seed)
+    extent = np.ptp(points, axis=0) if len(points) else np.zeros(3)
+    if len(points) and vs > float(np.max(extent)):
+        raise ConfigError(f"--voxel-size-m {vs:g} is larger than the map itself ({extent[0]:.1f} x {extent[1]:.1f} x "
+                          f"{extent[2]:.1f} m): the picture would hold {len(points)} points; leave it out for the "
+                          f"sensor's default ({DEFAULT_VOXEL_SIZE_M[kind]:g} m)")
     poses = store.poses(rev)
     rows = np.searchsorted(store.frame_ids, frame_ids)
     cmap = _palette(color)
