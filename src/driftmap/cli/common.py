@@ -1,6 +1,7 @@
 """What every command of the ``driftmap`` command line shares: the typer app, the consoles, the option checks
-(every number finite, outputs writable and not inside a store, existing files kept unless ``--overwrite``), the
-source-option help texts, the progress bar, and opening a store with its recovery events printed.
+(every integer plain ASCII digits, every number finite, outputs writable and not inside a store, existing files kept
+unless ``--overwrite``), the source-option help texts, the progress bar, and opening a store with its recovery events
+printed.
 
 Only the ``driftmap.cli`` package prints and exits; the library raises and logs.
 """
@@ -11,6 +12,7 @@ import errno
 import logging
 import math
 import os
+import re
 import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -22,11 +24,66 @@ from rich.console import Console
 from rich.logging import RichHandler
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.text import Text
+from typer.core import TyperGroup
 
 from driftmap import __version__
 from driftmap.errors import DriftmapError, OutputWriteError
 
+_ASCII_INT = re.compile(r"-?[0-9]+")
+
+
+def strict_int_text(value: Any, param: Any = None) -> Any:
+    """``value`` as the command line gave it, refused (a usage error, exit 2) unless it is an optional '-' and ASCII
+    digits 0-9. Python's ``int()`` and pydantic's lax integers (which typer parses with) read "1_0" as 10, "+3",
+    " 3 " and "3.0" as 3, and ``int()`` reads "٣" or "３" as 3: ``--revision 1_0`` was revision 10. Values that are
+    not text (defaults) pass unchanged; a list or tuple (``multiple``, ``nargs``) is checked item by item."""
+    if isinstance(value, (list, tuple)):
+        for item in value:
+            strict_int_text(item, param)
+    elif isinstance(value, str) and not _ASCII_INT.fullmatch(value):
+        raise typer.BadParameter(f"{value!r} is not an integer (ASCII digits only)", param=param)
+    return value
+
+
+def _is_int(param: Any) -> bool:
+    """A command-line parameter parsed as integers: ``int``, ``Optional[int]``, ``list[int]`` or a tuple of ints."""
+    descriptor = getattr(param, "type_descriptor", None)  # typer >= 0.2x parses by the annotation (pydantic)
+    if descriptor is None:  # older typer on click: INT / IntRange
+        return getattr(getattr(param, "type", None), "name", None) in ("integer", "integer range")
+    annotation = descriptor.annotation
+    if getattr(annotation, "__origin__", None) in (list, tuple):
+        args = [a for a in getattr(annotation, "__args__", ()) if a is not Ellipsis]
+        return bool(args) and all(a is int for a in args)
+    return annotation is int
+
+
+def _strict_ints(command: Any) -> None:
+    """Make every integer parameter of ``command`` (and of its subcommands) take only '-'? and ASCII digits: the
+    text is checked before typer converts it, so the option's own range check and its message stay as they are."""
+    for param in getattr(command, "params", ()):
+        if not _is_int(param) or getattr(param, "_strict_int", False):
+            continue
+
+        def checked(ctx: Any, value: Any, _process: Any = param.process_value, _param: Any = param) -> Any:
+            return _process(ctx, strict_int_text(value, _param))
+
+        param.process_value = checked
+        param._strict_int = True
+    for sub in getattr(command, "commands", {}).values():
+        _strict_ints(sub)
+
+
+class StrictIntGroup(TyperGroup):
+    """The app's group: on building the command tree, every integer option and argument of every command is made
+    strict (:func:`strict_int_text`), so a command or option added later is covered without a flag of its own."""
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        _strict_ints(self)
+
+
 app = typer.Typer(
+    cls=StrictIntGroup,
     name="driftmap",
     help="Multi-frame fusion and drift-aware mapping: frames kept with the poses that produced them.",
     no_args_is_help=True,
