@@ -163,14 +163,17 @@ def test_drift_rate_reads_the_odometry_drift_and_its_correction(diagnosed: dict)
 
 
 def test_the_revisit_check_measures_the_loop_error_and_its_correction(diagnosed: dict) -> None:
-    """The revisit check (docs/diagnostics.md) registers the frames that close the loop onto the first pass: the
-    odometry-only map disagrees by several cm (measured 8.2 cm, 1.5 deg), the loop-closed revision and the ground
-    truth by about 1 cm (1.2 and 1.3 cm) -- all within the detector's range, so every figure stays a verdict."""
+    """The revisit check (docs/diagnostics.md) registers the frames that close the loop onto the first pass (its
+    whole-map probes): the odometry-only map disagrees by several cm (measured 8.2 cm, 1.5 deg), the loop-closed
+    revision and the ground truth by about 1 cm (1.3 and 1.5 cm). Its frame pairs (a return frame onto a short stretch
+    of the first pass) read 3.1 cm on the ground truth and 3.3 cm loop-closed: single frames of 2400 samples register
+    less precisely. All within the detector's range, so every figure stays a verdict."""
     checks = {k: diagnosed[k]["revisit_check"] for k in ("gt", "rev0", "head")}
     assert all(c["judged"] and not c["beyond_detector"] for c in checks.values()), checks
     assert all(diagnosed[k]["valid"] for k in checks), {k: diagnosed[k]["reasons"] for k in checks}
-    probes = [p["frame_id"] for p in checks["rev0"]["probes"] if p["counted"]]
+    probes = [p["frame_id"] for p in checks["rev0"]["probes"] if p["counted"] and p["target"] == "map"]
     assert sum(f >= RETURN_MIN_FRAME for f in probes) >= 3, probes  # frames of the return, not of the first pass
-    assert checks["rev0"]["disagreement_m"] >= 0.04, checks["rev0"]
-    assert max(checks["gt"]["disagreement_m"], checks["head"]["disagreement_m"]) <= 0.025, checks
-    assert checks["rev0"]["disagreement_m"] > 3 * checks["head"]["disagreement_m"]
+    assert checks["rev0"]["map_disagreement_m"] >= 0.04, checks["rev0"]
+    assert max(checks["gt"]["map_disagreement_m"], checks["head"]["map_disagreement_m"]) <= 0.025, checks
+    assert checks["rev0"]["map_disagreement_m"] > 3 * checks["head"]["map_disagreement_m"]
+    assert max(checks[k]["disagreement_m"] for k in checks) <= 0.1, checks  # the pairs' noise: half the range

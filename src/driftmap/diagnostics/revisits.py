@@ -1,26 +1,38 @@
-"""The revisit check: where the map sees a place again, does the later frame fit the earlier map at all?
+"""The revisit check: where the map sees a place again, do the frames of the two visits fit each other at all?
 
 The double-wall detector, the attribution and the smearing score compare surfaces that fall into one voxel and
 residuals within a gate (a separation up to about the largest voxel size; 10 cm residuals indoors). A pose error
 larger than that -- a 30 cm or 30 deg step, a map broken by a bad correction -- puts the two copies of a wall into
 different voxels and beyond every gate: each copy looks like a clean single surface, and the figures came out
-*clean* (trial 10: 0 regions, 0 % doubled, verdict valid). This check looks with a much wider window: it registers
-frames that revisit a place (seen again after ``revisit_min_path_m`` of travel) onto the map of the frames before
-them (GICP, coarse to fine from a gate of ``coarse_gate_m``; :func:`~driftmap.registration.pairwise.register_prepared`)
-and reports the correction each needs at its sensor. A consistent map needs ~0 (the registration's noise); the
-figures are a verdict only when the corrections stay within what the detector can see
-(:attr:`RevisitCheckConfig.max_detectable_m`, :attr:`RevisitCheckConfig.max_detectable_deg`).
+*clean* (trial 10: 0 regions, 0 % doubled, verdict valid). This check looks with a much wider window. It registers
+*revisit pairs*: a frame (the probe) onto an earlier frame at least ``revisit_min_path_m`` of travel before it and the
+frames up to ``window_m`` of travel before that one (the target, at most ``max_window_frames``), with GICP coarse to
+fine from a gate of ``coarse_gate_m`` (:func:`~driftmap.registration.pairwise.register_prepared`), and reports the
+correction the probe needs at its sensor. A consistent map needs ~0 (the registration's noise). A registration counts
+only with ``min_fitness`` of the probe's points on the target and a well-constrained translation
+(``min_constraint``); one that fits worse than the poses as placed slid off a partial overlap and reports no
+correction.
 
-The probes are chosen by overlap measured on a coarse voxel grid (``coarse_gate_m``), so a frame placed
-30 cm or 30 deg off its true place still counts as a revisit: half those that overlap most, half those revisiting
-what was seen longest ago (a loop's closing frames). A registration counts only with ``min_fitness`` of its points
-on the earlier map and a well-constrained translation (``min_constraint``). The reported disagreement is the
-``min_probes``-th largest correction, so one registration that slid along a corridor does not decide it alone;
-probes that overlap the earlier map but too few of which fit it (:attr:`RevisitCheck.unfit`: a 3 m step, a 180 deg
-turn) are a reason to judge nothing either.
+The pairs are chosen by overlap on a coarse voxel grid (``coarse_gate_m``), so that a frame placed 30 cm or 30 deg
+off still overlaps its partner: in turn the pair furthest apart in travel (a loop's closing frames) and the one
+overlapping most, each frame in at most :data:`PAIRS_PER_FRAME` pairs. A pair shows every pose error between its
+two frames; the target is a short stretch, not all the earlier map, so a step among the first frames is not outvoted
+by the frames after it (trial 11: on LiDAR, where every scan sees the whole room, fitting a later scan onto *all*
+earlier ones found its own side of a step already there). Beside the pairs, up to ``max_probes`` *whole-map probes*
+register the frames overlapping most what was seen ``revisit_min_path_m`` before them onto all those earlier frames
+(trial 10's check, kept: many frames constrain a drift or a step that one short stretch does not, and they still
+overlap after a 3 m step that leaves no pair overlapping). The disagreement is the ``min_probes``-th largest
+correction of each kind, the larger of the two, so one registration that slid along a corridor does not decide it
+alone; the pairs' corrections per metre of travel between their two frames give a drift rate
+(:attr:`RevisitCheck.drift_percent_per_m`).
 
-Known limits (docs/diagnostics.md): a probe is compared with *all* frames before its revisit path, so a step among
-the first few frames or in the last two, and on LiDAR steps that the earlier map already holds, escape it.
+The figures are a verdict only when the disagreement stays within what the detector sees
+(:attr:`RevisitCheckConfig.max_detectable_m`, :attr:`RevisitCheckConfig.max_detectable_deg`), and when the pairs fit
+at all (:attr:`RevisitCheck.unfit`: a 3 m step, a 180 deg turn are beyond what the registration reaches from its
+gate; among the pairs or among the whole-map probes). Either failing makes every headline figure 'cannot judge' (:func:`~driftmap.diagnostics.coverage.assess`).
+
+Known limits (docs/diagnostics.md): a pose error that moves fewer than ``min_probes`` pairs' worth of frames (a step
+in the last frame or two) or lies along a direction the revisiting frames do not constrain is not measured.
 """
 
 from __future__ import annotations
@@ -29,13 +41,14 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
 from numpy.typing import NDArray
 from pydantic import ConfigDict, Field
 
 from driftmap import geometry
 from driftmap.config import SettingsModel
 from driftmap.diagnostics.samples import PlacedCloud
-from driftmap.registration.pairwise import PreparedCloud, downsample, register_prepared
+from driftmap.registration.pairwise import PreparedCloud, downsample, nearest_distances, register_prepared
 from driftmap.registration.tracking import translation_degeneracy
 from driftmap.voxels import dense_ids, keys_on_bounding_grid, voxel_coords
 
@@ -44,27 +57,36 @@ logger = logging.getLogger(__name__)
 MIN_PROBE_POINTS = 50
 """A frame with fewer diagnostic samples is not registered (GICP needs neighbourhoods to fit planes in)."""
 
+PAIRS_PER_FRAME = 2
+"""A frame is the probe (or the target frame) of at most this many pairs: the pairs spread over the log, yet a pose
+error that moved only two revisiting frames still shows in more than one pair."""
+
+MAX_OVERLAP_FRAMES = 2000
+"""Pairs are chosen among at most this many frames (evenly spread over a longer log): the overlap table is square."""
+
 
 class RevisitCheckConfig(SettingsModel):
-    """Which revisits are registered onto the earlier map and when their corrections leave the detector's range."""
+    """Which revisit pairs are registered onto each other and when their corrections leave the detector's range."""
 
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    enabled: bool = Field(True, description="register revisiting frames onto the earlier map (the check of pose errors beyond the double-wall detector's range)")
-    revisit_min_path_m: float = Field(1.0, gt=0.0, description="the earlier map holds the frames at least this much travel before the probe (m)")
+    enabled: bool = Field(True, description="register revisiting frames onto earlier ones (the check of pose errors beyond the double-wall detector's range)")
+    revisit_min_path_m: float = Field(1.0, gt=0.0, description="a pair's two frames are at least this much travel apart (m)")
     registration_voxel_m: float = Field(0.05, gt=0.0, description="finest GICP voxel (m); the coarse levels are 2x and 4x")
     coarse_gate_m: float = Field(0.8, gt=0.0, description="correspondence gate of the coarsest level and the overlap grid (m): pose errors up to about this are measured")
-    max_probes: int = Field(12, ge=1, le=1000, description="frames registered at most (half those overlapping the earlier map most, half those revisiting what was seen longest ago)")
-    min_overlap: float = Field(0.5, gt=0.0, le=1.0, description="a probe has at least this share of its points in coarse voxels the earlier map occupies")
-    min_fitness: float = Field(0.6, gt=0.0, le=1.0, description="a registration counts with at least this share of the probe's points on the earlier map")
+    max_probes: int = Field(12, ge=1, le=1000, description="pairs registered at most (in turn the pair furthest apart in travel and the one overlapping most)")
+    window_m: float = Field(0.5, gt=0.0, description="a pair's target: its frame and those up to this much travel before it (m)")
+    max_window_frames: int = Field(50, ge=1, le=1000, description="... at most this many frames")
+    min_overlap: float = Field(0.5, gt=0.0, le=1.0, description="a probe has at least this share of its points in coarse voxels its target frame occupies")
+    min_fitness: float = Field(0.6, gt=0.0, le=1.0, description="a registration counts with at least this share of the probe's points on the target")
     min_constraint: float = Field(0.03, gt=0.0, le=1.0, description="... and sqrt(lambda_min / lambda_max) of its translational information at least this (no slide along a corridor)")
-    min_probes: int = Field(3, ge=1, description="registrations the check needs; its disagreement is the min_probes-th largest correction")
+    min_probes: int = Field(3, ge=1, description="counted pairs the check needs; its disagreement is the min_probes-th largest correction")
     max_detectable_m: float = Field(0.2, gt=0.0, description="the largest separation the double-wall detector reports (m): beyond it the figures cannot judge the map")
     max_detectable_deg: float = Field(10.0, gt=0.0, description="the largest rotation the detector's normal grouping tolerates (deg)")
 
 
 @dataclass(frozen=True)
 class RevisitProbe:
-    """One revisiting frame registered onto the earlier map."""
+    """One revisiting frame (the probe) registered onto a stretch of earlier frames (its target)."""
 
     frame_id: int
     overlap: float
@@ -72,152 +94,247 @@ class RevisitProbe:
     rmse_m: float
     constraint: float | None
     correction_m: float
-    """How far the registration moves the frame's sensor origin (m)."""
+    """How far the registration moves the probe's sensor origin (m)."""
     correction_deg: float
     counted: bool
+    target_frame_id: int = -1
+    """The last (latest) frame of the target."""
+    target_first_frame_id: int = -1
+    path_between_m: float = 0.0
+    """Travel from the target frame to the probe (m)."""
+    whole_map: bool = False
+    """The target is every frame up to the target frame (the earlier map), not a short stretch."""
 
     def to_json(self) -> dict:
         return {"frame_id": self.frame_id, "overlap": round(self.overlap, 4), "fitness": round(self.fitness, 4),
                 "rmse_m": round(self.rmse_m, 5) if np.isfinite(self.rmse_m) else None,
                 "constraint": None if self.constraint is None else round(self.constraint, 4),
                 "correction_m": round(self.correction_m, 5), "correction_deg": round(self.correction_deg, 4),
-                "counted": self.counted}
+                "counted": self.counted, "target_frame_id": self.target_frame_id,
+                "target_first_frame_id": self.target_first_frame_id, "path_between_m": round(self.path_between_m, 4),
+                "target": "map" if self.whole_map else "stretch"}
 
 
 @dataclass(frozen=True)
 class RevisitCheck:
-    """The probes and the check's verdict (:func:`check_revisits`)."""
+    """The pairs and the check's verdict (:func:`check_revisits`)."""
 
     config: RevisitCheckConfig
     probes: list[RevisitProbe]
     n_candidates: int
-    """Frames with an earlier map (after ``revisit_min_path_m`` of travel) overlapping them enough."""
+    """Frame pairs at least ``revisit_min_path_m`` of travel apart that overlap enough."""
 
     @property
     def counted(self) -> list[RevisitProbe]:
         return [p for p in self.probes if p.counted]
 
+    def _group(self, whole_map: bool) -> list[RevisitProbe]:
+        return [p for p in self.probes if p.whole_map == whole_map]
+
+    def _group_judged(self, whole_map: bool) -> bool:
+        return sum(p.counted for p in self._group(whole_map)) >= self.config.min_probes
+
     @property
     def judged(self) -> bool:
-        return len(self.counted) >= self.config.min_probes
+        return self._group_judged(False) or self._group_judged(True)
 
-    def _kth_largest(self, values: list[float]) -> float | None:
-        if not self.judged:
+    def group_disagreement(self, whole_map: bool, degrees: bool = False) -> float | None:
+        """The ``min_probes``-th largest counted correction (m, or deg) of the pairs (``whole_map`` False) or of the
+        whole-map probes (None: fewer counted)."""
+        if not self._group_judged(whole_map):
             return None
-        return float(sorted(values, reverse=True)[self.config.min_probes - 1])
+        group = [p.correction_deg if degrees else p.correction_m for p in self._group(whole_map) if p.counted]
+        return float(sorted(group, reverse=True)[self.config.min_probes - 1])
+
+    def _kth_largest(self, degrees: bool) -> float | None:
+        """:meth:`group_disagreement` of the pairs and of the whole-map probes, the larger."""
+        values = [v for v in (self.group_disagreement(m, degrees) for m in (False, True)) if v is not None]
+        return float(max(values)) if values else None
 
     @property
     def disagreement_m(self) -> float | None:
-        """The ``min_probes``-th largest correction at a probe's sensor (None: too few registrations)."""
-        return self._kth_largest([p.correction_m for p in self.counted])
+        """The ``min_probes``-th largest correction at a probe's sensor, of the pairs or of the whole-map probes
+        (the larger; None: too few registrations)."""
+        return self._kth_largest(False)
 
     @property
     def disagreement_deg(self) -> float | None:
-        return self._kth_largest([p.correction_deg for p in self.counted])
+        return self._kth_largest(True)
+
+    @property
+    def drift_percent_per_m(self) -> float | None:
+        """Median over the counted pairs (not the whole-map probes, whose target spans all earlier travel) of
+        correction / travel between the two frames (%; None: too few pairs)."""
+        if not self._group_judged(False):
+            return None
+        return float(100.0 * np.median([p.correction_m / max(p.path_between_m, 1e-9) for p in self._group(False) if p.counted]))
+
+    @property
+    def drift_deg_per_m(self) -> float | None:
+        if not self._group_judged(False):
+            return None
+        return float(np.median([p.correction_deg / max(p.path_between_m, 1e-9) for p in self._group(False) if p.counted]))
 
     @property
     def beyond_detector(self) -> bool:
-        """The revisits disagree by more than the double-wall detector can see."""
+        """The pairs disagree by more than the double-wall detector can see."""
         m, deg = self.disagreement_m, self.disagreement_deg
         return m is not None and deg is not None and (m > self.config.max_detectable_m or deg > self.config.max_detectable_deg)
 
     @property
     def unfit(self) -> bool:
-        """Frames overlap the earlier map (at least ``min_probes`` registered) but too few of them fit it: a pose
-        error beyond what the registration reaches from ``coarse_gate_m`` (a 3 m step, a 180 deg turn) cannot be
-        ruled out. Every consistent map in the tests fits 8 to 12 of its 12 probes."""
-        return len(self.probes) >= self.config.min_probes and not self.judged
+        """Frames overlap (at least ``min_probes`` pairs registered) but too few of them fit: a pose error beyond
+        what the registration reaches from ``coarse_gate_m`` (a 3 m step, a 180 deg turn) cannot be ruled out. Every
+        consistent map in the tests fits 8 to 12 of its 12 pairs."""
+        return any(len(self._group(m)) >= self.config.min_probes and not self._group_judged(m) for m in (False, True))
 
     def reason(self) -> str | None:
         """Why the double-wall figures cannot judge this map (None when they can, as far as this check sees)."""
+        cfg = self.config
         if self.unfit:
-            return (f"only {len(self.counted)} of {len(self.probes)} revisiting frames fit the earlier map (revisit "
-                    f"check; {self.config.min_probes} needed, GICP from a {100 * self.config.coarse_gate_m:.0f} cm "
-                    f"gate): a pose error larger than the check and the double-wall detector measure cannot be "
-                    f"ruled out")
+            group = min((self._group(m) for m in (False, True) if len(self._group(m)) >= cfg.min_probes),
+                        key=lambda g: sum(p.counted for p in g))
+            return (f"only {sum(p.counted for p in group)} of {len(group)} revisiting frames fit the earlier frames they "
+                    f"revisit (revisit check; {cfg.min_probes} needed, GICP from a {100 * cfg.coarse_gate_m:.0f} cm "
+                    f"gate): a pose error larger than the check and the double-wall detector measure cannot be ruled "
+                    f"out")
         if not self.beyond_detector:
             return None
-        worst = max(self.counted, key=lambda p: p.correction_m / self.config.max_detectable_m
-                    + p.correction_deg / self.config.max_detectable_deg)
+        worst = max(self.counted, key=lambda p: p.correction_m / cfg.max_detectable_m
+                    + p.correction_deg / cfg.max_detectable_deg)
         return (f"revisiting frames disagree with the earlier map by {100 * self.disagreement_m:.0f} cm / "
-                f"{self.disagreement_deg:.1f} deg (frame {worst.frame_id}: {100 * worst.correction_m:.0f} cm / "
-                f"{worst.correction_deg:.1f} deg; revisit check): beyond the "
-                f"{100 * self.config.max_detectable_m:.0f} cm / {self.config.max_detectable_deg:g} deg the "
-                f"double-wall detector sees, the map is inconsistent by more than its figures show")
+                f"{self.disagreement_deg:.1f} deg (frame {worst.frame_id} on frame {worst.target_frame_id}, "
+                f"{worst.path_between_m:.3g} m of travel earlier: {100 * worst.correction_m:.0f} cm / "
+                f"{worst.correction_deg:.1f} deg; revisit check): beyond the {100 * cfg.max_detectable_m:.0f} cm / "
+                f"{cfg.max_detectable_deg:g} deg the double-wall detector sees, the map is inconsistent by more than "
+                f"its figures show")
 
     def to_json(self) -> dict:
         return {"judged": self.judged, "beyond_detector": self.beyond_detector, "unfit": self.unfit,
                 "disagreement_m": self.disagreement_m, "disagreement_deg": self.disagreement_deg,
                 "max_detectable_m": self.config.max_detectable_m, "max_detectable_deg": self.config.max_detectable_deg,
+                "drift_percent_per_m": self.drift_percent_per_m, "drift_deg_per_m": self.drift_deg_per_m,
+                "pairs_disagreement_m": self.group_disagreement(False), "pairs_disagreement_deg": self.group_disagreement(False, True),
+                "map_disagreement_m": self.group_disagreement(True), "map_disagreement_deg": self.group_disagreement(True, True),
                 "n_candidates": self.n_candidates, "n_registered": len(self.probes), "n_counted": len(self.counted),
                 "probes": [p.to_json() for p in self.probes]}
 
 
-def _candidates(placed: PlacedCloud, cfg: RevisitCheckConfig) -> tuple[list[tuple[int, float]], int]:
-    """``([(frame row, overlap)], n)``: the rows to register and how many rows overlapped their earlier map by
-    ``min_overlap`` at all. A point overlaps when its coarse voxel was first seen at least ``revisit_min_path_m`` of
-    travel before its frame (one pass over all points). Half the probes are the rows that overlap most, half those
-    whose overlapping points were first seen longest ago (a loop's closing frames: on a long loop the frames that
-    overlap most are the ones just past ``revisit_min_path_m``, which see none of the loop's drift)."""
+def _overlap_table(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig) -> NDArray[np.float64]:
+    """``O[i, j]``: the share of frame ``rows[i]``'s points in coarse voxels that frame ``rows[j]`` occupies."""
+    keep = np.full(len(placed.path_length_m), -1, dtype=np.int64)
+    keep[rows] = np.arange(len(rows))
+    point_rows = keep[placed.frame_index]
+    mine = point_rows >= 0
+    keys, _ = keys_on_bounding_grid(voxel_coords(placed.points_world[mine], cfg.coarse_gate_m), "revisit check voxels")
+    voxel, unique = dense_ids(keys)
+    counts = scipy.sparse.csr_matrix((np.ones(len(voxel)), (point_rows[mine], voxel)), shape=(len(rows), len(unique)))
+    counts.sum_duplicates()
+    occupied = counts.copy()
+    occupied.data[:] = 1.0
+    shared = (counts @ occupied.T).toarray()
+    n_points = np.asarray(counts.sum(axis=1)).ravel()
+    return shared / np.maximum(n_points, 1.0)[:, None]
+
+
+def _choose_pairs(a: NDArray[np.int64], b: NDArray[np.int64], overlap: NDArray[np.float64],
+                  travel: NDArray[np.float64], cfg: RevisitCheckConfig) -> list[int]:
+    """Indices of up to ``max_probes`` candidate pairs ``(a, b)``: in turn the next admissible pair furthest apart in
+    travel and the next overlapping most; a pair is admissible while its target frame and its probe are each in fewer
+    than :data:`PAIRS_PER_FRAME` chosen pairs."""
+    chosen: dict[int, None] = {}
+    uses: dict[tuple[str, int], int] = {}
+    queues = [iter(np.lexsort((-b, -travel)).tolist()), iter(np.lexsort((-b, -overlap)).tolist())]
+    while len(chosen) < cfg.max_probes and queues:
+        for queue in list(queues):
+            for k in queue:
+                ends = (("target", int(a[k])), ("probe", int(b[k])))
+                if k not in chosen and all(uses.get(e, 0) < PAIRS_PER_FRAME for e in ends):
+                    chosen[k] = None
+                    for e in ends:
+                        uses[e] = uses.get(e, 0) + 1
+                    break
+            else:
+                queues.remove(queue)
+            if len(chosen) >= cfg.max_probes:
+                break
+    return list(chosen)
+
+
+def _map_pairs(placed: PlacedCloud, cfg: RevisitCheckConfig) -> list[tuple[int, int, float]]:
+    """``[(last target row, probe row, overlap)]``: up to ``max_probes`` frames with ``min_overlap`` of their points in
+    coarse voxels first seen at least ``revisit_min_path_m`` of travel before them, those overlapping most, each paired
+    with all the frames before that travel (the whole-map probes: they see a drift or a step that the short stretches
+    of the pairs do not constrain, and a 3 m step or a 180 deg turn leaves no frame pair overlapping while the
+    stepped frames still overlap the room)."""
     rows, path = placed.frame_index, placed.path_length_m
-    if len(rows) == 0:
-        return [], 0
     keys, _ = keys_on_bounding_grid(voxel_coords(placed.points_world, cfg.coarse_gate_m), "revisit check voxels")
     inverse, _ = dense_ids(keys)
     first_path = np.full(int(inverse.max()) + 1, np.inf)
     np.minimum.at(first_path, inverse, path[rows])
-    travelled = path[rows] - first_path[inverse]
-    seen_before = travelled >= cfg.revisit_min_path_m
+    seen_before = path[rows] - first_path[inverse] >= cfg.revisit_min_path_m
     n_points = np.bincount(rows, minlength=len(path))
-    n_before = np.bincount(rows, weights=seen_before, minlength=len(path))
-    overlap = n_before / np.maximum(n_points, 1)
-    mean_travel = np.bincount(rows, weights=np.where(seen_before, travelled, 0.0), minlength=len(path)) / np.maximum(n_before, 1)
+    overlap = np.bincount(rows, weights=seen_before, minlength=len(path)) / np.maximum(n_points, 1)
     good = np.flatnonzero((overlap >= cfg.min_overlap) & (n_points >= MIN_PROBE_POINTS))
-    by_overlap = good[np.lexsort((-good, -overlap[good]))]
-    by_travel = good[np.lexsort((-good, -mean_travel[good]))]
-    chosen: dict[int, None] = {}
-    for a, b in zip(by_travel, by_overlap):
-        for r in (int(a), int(b)):
-            if len(chosen) < cfg.max_probes:
-                chosen.setdefault(r, None)
-    return [(r, float(overlap[r])) for r in chosen], int(good.size)
+    best = good[np.lexsort((-good, -overlap[good]))][: cfg.max_probes]
+    ends = np.searchsorted(path, path[best] - cfg.revisit_min_path_m, "right") - 1
+    return [(int(e), int(r), float(overlap[r])) for e, r in sorted(zip(ends, best), key=lambda x: x[1]) if e >= 0]
 
 
-def _probe(placed: PlacedCloud, row: int, overlap: float, cfg: RevisitCheckConfig) -> RevisitProbe:
-    """Register frame row ``row`` onto the frames at least ``revisit_min_path_m`` of travel before it (a prefix
-    of the rows: the path length grows with the row), cropped to the frame's box plus the coarse gate."""
-    offsets = placed.samples.offsets
-    earlier = int(np.searchsorted(placed.path_length_m, placed.path_length_m[row] - cfg.revisit_min_path_m, "right"))
+def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cfg: RevisitCheckConfig,
+              whole_map: bool = False) -> RevisitProbe:
+    """Register frame row ``row`` onto the frames up to ``window_m`` of travel before ``target_row`` (at most
+    ``max_window_frames``; ``whole_map``: all frames up to it), cropped to the probe's box plus the coarse gate."""
+    offsets, path, ids = placed.samples.offsets, placed.path_length_m, placed.frame_ids
+    first = 0 if whole_map else max(int(np.searchsorted(path, path[target_row] - cfg.window_m, "left")),
+                                    target_row + 1 - cfg.max_window_frames)
     source = placed.points_world[offsets[row]:offsets[row + 1]]
-    target = placed.points_world[: offsets[earlier]]
+    target = placed.points_world[offsets[first]:offsets[target_row + 1]]
     lo, hi = source.min(axis=0) - cfg.coarse_gate_m, source.max(axis=0) + cfg.coarse_gate_m
     v = cfg.registration_voxel_m
     target = downsample(target[np.all((target >= lo) & (target <= hi), axis=1)], v)
+    pair = (int(ids[target_row]), int(ids[first]), float(path[row] - path[target_row]))
+    if len(target) < MIN_PROBE_POINTS:
+        return RevisitProbe(int(ids[row]), overlap, 0.0, float("nan"), None, 0.0, 0.0, False, *pair, whole_map)
     tgt, src = PreparedCloud(target, 1), PreparedCloud(downsample(source, v), 1)
     T = np.eye(4)
     for level, gate in ((4 * v, cfg.coarse_gate_m), (2 * v, max(6 * v, cfg.coarse_gate_m / 4)), (v, 2.5 * v)):
         result = register_prepared(tgt, src, T, voxel_size_m=level, max_correspondence_m=gate, num_threads=1)
         T = result.T_target_source
+    fitness = float(result.fitness)
+    unmoved = float(np.mean(nearest_distances(tgt, src, np.eye(4), v) <= 1.5 * v))
+    if unmoved > fitness:  # the poses as placed fit better: the registration slid off a partial overlap
+        T, fitness = np.eye(4), unmoved
     origin = placed.origins_world[row]
     moved_m = float(np.linalg.norm(T[:3, :3] @ origin + T[:3, 3] - origin))
     turned_deg = float(geometry.rotation_angle_deg(np.eye(4), T))
     constraint = translation_degeneracy(result.information_6x6[:3, :3])
-    counted = (result.fitness >= cfg.min_fitness and constraint is not None and constraint >= cfg.min_constraint)
-    probe = RevisitProbe(int(placed.frame_ids[row]), overlap, float(result.fitness), float(result.rmse_m), constraint,
-                         moved_m, turned_deg, bool(counted))
-    logger.debug("revisit probe %s", probe)
+    counted = fitness >= cfg.min_fitness and constraint is not None and constraint >= cfg.min_constraint
+    probe = RevisitProbe(int(ids[row]), overlap, fitness, float(result.rmse_m), constraint, moved_m, turned_deg,
+                         bool(counted), *pair, whole_map)
+    logger.debug("revisit pair %s", probe)
     return probe
 
 
 def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None) -> RevisitCheck:
-    """Register up to ``max_probes`` revisiting frames of ``placed`` onto the map of the frames before them (see the
-    module docstring)."""
+    """Register up to ``max_probes`` revisit pairs of ``placed`` (see the module docstring)."""
     cfg = config or RevisitCheckConfig()
-    if not cfg.enabled:
+    n_rows = len(placed.path_length_m)
+    rows = np.flatnonzero(np.bincount(placed.frame_index, minlength=n_rows) >= MIN_PROBE_POINTS)
+    if not cfg.enabled or len(rows) < 2:
         return RevisitCheck(cfg, [], 0)
-    chosen, n = _candidates(placed, cfg)
-    probes = [_probe(placed, row, overlap, cfg) for row, overlap in sorted(chosen)]
-    check = RevisitCheck(cfg, probes, n)
+    if len(rows) > MAX_OVERLAP_FRAMES:
+        rows = rows[np.linspace(0, len(rows) - 1, MAX_OVERLAP_FRAMES).round().astype(np.int64)]
+    table = _overlap_table(placed, rows, cfg)
+    j, i = np.nonzero(np.triu(table.T >= cfg.min_overlap, k=1))  # target rows[j] before probe rows[i]
+    a, b, overlap = rows[j], rows[i], table[i, j]
+    travel = placed.path_length_m[b] - placed.path_length_m[a]
+    far = travel >= cfg.revisit_min_path_m
+    a, b, overlap, travel = a[far], b[far], overlap[far], travel[far]
+    chosen = sorted(_choose_pairs(a, b, overlap, travel, cfg), key=lambda k: (int(b[k]), int(a[k])))
+    probes = [_register(placed, int(a[k]), int(b[k]), float(overlap[k]), cfg) for k in chosen]
+    probes += [_register(placed, end, row, ov, cfg, whole_map=True) for end, row, ov in _map_pairs(placed, cfg)]
+    check = RevisitCheck(cfg, probes, int(far.sum()))
     if check.reason():
         logger.warning("revisit check: %s", check.reason())
     return check

@@ -89,14 +89,9 @@ def register_prepared(
                               max_iterations=max_iterations)
     T = np.array(result.T_target_source)
     inlier_d = inlier_distance_m if inlier_distance_m is not None else 1.5 * voxel_size_m
-    src_pts = np.asarray(src.points())[:, :3]
-    if len(src_pts):
-        _, d2 = tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
-        d = np.sqrt(np.asarray(d2))
-        inliers = d <= inlier_d
-    else:
-        d, inliers = np.zeros(0), np.zeros(0, bool)
-    fitness = float(inliers.mean()) if len(src_pts) else 0.0
+    d = nearest_distances(target, source, T, voxel_size_m)
+    inliers = d <= inlier_d
+    fitness = float(inliers.mean()) if len(d) else 0.0
     rmse = float(np.sqrt(np.mean(d[inliers] ** 2))) if inliers.any() else float("inf")
     H = reorder_6x6(np.array(result.H), TangentOrder.ROTATION_TRANSLATION, TangentOrder.TRANSLATION_ROTATION)
     H = 0.5 * (H + H.T)
@@ -106,7 +101,21 @@ def register_prepared(
     variance_factor = max(float(result.error), 1e-12) / dof
     information = H / variance_factor / correlation_factor
     information = 0.5 * (information + information.T)
-    return RegistrationResult(T, bool(result.converged), fitness, rmse, information, int(result.iterations), len(src_pts))
+    return RegistrationResult(T, bool(result.converged), fitness, rmse, information, int(result.iterations), len(d))
+
+
+def nearest_distances(target: PreparedCloud, source: PreparedCloud, T_target_source: NDArray[np.float64],
+                      voxel_size_m: float) -> NDArray[np.float64]:
+    """Distance from each point of ``source`` (downsampled at ``voxel_size_m``), moved by ``T_target_source``, to its
+    nearest neighbour in ``target`` at the same level (m): the residuals behind a registration's fitness."""
+    _, tree = target.level(voxel_size_m)
+    src, _ = source.level(voxel_size_m)
+    src_pts = np.asarray(src.points())[:, :3]
+    if len(src_pts) == 0:
+        return np.zeros(0)
+    T = np.asarray(T_target_source, dtype=np.float64)
+    _, d2 = tree.batch_nearest_neighbor_search(src_pts @ T[:3, :3].T + T[:3, 3])
+    return np.sqrt(np.asarray(d2))
 
 
 def register(
