@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap import geometry
 from driftmap.diagnostics.ground_truth import GT_FORMATS, MIN_GT_FRAMES
 from driftmap.errors import ConfigError, DriftmapError, StoreError
 from driftmap.frame import PoseSource
@@ -117,10 +118,60 @@ def import_pose_file(store: FrameStore, file: str | Path, *, format: TrajectoryF
                           f"store and merge again (rollback works on a merged store)")
 
     def converter(trajectory: Trajectory, fmt: str) -> Trajectory:
-        return pose_rows_in_sensor_frame(store, file, trajectory, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
+        rows = pose_rows_in_sensor_frame(store, file, trajectory, fmt, kitti_frame=kitti_frame, calib_file=calib_file)
+        refuse_another_sensors_rows(store, file, rows, fmt, match=match, max_dt_ns=max_dt_ns)
+        return rows
 
     return store.import_poses(file, format=format, match=match, max_dt_ns=max_dt_ns, source=source, propagate=propagate,
                               kitti_frame=kitti_frame, calib_file=calib_file, rows_in_sensor_frame=converter)
+
+
+OTHER_SENSOR_MIN_DEG = 20.0
+"""A pose file whose rows differ from the store's latest poses by one rigid transform *about each frame's sensor* of at
+least this rotation, for most frames, holds another sensor's poses: no calibration fix turns a sensor this far."""
+
+
+def refuse_another_sensors_rows(store: FrameStore, file: str | Path, trajectory: Trajectory, format: str, *,
+                                match: str | None = None, max_dt_ns: int = 10_000_000) -> None:
+    """Raise :class:`ConfigError` when the rows of ``file`` (already ``T_world_sensor`` as far as the data set's
+    rules know) look like the poses of *another* sensor on the same rig: for at least a quarter of the matched frames
+    (and 3, spread over at least 50 cm: not a stationary start re-anchored by a yaw) ``inv(T_file) @ T_latest`` is one
+    and the same transform (within 1 deg and 5 cm) rotating at least :data:`OTHER_SENSOR_MIN_DEG` -- the extrinsic
+    between the two sensors. A correction moves frames in the world
+    (a global re-anchoring changes positions too), never every sensor about itself by one large rotation. Trial 11: a
+    perturbed *copy* of the synthetic log's camera ``groundtruth.txt`` corrected a LiDAR store by 129 deg at every
+    frame without a word (the log's own file is recognised and converted; a copy is not)."""
+    fmt = str(format)
+    mode = PoseMatchMode(match) if match is not None else (
+        PoseMatchMode.STAMP if has_stamps(trajectory, fmt) else PoseMatchMode.INDEX)
+    try:
+        matched = match_pose_rows(trajectory, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode,
+                                  max_dt_ns=max_dt_ns, where=str(file))
+    except DriftmapError:
+        return  # the import reports what does not match, with its own message
+    ids = np.array(sorted(matched.poses), dtype=np.int64)
+    if len(ids) < 3:
+        return
+    latest = store.poses(store.head)[np.searchsorted(store.frame_ids, ids)]
+    given = np.array([matched.poses[int(i)] for i in ids])
+    offsets = np.linalg.inv(given) @ latest  # T_file_sensor^-1 T_latest_sensor: the extrinsic, if one sensor is another
+
+    def agreeing(reference: NDArray[np.float64]) -> NDArray[np.bool_]:
+        return np.array([geometry.rotation_angle_deg(o, reference) < 1.0
+                         and np.linalg.norm(o[:3, 3] - reference[:3, 3]) < 0.05 for o in offsets])
+
+    candidates = offsets[np.unique(np.linspace(0, len(offsets) - 1, 9).round().astype(np.int64))]
+    median = max(candidates, key=lambda c: int(agreeing(c).sum()))  # the offset most frames share
+    same = agreeing(median)
+    turn = geometry.rotation_angle_deg(np.eye(4), median)
+    spread_m = float(np.linalg.norm(np.ptp(latest[same, :3, 3], axis=0))) if same.any() else 0.0
+    if same.sum() >= 3 and same.mean() >= 0.25 and spread_m >= 0.5 and turn >= OTHER_SENSOR_MIN_DEG:
+        raise ConfigError(
+            f"{file}: {int(same.sum())} of {len(ids)} matched rows differ from the store's revision {store.head} by "
+            f"one and the same {turn:.0f} deg rotation about each frame's sensor (and {np.linalg.norm(median[:3, 3]):.2f} m): "
+            f"they look like the poses of another sensor on the rig (a log's ground truth is often its camera's or its "
+            f"body's, not the LiDAR's); convert them to this store's sensor frame, or start from the store's own poses "
+            f"(driftmap export STORE --trajectory FILE)")
 
 
 def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", *,
