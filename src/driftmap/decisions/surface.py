@@ -30,6 +30,10 @@ if TYPE_CHECKING:
     from driftmap.decisions.evidence import DecisionContext
 
 
+DENSE_PER_POINT = 8
+"""voxel_means: a region whose box spans at most this many voxels per point ranks them from a dense table"""
+
+
 def voxel_means(pts: NDArray[np.float64], voxel_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """The mean point of every occupied ``voxel_m`` voxel of the world lattice (in the order of their keys) and each
     point's voxel (an index into the means)."""
@@ -37,8 +41,13 @@ def voxel_means(pts: NDArray[np.float64], voxel_m: float) -> tuple[NDArray[np.fl
     keys -= keys.min(axis=0)
     dims = keys.max(axis=0) + 1
     packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, inv = np.unique(packed, return_inverse=True)
-    inv = inv.ravel()
+    cells = int(np.prod(dims))
+    if cells <= DENSE_PER_POINT * len(pts):  # each point's rank among the occupied voxels, from a dense table
+        occupied = np.bincount(packed, minlength=cells) > 0
+        inv = (np.cumsum(occupied) - 1)[packed]  # the same as np.unique's inverse, without sorting every point
+    else:
+        _, inv = np.unique(packed, return_inverse=True)
+        inv = inv.ravel()
     n = np.bincount(inv)
     means = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(n)) for k in range(3)], axis=1) / n[:, None]
     return means, inv
@@ -53,14 +62,15 @@ def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], fids: NDAr
         normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals[which]
     else:
         fit, inv = voxel_means(pts, c.normal_voxel_m)
-        at, of_point = np.unique(inv[which], return_inverse=True)  # only the voxels holding a point inside
+        held = np.bincount(inv[which], minlength=len(fit)) > 0  # only the voxels holding a point inside
+        at = np.flatnonzero(held)
         normals = estimate_normals(fit, k=c.normal_max_neighbors, radius_m=c.normal_radius_m, at=at).normals
-        normals = normals[of_point.ravel()]
+        normals = normals[(np.cumsum(held) - 1)[inv[which]]]  # each inside point: its voxel's rank in ``at``
     normals = normals.astype(np.float64)
     p, f = pts[which], fids[which]
-    uniq, inv_f = np.unique(f, return_inverse=True)
+    uniq = np.sort(np.unique_values(f))  # a few frames: each point's found by a search, not a sort of every point
     origins = np.stack([ctx.origin(int(x)) for x in uniq])
-    flip = np.einsum("ij,ij->i", normals, origins[inv_f.ravel()] - p) < 0
+    flip = np.einsum("ij,ij->i", normals, origins[np.searchsorted(uniq, f)] - p) < 0
     normals[flip] *= -1.0
     return normals
 
