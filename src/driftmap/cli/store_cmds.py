@@ -37,24 +37,36 @@ def correct(
     no_propagate: Annotated[bool, typer.Option("--no-propagate", help="Do not propagate to frames without a pose row.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
+    accept_sensor_offset: Annotated[bool, typer.Option("--accept-sensor-offset", help="Import rows that differ from the store's latest poses by one large rotation about each frame's sensor (otherwise refused as another sensor's poses), with a warning: for a store whose poses are another sensor's (e.g. built from a camera's pose file) corrected with its own sensor's.")] = False,
 ) -> None:
-    """Import a pose file as a new revision (a correction); nothing is overwritten."""
+    """Import a pose file as a new revision (a correction); nothing is overwritten.
+
+    Rows that move the whole map by one world transform (a re-anchoring, no correction of drift) are imported and
+    said so; rows that turn every frame's sensor by one large rotation (another sensor's poses) are refused unless
+    --accept-sensor-offset is given."""
     from driftmap.frame import PoseSource
-    from driftmap.pipeline.pose_files import import_pose_file
+    from driftmap.pipeline.pose_files import PoseFileOffsets, import_pose_file
     from driftmap.store.frame_store import TrajectoryFormat
 
     format = choice(format, tuple(f.value for f in TrajectoryFormat), "--format")
     match = None if match is None else choice(match, ("stamp", "index"), "--match")
     source = choice(source, tuple(s.value for s in PoseSource if s not in (PoseSource.NONE, PoseSource.ROLLBACK)),
                     "--source")  # a rollback revision restores an earlier one (driftmap rollback), not a file's poses
+    fits: list[PoseFileOffsets] = []  # how the rows differ from the head (import_pose_file's report)
     with open_store(store_path, "a") as store:
         revision, matched = import_pose_file(store, poses, format=format, match=match, max_dt_ns=round(max_dt_ms * 1e6),
                                                source=source, propagate=not no_propagate, kitti_frame=kitti_frame,
-                                               calib_file=calib)
+                                               calib_file=calib, accept_sensor_offset=accept_sensor_offset,
+                                               report=fits.append)
         d = store.diff(revision.parent_id, revision.revision_id)
     console.print(f"revision {revision.revision_id} (parent {revision.parent_id}, source {revision.source.value}): "
                   f"{len(revision.set_directly)} frames set from {poses.name}, {len(revision.propagated)} propagated; "
                   f"max change {d.max_translation_m:.4f} m / {d.max_rotation_deg:.3f} deg")
+    for fit in fits:
+        if fit.another_sensor:  # only with --accept-sensor-offset: refused otherwise
+            console.print(f"  {fit.sensor_offset_text()}: imported as asked (--accept-sensor-offset)", highlight=False)
+        if fit.reanchors:
+            console.print(f"  {fit.reanchoring_text()}", highlight=False)
     if matched.unmatched_rows:
         console.print(f"  {len(matched.unmatched_rows)} rows of {poses.name} matched no stored frame (ignored)")
 

@@ -1,0 +1,175 @@
+"""The twelfth hostile-input trial's findings on ``driftmap correct``'s check for another sensor's poses
+(``pipeline.pose_files.refuse_another_sensors_rows``, docs/store.md), through the command line.
+
+Trial 12: the check fits one transform about each frame's sensor (``T_file = T_head @ X``). On the synthetic room's
+path, a circle about the world's origin, a world yaw (``T_file = G @ T_head``: a re-anchoring of the whole map) is also
+such a transform, so a 90 deg re-anchoring of the depth room and a 30 deg one of its LiDAR were refused as "another
+sensor"; a 10 deg re-anchoring about the first frame went through without a word; and a LiDAR store *built* from a
+copy of the camera's poses could not be corrected with its LiDAR's own poses (refused, with advice that did not fit).
+The check now fits one world transform too: rows it explains are a re-anchoring (accepted, and said so), and
+``--accept-sensor-offset`` imports another sensor's offset when it is the store that holds the other sensor's poses.
+"""
+
+from __future__ import annotations
+
+import re
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_run import run_cli
+from scipy.spatial.transform import Rotation
+
+from driftmap.trajectory import read_trajectory, write_tum
+
+
+def _moved(source: Path, out: Path, *, world: np.ndarray | None = None, sensor: np.ndarray | None = None,
+           about_first: bool = False) -> Path:
+    """``source``'s TUM rows moved by a world transform (``world @ T``; ``about_first``: the rotation about the first
+    row's position) or by a transform about each sensor (``T @ sensor``)."""
+    traj = read_trajectory(source, "tum")
+    poses = traj.poses
+    if world is not None:
+        G = world.copy()
+        if about_first:
+            G[:3, 3] = poses[0, :3, 3] - G[:3, :3] @ poses[0, :3, 3]
+        poses = G @ poses
+    if sensor is not None:
+        poses = poses @ sensor
+    write_tum(out, replace(traj, poses=poses))
+    return out
+
+
+def _transform(axis: str, degrees: float, translation_m: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler(axis, degrees, degrees=True).as_matrix()
+    T[:3, 3] = translation_m
+    return T
+
+
+def _copy(store: Path, root: Path, name: str) -> Path:
+    """A scratch copy of a store (each test corrects its own)."""
+    out = root / name
+    shutil.copytree(store, out)
+    return out
+
+
+def _out(run) -> str:  # noqa: ANN001 - a CompletedProcess
+    return " ".join(run.stdout.split())
+
+
+def _err(run) -> str:  # noqa: ANN001
+    return " ".join(run.stderr.split())
+
+
+@pytest.fixture(scope="module")
+def logs(tmp_path_factory: pytest.TempPathFactory, room10: dict[str, Path]) -> dict[str, Path]:
+    """The 10-frame depth room (conftest ``room10``) and its store placed with its ground truth; a 20-frame synthetic
+    LiDAR room, its store placed with the log's ground truth (converted to the LiDAR) and its LiDAR poses exported,
+    and a store of it built from a perturbed copy of the log's camera poses (taken as the LiDAR's: the head is the
+    other sensor's); the depth room built on an L-shaped path (no circle about the origin)."""
+    root = tmp_path_factory.mktemp("trial12_poses")
+    out = {"root": root, "depth": room10["gt"], "depth_poses": room10["log"] / "groundtruth.txt"}
+    log = root / "lidar_log"
+    assert run_cli("synth", log, "--seed", 4, "--lidar", "--frames", 20).returncode == 0
+    built = run_cli("build", log, "--out", root / "lidar", "--sensor", "lidar", "--poses", log / "groundtruth.txt",
+                    "--no-loop-closure")
+    assert built.returncode == 0, built.stderr[-2000:]
+    out["lidar"], out["lidar_poses"] = root / "lidar", root / "lidar_true.txt"
+    exported = run_cli("export", out["lidar"], "--trajectory", out["lidar_poses"])
+    assert exported.returncode == 0, exported.stderr[-2000:]
+    copy = root / "camera_copy.txt"  # not byte-identical to the log's file, so not recognised and converted
+    assert run_cli("perturb", log / "groundtruth.txt", copy, "--step-frame", 10, "--step-m", "0.3,0,0").returncode == 0
+    built = run_cli("build", log, "--out", root / "lidar_from_camera", "--sensor", "lidar", "--poses", copy,
+                    "--no-loop-closure")
+    assert built.returncode == 0, built.stderr[-2000:]
+    out["lidar_from_camera"], out["camera_copy"] = root / "lidar_from_camera", copy
+
+    traj = read_trajectory(out["depth_poses"], "tum")  # an L: 0.2 m steps along x, then along y, the camera
+    n = len(traj)                                      # looking ahead, wobbling a few degrees
+    poses = np.repeat(np.eye(4)[None], n, axis=0)
+    for i in range(n):
+        corner = i >= n // 2
+        poses[i, :3, 3] = (0.2 * min(i, n // 2), 0.2 * (i - n // 2) if corner else 0.0, 1.0)
+        base = Rotation.from_euler("zyx", [90.0 * corner + 5 * np.sin(i), 3 * np.cos(i), 0.0], degrees=True)
+        poses[i, :3, :3] = (base * Rotation.from_euler("xz", [-90, -90], degrees=True)).as_matrix()
+    out["l_path"] = root / "l_path.txt"
+    write_tum(out["l_path"], replace(traj, poses=poses))
+    built = run_cli("build", room10["log"], "--out", root / "l_store", "--poses", out["l_path"], "--no-loop-closure")
+    assert built.returncode == 0, built.stderr[-2000:]
+    out["l_store"] = root / "l_store"
+    return out
+
+
+REANCHORS = "re-anchors the map by one world transform"
+NO_DRIFT = "it moves the whole map and changes no frame's pose relative to another (no correction of drift)"
+
+
+@pytest.mark.parametrize("store, poses, degrees", [("depth", "depth_poses", 90.0), ("lidar", "lidar_poses", 30.0)])
+def test_t12_a_world_yaw_about_the_origin_is_a_re_anchoring_not_another_sensor(logs: dict, store: str, poses: str,
+                                                                               degrees: float) -> None:
+    """Was refused as another sensor's poses (on a circle about the origin a world yaw is also one transform about
+    each sensor)."""
+    target = _copy(logs[store], logs["root"], f"yaw_{store}")
+    moved = _moved(logs[poses], logs["root"] / f"yaw_{store}.txt", world=_transform("z", degrees))
+    run = run_cli("correct", target, "--poses", moved)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = _out(run)
+    assert re.search(rf"revision 1 \(parent 0, .* max change [0-9.]+ m / {degrees:.3f} deg", out), out
+    assert f"the file {REANCHORS} ({degrees:.1f} deg, 0.00 m): {NO_DRIFT}" in out, out
+    assert REANCHORS in _err(run) and "another sensor" not in out + _err(run), run.stderr  # the logged warning
+
+
+def test_t12_a_re_anchoring_about_the_first_frame_is_said(logs: dict) -> None:
+    """A 10 deg yaw about the first frame (T_file = G @ T_head) was accepted without a word."""
+    target = _copy(logs["depth"], logs["root"], "first")
+    moved = _moved(logs["depth_poses"], logs["root"] / "first.txt", world=_transform("z", 10.0), about_first=True)
+    run = run_cli("correct", target, "--poses", moved)
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = _out(run)
+    assert "revision 1 (parent 0," in out and re.search(r"max change [0-9.]+ m / 10\.000 deg", out), out
+    found = re.search(rf"the file {REANCHORS} \(10\.0 deg, ([0-9.]+) m\): {re.escape(NO_DRIFT)}", out)
+    assert found and float(found.group(1)) > 0.05, out  # about the first frame, not the origin: it moves too
+    again = run_cli("correct", target, "--poses", moved)  # the same rows again: nothing re-anchored, nothing said
+    assert again.returncode == 0 and "revision 2 (parent 1," in _out(again), again.stderr[-2000:]
+    assert REANCHORS not in _out(again), _out(again)
+
+
+def test_t12_a_store_built_from_another_sensors_poses_is_repaired_with_accept_sensor_offset(logs: dict) -> None:
+    """The head is the camera's poses (built from a copy of its file): the LiDAR's own poses were refused, with
+    advice only about the file."""
+    target = _copy(logs["lidar_from_camera"], logs["root"], "repair")
+    refused = run_cli("correct", target, "--poses", logs["lidar_poses"])
+    assert refused.returncode == 1, refused.stdout[-2000:]
+    message = _err(refused)
+    assert "129 deg rotation about each frame's sensor" in message and "another sensor" in message, message
+    assert "driftmap export STORE --trajectory" in message, message
+    assert "revision 0 holds another sensor's poses" in message and "--accept-sensor-offset" in message, message
+    run = run_cli("correct", target, "--poses", logs["lidar_poses"], "--accept-sensor-offset")
+    assert run.returncode == 0, run.stderr[-2000:]
+    out = _out(run)
+    assert re.search(r"revision 1 \(parent 0, .* max change [0-9.]+ m / 129\.[0-9]+ deg", out), out
+    assert "129 deg rotation about each frame's sensor" in out and "imported as asked (--accept-sensor-offset)" in out
+    assert "129 deg rotation about each frame's sensor" in _err(run), run.stderr  # the logged warning
+    own = run_cli("correct", target, "--poses", logs["lidar_poses"])  # repaired: its own poses need no flag now
+    assert own.returncode == 0 and re.search(r"revision 2 \(parent 1, .* max change 0\.0000 m / 0\.000 deg", _out(own))
+    copy = run_cli("correct", target, "--poses", logs["camera_copy"])  # and the camera's copy is refused now
+    assert copy.returncode == 1 and "another sensor" in _err(copy), copy.stdout[-2000:]
+
+
+def test_t12_another_sensors_offset_on_a_path_that_is_no_circle_is_refused(logs: dict) -> None:
+    """On an L-shaped path a transform about each sensor is no world transform: refused as another sensor's poses,
+    not taken for a re-anchoring; a world yaw of the same path is a re-anchoring."""
+    target = _copy(logs["l_store"], logs["root"], "l_sensor")
+    offset = _moved(logs["l_path"], logs["root"] / "l_sensor.txt", sensor=_transform("y", 40.0, (0.1, 0.0, 0.0)))
+    refused = run_cli("correct", target, "--poses", offset)
+    assert refused.returncode == 1, refused.stdout[-2000:]
+    message = _err(refused)
+    assert re.search(r"10 of 10 matched rows .* same 40 deg rotation about each frame's sensor \(and 0\.10 m\)",
+                     message), message
+    assert "another sensor" in message and "re-anchor" not in message, message
+    yawed = _moved(logs["l_path"], logs["root"] / "l_world.txt", world=_transform("z", 40.0))
+    run = run_cli("correct", target, "--poses", yawed)
+    assert run.returncode == 0 and f"the file {REANCHORS} (40.0 deg, 0.00 m)" in _out(run), run.stderr[-2000:]
