@@ -51,6 +51,7 @@ class CoverageConfig(SettingsModel):
     drift_check_factor: float = Field(2.0, ge=1.0, description="the drift rate is no verdict when the revisit check's corrections per metre of travel exceed it this many times ...")
     drift_check_margin_percent: float = Field(0.5, ge=0.0, description="... plus this (%/m)")
     drift_check_min_share: float = Field(0.25, ge=0.0, description="... and its disagreement is at least this share of its max_detectable_m (below, the pairs' corrections are registration noise over short travel)")
+    drift_check_margin_deg_per_m: float = Field(0.2, ge=0.0, description="the same for the rotation: no verdict when the pairs turn more than drift_check_factor times the fit's deg/m plus this, and their disagreement is at least drift_check_min_share of max_detectable_deg")
     smeared_separations: float = Field(1.0, gt=0.0, description="an evaluated, unflagged group whose frames disagree by more than this many times double_wall.min_separation_m is smeared")
 
 
@@ -180,13 +181,15 @@ class Coverage:
 
 
 def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None,
-           revisits: RevisitCheck | None = None, drift_percent_per_m: float | None = None) -> Coverage:
+           revisits: RevisitCheck | None = None, drift_percent_per_m: float | None = None,
+           drift_deg_per_m: float | None = None) -> Coverage:
     """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
     ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
     disagree with the earlier map beyond what the detector sees, no headline figure is a verdict; when their
     corrections per metre of travel exceed ``drift_percent_per_m`` (the drift rate's fit) by more than
     ``drift_check_factor`` times plus ``drift_check_margin_percent``, the drift rate is not one (its residuals are
-    gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift)."""
+    gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift); the same for the
+    rotation against ``drift_deg_per_m`` (trial 12: 0.18 deg/m fitted on 1 deg/m of injected drift)."""
     cfg = config or CoverageConfig()
     scales = [scale_coverage(placed, s, walls.config.min_points, cfg.smeared_separations) for s in walls.scales]
     counts = placed.samples.sample_counts
@@ -224,6 +227,12 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
             revisits.disagreement_m >= cfg.drift_check_min_share * revisits.config.max_detectable_m):
         drift.append(f"the revisit check's frame pairs disagree by {checked:.2f} % of the travel between them, the drift "
                      f"rate's fit says {drift_percent_per_m:.2f} %/m: drift larger than its residual gate escapes it")
+    turned = revisits.drift_deg_per_m if revisits is not None else None
+    if turned is not None and drift_deg_per_m is not None and (
+            turned > cfg.drift_check_factor * abs(drift_deg_per_m) + cfg.drift_check_margin_deg_per_m) and (
+            revisits.disagreement_deg >= cfg.drift_check_min_share * revisits.config.max_detectable_deg):
+        drift.append(f"the revisit check's frame pairs turn by {turned:.3f} deg per metre of travel between them, the "
+                     f"drift rate's fit says {drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
     beyond = revisits.reason() if revisits is not None else None
     if beyond:  # every figure compares within gates that a larger pose error escapes
         surfaces, smear, drift = [*surfaces, beyond], [*smear, beyond], [*drift, beyond]

@@ -153,7 +153,8 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
                                                              max_query_points=e.max_query_points))
     revisits = _timed(seconds, "revisit_check", lambda: check_revisits(placed, cfg.revisits))
     coverage = _timed(seconds, "coverage", lambda: assess(placed, walls, attribution.drift.n_frames, cfg.coverage,
-                                                          revisits, attribution.drift.percent_per_m))
+                                                          revisits, attribution.drift.percent_per_m,
+                                                          attribution.drift.deg_per_m))
     causes = _timed(seconds, "coverage", lambda: explain_regions(placed, walls))
     trajectory = None
     if ground_truth is not None:
