@@ -24,15 +24,19 @@ register the frames overlapping most what was seen ``revisit_min_path_m`` before
 overlap after a 3 m step that leaves no pair overlapping). The disagreement is the ``min_probes``-th largest
 correction of each kind, the larger of the two, so one registration that slid along a corridor does not decide it
 alone; the pairs' corrections per metre of travel between their two frames give a drift rate
-(:attr:`RevisitCheck.drift_percent_per_m`).
+(:attr:`RevisitCheck.drift_percent_per_m`). Third, the trajectory's *jumps* (:func:`_find_jumps`: consecutive frames
+whose relative motion differs from their neighbours' by half the detectable error or more) have the frames after the
+jump registered onto the frames before it, the poses as placed and the jump undone as two hypotheses (trial 12: a
+block of frames moved and moved back escaped the pairs, which ran end-on-start, and the whole-map probes, which
+fitted the unmoved majority; a 180 deg flip left no pair overlapping).
 
 The figures are a verdict only when the disagreement stays within what the detector sees
 (:attr:`RevisitCheckConfig.max_detectable_m`, :attr:`RevisitCheckConfig.max_detectable_deg`), and when the pairs fit
 at all (:attr:`RevisitCheck.unfit`: a 3 m step, a 180 deg turn are beyond what the registration reaches from its
 gate; among the pairs or among the whole-map probes). Either failing makes every headline figure 'cannot judge' (:func:`~driftmap.diagnostics.coverage.assess`).
 
-Known limits (docs/diagnostics.md): a pose error that moves fewer than ``min_probes`` pairs' worth of frames (a step
-in the last frame or two) or lies along a direction the revisiting frames do not constrain is not measured.
+Known limits (docs/diagnostics.md): a pose error that is no jump of the trajectory and moves fewer than ``min_probes``
+pairs' worth of frames, or lies along a direction the revisiting frames do not constrain, is not measured.
 """
 
 from __future__ import annotations
