@@ -361,11 +361,12 @@ def _map_pairs(placed: PlacedCloud, cfg: RevisitCheckConfig) -> list[tuple[int, 
 def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cfg: RevisitCheckConfig,
               kind: str = STRETCH, last_row: int | None = None,
               start_guess: NDArray[np.float64] | None = None) -> RevisitProbe:
-    """Register frame row ``row`` (with the rows up to ``last_row``) onto the frames up to ``window_m`` of travel before ``target_row`` (at most
-    ``max_window_frames``; :data:`MAP`: all frames up to it), cropped to the probe's box plus the coarse gate. With
-    ``start_guess`` the poses as placed and the guess are refined from a 15 cm gate, and the one with more of the probe
-    within :data:`HYPOTHESIS_WITHIN` finest voxels is kept (the free registration only when it does not count): a free registration from a 80 cm gate slides a 30 cm step along
-    the room to 1.14 m, which fits 0.678 of the probe against 0.665 at the truth."""
+    """Register frame row ``row`` (with the rows up to ``last_row``) onto the frames up to ``window_m`` of travel
+    before ``target_row`` (at most ``max_window_frames``; :data:`MAP`: all frames up to it), cropped to the probe's box
+    plus the coarse gate. With ``start_guess`` the poses as placed and the guess are refined from a 15 cm gate, and the
+    one with more of the probe within :data:`HYPOTHESIS_WITHIN` finest voxels is kept (the free registration only when
+    it does not count): a free registration from an 80 cm gate slides a 30 cm step along the room to 1.14 m, which
+    fits 0.678 of the probe against 0.665 at the truth."""
     offsets, path, ids = placed.samples.offsets, placed.path_length_m, placed.frame_ids
     first = 0 if kind == MAP else max(int(np.searchsorted(path, path[target_row] - cfg.window_m, "left")),
                                     target_row + 1 - cfg.max_window_frames)
@@ -394,9 +395,11 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
             T = result.T_target_source
         return T, result
 
-    def counts(fitness: float, result: Any) -> bool:
-        constraint = translation_degeneracy(result.information_6x6[:3, :3])
+    def counts(fitness: float, constraint: float | None) -> bool:
         return fitness >= cfg.min_fitness and constraint is not None and constraint >= cfg.min_constraint
+
+    def constraint_of(result: Any) -> float | None:
+        return translation_degeneracy(result.information_6x6[:3, :3])
 
     if start_guess is None:
         T, result = refine(np.eye(4), free)
@@ -408,14 +411,14 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
         hypotheses = [refine(start, local) for start in (np.eye(4), start_guess)]
         T, result = max(hypotheses, key=lambda h: inliers(h[0], HYPOTHESIS_WITHIN))
         fitness = float(result.fitness)
-        if not counts(fitness, result):
+        if not counts(fitness, constraint_of(result)):
             T, result = refine(np.eye(4), free)
             fitness = float(result.fitness)
     origin = placed.origins_world[row]
     moved_m = float(np.linalg.norm(T[:3, :3] @ origin + T[:3, 3] - origin))
     turned_deg = float(geometry.rotation_angle_deg(np.eye(4), T))
-    constraint = translation_degeneracy(result.information_6x6[:3, :3])
-    counted = counts(fitness, result)
+    constraint = constraint_of(result)
+    counted = counts(fitness, constraint)
     probe = RevisitProbe(int(ids[row]), overlap, fitness, float(result.rmse_m), constraint, moved_m, turned_deg,
                          bool(counted), *pair, kind)
     logger.debug("revisit pair %s", probe)
@@ -469,17 +472,6 @@ def _undo_jump(placed: PlacedCloud, rows: NDArray[np.int64], k: int) -> NDArray[
     return before @ velocity @ np.linalg.inv(placed.poses[rows[k]])
 
 
-def _pair_overlap(placed: PlacedCloud, target_row: int, row: int, cfg: RevisitCheckConfig) -> float:
-    """The share of frame row ``row``'s points in coarse voxels that frame row ``target_row`` occupies."""
-    offsets = placed.samples.offsets
-    a = voxel_coords(placed.points_world[offsets[target_row]:offsets[target_row + 1]], cfg.coarse_gate_m)
-    b = voxel_coords(placed.points_world[offsets[row]:offsets[row + 1]], cfg.coarse_gate_m)
-    if len(a) == 0 or len(b) == 0:
-        return 0.0
-    keys, _ = keys_on_bounding_grid(np.concatenate([a, b]), "revisit check voxels")
-    return float(np.isin(keys[len(a):], keys[:len(a)]).mean())
-
-
 def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None) -> RevisitCheck:
     """Register up to ``max_probes`` revisit pairs of ``placed`` (see the module docstring)."""
     cfg = config or RevisitCheckConfig()
@@ -506,8 +498,8 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
         path = placed.path_length_m[all_rows[k:stop]]
         stop = k + max(1, int(np.sum(path - path[0] <= cfg.window_m / 2)))  # fast motion: fewer frames overlap
         before, first, last = int(all_rows[k - 1]), int(all_rows[k]), int(all_rows[stop - 1])
-        probes.append(_register(placed, before, first, _pair_overlap(placed, before, first, cfg), cfg, STEP, last,
-                                _undo_jump(placed, all_rows, k)))
+        overlap_first = float(_overlap_table(placed, np.array([before, first]), cfg)[1, 0])
+        probes.append(_register(placed, before, first, overlap_first, cfg, STEP, last, _undo_jump(placed, all_rows, k)))
     check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps))
     if check.reason():
         logger.warning("revisit check: %s", check.reason())
