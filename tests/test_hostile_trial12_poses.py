@@ -12,6 +12,7 @@ The check now fits one world transform too: rows it explains are a re-anchoring 
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 from dataclasses import replace
@@ -86,6 +87,7 @@ def logs(tmp_path_factory: pytest.TempPathFactory, room10: dict[str, Path]) -> d
                     "--no-loop-closure")
     assert built.returncode == 0, built.stderr[-2000:]
     out["lidar_from_camera"], out["camera_copy"] = root / "lidar_from_camera", copy
+    out["lidar_from_camera_run"] = built
 
     traj = read_trajectory(out["depth_poses"], "tum")  # an L: 0.2 m steps along x, then along y, the camera
     n = len(traj)                                      # looking ahead, wobbling a few degrees
@@ -173,3 +175,40 @@ def test_t12_another_sensors_offset_on_a_path_that_is_no_circle_is_refused(logs:
     yawed = _moved(logs["l_path"], logs["root"] / "l_world.txt", world=_transform("z", 40.0))
     run = run_cli("correct", target, "--poses", yawed)
     assert run.returncode == 0 and f"the file {REANCHORS} (40.0 deg, 0.00 m)" in _out(run), run.stderr[-2000:]
+
+
+def _given_check(store: Path) -> dict:
+    return json.loads((store / "build_summary.json").read_text())["given_poses_check"]
+
+
+def test_t12_build_with_another_sensors_poses_says_they_do_not_move_as_the_frames_do(logs: dict) -> None:
+    """Trial 12: ``build --poses`` took a copy of the camera's poses as the LiDAR's without a word (129 deg off on
+    every frame in the trial's log). The build still stores the frames as given, but registering frame pairs shows
+    the file's relative motion is not the scans': warned, in the build table and in build_summary.json."""
+    run = logs["lidar_from_camera_run"]
+    check = _given_check(logs["lidar_from_camera"])
+    assert check["consistent"] is False and check["n_disagreeing"] >= 3, check
+    assert 2 * check["n_disagreeing"] >= check["n_pairs"] >= 3, check
+    for pair in (p for p in check["pairs"] if p["disagrees"]):  # the scans fit each other, the file's motion does not
+        assert pair["fit_registered"] > 0.9 and pair["fit_registered"] - pair["fit_as_given"] >= 0.1, pair
+    err, out = _err(run), _out(run)
+    assert "the poses do not move the way the frames do" in err and str(logs["camera_copy"]) in err, err
+    assert "another sensor's pose file" in err and "--accept-sensor-offset" in err, err
+    assert re.search(r"given poses fit the frames .* NO: \d+ of \d+ frame pairs disagree", out), out
+
+
+def test_t12_build_with_the_sensors_own_poses_fits_its_frames(logs: dict) -> None:
+    """The LiDAR's poses (the log's, converted by the data set's extrinsic): every checked pair fits as given."""
+    check = _given_check(logs["lidar"])
+    assert check["consistent"] is True and check["n_disagreeing"] == 0 and check["n_decisive"] >= 3, check
+    for pair in check["pairs"]:
+        assert pair["fit_registered"] - pair["fit_as_given"] < 0.1, pair
+
+
+def test_t12_build_given_poses_is_not_judged_on_frames_that_overlap_too_little(logs: dict) -> None:
+    """The 10-frame depth room turns 44 deg and moves 75 cm between frames: a registration of two frames slides a wall
+    onto another and fits more than the true motion does (7 of 8 pairs 'disagreed' with the ground truth). Pairs whose
+    registration fits under 60 % of the frame do not decide, and then the check says nothing either way."""
+    check = _given_check(logs["depth"])
+    assert check["n_pairs"] >= 3 and check["n_decisive"] < 3 and check["consistent"] is None, check
+    assert all(p["fit_registered"] < 0.6 for p in check["pairs"] if not p["decisive"]), check

@@ -365,6 +365,16 @@ def _loops_by_cue(loops: list[dict]) -> str:
     return ", ".join(f"{kind} {n}" for kind, n in sorted(counts.items())) or "-"
 
 
+def _given_poses_row(check: dict | None) -> str:
+    """``yes (8 frame pairs)`` / ``NO: 8 of 8 frame pairs disagree`` / ``-`` (odometry's poses, or too few frame pairs
+    overlap enough to decide)."""
+    if check is None or check.get("consistent") is None:
+        return "-"
+    if check["consistent"]:
+        return f"yes ({check['n_decisive']} frame pairs)"
+    return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree"
+
+
 def _tracking_counts(tracking: dict) -> str:
     """``78 / 1 / 0`` frames whose odometry registration was ok / recovered / flagged (``-`` without records)."""
     if not tracking.get("frames"):
@@ -446,6 +456,7 @@ def build(
         ("frames (new / in store)", f"{result.n_frames_new} / {result.n_frames}"),
         ("mean invalid-pixel fraction", "-" if result.mean_invalid_fraction is None else f"{result.mean_invalid_fraction:.3f}"),
         ("poses", result.pose_source),
+        ("given poses fit the frames", _given_poses_row(result.given_poses_check)),
         ("odometry fps", "-" if result.odometry_fps is None else f"{result.odometry_fps:.1f}"),
         ("tracking ok / recovered / flagged", _tracking_counts(result.tracking)),
         ("keyframes", str(result.n_keyframes)),

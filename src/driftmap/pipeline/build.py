@@ -34,11 +34,13 @@ from driftmap.pipeline.build_poses import (
     no_pose_message,
     pose_file_lookup,
 )
+from driftmap.pipeline.given_poses import check_given_poses
 from driftmap.pipeline.loop_closure import check_place_descriptor, close_loops, flagged_rows
 from driftmap.pipeline.resume import (
     check_recorded_source,
     check_resume_settings,
     check_stored_frames,
+    describe_poses,
     poses_record,
     recorded_odometry,
     remove_new_store,
@@ -266,6 +268,13 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
         odometry_config=odometry_config, tracking=tracking_summary(store), scene_reach=scene,
     )
+    if n_new and pose_source is not PoseSource.ODOMETRY:
+        t_check = time.perf_counter()
+        check = check_given_poses(store)
+        result.given_poses_check = check.to_json()
+        stages["given poses check"] = time.perf_counter() - t_check
+        if (reason := check.reason(describe_poses((source_record or {}).get("poses", {"mode": "source"})))) is not None:
+            logger.warning("%s", reason)
     if result.tracking["flagged"]:
         logger.warning("odometry: %d of %d frames flagged (tracking lost, poses bridged): %s; loop closure does not "
                        "trust the trajectory across them", len(result.tracking["flagged"]), result.tracking["frames"],

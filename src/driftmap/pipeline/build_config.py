@@ -115,6 +115,10 @@ class BuildResult:
     tracking: dict[str, Any] = field(default_factory=lambda: tracking_summary(None))
     """How the odometry's registrations went (:func:`tracking_summary`): counts per status, the flagged and the
     recovered frames with their reasons, fitness and degeneracy, and one record per frame."""
+    given_poses_check: dict[str, Any] | None = None
+    """Frames built with given poses (``--poses`` / ``--poses-from-source``): do those poses move the way the frames
+    do (:class:`driftmap.pipeline.given_poses.GivenPosesCheck`: ``consistent``, the registered frame pairs)? None
+    with the odometry's poses, or when no frame was added."""
     loop_closure_config: dict[str, Any] | None = None
     """The loop-closure settings this run used: ``[build.loop_closure]``'s explicit ones over the defaults for the
     sensor (LiDAR: :meth:`LoopClosureConfig.for_lidar`); None without loop closure."""
