@@ -25,7 +25,7 @@ overlap after a 3 m step that leaves no pair overlapping). The disagreement is t
 correction of each kind, the larger of the two, so one registration that slid along a corridor does not decide it
 alone; the pairs' corrections per metre of travel between their two frames give a drift rate
 (:attr:`RevisitCheck.drift_percent_per_m`). Third, the trajectory's *jumps* (:func:`_find_jumps`: consecutive frames
-whose relative motion differs from their neighbours' by half the detectable error or more) have the frames after the
+whose relative motion differs from their neighbours' by a quarter of the detectable error or more) have the frames after the
 jump registered onto the frames before it, the poses as placed and the jump undone as two hypotheses (trial 12: a
 block of frames moved and moved back escaped the pairs, which ran end-on-start, and the whole-map probes, which
 fitted the unmoved majority; a 180 deg flip left no pair overlapping).
@@ -95,7 +95,8 @@ class RevisitCheckConfig(SettingsModel):
     min_probes: int = Field(3, ge=1, description="counted pairs the check needs; its disagreement is the min_probes-th largest correction")
     max_detectable_m: float = Field(0.2, gt=0.0, description="the largest separation the double-wall detector reports (m): beyond it the figures cannot judge the map")
     max_detectable_deg: float = Field(10.0, gt=0.0, description="the largest rotation the detector's normal grouping tolerates (deg)")
-    max_step_checks: int = Field(4, ge=0, le=100, description="consecutive frames whose relative motion jumps against their neighbours' by half the detectable error or more are registered onto the frames before them: at most this many such jumps, the largest first")
+    max_step_checks: int = Field(4, ge=0, le=100, description="consecutive frames whose relative motion jumps against their neighbours' by jump_min_share of the detectable error or more are registered onto the frames before them: at most this many such jumps, the largest first")
+    jump_min_share: float = Field(0.25, gt=0.0, le=10.0, description="... a jump is checked from this share of max_detectable_m or max_detectable_deg on (0.25: 5 cm / 2.5 deg indoors). At 0.5 a 5 deg yaw step in the room (a 6.7 deg turn between frames becoming 11.7) sat on the threshold and a 5 deg step on the street went unchecked")
     step_probes: int = Field(3, ge=1, le=10, description="... the frames from the jump on (at most this many, within half window_m of travel, up to the next jump) registered together onto the frames before it")
     implausible_factor: float = Field(5.0, gt=1.0, description="a jump whose frames fit nothing before it is no verdict ('cannot judge') when it exceeds this many times the log's 90th-percentile motion between consecutive frames")
 
@@ -271,7 +272,7 @@ class RevisitCheck:
             return (f"only {sum(p.counted for p in group)} of {len(group)} revisiting frames fit the earlier frames they "
                     f"revisit (revisit check; {cfg.min_probes} needed, GICP from a {100 * cfg.coarse_gate_m:.0f} cm "
                     f"gate): a pose error larger than the check and the double-wall detector measure cannot be ruled "
-                    f"out")
+                    f"out{self._measured_jump_note()}")
         if not self.beyond_detector:
             return None
         worst = max(self.counted, key=lambda p: p.correction_m / cfg.max_detectable_m
@@ -282,6 +283,21 @@ class RevisitCheck:
                 f"{worst.correction_deg:.1f} deg; revisit check): beyond the {100 * cfg.max_detectable_m:.0f} cm / "
                 f"{cfg.max_detectable_deg:g} deg the double-wall detector sees, the map is inconsistent by more than "
                 f"its figures show")
+
+    def _measured_jump_note(self) -> str:
+        """``; the trajectory jumps ...`` naming the jump whose frames needed the largest correction onto the frames
+        before it (beyond the registration's noise: a quarter of ``jump_min_share`` of the detectable error), or ''."""
+        cfg = self.config
+        floor = cfg.jump_min_share / 4
+        measured = [(j, self.jump_correction(j), self.jump_correction(j, True)) for j in self.jumps]
+        measured = [(j, m, d) for j, m, d in measured if m is not None and d is not None
+                    and (m >= floor * cfg.max_detectable_m or d >= floor * cfg.max_detectable_deg)]
+        if not measured:
+            return ""
+        j, m, d = max(measured, key=lambda x: x[1] / cfg.max_detectable_m + x[2] / cfg.max_detectable_deg)
+        return (f"; the trajectory jumps between frames {j.before_frame_id} and {j.frame_id}, and the frames from "
+                f"{j.frame_id} on fit the frames before it only moved by {100 * m:.1f} cm / {d:.1f} deg: a pose error "
+                f"there")
 
     def to_json(self) -> dict:
         return {"judged": self.judged, "beyond_detector": self.beyond_detector, "unfit": self.unfit,
@@ -427,7 +443,7 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
 
 def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig) -> list[tuple[int, StepJump]]:
     """``[(k, jump)]``: up to ``max_step_checks`` consecutive frames ``rows[k - 1]``, ``rows[k]`` whose relative motion
-    differs from their neighbours' (the median over three steps either side) by at least half of
+    differs from their neighbours' (the median over three steps either side) by at least ``jump_min_share`` of
     ``max_detectable_m`` or ``max_detectable_deg``, the largest (relative to those) first. A step or a turn that a bad
     correction put between two frames shows here as a jump of the trajectory; a fast but real motion does too, and
     registering the frames after it onto those before it tells the two apart (its frames fit as placed)."""
@@ -451,7 +467,7 @@ def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckC
     usual_deg = float(np.percentile(turn, 90))
     out = []
     for i in np.argsort(-score, kind="stable")[: cfg.max_step_checks]:
-        if score[i] < 0.5:
+        if score[i] < cfg.jump_min_share:
             break
         implausible = bool(excess_m[i] > cfg.implausible_factor * usual_m or excess_deg[i] > cfg.implausible_factor * usual_deg)
         jump = StepJump(int(placed.frame_ids[rows[i]]), int(placed.frame_ids[rows[i + 1]]), float(excess_m[i]),
