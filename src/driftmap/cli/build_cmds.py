@@ -210,6 +210,8 @@ def synth(
     lidar_pattern: Annotated[str, typer.Option("--lidar-pattern", help="spinning (beams x azimuths) | rosette (a Livox-like non-repetitive scanner: 70 deg circular field of view along x, the pattern rotating from scan to scan).")] = "spinning",
     points_per_scan: Annotated[Optional[int], typer.Option("--points-per-scan", min=1, help="Points per rosette scan (default: 24000).")] = None,
     point_times: Annotated[bool, typer.Option("--point-times/--no-point-times", help="Per-point capture times: each LiDAR point is rendered from the moving sensor's pose at its time, stored in lidar/NNNNNN.time.bin (int64 ns after the scan's start stamp).")] = False,
+    door_open: Annotated[bool, typer.Option("--door-open", help="The room's door (+x wall) stands open onto a corridor (the default room has it closed): a first session for 'changed' in diagnose of a merged store.")] = False,
+    move_chair: Annotated[bool, typer.Option("--move-chair", help="The room's chair stands before the -x wall instead of near the -y wall: with the default closed door, the second session of a world that changed.")] = False,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an earlier synthetic log in OUT (its stale frame files are removed); without it an existing log is refused. A folder holding anything else is always refused.")] = False,
     fleet: Annotated[Optional[int], typer.Option("--fleet", min=1, max=1000, metavar="N", help="Write N small room logs OUT/room-00/ ... (40 frames at 200 x 150 unless --frames; seeds from --seed on; drift rates, odometry step and loop length differ from log to log) for 'driftmap batch OUT/*'. Takes --frames, --seed, --lidar, --broken and --overwrite.")] = None,
     broken: Annotated[int, typer.Option("--broken", min=0, max=1000, metavar="K", help="With --fleet: also K logs broken on purpose (OUT/broken-00-truncated-depth/, a missing or a cut synthetic.json, in turn).")] = 0,
@@ -225,12 +227,15 @@ def synth(
                      "--speed-m-per-s": speed_m_per_s is not None, "--stationary-start": stationary_start,
                      "--stops": stops or stop_frames, "--turns": turns or turn_at or turn_frames or turn_deg_per_frame,
                      "--lidar-pattern": pattern != "spinning", "--points-per-scan": points_per_scan is not None,
-                     "--point-times": point_times}
+                     "--point-times": point_times, "--door-open": door_open, "--move-chair": move_chair}
 
         from driftmap.cli.batch_cmds import synth_fleet_command
 
         synth_fleet_command(out, fleet, broken, frames, seed, lidar, overwrite, [k for k, v in not_taken.items() if v])
         return
+    if scene != "room" and (door_open or move_chair):
+        raise typer.BadParameter("the door and the chair are the room's (--scene room)",
+                                 param_hint="--door-open" if door_open else "--move-chair")
     if frames is not None and speed_m_per_s is not None:
         raise typer.BadParameter("give the frame count or the speed, not both (the speed sets the frame count)",
                                  param_hint="--speed-m-per-s")
@@ -250,6 +255,8 @@ def synth(
               "turn_in_place_deg_per_frame": turn_deg_per_frame, "turn_in_place_frames": turn_frames,
               "turns_in_place": turns, "turn_in_place_at": tuple(turn_at or ()),
               "lidar_pattern": pattern, "lidar_point_times": point_times}
+    if door_open or move_chair:
+        motion.update(door_open=door_open, chair_moved=move_chair)
     if period_s is not None:
         motion["frame_period_ns"] = int(round(period_s * 1e9))
     if points_per_scan is not None:

@@ -31,6 +31,7 @@ from driftmap.cli.common import (
 )
 
 if TYPE_CHECKING:
+    from driftmap.diagnostics.diagnosis import Diagnosis
     from driftmap.diagnostics.revisits import RevisitCheck
     from driftmap.diagnostics.verify import RegionCheck
     from driftmap.pipeline.diagnose import DiagnoseRun
@@ -124,6 +125,18 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
                                                    f"{ver['voxels_unconfirmed']} flagged voxels unconfirmed, "
                                                    f"{ver['regions_local']} regions local"))
         rows.append(("flagged, confirmed pose errors", f"{100 * ver['fraction_pose']:.2f} % of evaluated voxels"))
+    ch = result.session_changes
+    if result.session_changes_skipped is not None:
+        rows.append(("session changes", f"not judged: {result.session_changes_skipped}"))
+    if ch is not None:
+        kinds = ch.to_json()["kinds"]
+        verdicts = [v for v, _ in result.double_wall_verdicts()]
+        rows.append(("session changes", f"{len(ch.regions)} regions ({kinds['added']} added, {kinds['removed']} "
+                                        f"removed) between sessions {', '.join(map(str, ch.sessions))}; "
+                                        f"{ch.changed_voxels} / {ch.evaluated_voxels} judged voxels changed "
+                                        f"({100 * ch.changed_fraction:.2f} %)"))
+        rows.append(("double-wall regions: misaligned / changed", f"{verdicts.count('double_wall')} / "
+                                                                  f"{verdicts.count('changed')}"))
     cov = result.coverage
     if cov is not None:
         why = ", ".join(f"{k.replace('_', ' ')} {100 * v:.0f} %" for k, v in cov.not_evaluated_fractions().items() if v >= 0.005)
@@ -134,6 +147,18 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
                   "surface voxels inconsistent": "fraction_inconsistent", "drift rate": "drift_rate"}
         rows = [(k, v if k not in labels or cov.measures[labels[k]]["valid"] else f"cannot judge ({v})") for k, v in rows]
     return rows
+
+
+def _session_note(result: Diagnosis, k: int) -> str:
+    """A merged store's double-wall region ``k``: the sessions on each side, and ``changed`` where a change explains it."""
+    if result.session_changes is None:
+        return ""
+    region = result.double_walls.regions[k]
+    verdict, ck = result.double_wall_verdicts()[k]
+    a, b = result.region_sessions(region.frames_a), result.region_sessions(region.frames_b)
+    sides = ("; frames per session " + ", ".join(f"{s}: {n}" for s, n in a.items()) + " vs "
+             + ", ".join(f"{s}: {n}" for s, n in b.items()))
+    return sides + ("" if ck is None else f"; CHANGED (change region {ck + 1}), not a misalignment")
 
 
 def _revisit_row(check: RevisitCheck) -> str:
@@ -165,8 +190,15 @@ def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:
                       f"{np.round(region.center_m, 2).tolist()}, frames {region.frames_a.min()}-{region.frames_a.max()} vs "
                       f"{region.frames_b.min()}-{region.frames_b.max()}"
                       + ("" if result.verification is None else _verification_note(result.verification[k]))
-                      + ("" if result.causes is None else f"; cause: {result.causes[k].cause} ({result.causes[k].explanation})"),
+                      + ("" if result.causes is None else f"; cause: {result.causes[k].cause} ({result.causes[k].explanation})")
+                      + _session_note(result, k),
                       highlight=False)
+    if result.session_changes is not None:
+        for k, c in enumerate(result.session_changes.regions[:5]):
+            console.print(f"  changed {k + 1}: {c.kind} in session {max(c.sessions)} "
+                          f"at {np.round(c.center_m, 2).tolist()}, {np.round(c.max_m - c.min_m, 2).tolist()} m, "
+                          f"{c.n_voxels} voxels (surface of session {c.session_surface}, free in session "
+                          f"{c.session_free})", highlight=False)
     if result.attribution.revisit_note:
         console.print(Text(result.attribution.revisit_note, style="yellow"))
     for name, file in run.files.items():

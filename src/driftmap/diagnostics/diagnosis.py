@@ -8,7 +8,10 @@ the one function that runs the steps in order on samples placed with a revision'
 5. the revisit check (:func:`~driftmap.diagnostics.revisits.check_revisits`: pose errors beyond the detector's
    range), coverage and the causes of the double walls (:func:`~driftmap.diagnostics.coverage.assess`,
    :func:`~driftmap.diagnostics.causes.explain_regions`);
-6. with ground truth, ATE / RPE / segment errors (:func:`~driftmap.diagnostics.ground_truth.ground_truth_errors`).
+6. with ground truth, ATE / RPE / segment errors (:func:`~driftmap.diagnostics.ground_truth.ground_truth_errors`);
+7. for a store of several sessions (a merged store), :func:`diagnose_store` adds the changes between the sessions
+   (:func:`~driftmap.diagnostics.changes.session_changes`): ``changed`` regions, and per double-wall region the
+   sessions on each side and whether a change explains it.
 
 The result is a :class:`Diagnosis` (and its JSON, :meth:`Diagnosis.to_json`); nothing here writes a file
 (figures: :mod:`driftmap.diagnostics.figures`).
@@ -16,6 +19,8 @@ The result is a :class:`Diagnosis` (and its JSON, :meth:`Diagnosis.to_json`); no
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -27,6 +32,7 @@ from numpy.typing import NDArray
 
 from driftmap.diagnostics.attribution import Attribution, attribute
 from driftmap.diagnostics.causes import RegionCause, explain_regions
+from driftmap.diagnostics.changes import ChangeConfig, SessionChanges, session_changes
 from driftmap.diagnostics.coverage import Coverage, assess
 from driftmap.diagnostics.detector import detect_double_walls
 from driftmap.diagnostics.diagnose_config import DiagnoseConfig
@@ -43,6 +49,7 @@ if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
 
 T = TypeVar("T")
+logger = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -66,6 +73,13 @@ class Diagnosis:
     revisits: RevisitCheck | None = None
     """Revisiting frames registered onto the earlier map: pose errors beyond the detector's range
     (:mod:`driftmap.diagnostics.revisits`)."""
+    session_changes: SessionChanges | None = None
+    """A store of several sessions: the regions where the world changed between them
+    (:mod:`driftmap.diagnostics.changes`)."""
+    sessions: dict[int, list[int]] | None = None
+    """A store of several sessions: ``{session: [frame ids]}``."""
+    session_changes_skipped: str | None = None
+    """A store of several sessions whose changes could not be judged: why (e.g. a LiDAR store without a max range)."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -119,7 +133,50 @@ class Diagnosis:
             for region_json, check in zip(out["double_wall"]["regions"], self.verification):
                 region_json["verification"] = check.to_json()
             out["double_wall"]["verified"] = verification_summary(self.verification, dw.regions, dw.voxels_evaluated)
+        if self.session_changes_skipped is not None:
+            out["session_changes"] = {"regions": [], "skipped": self.session_changes_skipped}
+        if self.session_changes is not None:
+            out["session_changes"] = self.session_changes.to_json()
+            self._annotate_sessions(out["double_wall"], out["session_changes"])
         return out
+
+    def double_wall_verdicts(self) -> list[tuple[str, int | None]]:
+        """Per double-wall region (same order), ``("changed", k)`` when its centre lies in change region ``k`` (the
+        world changed there between sessions: not a misalignment), else ``("double_wall", None)``."""
+        changes = self.session_changes
+        out: list[tuple[str, int | None]] = []
+        for region in self.double_walls.regions:
+            k = None if changes is None else changes.region_at(region.center_m, changes.voxel_size_m)
+            out.append(("double_wall", None) if k is None else ("changed", k))
+        return out
+
+    def region_sessions(self, frame_ids: NDArray[np.int64]) -> dict[int, int]:
+        """How many of the frames belong to each session (of :attr:`sessions`; sessions without one left out)."""
+        if not self.sessions:
+            return {}
+        ids = np.asarray(frame_ids, dtype=np.int64)
+        counts = {s: int(np.isin(ids, np.asarray(members, np.int64)).sum()) for s, members in sorted(self.sessions.items())}
+        return {s: n for s, n in counts.items() if n}
+
+    def _annotate_sessions(self, double_wall: dict, changes: dict) -> None:
+        """Per double-wall region: the sessions of layers A and B (frames per session, and the session holding most
+        of them) and the verdict (``changed`` wins where a change
+        region holds the region's centre); per change region the double-wall regions it explains."""
+        for c in changes["regions"]:
+            c["double_wall_regions"] = []
+        for k, (region_json, region, (verdict, ck)) in enumerate(zip(double_wall["regions"], self.double_walls.regions,
+                                                                      self.double_wall_verdicts())):
+            for side, frames in (("a", region.frames_a), ("b", region.frames_b)):
+                counts = self.region_sessions(frames)
+                region_json[f"session_frames_{side}"] = {str(k): v for k, v in counts.items()}
+                region_json[f"session_{side}"] = max(counts, key=lambda k: (counts[k], -k)) if counts else None
+            region_json["verdict"] = verdict
+            if ck is not None:
+                region_json["change_region"] = int(ck)
+                changes["regions"][ck]["double_wall_regions"].append(k)
+        verdicts = [v for v, _ in self.double_wall_verdicts()]
+        changes["double_wall_regions_changed"] = verdicts.count("changed")
+        changes["double_wall_regions_misaligned"] = verdicts.count("double_wall")
 
 
 def _num(v: float | None) -> float | None:
@@ -191,10 +248,13 @@ def _ground_truth_rows(cloud: DiagnosticCloud, ground_truth: tuple[NDArray[np.in
 
 def diagnose_store(store: FrameStore, revision: int | None = None, *, config: DiagnoseConfig | None = None,
                    cloud: DiagnosticCloud | None = None, ground_truth: tuple[NDArray[np.int64], NDArray[np.float64]] | None = None,
-                   noise: NoiseModel | None = None) -> Diagnosis:
+                   noise: NoiseModel | None = None, sessions: dict[int, list[int]] | None = None,
+                   change_config: ChangeConfig | None = None) -> Diagnosis:
     """Diagnose a store's map in ``revision`` (default: head): sample it (unless ``cloud`` reuses samples across
     revisions), then :func:`diagnose_cloud` with the revision's poses. ``ground_truth`` is ``(frame_ids, poses)``
-    as from :func:`~driftmap.pipeline.pose_files.read_ground_truth`."""
+    as from :func:`~driftmap.pipeline.pose_files.read_ground_truth`. ``sessions`` (``{session: [frame ids]}``, e.g.
+    :func:`driftmap.pipeline.merge.store_sessions`): with two or more, the changes between them are added
+    (:func:`~driftmap.diagnostics.changes.session_changes` with ``change_config``)."""
     rev = store.head if revision is None else int(revision)
     store.ledger.revision(rev)  # raises for an unknown revision
     if len(store) == 0:
@@ -211,4 +271,14 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
         gt_rows, gt_poses = _ground_truth_rows(cloud, ground_truth)
     diagnosis = diagnose_cloud(cloud, poses, revision=rev, config=config, ground_truth=gt_poses, ground_truth_rows=gt_rows)
     diagnosis.seconds["sampling"] = sampling_s
+    if sessions is not None and len(sessions) >= 2:
+        t = time.perf_counter()
+        try:
+            changes = session_changes(store, sessions, rev, change_config)
+        except ConfigError as exc:  # e.g. a LiDAR store without a max range: the rest of the diagnosis stands
+            logger.warning("diagnose: the changes between the sessions of %s are not judged: %s", store.path, exc)
+            diagnosis = dataclasses.replace(diagnosis, sessions=sessions, session_changes_skipped=str(exc))
+        else:
+            diagnosis = dataclasses.replace(diagnosis, session_changes=changes, sessions=sessions)
+        diagnosis.seconds["session_changes"] = time.perf_counter() - t
     return diagnosis

@@ -34,12 +34,14 @@ from driftmap.diagnostics.report import (
 )
 from driftmap.errors import ConfigError, DriftmapError
 from driftmap.files import atomic_write
+from driftmap.pipeline.merge import store_sessions
 from driftmap.pipeline.pose_files import read_ground_truth
 from driftmap.store.frame_store import FrameStore
 from driftmap.volume import VolumeConfig, VolumeLayers
 
 ProgressCallback = Callable[[str, int, int | None], None]
-"""``progress(stage, done, total)``: stages ``sampling frames``, ``diagnosing``, ``verifying``, ``volume layers``."""
+"""``progress(stage, done, total)``: stages ``sampling frames``, ``diagnosing``, ``session changes`` (a merged
+store), ``verifying``, ``volume layers``."""
 
 __all__ = ["GT_FORMATS", "DiagnoseRun", "diagnose_config", "diagnosed_volume", "diagnosis_json", "run_diagnose",
            "write_volume_top_view"]
@@ -107,7 +109,11 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
                                        progress=lambda stage, done, total: tick("sampling frames", done, len(store)))
     sampling_s = time.perf_counter() - t0
     tick("diagnosing", 0, None)
-    result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
+    sessions = store_sessions(store)  # a merged store: the changes between its sessions too
+    if len(sessions) >= 2:
+        tick("session changes", 0, None)
+    result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth,
+                            sessions=sessions if len(sessions) >= 2 else None)
     result.seconds["sampling"] = sampling_s
     other = (diagnose_store(store, compare_revision, config=cfg, cloud=cloud, ground_truth=ground_truth)
              if compare_revision is not None else None)

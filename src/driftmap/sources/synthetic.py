@@ -206,7 +206,7 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
     meta = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
-        "config": asdict(config),
+        "config": _config_json(config),
         "intrinsics": PinholeIntrinsics(config.fx, config.fy, config.cx, config.cy, config.width, config.height).to_dict(),
         "depth_scale": config.depth_scale,
         "sensor_name": "depth_camera",
@@ -225,6 +225,18 @@ def generate_synthetic_log(out_dir: str | Path, config: SyntheticLogConfig | Non
         meta["scan_motion"] = [m.value for m in schedule.kinds[: config.n_frames]]
     (out / METADATA_FILE).write_text(json.dumps(meta, indent=1))
     logger.info("wrote synthetic log with %d frames to %s", config.n_frames, out)
+    return out
+
+
+WORLD_CHANGE_FIELDS = ("door_open", "chair_moved")
+"""Config fields written to ``synthetic.json`` only when set: a log without them is byte for byte as before."""
+
+
+def _config_json(config: SyntheticLogConfig) -> dict:
+    out = asdict(config)
+    for name in WORLD_CHANGE_FIELDS:
+        if not out[name]:
+            del out[name]
     return out
 
 

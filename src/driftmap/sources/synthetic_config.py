@@ -102,6 +102,11 @@ class SyntheticLogConfig:
     lidar_point_times: bool = False
     """Render each point from the pose at its capture time (the sensor moves during the scan) and store the times
     (``lidar/NNNNNN.time.bin``, int64 ns after the scan's stamp: the scan's start)."""
+    # --- the world changed between sessions (room only; driftmap.sources.synthetic_scene.scene_boxes)
+    door_open: bool = False
+    """The +x wall's door stands open onto a corridor (the default room has it closed)."""
+    chair_moved: bool = False
+    """The chair stands before the -x wall instead of near the -y wall."""
 
     def __post_init__(self) -> None:
         """Every field checked before anything is computed from it (:func:`check_config_fields`): a value out of its
@@ -128,6 +133,11 @@ class SyntheticLogConfig:
             raise ConfigError(f"lidar_points_per_scan: must be >= 1, got {self.lidar_points_per_scan}")
         if not 0.0 < self.lidar_fov_deg < 180.0:
             raise ConfigError(f"lidar_fov_deg: must be in (0, 180), got {self.lidar_fov_deg}")
+        for name in ("door_open", "chair_moved"):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(f"{name}: must be true or false, got {getattr(self, name)!r}")
+            if getattr(self, name) and self.scene != "room":
+                raise ConfigError(f"{name}: the room's door and chair; scene {self.scene!r} has none")
         if not self.lidar and (self.lidar_point_times or self.lidar_pattern != LidarPattern.SPINNING):
             raise ConfigError("lidar: lidar_pattern='rosette' and lidar_point_times need lidar=True")
         if self.speed_m_per_s is not None:

@@ -26,10 +26,20 @@ ROOM_MAX_M = (3.0, 2.5, 2.6)
 WALL_THICKNESS_M = 0.1
 DOOR_RECESS_M = 0.05
 BOARD_THICKNESS_M = 0.02
+CHAIR_MOVE_M = (-2.775, 2.225)
+"""``chair_moved``: the chair's shift in x, y (from its place near the -y wall, centre (1.025, -1.775), to the free
+floor before the -x wall, centre (-1.75, 0.45))."""
+CORRIDOR_DEPTH_M = 1.5
+"""``door_open``: the corridor behind the +x wall's door is this deep (its back wall ends the rays through the door)."""
 
 
-def scene_boxes() -> list[SceneBox]:
-    """The room as axis-aligned boxes (world frame, z up, floor at z = 0)."""
+def scene_boxes(*, door_open: bool = False, chair_moved: bool = False) -> list[SceneBox]:
+    """The room as axis-aligned boxes (world frame, z up, floor at z = 0).
+
+    ``door_open``: the +x wall's door panel is left out and a corridor stands behind the opening (floor, ceiling, side
+    walls and a back wall :data:`CORRIDOR_DEPTH_M` away), so rays through the door see free space where the closed
+    panel stands. ``chair_moved``: the chair stands elsewhere (:data:`CHAIR_MOVE_M`). Two sessions of one room whose
+    world changed between them (issue 26: change vs misalignment); the defaults are the room as it always was."""
     (x0, y0, z0), (x1, y1, z1) = ROOM_MIN_M, ROOM_MAX_M
     w = WALL_THICKNESS_M
     door_y, door_h = (-0.45, 0.45), 2.0
@@ -72,6 +82,20 @@ def scene_boxes() -> list[SceneBox]:
         SceneBox("pillar_+y", (x0 + 0.05, y1 - 0.3, 0.0), (x0 + 0.3, y1, z1)),
         SceneBox("lamp", (-0.3, -0.3, z1 - 0.3), (0.3, 0.3, z1)),
     ]
+    if chair_moved:
+        dx, dy = CHAIR_MOVE_M
+        boxes = [SceneBox(b.name, (b.min_m[0] + dx, b.min_m[1] + dy, b.min_m[2]),
+                          (b.max_m[0] + dx, b.max_m[1] + dy, b.max_m[2]))
+                 if b.name.startswith("chair_") else b for b in boxes]
+    if door_open:
+        xb, yc = x1 + w, 1.0  # the corridor: beyond the wall, 2 m wide (the door is 0.9 m)
+        boxes = [b for b in boxes if b.name != "door_panel"] + [
+            SceneBox("corridor_floor", (xb, -yc - w, z0 - w), (xb + CORRIDOR_DEPTH_M + w, yc + w, z0)),
+            SceneBox("corridor_ceiling", (xb, -yc - w, z1), (xb + CORRIDOR_DEPTH_M + w, yc + w, z1 + w)),
+            SceneBox("corridor_-y", (xb, -yc - w, z0), (xb + CORRIDOR_DEPTH_M + w, -yc, z1)),
+            SceneBox("corridor_+y", (xb, yc, z0), (xb + CORRIDOR_DEPTH_M + w, yc + w, z1)),
+            SceneBox("corridor_back", (xb + CORRIDOR_DEPTH_M, -yc, z0), (xb + CORRIDOR_DEPTH_M + w, yc, z1)),
+        ]
     return boxes
 
 
@@ -130,7 +154,7 @@ def street_boxes(seed: int) -> list[SceneBox]:
 def boxes_of(config: SyntheticLogConfig) -> list[SceneBox]:
     """The scene of a log: :func:`scene_boxes` (``room``) or :func:`street_boxes` (``street``)."""
     if config.scene == "room":
-        return scene_boxes()
+        return scene_boxes(door_open=config.door_open, chair_moved=config.chair_moved)
     if config.scene == "street":
         return street_boxes(config.seed)
     raise SourceError(f"synthetic log: scene must be 'room' or 'street', got {config.scene!r}")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -153,30 +153,55 @@ class VolumeLayers:
         return cls.from_view(view, store, cfg, progress=progress)
 
     @classmethod
+    def on_one_grid(cls, store: FrameStore, revision: int, config: VolumeConfig,
+                    frame_sets: Sequence[Sequence[int]]) -> list[VolumeLayers]:
+        """Layers of each set of frames of ``revision`` (e.g. the sessions of a merged store; ``config`` resolved) on
+        one grid sized for all of them, so that they compare voxel for voxel. Raises ConfigError when a set's rays
+        leave that grid (deskewed points beyond the frames' boxes)."""
+        from driftmap.map.view import MapView
+
+        view = MapView.from_store(store, revision)
+        grid = covering_grid(view, config)
+        out = []
+        for k, ids in enumerate(frame_sets):
+            layers = cls.from_view(view, store, config, frame_ids=ids, grid=grid)
+            if layers.grid != grid:
+                raise ConfigError(f"{store.path}: the rays of frame set {k} left the grid sized for all the frames "
+                                  f"(deskewed points beyond the frames' boxes): the sets' layers would not compare")
+            out.append(layers)
+        return out
+
+    @classmethod
     def from_view(cls, view: MapView, store: FrameStore, config: VolumeConfig, *,
-                  progress: ProgressCallback | None = None) -> VolumeLayers:
+                  progress: ProgressCallback | None = None, frame_ids: Iterable[int] | None = None,
+                  grid: GridSpec | None = None) -> VolumeLayers:
         """Layers of the frames of a map view (``config`` resolved), streamed: the grid is sized from the view's
-        frame boxes (cut to the max range around each sensor), then each frame is observed and integrated in turn."""
+        frame boxes (cut to the max range around each sensor), then each frame is observed and integrated in turn.
+
+        ``frame_ids``: only these frames of the view (e.g. one session of a merged store); ``grid``: this grid
+        instead of one sized from the frames (layers of several frame sets on one grid compare voxel for voxel;
+        it grows where a frame's rays leave it)."""
         tick = progress or (lambda stage, done, total: None)
-        ids = [int(f) for f in view.frame_ids]
+        ids = [int(f) for f in (view.frame_ids if frame_ids is None else frame_ids)]
+        if not ids:
+            raise EmptyStoreError(f"store {store.path}: no frames selected for volumetric layers",
+                                  store=store.path, revision=view.revision)
         first = store.frame(ids[0])
-        lo, hi = _view_bounds(view, ids, config.max_range_m)
-        extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
-        if float(config.voxel_size_m) > float(np.max(extent)):
-            raise ConfigError(f"volume.voxel_size_m = {float(config.voxel_size_m):g} m is larger than the map itself "
-                              f"({extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} m): the layers would hold it in "
-                              f"one voxel; use a voxel of at most {float(np.max(extent)):.2g} m (the default: leave "
-                              f"voxel_size_m unset)")
-        pad = config.padding_m + float(config.truncation_m or 0.0)
-        grid = GridSpec.covering(lo, hi, float(config.voxel_size_m), padding_m=pad, budget_mb=config.memory_budget_mb)
+        if grid is not None:
+            layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
+            return layers._integrate_all(store, ids, tick)
+        grid = covering_grid(view, config, ids)
         layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
-        logger.info("volume: %s for revision %d (%d frames)", grid.describe(), view.revision, len(ids))
+        return layers._integrate_all(store, ids, tick)
+
+    def _integrate_all(self, store: FrameStore, ids: list[int], tick: ProgressCallback) -> VolumeLayers:
+        logger.info("volume: %s for revision %d (%d frames)", self.grid.describe(), self.revision, len(ids))
         for n, fid in enumerate(ids):
-            obs = layers._observe(store, fid)
-            layers._grow_to(*obs.bounds_m)  # a no-op unless deskewing moved points beyond the frame's box
-            layers._integrate(obs, +1)
+            obs = self._observe(store, fid)
+            self._grow_to(*obs.bounds_m)  # a no-op unless deskewing moved points beyond the frame's box
+            self._integrate(obs, +1)
             tick("volume", n + 1, len(ids))
-        return layers
+        return self
 
     # ------------------------------------------------------------------------------------------ integration
     def _next_token(self) -> int:
@@ -471,6 +496,21 @@ class VolumeLayers:
 
 
 # ---------------------------------------------------------------------------------------------------- helpers
+def covering_grid(view: MapView, config: VolumeConfig, frame_ids: Iterable[int] | None = None) -> GridSpec:
+    """The grid :meth:`VolumeLayers.from_view` sizes for these frames of ``view`` (default: all; ``config``
+    resolved): their boxes cut to the max range around each sensor, plus the padding and the truncation."""
+    ids = [int(f) for f in (view.frame_ids if frame_ids is None else frame_ids)]
+    lo, hi = _view_bounds(view, ids, config.max_range_m)
+    extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
+    if float(config.voxel_size_m) > float(np.max(extent)):
+        raise ConfigError(f"volume.voxel_size_m = {float(config.voxel_size_m):g} m is larger than the map itself "
+                          f"({extent[0]:.1f} x {extent[1]:.1f} x {extent[2]:.1f} m): the layers would hold it in "
+                          f"one voxel; use a voxel of at most {float(np.max(extent)):.2g} m (the default: leave "
+                          f"voxel_size_m unset)")
+    pad = config.padding_m + float(config.truncation_m or 0.0)
+    return GridSpec.covering(lo, hi, float(config.voxel_size_m), padding_m=pad, budget_mb=config.memory_budget_mb)
+
+
 def _observations(view: MapView, store: FrameStore, ids: Iterable[int], config: VolumeConfig) -> list[Observation]:
     return [observe(store.frame(f), view.pose(f), view.frame_points_world(f), config) for f in ids]
 
