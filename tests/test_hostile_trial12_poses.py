@@ -122,6 +122,7 @@ def test_t12_a_world_yaw_about_the_origin_is_a_re_anchoring_not_another_sensor(l
     assert re.search(rf"revision 1 \(parent 0, .* max change [0-9.]+ m / {degrees:.3f} deg", out), out
     assert f"the file {REANCHORS} ({degrees:.1f} deg, 0.00 m): {NO_DRIFT}" in out, out
     assert REANCHORS in _err(run) and "another sensor" not in out + _err(run), run.stderr  # the logged warning
+    assert "is the file for these frames" not in _err(run), run.stderr  # no mixed message (trial 12)
 
 
 def test_t12_a_re_anchoring_about_the_first_frame_is_said(logs: dict) -> None:

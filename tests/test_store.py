@@ -646,7 +646,7 @@ def test_an_index_match_of_a_stamped_file_whose_stamps_disagree_is_warned_about(
         assert len(warned) == 1 and "other.tum" in warned[0] and "3600.000 s" in warned[0]
         # a file of another place: the correction is kept (it is what the file says), with a warning
         far = tmp_path / "far.tum"
-        moved = poses.copy()
+        moved = poses[::-1].copy()  # another path, 40 m away
         moved[:, :3, 3] += [40.0, 0.0, 0.0]
         write_tum(far, Trajectory(stamps, moved))
         caplog.clear()
@@ -656,3 +656,17 @@ def test_an_index_match_of_a_stamped_file_whose_stamps_disagree_is_warned_about(
             rev, _ = store.import_poses(far)
         warned = [r.getMessage() for r in caplog.records if "is the file for these frames" in r.getMessage()]
         assert len(warned) == 1 and "far.tum" in warned[0] and f"--to {rev.parent_id}" in warned[0]
+        # the same path moved 40 m as one rigid body: a re-anchoring (trial 12: it was asked "is the file for these
+        # frames?" next to correct's "re-anchors the map"), said as such
+        shifted = tmp_path / "shifted.tum"
+        rigid = poses.copy()
+        rigid[:, :3, 3] += [40.0, 0.0, 0.0]
+        write_tum(shifted, Trajectory(stamps, rigid))
+        store.import_poses(own)  # back from the reversed path (warned: not one rigid move)
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="driftmap.store.frame_store"):
+            rev, _ = store.import_poses(shifted)
+        messages = [r.getMessage() for r in caplog.records]
+        assert not [m for m in messages if "is the file for these frames" in m], messages
+        assert [m for m in messages if "shifted.tum" in m and f"revision {rev.revision_id} moves every frame by one "
+                "rigid transform (up to 40.00 m): the map is re-anchored" in m], messages

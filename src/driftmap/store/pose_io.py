@@ -132,12 +132,36 @@ def warn_about_revision(store: PoseFileStore, revision: Revision, what: str, *, 
         return
     if not far:
         return
-    before = store.poses(revision.parent_id)[:, :3, 3]
+    parent_poses = store.poses(revision.parent_id)
+    before = parent_poses[:, :3, 3]
     span = float(np.linalg.norm(before.max(axis=0) - before.min(axis=0))) if len(before) else 0.0
     if diff.max_translation_m > max(1.0, 0.5 * span):
+        if _moves_all_rigidly(parent_poses, store.poses(revision.revision_id)):
+            logger.warning("%s: revision %d moves every frame by one rigid transform (up to %.2f m): the map is "
+                           "re-anchored, no frame moves relative to another (no correction of drift)", what,
+                           revision.revision_id, diff.max_translation_m)
+            return
         logger.warning("%s: revision %d moves frames by up to %.2f m, while revision %d's trajectory spans %.2f m: "
                        "is the file for these frames? (driftmap rollback STORE --to %d undoes it)", what,
                        revision.revision_id, diff.max_translation_m, revision.parent_id, span, revision.parent_id)
+
+
+RIGID_MOVE_M, RIGID_MOVE_DEG = 1e-3, 0.01
+"""Relative poses of consecutive frames kept within these: the revision moved the map as one rigid body."""
+
+
+def _moves_all_rigidly(before: NDArray[np.float64], after: NDArray[np.float64]) -> bool:
+    """Every consecutive pair of frames keeps its relative pose (within :data:`RIGID_MOVE_M` and
+    :data:`RIGID_MOVE_DEG`: text round-off of a rewritten file): the new poses are the old ones moved by one rigid transform of the world (a re-anchoring,
+    which ``correct`` reports as such), so frames far from where they were are no sign of a file for other frames."""
+    if len(before) < 2:
+        return False
+    rel_before = np.linalg.inv(before[:-1]) @ before[1:]
+    rel_after = np.linalg.inv(after[:-1]) @ after[1:]
+    change = np.linalg.inv(rel_before) @ rel_after
+    cos = np.clip((np.trace(change[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return bool(np.all(np.linalg.norm(change[:, :3, 3], axis=1) <= RIGID_MOVE_M)
+                and np.all(np.degrees(np.arccos(cos)) <= RIGID_MOVE_DEG))
 
 
 def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int | None,
