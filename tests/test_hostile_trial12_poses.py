@@ -213,3 +213,26 @@ def test_t12_build_given_poses_is_not_judged_on_frames_that_overlap_too_little(l
     check = _given_check(logs["depth"])
     assert check["n_pairs"] >= 3 and check["n_decisive"] < 3 and check["consistent"] is None, check
     assert all(p["fit_registered"] < 0.6 for p in check["pairs"] if not p["decisive"]), check
+
+
+def test_t12_a_failing_given_poses_check_leaves_the_build_standing(room10: dict[str, Path], tmp_path: Path,
+                                                                    monkeypatch: pytest.MonkeyPatch,
+                                                                    caplog: pytest.LogCaptureFixture) -> None:
+    """The check runs after every frame is stored: a registration that fails inside it (here made to) is a warning
+    and a record, never a failed build."""
+    import logging
+
+    import driftmap.pipeline.build as build_module
+    from driftmap.pipeline.build import build
+
+    def broken(store, revision=0, n_pairs=8):  # noqa: ANN001, ANN202 - the check's signature
+        raise RuntimeError("small_gicp: no correspondences")
+
+    monkeypatch.setattr(build_module, "check_given_poses", broken)
+    with caplog.at_level(logging.WARNING, logger="driftmap.pipeline.build"):
+        result = build(room10["log"], tmp_path / "s", poses_file=room10["log"] / "groundtruth.txt", loop_closure=False)
+    assert result.n_frames == 10 and result.given_poses_check == {
+        "consistent": None, "error": "RuntimeError: small_gicp: no correspondences"}
+    assert any("not checked against the frames (RuntimeError" in r.getMessage() for r in caplog.records)
+    summary = json.loads((tmp_path / "s" / "build_summary.json").read_text())
+    assert summary["given_poses_check"]["error"].startswith("RuntimeError")

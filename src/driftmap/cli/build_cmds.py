@@ -375,6 +375,8 @@ def _loops_by_cue(loops: list[dict]) -> str:
 def _given_poses_row(check: dict | None) -> str:
     """``yes (8 frame pairs)`` / ``NO: 8 of 8 frame pairs disagree`` / ``-`` (odometry's poses, or too few frame pairs
     overlap enough to decide)."""
+    if check is not None and check.get("error"):
+        return "not checked (see the warning)"
     if check is None or check.get("consistent") is None:
         return "-"
     if check["consistent"]:

@@ -19,7 +19,7 @@ import numpy as np
 
 from driftmap import geometry
 from driftmap.config import DepthConfig
-from driftmap.errors import ConfigError, SourceError, StoreError
+from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.pipeline.build_config import (
     DEFAULT_POSES_MAX_DT_NS,
@@ -270,11 +270,18 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     )
     if n_new and pose_source is not PoseSource.ODOMETRY:
         t_check = time.perf_counter()
-        check = check_given_poses(store)
-        result.given_poses_check = check.to_json()
+        what = describe_poses((source_record or {}).get("poses", {"mode": "source"}))
+        try:
+            check = check_given_poses(store)
+        except (DriftmapError, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:  # a check, not the build
+            logger.warning("%s: not checked against the frames (%s: %s); the frames are stored", what,
+                           type(exc).__name__, exc)
+            result.given_poses_check = {"consistent": None, "error": f"{type(exc).__name__}: {exc}"}
+        else:
+            result.given_poses_check = check.to_json()
+            if (reason := check.reason(what)) is not None:
+                logger.warning("%s", reason)
         stages["given poses check"] = time.perf_counter() - t_check
-        if (reason := check.reason(describe_poses((source_record or {}).get("poses", {"mode": "source"})))) is not None:
-            logger.warning("%s", reason)
     if result.tracking["flagged"]:
         logger.warning("odometry: %d of %d frames flagged (tracking lost, poses bridged): %s; loop closure does not "
                        "trust the trajectory across them", len(result.tracking["flagged"]), result.tracking["frames"],
