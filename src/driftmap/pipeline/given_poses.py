@@ -147,7 +147,8 @@ def _pair_indices(poses: NDArray[np.float64], voxel_m: float, n_pairs: int) -> l
     for gap in range(min(MAX_GAP_FRAMES, n - 1), 0, -1):  # the smallest gap that moves enough wins
         T = inverse[:-gap] @ poses[gap:]
         cos = np.clip((np.trace(T[:, :3, :3], axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-        enough = (np.linalg.norm(T[:, :3, 3], axis=1) >= MIN_MOTION_VOXELS * voxel_m) | (np.degrees(np.arccos(cos)) >= MIN_MOTION_DEG)
+        enough = ((np.linalg.norm(T[:, :3, 3], axis=1) >= MIN_MOTION_VOXELS * voxel_m)
+                  | (np.degrees(np.arccos(cos)) >= MIN_MOTION_DEG))
         first_b[:-gap][enough] = np.flatnonzero(enough) + gap
     candidates = [(int(a), int(first_b[a])) for a in np.flatnonzero(first_b >= 0)]
     if len(candidates) <= n_pairs:
@@ -162,8 +163,8 @@ def check_given_poses(store: FrameStore, revision: int = 0, n_pairs: int = 8) ->
     poses = store.poses(revision)
     if len(ids) < 2:
         return GivenPosesCheck(0.0, ())
-    first = store.frame(int(ids[len(ids) // 2]), revision)
-    voxel = _voxel_for(first.points_sensor)
+    middle = store.frame(int(ids[len(ids) // 2]), revision)
+    voxel = _voxel_for(middle.points_sensor)  # the scene's scale from a frame half way along the log
     pairs = []
     for a, b in _pair_indices(poses, voxel, n_pairs):
         fa, fb = store.frame(int(ids[a]), revision), store.frame(int(ids[b]), revision)
