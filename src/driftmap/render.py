@@ -15,6 +15,25 @@ import numpy as np
 from numpy.typing import NDArray
 
 BACKGROUND_RGB = (20, 20, 24)
+SESSION_PALETTE_RGB: tuple[tuple[int, int, int], ...] = (
+    (31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189),
+    (140, 86, 75), (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207),
+)
+"""The colour of each session of a merged store (``--color session`` of ``driftmap view`` and ``driftmap export
+--mcap``): matplotlib's qualitative ``tab10`` palette as 8-bit RGB; session ``k`` gets entry ``k % 10``."""
+SESSION_PALETTE_NAMES = ("blue", "orange", "green", "red", "purple", "brown", "pink", "grey", "olive", "cyan")
+"""A word for each entry of :data:`SESSION_PALETTE_RGB` (legends and printed lists)."""
+
+
+def session_color_rgb(session: int) -> tuple[int, int, int]:
+    """The 8-bit RGB colour of ``session`` (:data:`SESSION_PALETTE_RGB`, repeating after 10 sessions)."""
+    return SESSION_PALETTE_RGB[int(session) % len(SESSION_PALETTE_RGB)]
+
+
+def session_color_text(session: int) -> str:
+    """``#rrggbb (name)`` of ``session``'s colour, for legends and printed lists."""
+    r, g, b = session_color_rgb(session)
+    return f"#{r:02x}{g:02x}{b:02x} ({SESSION_PALETTE_NAMES[int(session) % len(SESSION_PALETTE_NAMES)]})"
 
 
 @dataclass(frozen=True)

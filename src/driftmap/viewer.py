@@ -1,5 +1,6 @@
 """The map viewer behind ``driftmap view``: a store's map in one revision, coloured by frame, by how far a
-correction moved each point, or by double-wall separation; or (``state``) the revision's volumetric layers
+correction moved each point, by double-wall separation, or by session (``session``: each session of a merged store
+in its own colour, :data:`~driftmap.render.SESSION_PALETTE_RGB`); or (``state``) the revision's volumetric layers
 (:mod:`driftmap.volume`): every occupied voxel coloured by its height, and free / occupied / unknown space from
 above in one more PNG (``states-top``).
 
@@ -50,12 +51,15 @@ from driftmap.map.view import MapView  # noqa: E402
 from driftmap.preprocess.scene import LIDAR_OUTDOOR_P99_RANGE_M, scan_reach_m  # noqa: E402
 from driftmap.render import (  # noqa: E402,F401
     BACKGROUND_RGB,
+    SESSION_PALETTE_RGB,
     ViewCamera,
     display_available,
     display_problem,
     fit_camera,
     look_along,
     render_software,
+    session_color_rgb,
+    session_color_text,
 )
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
@@ -66,7 +70,7 @@ if TYPE_CHECKING:
 
 logger = logging.getLogger(__name__)
 
-COLOR_MODES = ("frame", "revision", "double-wall", "state")
+COLOR_MODES = ("frame", "revision", "double-wall", "state", "session")
 BACKENDS = ("auto", "window", "open3d", "software", "rerun")
 DISPLAY_POSE_EPSILON = 1e-12
 """``--color revision`` draws a frame grey (not moved) when no entry of its pose changed by more than this."""
@@ -83,6 +87,24 @@ _OPEN3D_TIMEOUT_S = 300.0
 
 
 # ---------------------------------------------------------------------------------------------- data
+
+
+@dataclass(frozen=True)
+class SessionColor:
+    """One session of a store in ``--color session``: its colour, its frames and where they came from."""
+
+    session: int
+    rgb: tuple[int, int, int]
+    n_frames: int
+    source_store: str | None
+    """The store the session was merged from (``driftmap merge``); None for a store that no merge made (one session)."""
+    n_points_shown: int = 0
+    """Points of the picture that came from this session's frames."""
+
+    @property
+    def color_text(self) -> str:
+        """``#rrggbb (name)``."""
+        return session_color_text(self.session)
 
 
 @dataclass(frozen=True)
@@ -112,6 +134,8 @@ class ColoredMap:
     reference_revision: int | None = None
     double_walls: DoubleWallResult | None = None
     layers: VolumeLayers | None = None
+    sessions: tuple[SessionColor, ...] | None = None
+    """Colour ``session``: every session of the store with its colour (one entry for a store that no merge made)."""
 
     @property
     def n_points(self) -> int:
@@ -143,6 +167,8 @@ class ViewResult:
     """Colour ``state``: the layers' voxels by state (occupied / free / unknown)."""
     state_top_view: TopViewFigure | None = field(default=None, repr=False)
     """Colour ``state`` with an output folder: the free / occupied / unknown top view (``files["states-top"]``)."""
+    sessions: tuple[SessionColor, ...] | None = None
+    """Colour ``session``: every session with its colour, frames, source store and points shown."""
 
 
 # ---------------------------------------------------------------------------------------------- helpers
@@ -232,7 +258,46 @@ def _up_axis(poses: NDArray[np.float64], kind: SensorKind) -> NDArray[np.float64
     return sensor_up(poses, kind)
 
 
+def store_session_ids(store: FrameStore) -> tuple[NDArray[np.int64], list[tuple[int, int, str | None]]]:
+    """The session of each of ``store.frame_ids`` and ``(session, frames, source store)`` per session: a merged
+    store's sessions (:func:`driftmap.pipeline.merge.store_sessions`), else one session 0 holding every frame."""
+    from driftmap.pipeline.merge import frame_origin, store_sessions
+
+    sessions = store_sessions(store)
+    frame_ids = np.asarray(store.frame_ids, np.int64)
+    if not sessions:
+        logger.info("view: %s is not a merged store: one session, one colour", store.path)
+        return np.zeros(len(frame_ids), np.int64), [(0, len(frame_ids), None)]
+    per_frame = np.empty(len(frame_ids), np.int64)
+    rows: list[tuple[int, int, str | None]] = []
+    for k, ids in sorted(sessions.items()):
+        per_frame[np.searchsorted(frame_ids, np.asarray(ids, np.int64))] = k
+        origin = frame_origin(store.frame_info(int(ids[0])).get("provenance"))
+        rows.append((k, len(ids), None if origin is None else origin.store))
+    if len(sessions) > len(SESSION_PALETTE_RGB):
+        logger.warning("view: %d sessions but %d session colours: colours repeat (session k has colour k %% %d)",
+                       len(sessions), len(SESSION_PALETTE_RGB), len(SESSION_PALETTE_RGB))
+    return per_frame, rows
+
+
+def _session_colours(store: FrameStore, frame_ids: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.uint8],
+                                                                               tuple[SessionColor, ...]]:
+    """Colour ``session``: the session of each shown point (its frame's), its colour and the legend."""
+    per_frame, rows = store_session_ids(store)
+    point_sessions = per_frame[np.searchsorted(store.frame_ids, frame_ids)]
+    palette = np.asarray(SESSION_PALETTE_RGB, np.uint8)
+    colors = palette[point_sessions % len(palette)]
+    legend = tuple(SessionColor(k, session_color_rgb(k), n, src, int(np.count_nonzero(point_sessions == k)))
+                   for k, n, src in rows)
+    for entry in legend:
+        logger.info("view: session %d %s: %d frames, %d points shown", entry.session, entry.color_text, entry.n_frames,
+                    entry.n_points_shown)
+    return point_sessions.astype(np.float64), colors, legend
+
+
 def _palette(color: str) -> ListedColormap:
+    if color == "session":
+        return ListedColormap(np.asarray(SESSION_PALETTE_RGB) / 255.0, name="tab10")
     name, lo, hi = _PALETTES[color]
     return ListedColormap(plt.get_cmap(name)(np.linspace(lo, hi, 256)), name=f"{name}[{lo}:{hi}]")
 
@@ -300,7 +365,9 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
       correction did not move are grey. Revision 0 has no parent: give ``reference_revision``.
     - ``double-wall``: the separation of the flagged double-wall voxel (finest scale) the point lies in,
       from the same detector and configuration as ``driftmap diagnose``; every other point grey.
-    - ``state``: not the map's points but the revision's volumetric layers (:func:`state_map`).
+    - ``state``: not the map's points but the revision's volumetric layers (:func:`state_map`);
+    - ``session``: the session of the point's frame, each session in its own colour (:data:`SESSION_PALETTE_RGB`,
+      tab10; a store that no merge made is one session, one colour), listed in :attr:`ColoredMap.sessions`.
     """
     color = _check_color(color)
     rev = _check_revision(store, revision)
@@ -325,7 +392,12 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     rows = np.searchsorted(store.frame_ids, frame_ids)
     cmap = _palette(color)
     walls = None
-    if color == "frame":
+    legend = None
+    if color == "session":
+        values, colors, legend = _session_colours(store, frame_ids)
+        value_range = (float(legend[0].session), float(legend[-1].session))
+        label = "session"
+    elif color == "frame":
         values = frame_ids.astype(np.float64)
         value_range = (float(store.frame_ids.min()), float(store.frame_ids.max()))
         label = "frame id"
@@ -348,9 +420,10 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
         value_range = (0.0, max(float(np.percentile(finite, 95)), 0.01) if finite.size else 0.05)
         logger.info("view: %d flagged double-wall voxels, %d of %d shown points on them", walls.voxels_flagged,
                     finite.size, len(points))
-    colors = _apply_palette(values, value_range, cmap)
+    if color != "session":
+        colors = _apply_palette(values, value_range, cmap)
     return ColoredMap(rev, color, points, frame_ids, colors, values, label, value_range, cmap, n_map, vs, kind,
-                      _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls)
+                      _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls, sessions=legend)
 
 
 def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: float | None = None,
@@ -518,9 +591,20 @@ def write_overview(path: Path, images: list[NDArray[np.uint8]], cameras: list[Vi
         ax.imshow(image)
         ax.set_title(cam.name + ("" if cam.clip_max_m is None else " (ceiling cut)"), fontsize=9)
         ax.set_axis_off()
-    sm = plt.cm.ScalarMappable(norm=Normalize(*cmap.value_range), cmap=cmap.colormap)
-    bar = fig.colorbar(sm, ax=list(axes[0]), shrink=0.9, fraction=0.02, pad=0.01)
-    bar.set_label(cmap.value_label + ("" if cmap.color in ("frame", "state") else "; grey: none"), fontsize=8)
+    if cmap.sessions is not None:  # a legend: one patch per session
+        from matplotlib.patches import Patch
+
+        handles = [Patch(color=np.asarray(s.rgb) / 255.0,
+                         label=f"session {s.session}: {s.n_frames} frames" + ("" if s.source_store is None
+                                                                               else f" ({Path(s.source_store).name})"))
+                   for s in cmap.sessions]
+        fig.legend(handles=handles, loc="outside right upper", fontsize=8,
+                   title="one session (not a merged store)" if len(cmap.sessions) == 1 and cmap.sessions[0].source_store
+                   is None else "session", title_fontsize=8)
+    else:
+        sm = plt.cm.ScalarMappable(norm=Normalize(*cmap.value_range), cmap=cmap.colormap)
+        bar = fig.colorbar(sm, ax=list(axes[0]), shrink=0.9, fraction=0.02, pad=0.01)
+        bar.set_label(cmap.value_label + ("" if cmap.color in ("frame", "state") else "; grey: none"), fontsize=8)
     fig.suptitle(title, fontsize=10)
     fig.savefig(path, dpi=100)
     plt.close(fig)
@@ -619,7 +703,8 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     ``headless=None`` detects it (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux). ``voxel_size_m=None``: 2 cm
     for depth cameras, 20 cm for LiDAR (``state``: the volumetric layers' default). See the module docstring for
     the backends and :func:`colored_map` for the colour modes. PNG files: ``<view>_rev<N>_<color>.png`` per view and
-    ``overview_rev<N>_<color>.png``; colour ``state`` also ``states-top_rev<N>_state.png`` (free / occupied /
+    ``overview_rev<N>_<color>.png`` (colour ``session``: with a legend of the sessions' colours instead of a colour
+    bar); colour ``state`` also ``states-top_rev<N>_state.png`` (free / occupied /
     unknown from above), with every backend when ``out_dir`` is given.
     """
     _check_color(color)
@@ -639,7 +724,7 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     common = dict(revision=cmap.revision, color=color, n_points_map=cmap.n_points_map, n_points_shown=cmap.n_points,
                   voxel_size_m=cmap.voxel_size_m, value_label=cmap.value_label, value_range=cmap.value_range,
                   reference_revision=cmap.reference_revision, n_double_wall_voxels=n_walls, colored=cmap,
-                  volume_counts=counts, state_top_view=state_figure)
+                  volume_counts=counts, state_top_view=state_figure, sessions=cmap.sessions)
     if backend == "window":
         logger.info("view: backend window (Open3D), %d points", cmap.n_points)
         t = time.perf_counter()

@@ -209,15 +209,15 @@ def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:
 def view(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
-    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation) | state (the occupied voxels of the volumetric layers by height; with --out also a free / occupied / unknown top view)")] = "frame",
+    color: Annotated[str, typer.Option("--color", help="frame (frame id) | revision (how far the correction moved each point) | double-wall (flagged surfaces by separation) | state (the occupied voxels of the volumetric layers by height; with --out also a free / occupied / unknown top view) | session (each session of a merged store in its own colour, tab10, listed with its colour; a store no merge made is one session, one colour)")] = "frame",
     out: Annotated[Path, typer.Option("--out", help="Folder for the PNG views when there is no display (created).")] = Path("results/view"),
     voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Display voxel size (default: 0.02 m RGB-D, 0.2 m LiDAR).")] = None,
     backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
     headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
     reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
 ) -> None:
-    """Show the map of a revision coloured by frame, by correction displacement or by double-wall separation:
-    an Open3D window with a display, PNG views (top + two oblique) without one."""
+    """Show the map of a revision coloured by frame, by correction displacement, by double-wall separation, by
+    volumetric state or by session: an Open3D window with a display, PNG views (top + two oblique) without one."""
     from driftmap.viewer import BACKENDS, COLOR_MODES, view_store
 
     color = choice(color, tuple(COLOR_MODES), "--color")
@@ -241,8 +241,26 @@ def view(
                   f"backend {result.backend}")
     if result.n_double_wall_voxels is not None:
         console.print(f"  double-wall voxels flagged: {result.n_double_wall_voxels}")
+    if result.sessions is not None:
+        _print_session_colours(result.sessions)
     for name, path in result.files.items():
         console.print(f"  {name:10s} {path}", highlight=False)
+
+
+def _print_session_colours(sessions) -> None:  # noqa: ANN001 - tuple[SessionColor, ...]
+    """``view --color session``: one line per session (its colour, frames, points shown, source store)."""
+    if len(sessions) == 1 and sessions[0].source_store is None:
+        s = sessions[0]
+        console.print(f"  one session (not a merged store: driftmap merge makes one), one colour: session 0 "
+                      f"{s.color_text}, {s.n_frames} frames", highlight=False)
+        return
+    console.print(f"  {len(sessions)} sessions:", highlight=False)
+    for s in sessions:
+        console.print(f"  session {s.session}  {s.color_text}  {s.n_frames} frames, {s.n_points_shown:,} points shown"
+                      f"  from {s.source_store}", highlight=False)
+    if len(sessions) > 10:
+        console.print(f"  (10 colours for {len(sessions)} sessions: session k has the colour of session k % 10)",
+                      highlight=False)
 
 
 MAX_STEP_M = 1e8

@@ -123,6 +123,7 @@ def export(
     band_m: Annotated[Optional[str], typer.Option("--band-m", metavar="ZMIN,ZMAX", help="World-z band of --grid2d and of the MCAP's 2-D grid (m; default: every observed height).")] = None,
     no_volume: Annotated[bool, typer.Option("--no-volume", help="--mcap without the volumetric layers (the TSDF mesh and the 2-D grid are otherwise added).")] = False,
     session: Annotated[Optional[int], typer.Option("--session", min=0, metavar="K", help="A merged store (driftmap merge): --trajectory holds only session K's frames (default: every session, in session order).")] = None,
+    color: Annotated[str, typer.Option("--color", help="Colours of the --mcap clouds: frame (the default: /map's frame_id field, the frames' own colours) | session (each session of a merged store in its own colour, tab10: /map gains session and red green blue alpha fields, every frame on /points its session's colour; a store no merge made is one session, one colour).")] = "frame",
 ) -> None:
     """Export the map (world frame of a revision), the trajectory, a Foxglove MCAP and the volumetric layers (TSDF
     mesh, OctoMap tree, 2-D occupancy map)."""
@@ -136,6 +137,11 @@ def export(
     band = _band(band_m)
     if band is not None and grid2d_path is None and mcap_path is None:
         raise typer.BadParameter("the height band of the 2-D grid: give --grid2d or --mcap with it", param_hint="--band-m")
+    from driftmap.export.foxglove import COLOR_MODES as MCAP_COLOR_MODES
+
+    color = choice(color, tuple(MCAP_COLOR_MODES), "--color")
+    if color != "frame" and mcap_path is None:
+        raise typer.BadParameter("colours the clouds of the Foxglove MCAP: give --mcap with it", param_hint="--color")
     if no_volume and mcap_path is None:
         raise typer.BadParameter("leaves the volumetric layers out of the MCAP: give --mcap with it", param_hint="--no-volume")
     if no_volume and band is not None and grid2d_path is None:
@@ -200,6 +206,12 @@ def export(
         if mcap_path is not None:
             from driftmap.export.foxglove import export_foxglove_mcap
 
+            mcap_sessions = None
+            if color == "session":
+                from driftmap.pipeline.merge import store_sessions
+
+                mcap_sessions = store_sessions(store)
+
             with progress_bar() as progress:
                 task = progress.add_task("foxglove mcap", total=None)
                 summary = export_foxglove_mcap(
@@ -208,9 +220,26 @@ def export(
                     overwrite=overwrite, volume=volume,
                     grid2d_band_m=None if volume is None else (band or _observed_band(volume)),
                     progress=lambda stage, done, total: progress.update(task, description=f"foxglove mcap: {stage}", completed=done, total=total),
+                    color=color, sessions=mcap_sessions,
                 )
             console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
                           f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
+            if summary.session_colors is not None:
+                _print_mcap_sessions(summary.session_colors, mcap_sessions)
+
+
+def _print_mcap_sessions(colors: dict[int, tuple[int, int, int]], sessions: Optional[dict[int, list[int]]]) -> None:
+    """``export --mcap --color session``: one line per session and its colour (Foxglove: colour mode RGBA)."""
+    from driftmap.render import session_color_text
+
+    if not sessions:
+        console.print("  colour session: one session (not a merged store: driftmap merge makes one), one colour: "
+                      f"session 0 {session_color_text(0)}", highlight=False)
+        return
+    console.print(f"  colour session ({len(colors)} sessions; Foxglove: Color mode 'RGBA (separate fields)'):",
+                  highlight=False)
+    for k in sorted(colors):
+        console.print(f"  session {k}  {session_color_text(k)}  {len(sessions[k])} frames", highlight=False)
 
 
 MAX_VOXEL_SIZE_M = 1000.0
@@ -286,7 +315,8 @@ def _write_volume(layers, mesh_path: Optional[Path], octomap_path: Optional[Path
 
 @app.command()
 def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
-    """Frames, sensors, time span, revisions, size on disk and invalid-pixel statistics of a store."""
+    """Frames, sessions of a merged store (frames, source store, stamp span), sensors, time span, revisions, size on
+    disk and invalid-pixel statistics of a store."""
     from collections import Counter
 
     with open_store(store_path) as store:
@@ -308,7 +338,10 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         if infos and all(o is not None for o in origins):  # a merged store: one row per session
             for k in sorted({o.session for o in origins}):  # type: ignore[union-attr]
                 mine = [o for o in origins if o.session == k]  # type: ignore[union-attr]
-                table.add_row(f"session {k}", f"{len(mine)} frames from {mine[0].store} (revision {mine[0].revision})")
+                span = [i["stamp_ns"] for i, o in zip(infos, origins) if o.session == k]  # type: ignore[union-attr]
+                table.add_row(f"session {k}", f"{len(mine)} frames from {mine[0].store} (revision {mine[0].revision}); "
+                              f"stamps {min(span) / 1e9:.3f} .. {max(span) / 1e9:.3f} s "
+                              f"({(max(span) - min(span)) / 1e9:.2f} s)")
         table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
         if stamps:
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")

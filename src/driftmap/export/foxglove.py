@@ -30,6 +30,14 @@ be read. Topics (see ``docs/export.md`` for the full description):
 * a ``driftmap.foxglove_export`` metadata record: driftmap version, store path, revision and its source,
   the data source, voxel sizes.
 
+``color="session"`` (``driftmap export --mcap --color session``; the sessions of a merged store given as
+``sessions={session: [frame ids]}``, ``driftmap.pipeline.merge.store_sessions``) colours by session: ``/map`` gains
+the fields ``session`` float32 (the session of the voxel's first frame) and ``red green blue alpha`` uint8 (that
+session's colour, :data:`driftmap.render.SESSION_PALETTE_RGB`), each frame on ``/points`` carries its session's
+colour as ``red green blue alpha`` (in place of the frame's own colours), and the metadata record gains ``color``
+and ``sessions``. Without it (``color="frame"``, the default) the file is the same, byte for byte, as before the
+option existed.
+
 ``/map``, ``/trajectory``, ``/double_walls``, ``/driftmap/mesh`` and ``/driftmap/grid2d`` are the result of the
 whole revision; they are logged at
 the **first** frame stamp so that Foxglove shows them from the moment the file opens, and the frames of
@@ -41,7 +49,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -56,6 +64,7 @@ from driftmap import __version__
 from driftmap.errors import ConfigError, EmptyStoreExportError, ExportError
 from driftmap.export.foxglove_messages import (
     FLOAT32,
+    UINT8,
     check_size,
     cloud_message,
     double_wall_scene,
@@ -69,6 +78,7 @@ from driftmap.files import atomic_write
 from driftmap.frame import PointAttributes
 from driftmap.map.view import MapView
 from driftmap.preprocess.cloud import voxel_downsample
+from driftmap.render import SESSION_PALETTE_RGB, session_color_rgb, session_color_text
 from driftmap.store.guards import refuse_inside_store
 from driftmap.store.revision import Revision
 from driftmap.store.segment import WORLD_FRAME, cloud_frame_name, pack_points
@@ -92,6 +102,9 @@ TOPIC_MESH = "/driftmap/mesh"
 TOPIC_GRID2D = "/driftmap/grid2d"
 METADATA_NAME = "driftmap.foxglove_export"
 COMPRESSIONS = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+COLOR_MODES = ("frame", "session")
+"""``color=`` of :func:`export_foxglove_mcap` (CLI ``export --mcap --color``): ``frame`` (the default: ``/map``'s
+``frame_id`` field, the frames' own colours) or ``session`` (each session of a merged store in its own colour)."""
 
 ProgressCallback = Callable[[str, int, int | None], None]
 """``progress(stage, done, total)``: stages ``"map"`` (0 or 1 of 1) and ``"frames"`` (frames written)."""
@@ -114,6 +127,8 @@ class FoxgloveExportSummary:
     """Of ``/driftmap/mesh`` (0: no ``volume``, or its mesh is empty and the topic was left out)."""
     grid2d_shape: tuple[int, int] | None = None
     """(cells along x, cells along y) of ``/driftmap/grid2d``; None when it was not written."""
+    session_colors: dict[int, tuple[int, int, int]] | None = None
+    """``color="session"``: each session's 8-bit RGB colour; None otherwise."""
     map_voxel_size_m: float | None = None
     frame_voxel_size_m: float | None = None
     bytes: int = 0
@@ -163,6 +178,13 @@ class _Plan:
     regions: list[DoubleWallRegion]
     mesh: o3d.geometry.TriangleMesh | None = None
     grid2d: Grid2D | None = None
+    frame_sessions: NDArray[np.int64] | None = None
+    """``color="session"``: the session of each of ``frame_ids``; None: colour by frame (as before)."""
+
+    def session_rgb(self, k: int) -> tuple[int, int, int]:
+        """The colour of frame ``frame_ids[k]``'s session."""
+        assert self.frame_sessions is not None
+        return session_color_rgb(int(self.frame_sessions[k]))
 
     @property
     def t0(self) -> int:
@@ -214,9 +236,37 @@ def _check_output(path: Path, overwrite: bool) -> None:
         raise ExportError(f"{path}: already exists; pass overwrite=True (CLI: --overwrite) to replace it")
 
 
+def _frame_sessions(store: FrameStore, frame_ids: NDArray[np.int64],
+                    sessions: Mapping[int, Sequence[int]] | None) -> NDArray[np.int64]:
+    """The session of each frame for ``color="session"``; ``sessions`` None or empty: one session 0 (a store that no
+    merge made). :class:`ConfigError` unless ``sessions`` holds every frame of the store exactly once."""
+    if not sessions:
+        logger.info("foxglove export: %s is one session (no sessions given): one colour", store.path)
+        return np.zeros(len(frame_ids), np.int64)
+    out = np.full(len(frame_ids), -1, np.int64)
+    for k, ids in sessions.items():
+        if int(k) < 0:
+            raise ConfigError(f"sessions: session {k} is negative")
+        ids = np.asarray(ids, np.int64)
+        rows = np.searchsorted(frame_ids, ids).clip(0, max(len(frame_ids) - 1, 0))
+        unknown = ids[frame_ids[rows] != ids] if len(frame_ids) else ids
+        if len(unknown):
+            raise ConfigError(f"sessions: session {k} names frame {int(unknown[0])}, which {store.path} does not hold")
+        if np.any(out[rows] >= 0):
+            raise ConfigError(f"sessions: frame {int(frame_ids[rows[out[rows] >= 0][0]])} is in two sessions")
+        out[rows] = int(k)
+    if np.any(out < 0):
+        raise ConfigError(f"sessions: frame {int(frame_ids[np.argmax(out < 0)])} of {store.path} is in no session")
+    if len(sessions) > len(SESSION_PALETTE_RGB):
+        logger.warning("foxglove export: %d sessions but %d session colours: colours repeat", len(sessions),
+                       len(SESSION_PALETTE_RGB))
+    return out
+
+
 def _plan(store: FrameStore, path: Path, revision: Revision,
           double_walls: DoubleWallResult | Sequence[DoubleWallRegion] | None, volume: VolumeLayers | None,
-          grid2d_band_m: tuple[float, float] | None) -> _Plan:
+          grid2d_band_m: tuple[float, float] | None, color: str = "frame",
+          sessions: Mapping[int, Sequence[int]] | None = None) -> _Plan:
     """The frames in time order (frame id breaks ties), their poses in ``revision`` and the volume outputs; an
     empty store, a negative stamp, a band that selects nothing or a mesh too large for a message is refused
     here, before anything is written."""
@@ -230,6 +280,8 @@ def _plan(store: FrameStore, path: Path, revision: Revision,
         bad = int(frame_ids[np.argmin(stamps)])
         raise ExportError(f"{store.path}: frame {bad} has a negative stamp ({int(stamps.min())} ns); MCAP log times are unsigned")
     plan = _Plan(revision, frame_ids, stamps, store.poses(rev), np.lexsort((frame_ids, stamps)), _regions_of(double_walls))
+    if color == "session":
+        plan.frame_sessions = _frame_sessions(store, frame_ids, sessions)
     if volume is not None:  # computed before anything is written: a bad band writes nothing
         from driftmap.volume.export import occupancy_grid2d, tsdf_mesh
 
@@ -268,13 +320,24 @@ def _metadata(store: FrameStore, plan: _Plan, map_voxel_size_m: float | None, fr
                            + ([TOPIC_GRID2D] if plan.grid2d is not None else [])),
         "volume_voxel_size_m": "" if volume is None else f"{volume.grid.voxel_size_m:g}",
         "grid2d_band_m": "" if plan.grid2d is None else f"{plan.grid2d.band_m[0]:g},{plan.grid2d.band_m[1]:g}",
+        **({} if plan.frame_sessions is None else _session_metadata(plan.frame_sessions)),
     }
 
 
-def _write_map(out: _TopicWriter, store: FrameStore, rev: int, map_voxel_size_m: float | None, t0: int) -> int:
+def _session_metadata(frame_sessions: NDArray[np.int64]) -> dict[str, str]:
+    """``color="session"``: ``color`` and ``sessions`` (``K=#rrggbb (name), N frames`` per session, ``;``-joined)."""
+    ks, counts = np.unique(frame_sessions, return_counts=True)
+    return {"color": "session",
+            "sessions": "; ".join(f"{int(k)}={session_color_text(int(k))}, {int(n)} frames" for k, n in zip(ks, counts))}
+
+
+def _write_map(out: _TopicWriter, store: FrameStore, rev: int, map_voxel_size_m: float | None, t0: int,
+               plan: _Plan | None = None) -> int:
     """``/map``: the revision's fused points with, per voxel, the number of frames that saw it and the first of
-    them. Returns the number of map points."""
+    them (``color="session"``: also that frame's session and its colour). Returns the number of map points."""
     fused = MapView.from_store(store, rev).fused(map_voxel_size_m)  # the view is released once fused
+    if plan is not None and plan.frame_sessions is not None:
+        return _write_session_map(out, fused, plan, t0)
     n_map = len(fused.points_world)
     offsets = fused.provenance_offsets
     n_frames_per_voxel = np.diff(offsets).astype(np.float32)
@@ -288,6 +351,36 @@ def _write_map(out: _TopicWriter, store: FrameStore, rev: int, map_voxel_size_m:
     check_size(map_rows.nbytes, f"{TOPIC_MAP} ({n_map:,} points)", "raise map_voxel_size_m")
     map_fields = [{"name": n, "offset": 4 * i, "type": FLOAT32} for i, n in enumerate(("x", "y", "z", "n_frames", "frame_id"))]
     out.write(TOPIC_MAP, cloud_message(WORLD_FRAME, t0, map_rows.tobytes(), 20, map_fields), t0)
+    return n_map
+
+
+_SESSION_MAP_DTYPE = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("n_frames", "<f4"), ("frame_id", "<f4"),
+                               ("session", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"), ("alpha", "u1")])
+
+
+def _write_session_map(out: _TopicWriter, fused: Any, plan: _Plan, t0: int) -> int:
+    """``/map`` of ``color="session"``: the fields of :func:`_write_map`, then ``session`` float32 (the session of
+    the voxel's first frame, looked up by its integer id) and ``red green blue alpha`` uint8 (that session's
+    colour). Returns the number of map points."""
+    assert plan.frame_sessions is not None
+    n_map = len(fused.points_world)
+    offsets = fused.provenance_offsets
+    first = (np.minimum.reduceat(fused.provenance_frame_ids, offsets[:-1]).astype(np.int64)
+             if n_map else np.zeros(0, np.int64))
+    sessions = plan.frame_sessions[np.searchsorted(plan.frame_ids, first)]
+    palette = np.asarray(SESSION_PALETTE_RGB, np.uint8)
+    rows = np.empty(n_map, _SESSION_MAP_DTYPE)
+    for axis, name in enumerate("xyz"):
+        rows[name] = fused.points_world[:, axis]
+    rows["n_frames"] = np.diff(offsets)
+    rows["frame_id"] = first
+    rows["session"] = sessions
+    rgb = palette[sessions % len(palette)]
+    rows["red"], rows["green"], rows["blue"], rows["alpha"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 255
+    check_size(rows.nbytes, f"{TOPIC_MAP} ({n_map:,} points)", "raise map_voxel_size_m")
+    fields = [{"name": name, "offset": _SESSION_MAP_DTYPE.fields[name][1],
+               "type": UINT8 if _SESSION_MAP_DTYPE[name] == np.uint8 else FLOAT32} for name in _SESSION_MAP_DTYPE.names]
+    out.write(TOPIC_MAP, cloud_message(WORLD_FRAME, t0, rows.tobytes(), _SESSION_MAP_DTYPE.itemsize, fields), t0)
     return n_map
 
 
@@ -322,6 +415,9 @@ def _write_frames(out: _TopicWriter, store: FrameStore, plan: _Plan, include_fra
         out.write(TOPIC_TF, transform_message(WORLD_FRAME, child, plan.poses[k], stamp), stamp)
         if include_frames:
             points, attrs = frame_cloud_points(store, fid, frame_voxel_size_m)
+            if plan.frame_sessions is not None:  # the session's colour in place of the frame's own
+                attrs = PointAttributes(intensity=attrs.intensity,
+                                        color_rgb=np.tile(np.asarray(plan.session_rgb(k), np.uint8), (len(points), 1)))
             payload, stride, fields = pack_points(points, attrs)
             check_size(len(payload), f"{TOPIC_POINTS} frame {fid}", "set frame_voxel_size_m")
             out.write(TOPIC_POINTS, cloud_message(child, stamp, payload, stride, fields), stamp)
@@ -347,6 +443,8 @@ def export_foxglove_mcap(
     overwrite: bool = False,
     compression: str = "zstd",
     progress: ProgressCallback | None = None,
+    color: str = "frame",
+    sessions: Mapping[int, Sequence[int]] | None = None,
 ) -> FoxgloveExportSummary:
     """Write one revision of ``store`` (default: the head) as a Foxglove-ready MCAP file at ``path``.
 
@@ -360,7 +458,10 @@ def export_foxglove_mcap(
     inside any store folder is refused, ``overwrite`` or not (:func:`driftmap.store.refuse_inside_store`). The
     file is written under a temporary name in the same folder (``.<name>.<random>.tmp.mcap``) and renamed into
     place only when complete, so a failed export never leaves a half-written file under the requested name.
-    ``compression``: ``zstd`` | ``lz4`` | ``none``.
+    ``compression``: ``zstd`` | ``lz4`` | ``none``. ``color``: ``frame`` (default; the file as it always was) or
+    ``session``: each session in its own colour on ``/map`` and ``/points`` (module docstring), the sessions given
+    as ``sessions = {session: [frame ids]}`` (every frame of the store exactly once;
+    ``driftmap.pipeline.merge.store_sessions`` of a merged store), None or empty: one session, one colour.
 
     Raises :class:`~driftmap.errors.StoreError` for an unknown revision, :class:`~driftmap.errors.ConfigError`
     for a non-positive voxel size or unknown compression, volume layers of another revision, a
@@ -375,8 +476,12 @@ def export_foxglove_mcap(
     rev_info = store.ledger.revision(store.head if revision is None else revision)  # StoreError naming the range
     rev = rev_info.revision_id
     chunk_compression = _check_settings(map_voxel_size_m, frame_voxel_size_m, compression, volume, grid2d_band_m, rev)
+    if color not in COLOR_MODES:
+        raise ConfigError(f"color must be one of {', '.join(COLOR_MODES)}, got {color!r}")
+    if sessions is not None and color != "session":
+        raise ConfigError("sessions= colours the export by session: give color='session' with it (CLI: --color session)")
     _check_output(path, overwrite)
-    plan = _plan(store, path, rev_info, double_walls, volume, grid2d_band_m)
+    plan = _plan(store, path, rev_info, double_walls, volume, grid2d_band_m, color, sessions)
     tick = progress or (lambda stage, done, total: None)
     with atomic_write(path, "Foxglove MCAP export path") as tmp, open(tmp, "wb") as fh:
         out = _TopicWriter(Writer(fh, compression=chunk_compression))
@@ -384,7 +489,7 @@ def export_foxglove_mcap(
                                                          include_frames, volume))
         # the revision's result, logged at the first stamp so that it shows as soon as the file opens
         tick("map", 0, 1)
-        n_map = _write_map(out, store, rev, map_voxel_size_m, plan.t0)
+        n_map = _write_map(out, store, rev, map_voxel_size_m, plan.t0, plan)
         tick("map", 1, 1)
         _write_revision_results(out, plan, volume)
         n_frame_points = _write_frames(out, store, plan, include_frames, frame_voxel_size_m, tick)
@@ -400,6 +505,8 @@ def export_foxglove_mcap(
         n_mesh_vertices=0 if plan.mesh is None else len(plan.mesh.vertices),
         n_mesh_triangles=0 if plan.mesh is None else len(plan.mesh.triangles),
         grid2d_shape=None if plan.grid2d is None else plan.grid2d.shape,
+        session_colors=None if plan.frame_sessions is None else {int(k): session_color_rgb(int(k))
+                                                                 for k in np.unique(plan.frame_sessions)},
         map_voxel_size_m=map_voxel_size_m,
         frame_voxel_size_m=frame_voxel_size_m,
         bytes=path.stat().st_size,
@@ -411,6 +518,7 @@ def export_foxglove_mcap(
 
 
 __all__ = [
+    "COLOR_MODES",
     "METADATA_NAME",
     "TOPIC_DOUBLE_WALLS",
     "TOPIC_GRID2D",

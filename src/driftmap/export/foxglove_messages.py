@@ -44,6 +44,7 @@ _SEPARATION_RED_M = 0.10
 MAX_MESSAGE_BYTES = 1_900_000_000
 """A serialised protobuf message must stay below 2 GiB; keep a margin."""
 FLOAT32 = PackedElementField.NumericType.FLOAT32
+UINT8 = PackedElementField.NumericType.UINT8
 
 
 def set_stamp(msg: Any, stamp_ns: int) -> None:
