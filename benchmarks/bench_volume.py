@@ -400,7 +400,7 @@ REBUILD_STAGES = [
     (VolumeLayers, "_integrate", _const("integrate")),
     (Observation, "bounds_m", _const("ray bounds (Observation.bounds_m)")),
     (volume_defaults, "resolve_config", _const("resolve config")),
-    (layers_mod._Arrays, "zeros", _const("allocate grid")),
+    (layers_mod.VoxelArrays, "zeros", _const("allocate grid")),
 ]
 KERNEL_STAGES = [  # inside (de-)integrate
     (kernels, "occupancy_update", _const("  occupancy kernel")),

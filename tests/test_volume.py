@@ -22,7 +22,7 @@ from driftmap.store.frame_store import FrameStore
 from driftmap.volume import FREE, OCCUPIED, UNKNOWN, VolumeConfig, VolumeLayers
 from driftmap.volume.defaults import resolve_config
 from driftmap.volume.grid import GridSpec
-from driftmap.volume.layers import _Arrays, tsdf_blocks
+from driftmap.volume.layers import VoxelArrays, tsdf_blocks
 from driftmap.volume.observation import observe
 
 LOG = Path(__file__).resolve().parents[1] / "datasets" / "synthetic-loop"
@@ -187,7 +187,7 @@ def test_occupancy_agrees_with_octomap_on_the_same_rays(gt_store: FrameStore) ->
     cfg = resolve_config(gt_store, VolumeConfig())
     ids = [int(f) for f in gt_store.frame_ids[::6]]
     layers = VolumeLayers.from_store(gt_store, config=cfg)
-    sub = VolumeLayers(cfg, layers.grid, layers.sensor_kind, layers.revision, _Arrays.zeros(layers.grid.n_voxels))
+    sub = VolumeLayers(cfg, layers.grid, layers.sensor_kind, layers.revision, VoxelArrays.zeros(layers.grid.n_voxels))
     tree = pyoctomap.OcTree(cfg.voxel_size_m)
     for fid in ids:
         obs = observe(gt_store.frame(fid), layers.view.pose(fid), layers.view.frame_points_world(fid), cfg)

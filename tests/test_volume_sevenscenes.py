@@ -24,7 +24,7 @@ from driftmap.pipeline.build import build
 from driftmap.store.frame_store import FrameStore
 from driftmap.volume import OCCUPIED, UNKNOWN, VolumeLayers
 from driftmap.volume.grid import GridSpec
-from driftmap.volume.layers import _Arrays
+from driftmap.volume.layers import VoxelArrays
 from driftmap.volume.observation import observe
 
 FRAMES = "0:1000:5"
@@ -129,7 +129,7 @@ def test_occupancy_agrees_with_octomap_on_the_same_rays(store: FrameStore, layer
     lo = np.min([o.bounds_m[0] for o in obs], axis=0)
     hi = np.max([o.bounds_m[1] for o in obs], axis=0)
     grid = GridSpec.covering(lo, hi, cfg.voxel_size_m, padding_m=cfg.voxel_size_m)
-    sub = VolumeLayers(cfg, grid, layers.sensor_kind, 0, _Arrays.zeros(grid.n_voxels))
+    sub = VolumeLayers(cfg, grid, layers.sensor_kind, 0, VoxelArrays.zeros(grid.n_voxels))
     tree = pyoctomap.OcTree(cfg.voxel_size_m)
     assert (tree.getProbHit(), tree.getProbMiss()) == pytest.approx((cfg.prob_hit, cfg.prob_miss))
     assert (tree.getClampingThresMin(), tree.getClampingThresMax()) == pytest.approx((cfg.clamp_min, cfg.clamp_max))
@@ -179,7 +179,7 @@ def _drift(poses: np.ndarray, start: int) -> np.ndarray:
 def _snapshot(layers: VolumeLayers) -> VolumeLayers:
     """A copy of the layers' sums (for :meth:`VolumeLayers.equals`)."""
     a = layers.arrays
-    copy = _Arrays(a.hits.copy(), a.misses.copy(), a.mark.copy(), a.tsdf_sum.copy(), a.tsdf_count.copy())
+    copy = VoxelArrays(a.hits.copy(), a.misses.copy(), a.mark.copy(), a.tsdf_sum.copy(), a.tsdf_count.copy())
     return VolumeLayers(layers.config, layers.grid, layers.sensor_kind, layers.revision, copy)
 
 

@@ -45,7 +45,7 @@ from numpy.typing import NDArray
 
 from driftmap import geometry
 from driftmap.errors import ConfigError, MergeError, StoreError
-from driftmap.frame import Frame, PoseEstimate, PoseSource, Provenance
+from driftmap.frame import Frame, PoseEstimate, PoseSource, Provenance, SensorKind
 from driftmap.pipeline.build_config import BuildConfig, BuildResult, ProgressCallback
 from driftmap.pipeline.loop_closure import (
     EdgeGroup,
@@ -64,6 +64,7 @@ from driftmap.store.guards import refuse_inside_store
 from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
+from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frames
 
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
            "MergeResult", "SessionReport", "frame_origin", "merge_stores", "session_frame_ids", "session_of",
@@ -182,6 +183,9 @@ class MergeResult:
     max_session0_shift_m: float | None = None
     """how far the merge moved a frame of session 0 (its own trajectory bends to fit the others)"""
     loop_closure_config: dict[str, Any] | None = None
+    volume_defaults: dict[str, Any] | None = None
+    """LiDAR: what the merged store's volumetric layers take when ``volume.max_range_m`` is not set
+    (:func:`volume_defaults`: ``max_range_m``, ``source`` and ``per_session``); None for a depth camera"""
     seconds_per_stage: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -312,6 +316,33 @@ def _odometry_config(store: FrameStore, config: BuildConfig) -> OdometryConfig:
     return OdometryConfig.for_frames(sample, log=False)
 
 
+def volume_defaults(paths: list[Path], sources: list[FrameStore], connected: list[int]) -> dict[str, Any] | None:
+    """What the volumetric layers of the merged store need and a merged store cannot tell by itself (it has no
+    ``build_summary.json``): for LiDAR sessions, each connected session's default max range
+    (:func:`driftmap.volume.defaults.lidar_max_range`: the odometry range its store records; a session built with
+    given poses records none: the range our odometry's defaults take for its frames,
+    :func:`~driftmap.volume.defaults.lidar_max_range_from_frames`), and the one the merged store takes: **session
+    0's**, as the merge takes session 0's loop-closure settings (one range for every session's rays). Sessions whose
+    range differs from it by more than 10 % are logged. None for a depth camera (its range follows from its noise)."""
+    first = sources[0].frame(int(sources[0].frame_ids[0]))
+    if first.sensor_kind is not SensorKind.LIDAR:
+        return None
+    per_session = []
+    for k in connected:
+        value, how = lidar_max_range(sources[k])
+        if value is None:  # built with given poses: the range our odometry would have taken for its frames
+            value, how = lidar_max_range_from_frames(sources[k]), "frames"
+        per_session.append({"session": k, "store": str(paths[k].resolve()), "max_range_m": value, "source": how})
+    chosen = per_session[0]
+    for row in per_session[1:]:
+        if chosen["max_range_m"] and row["max_range_m"] and abs(row["max_range_m"] / chosen["max_range_m"] - 1) > 0.1:
+            logger.warning("%s: its LiDAR max range %.2f m (%s) differs from session 0's %.2f m; the merged store's "
+                           "volumetric layers take session 0's (set volume.max_range_m to choose another)",
+                           row["store"], row["max_range_m"], row["source"], chosen["max_range_m"])
+    return {"max_range_m": chosen["max_range_m"], "source": f"session 0 ({chosen['source']})",
+            "per_session": per_session}
+
+
 def _session_keyframes(k: int, store: FrameStore, lc: LoopClosureConfig, odometry_cfg: OdometryConfig,
                        tick: ProgressCallback) -> list[Keyframe]:
     """The keyframes of session ``k`` on its head revision, with their merged frame ids."""
@@ -369,7 +400,7 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
     result = MergeResult(out=str(out), sessions=reports, pairs=[p.summary() for p in pairs],
                          not_connected=not_connected,
                          revision_id=None, n_frames=0, loop_closure_config=lc.model_dump(mode="json"),
-                         seconds_per_stage=stages)
+                         volume_defaults=volume_defaults(paths, sources, connected), seconds_per_stage=stages)
     opt_poses, covariances, note = _optimise(connected, keyframes, T_align, pairs, lc, config, result, tick, stages)
     t3 = time.perf_counter()
     scratch_dir = out.parent / f".{out.name}.merge-{secrets.token_hex(4)}"  # renamed to ``out`` when complete

@@ -94,7 +94,10 @@ class VolumeStats:
 
 
 @dataclass
-class _Arrays:
+class VoxelArrays:
+    """The per-voxel counts of :class:`VolumeLayers` (flat over the grid): hits, misses, the ray-mark scratch and the
+    TSDF sums and counts."""
+
     hits: NDArray[np.int32]
     misses: NDArray[np.int32]
     mark: NDArray[np.int32]
@@ -102,7 +105,7 @@ class _Arrays:
     tsdf_count: NDArray[np.int32]
 
     @classmethod
-    def zeros(cls, n: int) -> _Arrays:
+    def zeros(cls, n: int) -> VoxelArrays:
         return cls(np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.int32), np.zeros(n, np.int64),
                    np.zeros(n, np.int32))
 
@@ -115,7 +118,7 @@ class VolumeLayers:
     grid: GridSpec
     sensor_kind: SensorKind
     revision: int
-    arrays: _Arrays
+    arrays: VoxelArrays
     frame_hits: dict[int, NDArray[np.int64]] = field(default_factory=dict)
     """per frame, the lattice keys (flat on the world lattice, see :meth:`_lattice_flat`) of its hit voxels"""
     view: MapView | None = None
@@ -188,10 +191,10 @@ class VolumeLayers:
                                   store=store.path, revision=view.revision)
         first = store.frame(ids[0])
         if grid is not None:
-            layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
+            layers = cls(config, grid, first.sensor_kind, view.revision, VoxelArrays.zeros(grid.n_voxels), view=view)
             return layers._integrate_all(store, ids, tick)
         grid = covering_grid(view, config, ids)
-        layers = cls(config, grid, first.sensor_kind, view.revision, _Arrays.zeros(grid.n_voxels), view=view)
+        layers = cls(config, grid, first.sensor_kind, view.revision, VoxelArrays.zeros(grid.n_voxels), view=view)
         return layers._integrate_all(store, ids, tick)
 
     def _integrate_all(self, store: FrameStore, ids: list[int], tick: ProgressCallback) -> VolumeLayers:
@@ -219,7 +222,7 @@ class VolumeLayers:
         shape = np.asarray(g.shape, dtype=np.int64)
         ends = g.lattice_units(obs.ends_m)
         if sign < 0 and obs.frame_id in self.frame_misses and obs.frame_id in self.frame_hits:
-            hit_flats, inside = self._grid_flat_of_keys(self.frame_hits.pop(obs.frame_id))
+            hit_flats, inside = self.grid_flat_of_keys(self.frame_hits.pop(obs.frame_id))
             a.hits[hit_flats[inside]] -= 1  # a frame's voxels are distinct: one decrement each
             a.misses[self._cached_misses(obs.frame_id)] -= 1
         else:
@@ -282,7 +285,8 @@ class VolumeLayers:
         idx = self.grid.unflat(grid_flats) + np.asarray(self.grid.origin_index)
         return _pack(idx)
 
-    def _grid_flat_of_keys(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    def grid_flat_of_keys(self, keys: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+        """The flat grid index of each lattice key (:meth:`_lattice_flat`) and whether it lies inside the grid."""
         idx = _unpack(keys) - np.asarray(self.grid.origin_index)
         inside = np.all((idx >= 0) & (idx < np.asarray(self.grid.shape)), axis=1)
         return self.grid.flat(np.where(inside[:, None], idx, 0)), inside
@@ -290,10 +294,15 @@ class VolumeLayers:
     def _grow_to(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> None:
         """Reallocate the grid to also hold ``lo .. hi`` (counts copied to their lattice voxels)."""
         pad = self.config.padding_m + float(self.config.truncation_m or 0.0)
+        g = self.grid
+        need = g.lattice_index(np.stack([np.asarray(lo) - pad, np.asarray(hi) + pad]))
+        first = np.asarray(g.origin_index, dtype=np.int64)
+        if np.all(need[0] >= first) and np.all(need[1] < first + np.asarray(g.shape, dtype=np.int64)):
+            return  # held already, by lattice index: GridSpec.union's min_m / voxel can floor one voxel low
         new = self.grid.union(lo - pad, hi + pad, budget_mb=self.config.memory_budget_mb)
         if new == self.grid:
             return
-        old, arrays = self.grid, _Arrays.zeros(new.n_voxels)
+        old, arrays = self.grid, VoxelArrays.zeros(new.n_voxels)
         off = [a - b for a, b in zip(old.origin_index, new.origin_index)]
         sl = tuple(slice(o, o + n) for o, n in zip(off, old.shape))
         for name in ("hits", "misses", "tsdf_sum", "tsdf_count"):
@@ -308,6 +317,9 @@ class VolumeLayers:
         :class:`VolumeChange`; the layers then equal a rebuild of ``revision`` bit for bit."""
         if self.view is None or store is None:
             raise ConfigError("VolumeLayers.apply needs the layers' map view and store (build them with from_store)")
+        if self.cache.get("latest_state"):
+            raise ConfigError("latest-state layers (driftmap.volume.sessions) are read-only: build them again for "
+                              "another revision")
         t0 = time.perf_counter()
         store.ledger.revision(revision)
         old_rev = self.revision
