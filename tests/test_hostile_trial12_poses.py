@@ -236,3 +236,30 @@ def test_t12_a_failing_given_poses_check_leaves_the_build_standing(room10: dict[
     assert any("not checked against the frames (RuntimeError" in r.getMessage() for r in caplog.records)
     summary = json.loads((tmp_path / "s" / "build_summary.json").read_text())
     assert summary["given_poses_check"]["error"].startswith("RuntimeError")
+
+
+def test_t13_poses_of_a_robot_standing_still_given_to_a_moving_log_disagree(logs: dict) -> None:
+    """Trial 13 (F2): a file whose every row is the first pose left no pair the file moves, so nothing was checked
+    ("-"). Consecutive frames are registered too when the file hardly moves: the frames move, the file does not."""
+    traj = read_trajectory(logs["lidar_poses"], "tum")
+    still = logs["root"] / "still.txt"
+    write_tum(still, replace(traj, poses=np.repeat(traj.poses[:1], len(traj), axis=0)))
+    out = logs["root"] / "lidar_still"
+    run = run_cli("build", logs["root"] / "lidar_log", "--out", out, "--sensor", "lidar", "--poses", still,
+                  "--no-loop-closure")
+    assert run.returncode == 0, run.stderr[-2000:]
+    check = _given_check(out)
+    assert check["consistent"] is False and check["n_disagreeing"] >= 3, check
+    assert "the poses do not move the way the frames do" in _err(run), run.stderr[-2000:]
+
+
+def test_t13_a_resume_that_adds_no_frame_keeps_the_given_poses_check(logs: dict) -> None:
+    """Trial 13 (F3): `build --resume` with nothing left to add rewrote build_summary.json with given_poses_check
+    null (and the table "-") on a store whose check had said NO; the check runs on every build with given poses."""
+    target = _copy(logs["lidar_from_camera"], logs["root"], "resumed")
+    run = run_cli("build", logs["root"] / "lidar_log", "--out", target, "--sensor", "lidar", "--poses",
+                  logs["camera_copy"], "--no-loop-closure", "--resume")
+    assert run.returncode == 0, run.stderr[-2000:]
+    summary = json.loads((target / "build_summary.json").read_text())
+    assert summary["n_frames_new"] == 0 and summary["given_poses_check"]["consistent"] is False, summary
+    assert re.search(r"given poses fit the frames .* NO: \d+ of \d+ frame pairs disagree", _out(run)), _out(run)

@@ -24,6 +24,8 @@ from driftmap.store.frame_store import FrameStore
 ROOM = dict(n_frames=60, seed=5, width=160, height=120, fx=131.25, fy=131.25, cx=79.5, cy=59.5)
 DAY_NS = 86_400 * 10**9
 MISALIGNMENT_M = np.array([0.03, 0.0, 0.0])
+FAR_MISALIGNMENT_M = np.array([0.15, 0.0, 0.0])
+"""Trial 13: at a fixed 10 cm margin a 15 cm misalignment read as 19 change regions (whole walls added / removed)."""
 """injected into session 1's merged poses (world x): the +-x walls are doubled 3 cm apart"""
 FAST_MERGE = ("[build]\nodometry_edge_window = 1\n"
               "[build.loop_closure]\nkeyframe_distance_m = 0.4\nsession_descriptor_candidates = 1\n")
@@ -73,8 +75,12 @@ def merged(tmp_path_factory: pytest.TempPathFactory) -> dict:
         for T in moved.values():
             T[:3, 3] += MISALIGNMENT_M
         store.add_revision(moved, source="external_file", propagate=False, note="session 1 moved by 3 cm")
+        far = {f: T.copy() for f, T in moved.items()}
+        for T in far.values():
+            T[:3, 3] += FAR_MISALIGNMENT_M - MISALIGNMENT_M
+        store.add_revision(far, source="external_file", parent=1, propagate=False, note="session 1 moved by 15 cm")
     out: dict = {"root": root, "store": root / "AB", "logs": logs}
-    for rev in (1, 2):
+    for rev in (1, 2, 3):
         path = root / f"diagnosis_rev{rev}.json"
         run = run_cli("diagnose", root / "AB", "--revision", rev, "--json", path)
         _ok(run)
@@ -147,6 +153,20 @@ def test_misalignment_is_double_wall_not_change(merged: dict) -> None:
     assert d["session_changes"]["double_wall_regions_misaligned"] == len(dw["regions"])
     # the aligned merge has (almost) no double walls: the 3 cm ones are the injected misalignment
     assert merged[1]["double_wall"]["fraction_flagged"] < 0.2 * dw["fraction_flagged"]
+
+
+def test_a_misalignment_within_the_detectors_range_is_no_change(merged: dict) -> None:
+    """Revision 3 (session 1 moved 15 cm, within the detector's 20 cm): the changes are still only the true ones (the
+    margin is the detector's range), and no double-wall region is called changed away from them."""
+    d = merged[3]
+    changes = d["session_changes"]
+    assert changes["config"]["margin_m"] == pytest.approx(d["revisit_check"]["max_detectable_m"])
+    found = _match_truth(changes)
+    assert {"door", "chair, old place"} <= set(found), changes["regions"]
+    assert _changed_elsewhere(changes) <= 0.01 * changes["evaluated_voxels"], changes["regions"]
+    for region in d["double_wall"]["regions"]:
+        at_change = any(_distance_to_box(np.asarray(region["center_m"]), box) <= 0.3 for *_, box in TRUTH)
+        assert at_change or region["verdict"] == "double_wall", region
 
 
 def test_without_the_margin_a_misalignment_reads_as_change(merged: dict) -> None:

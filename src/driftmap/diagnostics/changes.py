@@ -22,6 +22,7 @@ Everything here is vectorised over the grid (numpy / scipy.ndimage); nothing wri
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 import time
@@ -32,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy import ndimage
 
+from driftmap.diagnostics.diagnose_config import DiagnoseConfig
 from driftmap.errors import ConfigError
 from driftmap.frame import SensorKind
 from driftmap.volume import VolumeConfig, VolumeLayers
@@ -55,9 +57,11 @@ class ChangeConfig:
 
     voxel_size_m: float | None = None
     """None: :data:`DEPTH_CHANGE_VOXEL_SIZE_M` for a depth camera, the volumetric layers' default for a LiDAR"""
-    margin_m: float = 0.10
-    """free space within this of a session's own surface is not evidence (above any misalignment the double-wall
-    detector reports; a 3 cm misalignment is far inside it)"""
+    margin_m: float | None = None
+    """free space within this of a session's own surface is not evidence; None: the largest separation the double-wall
+    detector reports for the store's scene (``DiagnoseConfig.for_store(store).revisits.max_detectable_m``: 20 cm
+    indoors), so a misalignment the detector measures never reads as a change (trial 13: at a fixed 10 cm, a session
+    misaligned by 15 cm read as 19 change regions, whole walls added and removed)"""
     min_free_misses: int = 2
     """rays that must have passed through a voxel for it to count as seen free"""
     min_surface_hits: int = 2
@@ -68,7 +72,7 @@ class ChangeConfig:
     """smaller groups are counted as changed voxels but reported as no region"""
 
     def __post_init__(self) -> None:
-        if not (math.isfinite(self.margin_m) and self.margin_m >= 0):
+        if self.margin_m is not None and not (math.isfinite(self.margin_m) and self.margin_m >= 0):
             raise ConfigError(f"session changes: margin_m must be a finite length >= 0, got {self.margin_m!r}")
         if self.voxel_size_m is not None and not (math.isfinite(self.voxel_size_m) and self.voxel_size_m > 0):
             raise ConfigError(f"session changes: voxel_size_m must be > 0, got {self.voxel_size_m!r}")
@@ -148,7 +152,7 @@ class SessionChanges:
 
     def region_at(self, point_m: NDArray[np.floating], pad_m: float | None = None) -> int | None:
         """The index of the first region whose box (grown by ``pad_m``, default the margin) holds ``point_m``."""
-        pad = self.config.margin_m if pad_m is None else pad_m
+        pad = float(self.config.margin_m or 0.0) if pad_m is None else pad_m
         for k, r in enumerate(self.regions):
             if r.contains_m(point_m, pad):
                 return k
@@ -192,6 +196,8 @@ def session_changes(store: FrameStore, sessions: dict[int, list[int]], revision:
     :func:`driftmap.pipeline.merge.store_sessions`) of ``store`` in ``revision`` (default: the head)."""
     t0 = time.perf_counter()
     cfg = config or ChangeConfig()
+    if cfg.margin_m is None:
+        cfg = dataclasses.replace(cfg, margin_m=DiagnoseConfig.for_store(store).revisits.max_detectable_m)
     if len(sessions) < 2:
         raise ConfigError(f"{store.path}: session changes need at least two sessions, got {len(sessions)}")
     rev = store.head if revision is None else int(revision)

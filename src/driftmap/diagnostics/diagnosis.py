@@ -274,7 +274,8 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
     if sessions is not None and len(sessions) >= 2:
         t = time.perf_counter()
         try:
-            changes = session_changes(store, sessions, rev, change_config)
+            changes = session_changes(store, sessions, rev, change_config or ChangeConfig(
+                margin_m=config.revisits.max_detectable_m))  # the detector's range: a misalignment is no change
         except ConfigError as exc:  # e.g. a LiDAR store without a max range: the rest of the diagnosis stands
             logger.warning("diagnose: the changes between the sessions of %s are not judged: %s", store.path, exc)
             diagnosis = dataclasses.replace(diagnosis, sessions=sessions, session_changes_skipped=str(exc))

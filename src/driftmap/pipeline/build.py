@@ -268,7 +268,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
         odometry_config=odometry_config, tracking=tracking_summary(store), scene_reach=scene,
     )
-    if n_new and pose_source is not PoseSource.ODOMETRY:
+    if len(store) >= 2 and pose_source is not PoseSource.ODOMETRY:  # also a resume that adds nothing (trial 13)
         t_check = time.perf_counter()
         what = describe_poses((source_record or {}).get("poses", {"mode": "source"}))
         try:
