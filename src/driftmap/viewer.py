@@ -58,9 +58,8 @@ from driftmap.render import (  # noqa: E402,F401
     fit_camera,
     look_along,
     render_software,
-    session_color_rgb,
-    session_color_text,
 )
+from driftmap.viewer_sessions import SessionColor, session_colours, store_session_ids  # noqa: E402,F401
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
 if TYPE_CHECKING:
@@ -87,24 +86,6 @@ _OPEN3D_TIMEOUT_S = 300.0
 
 
 # ---------------------------------------------------------------------------------------------- data
-
-
-@dataclass(frozen=True)
-class SessionColor:
-    """One session of a store in ``--color session``: its colour, its frames and where they came from."""
-
-    session: int
-    rgb: tuple[int, int, int]
-    n_frames: int
-    source_store: str | None
-    """The store the session was merged from (``driftmap merge``); None for a store that no merge made (one session)."""
-    n_points_shown: int = 0
-    """Points of the picture that came from this session's frames."""
-
-    @property
-    def color_text(self) -> str:
-        """``#rrggbb (name)``."""
-        return session_color_text(self.session)
 
 
 @dataclass(frozen=True)
@@ -258,43 +239,6 @@ def _up_axis(poses: NDArray[np.float64], kind: SensorKind) -> NDArray[np.float64
     return sensor_up(poses, kind)
 
 
-def store_session_ids(store: FrameStore) -> tuple[NDArray[np.int64], list[tuple[int, int, str | None]]]:
-    """The session of each of ``store.frame_ids`` and ``(session, frames, source store)`` per session: a merged
-    store's sessions (:func:`driftmap.pipeline.merge.store_sessions`), else one session 0 holding every frame."""
-    from driftmap.pipeline.merge import frame_origin, store_sessions
-
-    sessions = store_sessions(store)
-    frame_ids = np.asarray(store.frame_ids, np.int64)
-    if not sessions:
-        logger.info("view: %s is not a merged store: one session, one colour", store.path)
-        return np.zeros(len(frame_ids), np.int64), [(0, len(frame_ids), None)]
-    per_frame = np.empty(len(frame_ids), np.int64)
-    rows: list[tuple[int, int, str | None]] = []
-    for k, ids in sorted(sessions.items()):
-        per_frame[np.searchsorted(frame_ids, np.asarray(ids, np.int64))] = k
-        origin = frame_origin(store.frame_info(int(ids[0])).get("provenance"))
-        rows.append((k, len(ids), None if origin is None else origin.store))
-    if len(sessions) > len(SESSION_PALETTE_RGB):
-        logger.warning("view: %d sessions but %d session colours: colours repeat (session k has colour k %% %d)",
-                       len(sessions), len(SESSION_PALETTE_RGB), len(SESSION_PALETTE_RGB))
-    return per_frame, rows
-
-
-def _session_colours(store: FrameStore, frame_ids: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.uint8],
-                                                                               tuple[SessionColor, ...]]:
-    """Colour ``session``: the session of each shown point (its frame's), its colour and the legend."""
-    per_frame, rows = store_session_ids(store)
-    point_sessions = per_frame[np.searchsorted(store.frame_ids, frame_ids)]
-    palette = np.asarray(SESSION_PALETTE_RGB, np.uint8)
-    colors = palette[point_sessions % len(palette)]
-    legend = tuple(SessionColor(k, session_color_rgb(k), n, src, int(np.count_nonzero(point_sessions == k)))
-                   for k, n, src in rows)
-    for entry in legend:
-        logger.info("view: session %d %s: %d frames, %d points shown", entry.session, entry.color_text, entry.n_frames,
-                    entry.n_points_shown)
-    return point_sessions.astype(np.float64), colors, legend
-
-
 def _palette(color: str) -> ListedColormap:
     if color == "session":
         return ListedColormap(np.asarray(SESSION_PALETTE_RGB) / 255.0, name="tab10")
@@ -394,7 +338,7 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     walls = None
     legend = None
     if color == "session":
-        values, colors, legend = _session_colours(store, frame_ids)
+        values, colors, legend = session_colours(store, frame_ids)
         value_range = (float(legend[0].session), float(legend[-1].session))
         label = "session"
     elif color == "frame":
