@@ -24,9 +24,9 @@ from driftmap.store.frame_store import FrameStore
 ROOM = dict(n_frames=60, seed=5, width=160, height=120, fx=131.25, fy=131.25, cx=79.5, cy=59.5)
 DAY_NS = 86_400 * 10**9
 MISALIGNMENT_M = np.array([0.03, 0.0, 0.0])
+"""injected into session 1's merged poses (world x): the +-x walls are doubled 3 cm apart"""
 FAR_MISALIGNMENT_M = np.array([0.15, 0.0, 0.0])
 """Trial 13: at a fixed 10 cm margin a 15 cm misalignment read as 19 change regions (whole walls added / removed)."""
-"""injected into session 1's merged poses (world x): the +-x walls are doubled 3 cm apart"""
 FAST_MERGE = ("[build]\nodometry_edge_window = 1\n"
               "[build.loop_closure]\nkeyframe_distance_m = 0.4\nsession_descriptor_candidates = 1\n")
 """a keyframe every 40 cm (15 a session instead of 60), one descriptor candidate each: 30 loops tried, not 177"""
@@ -313,3 +313,32 @@ def test_latest_state_layers_show_the_newest_world(merged: dict) -> None:
     assert per[1] > per[0] > 0 and sum(per.values()) == int(np.sum(states_latest != UNKNOWN))
     # queries work on them: the clearance at the old seat is the room's, at the new one zero
     assert L.clearance_m(_box("chair_seat", chair_moved=True)[0][None] + 0.02)[0] < 0.05
+
+
+def test_export_latest_state_mesh_shows_the_chair_only_at_its_new_place(merged: dict) -> None:
+    """``export --mesh --latest-state`` on the merged store: the TSDF mesh of the newest state (session 1: the chair
+    moved, the door closed) has no surface left at the chair's old place, where the mesh of every session's rays keeps
+    it; both have the chair at its new place. On a store of one session the flag is refused before anything is
+    written."""
+    import open3d as o3d
+
+    root = merged["root"]
+    meshes = {}
+    for name, extra in (("all", ()), ("latest", ("--latest-state",))):
+        path = root / f"mesh_{name}.ply"
+        run = run_cli("export", merged["store"], "--revision", 1, "--mesh", path, "--overwrite", *extra)
+        _ok(run)
+        meshes[name] = np.asarray(o3d.io.read_triangle_mesh(str(path)).vertices)
+    assert "latest state of 2 sessions" in " ".join(run.stdout.split()), run.stdout
+
+    def near(vertices: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> int:
+        lo, hi = box
+        seat = (vertices >= lo - 0.02) & (vertices <= hi + 0.02)
+        return int(np.count_nonzero(seat.all(axis=1) & (vertices[:, 2] > 0.3)))  # above the floor's own surface
+    old = next(box for what, _, _, box in TRUTH if what == "chair, old place")
+    new = next(box for what, _, _, box in TRUTH if what == "chair, new place")
+    assert near(meshes["all"], old) > 50 and near(meshes["latest"], old) < 0.1 * near(meshes["all"], old), (
+        near(meshes["all"], old), near(meshes["latest"], old))
+    assert near(meshes["latest"], new) > 50, near(meshes["latest"], new)
+    single = run_cli("export", root / "A", "--mesh", root / "mesh_single.ply", "--latest-state")
+    assert "holds one session" in one_error(single) and not (root / "mesh_single.ply").exists()

@@ -123,6 +123,7 @@ def export(
     band_m: Annotated[Optional[str], typer.Option("--band-m", metavar="ZMIN,ZMAX", help="World-z band of --grid2d and of the MCAP's 2-D grid (m; default: every observed height).")] = None,
     no_volume: Annotated[bool, typer.Option("--no-volume", help="--mcap without the volumetric layers (the TSDF mesh and the 2-D grid are otherwise added).")] = False,
     session: Annotated[Optional[int], typer.Option("--session", min=0, metavar="K", help="A merged store (driftmap merge): --trajectory holds only session K's frames (default: every session, in session order).")] = None,
+    latest_state: Annotated[bool, typer.Option("--latest-state", help="A merged store (driftmap merge): the volumetric layers of --mesh, --octomap, --grid2d and --mcap show the latest state of the world -- each voxel as the newest session that observed it saw it (a chair moved between sessions stands only at its new place) -- instead of every session's rays at once.")] = False,
     color: Annotated[str, typer.Option("--color", help="Colours of the --mcap clouds: frame (the default: /map's frame_id field, the frames' own colours) | session (each session of a merged store in its own colour, tab10: /map gains session and red green blue alpha fields, every frame on /points its session's colour; a store no merge made is one session, one colour).")] = "frame",
 ) -> None:
     """Export the map (world frame of a revision), the trajectory, a Foxglove MCAP and the volumetric layers (TSDF
@@ -144,6 +145,9 @@ def export(
         raise typer.BadParameter("colours the clouds of the Foxglove MCAP: give --mcap with it", param_hint="--color")
     if no_volume and mcap_path is None:
         raise typer.BadParameter("leaves the volumetric layers out of the MCAP: give --mcap with it", param_hint="--no-volume")
+    if latest_state and all(p is None for p in (mesh_path, octomap_path, grid2d_path)) and (mcap_path is None or no_volume):
+        raise typer.BadParameter("chooses the volumetric layers' state: give --mesh, --octomap, --grid2d or --mcap "
+                                 "(without --no-volume) with it", param_hint="--latest-state")
     if no_volume and band is not None and grid2d_path is None:
         raise typer.BadParameter("--no-volume leaves the 2-D grid out of the MCAP: --band-m has nothing to apply to",
                                  param_hint="--band-m")
@@ -187,6 +191,13 @@ def export(
             from driftmap.pipeline.merge import session_frame_ids
 
             session_ids = session_frame_ids(store, session)  # before anything is written
+        if latest_state:
+            from driftmap.pipeline.merge import store_sessions
+
+            if len(store_sessions(store)) < 2:  # before anything is written
+                raise typer.BadParameter(f"{store.path} holds one session (no store that driftmap merge made): its "
+                                         f"layers are its latest state already; leave --latest-state out",
+                                         param_hint="--latest-state")
         if trajectory is not None:
             store.export_trajectory(trajectory, revision=rev, format=format,
                                     frame_ids=None if session is None else session_ids)
@@ -201,7 +212,7 @@ def export(
             console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
         volume = None
         if any(p is not None for p, _ in volume_outputs) or (mcap_path is not None and not no_volume):
-            volume = _volume_layers(store, rev, settings.volume)
+            volume = _volume_layers(store, rev, settings.volume, latest_state=latest_state)
             _write_volume(volume, mesh_path, octomap_path, grid2d_path, band)
         if mcap_path is not None:
             from driftmap.export.foxglove import export_foxglove_mcap
@@ -283,10 +294,27 @@ def _observed_band(volume) -> tuple[float, float]:  # noqa: ANN001 - a VolumeLay
     return (float(z.min()), float(z.max())) if len(z) else (float(g.min_m[2]), float(g.max_m[2]))
 
 
-def _volume_layers(store, revision: int, config):  # noqa: ANN001, ANN202
-    """The revision's volumetric layers, with a progress bar over the frames."""
+def _volume_layers(store, revision: int, config, *, latest_state: bool = False):  # noqa: ANN001, ANN202
+    """The revision's volumetric layers, with a progress bar over the frames (``latest_state``: a merged store's
+    latest-state layers, :func:`driftmap.volume.sessions.latest_state_layers`)."""
     from driftmap.volume import VolumeLayers
 
+    if latest_state:
+        from driftmap.pipeline.merge import store_sessions
+        from driftmap.volume.sessions import latest_state_layers
+
+        sessions = store_sessions(store)  # two or more (checked before anything was written)
+        with console.status("latest-state volumetric layers (one set per session)"):
+            state = latest_state_layers(store, sessions, revision, config)
+        decided = ", ".join(f"session {k}: {n:,}" for k, n in state.voxels_per_session().items())
+        console.print(f"latest state of {len(sessions)} sessions (oldest first {state.order}): voxels decided by "
+                      f"{decided}", highlight=False)
+        layers = state.layers
+        stats = layers.stats()
+        console.print(f"volumetric layers (revision {revision}, latest state): {layers.grid.describe()}; "
+                      f"{stats.occupied:,} occupied, {stats.free:,} free, {stats.unknown:,} unknown voxels",
+                      highlight=False)
+        return layers
     with progress_bar() as progress:
         task = progress.add_task("volumetric layers", total=len(store))
         layers = VolumeLayers.from_store(store, revision, config,
