@@ -436,3 +436,25 @@ def test_source_options_choose_the_stream_and_resume_checks_them(tmp_path: Path)
     back = open_source(mcap)
     assert [f.sensor_kind.value for f in back] == ["lidar"] * 4
     assert back.frame(1).points_sensor.tobytes() == lidar.frame(1).points_sensor.tobytes()
+
+
+def test_a_pose_file_that_ends_before_the_log_says_so_and_the_way_out(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """Trial 13 (F8): a pose file ending before the log failed at the first frame past its end with only a signed
+    nanosecond distance. The error now gives the distance in seconds, the file's span and, for a frame outside it, the
+    way out (--frames, or odometry and `driftmap correct`); a frame inside the span with no row near it gets the
+    tolerance's hint instead."""
+    frames = list(SevenScenes(sevenscenes_dir, frames="0:3"))
+    short = tmp_path / "short.tum"
+    write_tum(short, Trajectory(np.array([f.stamp_ns for f in frames[:2]]),
+                                np.stack([f.pose.T_world_sensor for f in frames[:2]])))
+    with pytest.raises(SourceError, match=r"no pose within 20 ms of frame 2 .* s (after|before) it\)") as err:
+        build(sevenscenes_dir, tmp_path / "a", frames="0:3", poses_file=short, loop_closure=False)
+    text = str(err.value)
+    assert "the file's 2 rows span stamps" in text and "the frame lies outside them" in text, text
+    assert "--frames" in text and "driftmap correct" in text, text
+    gap = tmp_path / "gap.tum"  # rows for frames 0 and 2 only: frame 1 lies inside the span
+    write_tum(gap, Trajectory(np.array([frames[0].stamp_ns, frames[2].stamp_ns]),
+                              np.stack([frames[0].pose.T_world_sensor, frames[2].pose.T_world_sensor])))
+    with pytest.raises(SourceError, match=r"frame 1 .*--max-dt-ms") as err:
+        build(sevenscenes_dir, tmp_path / "b", frames="0:3", poses_file=gap, loop_closure=False)
+    assert "lies outside" not in str(err.value)

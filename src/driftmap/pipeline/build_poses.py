@@ -128,8 +128,17 @@ def pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: s
     def by_stamp(frame: Frame) -> np.ndarray:
         j = _nearest(stamps, frame.stamp_ns)
         if abs(int(stamps[j]) - frame.stamp_ns) > max_dt_ns:
-            raise SourceError(f"{poses_file}: no pose within {max_dt_ns / 1e6:g} ms of frame {frame.frame_id} "
-                              f"(stamp {frame.stamp_ns} ns; the nearest is {int(stamps[j]) - frame.stamp_ns:+d} ns away)")
+            first_s, last_s = int(stamps.min()) / 1e9, int(stamps.max()) / 1e9
+            outside = not first_s <= frame.stamp_ns / 1e9 <= last_s
+            raise SourceError(
+                f"{poses_file}: no pose within {max_dt_ns / 1e6:g} ms of frame {frame.frame_id} (stamp "
+                f"{frame.stamp_ns} ns; the nearest is {int(stamps[j]) - frame.stamp_ns:+d} ns away, "
+                f"{abs(int(stamps[j]) - frame.stamp_ns) / 1e9:.3f} s {'after' if stamps[j] > frame.stamp_ns else 'before'} "
+                f"it); the file's {len(stamps)} rows span stamps {first_s:.3f} .. {last_s:.3f} s"
+                + (" and the frame lies outside them (trial 13: a file that ends before the log): build only the frames "
+                   "the file covers (--frames), or build with our odometry and import the file with `driftmap correct "
+                   "STORE --poses FILE` (frames without a row follow the nearest ones)" if outside else
+                   ": a file with a row per frame, or --max-dt-ms for rows that lag the frames"))
         if frame_stamps is not None:  # a row is the pose of its nearest frame only (TUM's associate.py)
             other = int(frame_stamps[_nearest(frame_stamps, int(stamps[j]))])
             if abs(other - int(stamps[j])) < abs(frame.stamp_ns - int(stamps[j])):
