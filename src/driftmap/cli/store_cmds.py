@@ -310,18 +310,15 @@ def _volume_layers(store, revision: int, config, *, latest_state: bool = False):
         console.print(f"latest state of {len(sessions)} sessions (oldest first {state.order}): voxels decided by "
                       f"{decided}", highlight=False)
         layers = state.layers
-        stats = layers.stats()
-        console.print(f"volumetric layers (revision {revision}, latest state): {layers.grid.describe()}; "
-                      f"{stats.occupied:,} occupied, {stats.free:,} free, {stats.unknown:,} unknown voxels",
-                      highlight=False)
-        return layers
-    with progress_bar() as progress:
-        task = progress.add_task("volumetric layers", total=len(store))
-        layers = VolumeLayers.from_store(store, revision, config,
-                                         progress=lambda stage, done, total: progress.update(task, completed=done))
+    else:
+        with progress_bar() as progress:
+            task = progress.add_task("volumetric layers", total=len(store))
+            layers = VolumeLayers.from_store(store, revision, config,
+                                             progress=lambda stage, done, total: progress.update(task, completed=done))
     stats = layers.stats()
-    console.print(f"volumetric layers (revision {revision}): {layers.grid.describe()}; {stats.occupied:,} occupied, "
-                  f"{stats.free:,} free, {stats.unknown:,} unknown voxels", highlight=False)
+    console.print(f"volumetric layers (revision {revision}{', latest state' if latest_state else ''}): "
+                  f"{layers.grid.describe()}; {stats.occupied:,} occupied, {stats.free:,} free, {stats.unknown:,} "
+                  f"unknown voxels", highlight=False)
     return layers
 
 

@@ -102,16 +102,15 @@ def _positive(value: object) -> float | None:
 
 
 def _odometry_max_range(store: FrameStore) -> float | None:
-    summary = _read_json(store.path / BUILD_SUMMARY)
-    if summary is None:
-        return None
-    odometry = summary.get("odometry_config") or {}
-    return _positive(odometry.get("max_range_m")) if isinstance(odometry, dict) else None
+    return _recorded_max_range(store, BUILD_SUMMARY, "odometry_config")
 
 
 def _merge_max_range(store: FrameStore) -> float | None:
-    summary = _read_json(store.path / MERGE_SUMMARY)
-    if summary is None:
-        return None
-    volume = summary.get("volume_defaults") or {}
-    return _positive(volume.get("max_range_m")) if isinstance(volume, dict) else None
+    return _recorded_max_range(store, MERGE_SUMMARY, "volume_defaults")
+
+
+def _recorded_max_range(store: FrameStore, file: str, table: str) -> float | None:
+    """``max_range_m`` of the ``table`` object in the store's ``file`` (a positive number, else None)."""
+    summary = _read_json(store.path / file)
+    values = (summary or {}).get(table) or {}
+    return _positive(values.get("max_range_m")) if isinstance(values, dict) else None
