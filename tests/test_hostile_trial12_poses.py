@@ -263,3 +263,40 @@ def test_t13_a_resume_that_adds_no_frame_keeps_the_given_poses_check(logs: dict)
     summary = json.loads((target / "build_summary.json").read_text())
     assert summary["n_frames_new"] == 0 and summary["given_poses_check"]["consistent"] is False, summary
     assert re.search(r"given poses fit the frames .* NO: \d+ of \d+ frame pairs disagree", _out(run)), _out(run)
+
+
+def test_t13_poses_of_a_sensor_mounted_turned_are_read_as_such(logs: dict) -> None:
+    """Trial 13 (F1): the LiDAR's own poses turned 10 deg about its z (a scanner mounted turned against the file's
+    sensor) read "given poses fit the frames: yes": each 12 cm step comes out turned by 10 deg, 2 cm off, within the
+    registration's inlier distance. Across the pairs the frames move as the file's poses would with the sensor turned
+    (the relative motions conjugated by the rotation): the fitted rotation is the offset, and the build warns."""
+    out = logs["root"] / "lidar_turned"
+    turned = _moved(logs["lidar_poses"], logs["root"] / "lidar_turned.txt", sensor=_transform("z", 10.0))
+    run = run_cli("build", logs["root"] / "lidar_log", "--out", out, "--sensor", "lidar", "--poses", turned,
+                  "--no-loop-closure")
+    assert run.returncode == 0, run.stderr[-2000:]
+    check = _given_check(out)
+    mounting = check["mounting_rotation"]
+    assert check["consistent"] is False and mounting["explains"] is True, check
+    assert abs(mounting["angle_deg"] - 10.0) < 1.0 and abs(mounting["rotvec_deg"][2] - 10.0) < 1.0, mounting
+    err = _err(run)
+    assert "mounted turned by 10." in err and "about the sensor's (0.0" in err and str(turned) in err, err
+    assert re.search(r"given poses fit the frames .* NO: the \d+ frame pairs fit a sensor mounted turned by 10\.\d deg",
+                     _out(run)), _out(run)
+    own = _given_check(logs["lidar"])["mounting_rotation"]  # the same log with its own poses: no rotation read
+    assert own["explains"] is False and own["angle_deg"] < 3.0, own
+
+
+def test_t13_correct_checks_the_imported_poses_against_the_frames(logs: dict) -> None:
+    """Trial 13: `correct` imported a 10 deg sensor offset that `build` would flag, without a word. The imported
+    revision is checked as `build --poses` checks a file: stored, with a warning naming the rotation and the rollback;
+    the store's own poses imported again raise no such warning."""
+    target = _copy(logs["lidar"], logs["root"], "corrected_turned")
+    turned = _moved(logs["lidar_poses"], logs["root"] / "turned_for_correct.txt", sensor=_transform("z", 10.0))
+    run = run_cli("correct", target, "--poses", turned)
+    assert run.returncode == 0, run.stderr[-2000:]
+    err = _err(run)
+    assert "(revision 1): the poses do not move the way the frames do" in err, err
+    assert "mounted turned by 10." in err and f"driftmap rollback {target} --to 0" in err, err
+    again = run_cli("correct", target, "--poses", logs["lidar_poses"])
+    assert again.returncode == 0 and "do not move the way the frames do" not in _err(again), again.stderr[-2000:]

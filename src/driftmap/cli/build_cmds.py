@@ -381,6 +381,10 @@ def _given_poses_row(check: dict | None) -> str:
         return "-"
     if check["consistent"]:
         return f"yes ({check['n_decisive']} frame pairs)"
+    mounting = check.get("mounting_rotation") or {}
+    if mounting.get("explains") and 2 * check["n_disagreeing"] < max(check["n_decisive"], 6):
+        return (f"NO: the {check['n_decisive']} frame pairs fit a sensor mounted turned by "
+                f"{mounting['angle_deg']:.1f} deg")
     return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree"
 
 

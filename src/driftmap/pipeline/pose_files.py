@@ -26,6 +26,7 @@ from driftmap import geometry
 from driftmap.diagnostics.ground_truth import GT_FORMATS, MIN_GT_FRAMES
 from driftmap.errors import ConfigError, DriftmapError, StoreError
 from driftmap.frame import PoseSource
+from driftmap.pipeline.given_poses import check_given_poses
 from driftmap.sources.base import registered_formats
 from driftmap.sources.kitti import KittiOrigin, kitti_origin_named, kitti_origin_of_frame_infos, kitti_rows_as_velodyne
 from driftmap.store.frame_store import FrameStore, PoseMatch, TrajectoryFormat
@@ -132,8 +133,28 @@ def import_pose_file(store: FrameStore, file: str | Path, *, format: TrajectoryF
             report(offsets)
         return rows
 
-    return store.import_poses(file, format=format, match=match, max_dt_ns=max_dt_ns, source=source, propagate=propagate,
-                              kitti_frame=kitti_frame, calib_file=calib_file, rows_in_sensor_frame=converter)
+    revision, matched = store.import_poses(file, format=format, match=match, max_dt_ns=max_dt_ns, source=source,
+                                           propagate=propagate, kitti_frame=kitti_frame, calib_file=calib_file,
+                                           rows_in_sensor_frame=converter)
+    _check_imported_poses(store, file, revision)
+    return revision, matched
+
+
+def _check_imported_poses(store: FrameStore, file: str | Path, revision: Revision) -> None:
+    """The imported poses checked against the frames as ``build --poses`` checks a pose file
+    (:func:`~driftmap.pipeline.given_poses.check_given_poses`; trial 13: `correct` imported a 10 deg sensor offset that
+    `build` would flag): a warning with the way back, never a failed import (the revision is stored already)."""
+    try:
+        check = check_given_poses(store, revision.revision_id)
+    except (DriftmapError, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+        logger.warning("%s: revision %d not checked against the frames (%s: %s)", file, revision.revision_id,
+                       type(exc).__name__, exc)
+        return
+    reason = check.reason(f"{file} (revision {revision.revision_id})",
+                          then=f"The revision is stored; `driftmap rollback {store.path} --to {revision.parent_id}` "
+                               f"restores the poses before it")
+    if reason is not None:
+        logger.warning("%s", reason)
 
 
 OTHER_SENSOR_MIN_DEG = 20.0
