@@ -300,3 +300,16 @@ def test_t13_correct_checks_the_imported_poses_against_the_frames(logs: dict) ->
     assert "mounted turned by 10." in err and f"driftmap rollback {target} --to 0" in err, err
     again = run_cli("correct", target, "--poses", logs["lidar_poses"])
     assert again.returncode == 0 and "do not move the way the frames do" not in _err(again), again.stderr[-2000:]
+
+
+def test_t13_the_logs_own_odometry_taken_with_poses_from_source_is_checked(logs: dict) -> None:
+    """Trial 13 (F6): `--poses-from-source` resolving to the log's own odometry (the synthetic log's odometry.txt; a
+    ROS log's /odom) was never compared with the frames ("-", given_poses_check null), as if driftmap's odometry had
+    made the poses. Only poses our odometry made go unchecked."""
+    out = logs["root"] / "lidar_log_odometry"
+    run = run_cli("build", logs["root"] / "lidar_log", "--out", out, "--sensor", "lidar", "--poses-from-source",
+                  "--no-loop-closure")
+    assert run.returncode == 0, run.stderr[-2000:]
+    check = _given_check(out)
+    assert check is not None and check["n_pairs"] >= 3 and check["consistent"] is True, check
+    assert re.search(r"given poses fit the frames .* yes \(\d+ frame pairs\)", _out(run)), _out(run)

@@ -268,7 +268,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         odometry_fps=odometry.fps if odometry is not None else None, seconds_per_stage=stages, source=source_record,
         odometry_config=odometry_config, tracking=tracking_summary(store), scene_reach=scene,
     )
-    if len(store) >= 2 and pose_source is not PoseSource.ODOMETRY:  # also a resume that adds nothing (trial 13)
+    ours = poser.pose_of is None and not poser.poses_from_source  # our odometry's poses (not a file's, not the log's)
+    if len(store) >= 2 and not ours:  # also a resume that adds nothing, and a log's own odometry (trial 13)
         t_check = time.perf_counter()
         what = describe_poses((source_record or {}).get("poses", {"mode": "source"}))
         try:
