@@ -342,3 +342,38 @@ def test_export_latest_state_mesh_shows_the_chair_only_at_its_new_place(merged: 
     assert near(meshes["latest"], new) > 50, near(meshes["latest"], new)
     single = run_cli("export", root / "A", "--mesh", root / "mesh_single.ply", "--latest-state")
     assert "holds one session" in one_error(single) and not (root / "mesh_single.ply").exists()
+
+
+def test_revisit_check_on_a_merged_store_knows_the_sessions(merged: dict) -> None:
+    """Trial 13 (F5): on a merged store the revisit check said a frame was registered onto frame 1000000000 "46.7 m of
+    travel earlier" -- another session, a day later, with no travel between them -- and took such pairs into the drift
+    rate (correction per metre of a path that does not exist). Pairs across sessions are marked, have no travel
+    (None), count for the consistency figure but not for the drift rate; a session's start is no jump."""
+    for rev in (1, 3):
+        check = merged[rev]["revisit_check"]
+        across = [p for p in check["probes"] if p["cross_session"]]
+        assert across, check["probes"]  # session 1 revisits session 0's room
+        assert all(p["path_between_m"] is None for p in across), across
+        within = [p for p in check["probes"] if not p["cross_session"] and p["target"] == "stretch"]
+        assert all(p["path_between_m"] is not None and (p["frame_id"] >= SESSION_ID_STRIDE)
+                   == (p["target_frame_id"] >= SESSION_ID_STRIDE) for p in within), within
+        boundary = [j for j in check["jumps"] if (j["before_frame_id"] >= SESSION_ID_STRIDE)
+                    != (j["frame_id"] >= SESSION_ID_STRIDE)]
+        assert not boundary, check["jumps"]
+    # 15 cm between the sessions (revision 3): the pairs across them measure it, the ones within a session do not
+    far = [p["correction_m"] for p in merged[3]["revisit_check"]["probes"] if p["cross_session"] and p["counted"]]
+    assert far and max(far) == pytest.approx(float(np.linalg.norm(FAR_MISALIGNMENT_M)), abs=0.03), far
+
+
+def test_revisit_reason_names_sessions_not_travel_across_them() -> None:
+    """The reason on a merged store names each frame's session and says "in another session" instead of a travel."""
+    from driftmap.diagnostics.revisits import STRETCH, RevisitCheck, RevisitCheckConfig, RevisitProbe
+
+    cfg = RevisitCheckConfig(max_detectable_m=0.2)
+    probes = [RevisitProbe(SESSION_ID_STRIDE + k, 0.8, 0.9, 0.01, 0.3, 0.3 + 0.03 * k, 0.1, True, k, 0, float("nan"), STRETCH,
+                           True) for k in range(4)]
+    sessions = {**{k: 0 for k in range(4)}, **{SESSION_ID_STRIDE + k: 1 for k in range(4)}}
+    check = RevisitCheck(cfg, probes, 4, (), sessions)
+    reason = check.reason()
+    assert f"frame {SESSION_ID_STRIDE + 3} (session 1) on frame 3 (session 0), in another session" in reason, reason
+    assert "travel" not in reason and check.drift_percent_per_m is None, reason  # no travel: no drift rate

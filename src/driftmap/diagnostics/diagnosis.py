@@ -193,11 +193,14 @@ def _timed(seconds: dict[str, float], name: str, step: Callable[[], T]) -> T:
 
 def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revision: int = 0,
                    config: DiagnoseConfig | None = None, ground_truth: NDArray[np.float64] | None = None,
-                   ground_truth_rows: NDArray[np.int64] | None = None) -> Diagnosis:
+                   ground_truth_rows: NDArray[np.int64] | None = None,
+                   row_sessions: NDArray[np.int64] | None = None) -> Diagnosis:
     """Diagnose samples placed with ``poses`` (rows in the cloud's frame order): the steps of the module
     docstring, in order, each timed in :attr:`Diagnosis.seconds`.
 
     ``ground_truth``: (K, 4, 4) poses of the frame rows ``ground_truth_rows`` (default: all rows) for ATE/RPE.
+    ``row_sessions``: a merged store's session of each frame row (the revisit check's pairs across sessions have no
+    travel between them, and a session's start is no jump of the trajectory).
     """
     cfg = config or DiagnoseConfig()
     seconds: dict[str, float] = {}
@@ -208,7 +211,7 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     entropy = _timed(seconds, "mme_mpv", lambda: map_entropy(placed.points_world, radius_m=e.radius_m,
                                                              min_neighbors=e.min_neighbors, max_neighbors=e.max_neighbors,
                                                              max_query_points=e.max_query_points))
-    revisits = _timed(seconds, "revisit_check", lambda: check_revisits(placed, cfg.revisits))
+    revisits = _timed(seconds, "revisit_check", lambda: check_revisits(placed, cfg.revisits, row_sessions))
     coverage = _timed(seconds, "coverage", lambda: assess(placed, walls, attribution.drift.n_frames, cfg.coverage,
                                                           revisits, attribution.drift.percent_per_m,
                                                           attribution.drift.deg_per_m))
@@ -269,7 +272,12 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
     gt_rows = gt_poses = None
     if ground_truth is not None:
         gt_rows, gt_poses = _ground_truth_rows(cloud, ground_truth)
-    diagnosis = diagnose_cloud(cloud, poses, revision=rev, config=config, ground_truth=gt_poses, ground_truth_rows=gt_rows)
+    row_sessions = None
+    if sessions is not None and len(sessions) >= 2:
+        of = {int(f): k for k, ids in sessions.items() for f in ids}
+        row_sessions = np.array([of.get(int(f), -1) for f in cloud.frame_ids], dtype=np.int64)
+    diagnosis = diagnose_cloud(cloud, poses, revision=rev, config=config, ground_truth=gt_poses, ground_truth_rows=gt_rows,
+                               row_sessions=row_sessions)
     diagnosis.seconds["sampling"] = sampling_s
     if sessions is not None and len(sessions) >= 2:
         t = time.perf_counter()

@@ -42,7 +42,8 @@ pairs' worth of frames, or lies along a direction the revisiting frames do not c
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -122,6 +123,9 @@ class RevisitProbe:
     kind: str = "stretch"
     """:data:`STRETCH` (a revisit pair), :data:`MAP` (the target is every frame up to the target frame: the earlier
     map) or :data:`STEP` (the probe is at or just after a jump in the trajectory, the target the frames before it)."""
+    cross_session: bool = False
+    """A merged store's probe and target frame belong to different sessions: no travel lies between them
+    (``path_between_m`` is NaN, None in JSON), and the pair counts for the map's consistency, not for a drift rate."""
 
     @property
     def whole_map(self) -> bool:
@@ -133,8 +137,9 @@ class RevisitProbe:
                 "constraint": None if self.constraint is None else round(self.constraint, 4),
                 "correction_m": round(self.correction_m, 5), "correction_deg": round(self.correction_deg, 4),
                 "counted": self.counted, "target_frame_id": self.target_frame_id,
-                "target_first_frame_id": self.target_first_frame_id, "path_between_m": round(self.path_between_m, 4),
-                "target": self.kind}
+                "target_first_frame_id": self.target_first_frame_id,
+                "path_between_m": round(self.path_between_m, 4) if np.isfinite(self.path_between_m) else None,
+                "target": self.kind, "cross_session": self.cross_session}
 
 
 @dataclass(frozen=True)
@@ -165,10 +170,26 @@ class RevisitCheck:
     """Frame pairs at least ``revisit_min_path_m`` of travel apart that overlap enough."""
     jumps: tuple[StepJump, ...] = ()
     """The trajectory's jumps whose frames were registered onto the frames before them (:data:`STEP` probes)."""
+    frame_sessions: dict[int, int] = field(default_factory=dict)
+    """A merged store's session of each frame id (empty: one session); the reasons name them."""
 
     @property
     def counted(self) -> list[RevisitProbe]:
         return [p for p in self.probes if p.counted]
+
+    def _name(self, frame_id: int) -> str:
+        session = self.frame_sessions.get(int(frame_id))
+        return f"frame {frame_id}" if session is None else f"frame {frame_id} (session {session})"
+
+    def _names(self, a: int, b: int) -> str:
+        if not self.frame_sessions:
+            return f"frames {a} and {b}"
+        return f"{self._name(a)} and {self._name(b)}"
+
+    def _drift_pairs(self) -> list[RevisitProbe] | None:
+        """The counted pairs within one session (the travel between them is known); None: fewer than ``min_probes``."""
+        pairs = [p for p in self._group(False) if p.counted and not p.cross_session]
+        return pairs if len(pairs) >= self.config.min_probes else None
 
     def _group(self, whole_map: bool) -> list[RevisitProbe]:
         kind = MAP if whole_map else STRETCH
@@ -229,16 +250,19 @@ class RevisitCheck:
     @property
     def drift_percent_per_m(self) -> float | None:
         """Median over the counted pairs (not the whole-map probes, whose target spans all earlier travel) of
-        correction / travel between the two frames (%; None: too few pairs)."""
-        if not self._group_judged(False):
+        correction / travel between the two frames (%; None: too few pairs); a merged store's pairs across sessions
+        have no travel between them and do not count."""
+        pairs = self._drift_pairs()
+        if pairs is None:
             return None
-        return float(100.0 * np.median([p.correction_m / max(p.path_between_m, 1e-9) for p in self._group(False) if p.counted]))
+        return float(100.0 * np.median([p.correction_m / max(p.path_between_m, 1e-9) for p in pairs]))
 
     @property
     def drift_deg_per_m(self) -> float | None:
-        if not self._group_judged(False):
+        pairs = self._drift_pairs()
+        if pairs is None:
             return None
-        return float(np.median([p.correction_deg / max(p.path_between_m, 1e-9) for p in self._group(False) if p.counted]))
+        return float(np.median([p.correction_deg / max(p.path_between_m, 1e-9) for p in pairs]))
 
     @property
     def beyond_detector(self) -> bool:
@@ -260,8 +284,8 @@ class RevisitCheck:
         cfg = self.config
         if self.unfit_jumps:
             j = max(self.unfit_jumps, key=lambda j: j.excess_m / cfg.max_detectable_m + j.excess_deg / cfg.max_detectable_deg)
-            return (f"the trajectory jumps by {100 * j.excess_m:.0f} cm / {j.excess_deg:.1f} deg between frames "
-                    f"{j.before_frame_id} and {j.frame_id} (beyond what its neighbours move, and more than "
+            return (f"the trajectory jumps by {100 * j.excess_m:.0f} cm / {j.excess_deg:.1f} deg between "
+                    f"{self._names(j.before_frame_id, j.frame_id)} (beyond what its neighbours move, and more than "
                     f"{cfg.implausible_factor:g}x the log's 90th-percentile motion between frames), and the frames from "
                     f"there on do not fit the frames before it (revisit check, GICP from a "
                     f"{100 * cfg.coarse_gate_m:.0f} cm gate): a pose error larger than the check and the double-wall "
@@ -277,9 +301,10 @@ class RevisitCheck:
             return None
         worst = max(self.counted, key=lambda p: p.correction_m / cfg.max_detectable_m
                     + p.correction_deg / cfg.max_detectable_deg)
+        between = "in another session" if worst.cross_session else f"{worst.path_between_m:.3g} m of travel earlier"
         return (f"revisiting frames disagree with the earlier map by {100 * self.disagreement_m:.0f} cm / "
-                f"{self.disagreement_deg:.1f} deg (frame {worst.frame_id} on frame {worst.target_frame_id}, "
-                f"{worst.path_between_m:.3g} m of travel earlier: {100 * worst.correction_m:.0f} cm / "
+                f"{self.disagreement_deg:.1f} deg ({self._name(worst.frame_id)} on {self._name(worst.target_frame_id)}, "
+                f"{between}: {100 * worst.correction_m:.0f} cm / "
                 f"{worst.correction_deg:.1f} deg; revisit check): beyond the {100 * cfg.max_detectable_m:.0f} cm / "
                 f"{cfg.max_detectable_deg:g} deg the double-wall detector sees, the map is inconsistent by more than "
                 f"its figures show")
@@ -295,8 +320,8 @@ class RevisitCheck:
         if not measured:
             return ""
         j, m, d = max(measured, key=lambda x: x[1] / cfg.max_detectable_m + x[2] / cfg.max_detectable_deg)
-        return (f"; the trajectory jumps between frames {j.before_frame_id} and {j.frame_id}, and the frames from "
-                f"{j.frame_id} on fit the frames before it only moved by {100 * m:.1f} cm / {d:.1f} deg: a pose error "
+        return (f"; the trajectory jumps between {self._names(j.before_frame_id, j.frame_id)}, and the "
+                f"frames from {j.frame_id} on fit the frames before it only moved by {100 * m:.1f} cm / {d:.1f} deg: a pose error "
                 f"there")
 
     def to_json(self) -> dict:
@@ -376,7 +401,7 @@ def _map_pairs(placed: PlacedCloud, cfg: RevisitCheckConfig) -> list[tuple[int, 
 
 def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cfg: RevisitCheckConfig,
               kind: str = STRETCH, last_row: int | None = None,
-              start_guess: NDArray[np.float64] | None = None) -> RevisitProbe:
+              start_guess: NDArray[np.float64] | None = None, cross_session: bool = False) -> RevisitProbe:
     """Register frame row ``row`` (with the rows up to ``last_row``) onto the frames up to ``window_m`` of travel
     before ``target_row`` (at most ``max_window_frames``; :data:`MAP`: all frames up to it), cropped to the probe's box
     plus the coarse gate. With ``start_guess`` the poses as placed and the guess are refined from a 15 cm gate, and the
@@ -394,9 +419,9 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
         lo, hi = np.minimum(lo, guessed.min(axis=0) - cfg.coarse_gate_m), np.maximum(hi, guessed.max(axis=0) + cfg.coarse_gate_m)
     v = cfg.registration_voxel_m
     target = downsample(target[np.all((target >= lo) & (target <= hi), axis=1)], v)
-    pair = (int(ids[target_row]), int(ids[first]), float(path[row] - path[target_row]))
+    pair = (int(ids[target_row]), int(ids[first]), math.nan if cross_session else float(path[row] - path[target_row]))
     if len(target) < MIN_PROBE_POINTS:
-        return RevisitProbe(int(ids[row]), overlap, 0.0, float("nan"), None, 0.0, 0.0, False, *pair, kind)
+        return RevisitProbe(int(ids[row]), overlap, 0.0, float("nan"), None, 0.0, 0.0, False, *pair, kind, cross_session)
     tgt, src = PreparedCloud(target, 1), PreparedCloud(downsample(source, v), 1)
 
     def inliers(T: NDArray[np.float64], within: float = 1.5) -> float:
@@ -436,17 +461,20 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
     constraint = constraint_of(result)
     counted = counts(fitness, constraint)
     probe = RevisitProbe(int(ids[row]), overlap, fitness, float(result.rmse_m), constraint, moved_m, turned_deg,
-                         bool(counted), *pair, kind)
+                         bool(counted), *pair, kind, cross_session)
     logger.debug("revisit pair %s", probe)
     return probe
 
 
-def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig) -> list[tuple[int, StepJump]]:
+def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig,
+                sessions: NDArray[np.int64] | None = None) -> list[tuple[int, StepJump]]:
     """``[(k, jump)]``: up to ``max_step_checks`` consecutive frames ``rows[k - 1]``, ``rows[k]`` whose relative motion
     differs from their neighbours' (the median over three steps either side) by at least ``jump_min_share`` of
     ``max_detectable_m`` or ``max_detectable_deg``, the largest (relative to those) first. A step or a turn that a bad
     correction put between two frames shows here as a jump of the trajectory; a fast but real motion does too, and
-    registering the frames after it onto those before it tells the two apart (its frames fit as placed)."""
+    registering the frames after it onto those before it tells the two apart (its frames fit as placed). A merged
+    store's step from one session's last frame to the next session's first (``sessions``: each row's session) is no
+    motion: neither a jump nor a neighbour of one."""
     n = len(rows)
     if cfg.max_step_checks == 0 or n < 3:
         return []
@@ -456,15 +484,19 @@ def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckC
     half = 3
     index = np.clip(np.arange(len(step))[:, None] + np.r_[-half:0, 1:half + 1][None, :], 0, len(step) - 1)
     own = index == np.arange(len(step))[:, None]  # a clipped neighbour that is the step itself does not count
+    across = np.zeros(len(step), dtype=bool) if sessions is None else sessions[rows[1:]] != sessions[rows[:-1]]
+    own |= across[index]
     nb_step = np.where(own[..., None], np.nan, step[index])
     nb_turn = np.where(own, np.nan, turn[index])
     with np.errstate(all="ignore"):
         excess_m = np.linalg.norm(step - np.nanmedian(nb_step, axis=1), axis=1)
         excess_deg = np.clip(turn - np.nanmedian(nb_turn, axis=1), 0.0, None)
     excess_m, excess_deg = np.nan_to_num(excess_m), np.nan_to_num(excess_deg)
-    score = np.maximum(excess_m / cfg.max_detectable_m, excess_deg / cfg.max_detectable_deg)
-    usual_m = float(np.percentile(np.linalg.norm(step, axis=1), 90))
-    usual_deg = float(np.percentile(turn, 90))
+    score = np.where(across, -np.inf, np.maximum(excess_m / cfg.max_detectable_m, excess_deg / cfg.max_detectable_deg))
+    if across.all():
+        return []
+    usual_m = float(np.percentile(np.linalg.norm(step[~across], axis=1), 90))
+    usual_deg = float(np.percentile(turn[~across], 90))
     out = []
     for i in np.argsort(-score, kind="stable")[: cfg.max_step_checks]:
         if score[i] < cfg.jump_min_share:
@@ -488,13 +520,17 @@ def _undo_jump(placed: PlacedCloud, rows: NDArray[np.int64], k: int) -> NDArray[
     return before @ velocity @ np.linalg.inv(placed.poses[rows[k]])
 
 
-def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None) -> RevisitCheck:
-    """Register up to ``max_probes`` revisit pairs of ``placed`` (see the module docstring)."""
+def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None,
+                   sessions: NDArray[np.int64] | None = None) -> RevisitCheck:
+    """Register up to ``max_probes`` revisit pairs of ``placed`` (see the module docstring). ``sessions``: a merged
+    store's session of each frame row (pairs across sessions are revisits whatever the travel, with no travel between
+    them; a session's start is no jump of the trajectory)."""
     cfg = config or RevisitCheckConfig()
     n_rows = len(placed.path_length_m)
     rows = np.flatnonzero(np.bincount(placed.frame_index, minlength=n_rows) >= MIN_PROBE_POINTS)
+    names = {} if sessions is None else {int(f): int(k) for f, k in zip(placed.frame_ids, sessions)}
     if not cfg.enabled or len(rows) < 2:
-        return RevisitCheck(cfg, [], 0)
+        return RevisitCheck(cfg, [], 0, frame_sessions=names)
     all_rows = rows
     if len(rows) > MAX_OVERLAP_FRAMES:
         rows = rows[np.linspace(0, len(rows) - 1, MAX_OVERLAP_FRAMES).round().astype(np.int64)]
@@ -502,12 +538,14 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
     j, i = np.nonzero(np.triu(table.T >= cfg.min_overlap, k=1))  # target rows[j] before probe rows[i]
     a, b, overlap = rows[j], rows[i], table[i, j]
     travel = placed.path_length_m[b] - placed.path_length_m[a]
-    far = travel >= cfg.revisit_min_path_m
-    a, b, overlap, travel = a[far], b[far], overlap[far], travel[far]
+    cross = np.zeros(len(a), dtype=bool) if sessions is None else sessions[a] != sessions[b]
+    far = (travel >= cfg.revisit_min_path_m) | cross
+    a, b, overlap, travel, cross = a[far], b[far], overlap[far], travel[far], cross[far]
     chosen = sorted(_choose_pairs(a, b, overlap, travel, cfg), key=lambda k: (int(b[k]), int(a[k])))
-    probes = [_register(placed, int(a[k]), int(b[k]), float(overlap[k]), cfg) for k in chosen]
+    probes = [_register(placed, int(a[k]), int(b[k]), float(overlap[k]), cfg, cross_session=bool(cross[k]))
+              for k in chosen]
     probes += [_register(placed, end, row, ov, cfg, MAP) for end, row, ov in _map_pairs(placed, cfg)]
-    jumps = _find_jumps(placed, all_rows, cfg)
+    jumps = _find_jumps(placed, all_rows, cfg, sessions)
     starts = [k for k, _ in jumps]
     for i, k in enumerate(starts):
         stop = min([k + cfg.step_probes, len(all_rows), *starts[i + 1:]])
@@ -516,7 +554,7 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
         before, first, last = int(all_rows[k - 1]), int(all_rows[k]), int(all_rows[stop - 1])
         overlap_first = float(_overlap_table(placed, np.array([before, first]), cfg)[1, 0])
         probes.append(_register(placed, before, first, overlap_first, cfg, STEP, last, _undo_jump(placed, all_rows, k)))
-    check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps))
+    check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps), names)
     if check.reason():
         logger.warning("revisit check: %s", check.reason())
     return check
