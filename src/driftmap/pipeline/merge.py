@@ -67,8 +67,8 @@ from driftmap.store.propagation import propagate_correction
 from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frames
 
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
-           "MergeResult", "SessionReport", "frame_origin", "merge_stores", "session_frame_ids", "session_of",
-           "store_sessions"]
+           "MergeResult", "SessionReport", "copy_frames", "frame_origin", "keyframe_range", "merge_stores",
+           "odometry_config", "session_frame_ids", "session_keyframes", "session_of", "store_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -183,10 +183,14 @@ class MergeResult:
     max_session0_shift_m: float | None = None
     """how far the merge moved a frame of session 0 (its own trajectory bends to fit the others)"""
     loop_closure_config: dict[str, Any] | None = None
+    keyframe_max_range_m: float | None = None
+    """the one range every session's keyframe clouds are cut at (an append cuts the new sessions' alike)"""
     volume_defaults: dict[str, Any] | None = None
     """LiDAR: what the merged store's volumetric layers take when ``volume.max_range_m`` is not set
     (:func:`volume_defaults`: ``max_range_m``, ``source`` and ``per_session``); None for a depth camera"""
     seconds_per_stage: dict[str, float] = field(default_factory=dict)
+    appends: list[dict[str, Any]] = field(default_factory=list)
+    """one record per ``merge --append`` since (:class:`driftmap.pipeline.merge_append.AppendResult`)"""
 
     @property
     def frames_per_session(self) -> dict[int, int]:
@@ -263,8 +267,8 @@ def _check_paths(paths: list[Path], out: Path) -> None:
             raise ConfigError(f"--out {out}: is inside the log folder {logged} the source store {p} was built from; "
                               f"the next read of that folder would take it for a frame: write it elsewhere")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ConfigError(f"--out {out}: exists; merge writes a new store (appending a session to a merged store "
-                          f"is not built yet): choose another --out")
+        raise ConfigError(f"--out {out}: exists; merge writes a new store (to add sessions to a merged store, "
+                          f"give it first with --append instead of --out): choose another --out")
 
 
 def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
@@ -275,8 +279,9 @@ def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
         if len(s) == 0:
             raise StoreError(f"{p}: the store has no frames; nothing to merge (session {k})")
         if (p / MERGE_SUMMARY_FILE).is_file() or store_sessions(s):
-            raise ConfigError(f"{p}: is a merged store (session {k}); a merged store as a source (appending a "
-                              f"session to it) is not built yet: merge the stores of its sessions with the new one")
+            raise ConfigError(f"{p}: is a merged store (session {k}); a merged store as a source of a new merge is "
+                              f"refused: append the new sessions to it in place with `driftmap merge {p} NEW_STORE "
+                              f"[NEW_STORE ...] --append` (a new revision; the older ones are kept)")
         if int(s.frame_ids.max()) >= SESSION_ID_STRIDE or int(s.frame_ids.min()) < 0:
             raise ConfigError(f"{p}: frame ids {int(s.frame_ids.min())}..{int(s.frame_ids.max())} are outside "
                               f"0..{SESSION_ID_STRIDE - 1}, which a merged store keeps per session")
@@ -304,7 +309,7 @@ def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
     return uuids
 
 
-def _odometry_config(store: FrameStore, config: BuildConfig) -> OdometryConfig:
+def odometry_config(store: FrameStore, config: BuildConfig) -> OdometryConfig:
     """The odometry settings loop closure scales its lengths with (``build``'s rule: the config's, the store's
     recorded ones, else the defaults for its frames)."""
     if config.odometry is not None:
@@ -343,13 +348,17 @@ def volume_defaults(paths: list[Path], sources: list[FrameStore], connected: lis
             "per_session": per_session}
 
 
-def _session_keyframes(k: int, store: FrameStore, lc: LoopClosureConfig, odometry_cfg: OdometryConfig,
-                       tick: ProgressCallback) -> list[Keyframe]:
-    """The keyframes of session ``k`` on its head revision, with their merged frame ids."""
+def keyframe_range(lc: LoopClosureConfig, odometry_cfg: OdometryConfig) -> float | None:
+    """The one range every session's keyframe clouds are cut at: the place descriptors (D2 and range histograms)
+    compare only clouds cut alike."""
+    return lc.max_range_m if lc.max_range_m is not None else odometry_cfg.max_range_m
+
+
+def session_keyframes(k: int, store: FrameStore, lc: LoopClosureConfig, max_range_m: float | None,
+                      tick: ProgressCallback) -> list[Keyframe]:
+    """The keyframes of session ``k`` (a source store) on its head revision, with their merged frame ids."""
     view = _HeadView(store)
     key_rows = select_keyframes(view.poses(), lc)
-    # one range for every session: the place descriptors (D2 and range histograms) compare only clouds cut alike
-    max_range_m = lc.max_range_m if lc.max_range_m is not None else odometry_cfg.max_range_m
     kfs = keyframe_clouds(view, lc, key_rows, max_range_m,  # type: ignore[arg-type]
                           lambda s, d, t: tick(f"keyframes, session {k}", d, t))
     offset = k * SESSION_ID_STRIDE
@@ -359,14 +368,15 @@ def _session_keyframes(k: int, store: FrameStore, lc: LoopClosureConfig, odometr
 def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: Path, config: BuildConfig,
            tick: ProgressCallback, stages: dict[str, float]) -> MergeResult:
     t0 = time.perf_counter()
-    odometry_cfg = _odometry_config(sources[0], config)
+    odometry_cfg = odometry_config(sources[0], config)
     lc = loop_config_for(sources[0], config, odometry_cfg)
     for k in range(1, len(sources)):
-        lc_k = loop_config_for(sources[k], config, _odometry_config(sources[k], config))
+        lc_k = loop_config_for(sources[k], config, odometry_config(sources[k], config))
         if lc_k != lc:
             logger.warning("%s: its own loop-closure settings differ from session 0's; the merge uses session 0's",
                            paths[k])
-    keyframes = [_session_keyframes(k, s, lc, odometry_cfg, tick) for k, s in enumerate(sources)]
+    max_range_m = keyframe_range(lc, odometry_cfg)
+    keyframes = [session_keyframes(k, s, lc, max_range_m, tick) for k, s in enumerate(sources)]
     stages["keyframes"] = time.perf_counter() - t0
     reports = [SessionReport(k, str(p.resolve()), uuids[k], s.head, s.ledger.revision(s.head).source.value, len(s),
                              n_keyframes=len(keyframes[k]), frame_id_offset=k * SESSION_ID_STRIDE)
@@ -400,6 +410,7 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
     result = MergeResult(out=str(out), sessions=reports, pairs=[p.summary() for p in pairs],
                          not_connected=not_connected,
                          revision_id=None, n_frames=0, loop_closure_config=lc.model_dump(mode="json"),
+                         keyframe_max_range_m=max_range_m,
                          volume_defaults=volume_defaults(paths, sources, connected), seconds_per_stage=stages)
     opt_poses, covariances, note = _optimise(connected, keyframes, T_align, pairs, lc, config, result, tick, stages)
     t3 = time.perf_counter()
@@ -483,10 +494,12 @@ def _optimise(connected: list[int], keyframes: list[list[Keyframe]], T_align: di
     return dict(opt.poses), dict(opt.covariances or {}), note
 
 
-def _copy_frames(merged: FrameStore, connected: list[int], paths: list[Path], sources: list[FrameStore],
-                 uuids: list[str], tick: ProgressCallback) -> None:
+def copy_frames(merged: FrameStore, connected: Sequence[int], paths: Any, sources: Any, uuids: Any,
+                 tick: ProgressCallback) -> None:
     """Every frame of the connected sessions, in session order, with its merged id, its session's head pose as its
-    revision-0 pose and the merge provenance (its points, stamp, intrinsics, quality and tracking as stored)."""
+    revision-0 pose and the merge provenance (its points, stamp, intrinsics, quality and tracking as stored).
+    ``paths``, ``sources``, ``uuids``: indexed by session (lists, or dicts for an append). A frame already in
+    ``merged`` with the same stamp (an interrupted append run again) is skipped."""
     total = sum(len(sources[k]) for k in connected)
     done = 0
     for k in connected:
@@ -495,6 +508,13 @@ def _copy_frames(merged: FrameStore, connected: list[int], paths: list[Path], so
         head_source = src.ledger.revision(head).source
         store_path = paths[k].resolve()
         for fid, T in zip(src.frame_ids.tolist(), src.poses(head), strict=True):
+            if offset + int(fid) in merged:
+                if int(merged.ledger.stamps_ns[np.searchsorted(merged.frame_ids, offset + int(fid))]) != \
+                        int(src.ledger.stamps_ns[np.searchsorted(src.frame_ids, int(fid))]):
+                    raise StoreError(f"{merged.path}: frame {offset + int(fid)} is stored with another stamp than "
+                                     f"frame {fid} of {paths[k]} (session {k}); not the same session")
+                done += 1
+                continue
             frame = src.frame(int(fid))
             merged.append(dataclasses.replace(
                 frame, frame_id=offset + int(fid),
@@ -502,6 +522,10 @@ def _copy_frames(merged: FrameStore, connected: list[int], paths: list[Path], so
                 provenance=_merged_provenance(k, store_path, uuids[k], head, frame)))
             done += 1
             tick("frames", done, total)
+
+
+_copy_frames = copy_frames
+"""the name the merge calls (a failure injected there is a write failure of the merged store: tests/test_merge.py)"""
 
 
 def _propagated(merged: FrameStore, connected: list[int],

@@ -160,10 +160,11 @@ def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], n
     keep = np.flatnonzero(agree[best])
     pair.consistent = [pair.verified[int(q)] for q in keep]
     pair.T_a_b = align[best]
-    kept = {(c.a, c.b) for c in pair.consistent}
+    kept = {(c.a, c.b): c for c in pair.consistent}
     for r in pair.records:
         if (r["a"], r["b"]) in kept:
             r["accepted"] = True
+            r |= loop_measurement(kept[(r["a"], r["b"])])
         elif r["verified"]:
             r["reason"] = (f"passed the registration gates, but disagrees with the {len(keep)} agreeing loops on "
                            f"where session {session_b} lies in session {session_a}")
@@ -171,6 +172,15 @@ def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], n
                 len(pair.verified), len(pair.consistent),
                 "" if pair.connected else f" (not connected: {pair.why_not_connected()})")
     return pair
+
+
+def loop_measurement(c: LoopCandidate) -> dict:
+    """What the pose graph takes of an accepted loop (``T_a_b``, 16 numbers row-major, and its 6x6 ``information``,
+    36), recorded with it so that an append (:mod:`driftmap.pipeline.merge_append`) reuses it without verifying the
+    loop again."""
+    info = c.result.information_6x6 if c.result is not None else None
+    return {"T_a_b": None if c.T_a_b is None else [float(v) for v in np.asarray(c.T_a_b).ravel()],
+            "information": None if info is None else [float(v) for v in np.asarray(info).ravel()]}
 
 
 def _agree(p: LoopCandidate, q: LoopCandidate, T_p: NDArray[np.float64], T_q: NDArray[np.float64],

@@ -444,6 +444,33 @@ class FrameStore:
             self._release()
             self._closed = True
 
+    def discard_session(self) -> bool:
+        """Take back everything this writer session stored and release the store: the segment it started is taken
+        off the manifest (written atomically) and its file removed; the earlier segments are never touched, so the
+        store is as it was opened. For an all-or-nothing append that failed before it was complete (``merge
+        --append``). A crash inside leaves the segment listed (or, between the two steps, unlisted): the next writer
+        or ``driftmap recover`` keeps its frames as after any interrupted append. Returns whether anything was
+        discarded."""
+        if self._closed:
+            return False
+        writer, self._writer = self._writer, None
+        try:
+            if writer is None:
+                return False
+            writer.abandon()
+            self._segments[:] = [s for s in self._segments if s.name != writer.path.name]
+            try:
+                self._write_manifest()
+                writer.path.unlink(missing_ok=True)
+            except OSError as exc:
+                raise store_io_error(exc, getattr(exc, "filename", None) or self.path, "discarding an unfinished "
+                                     "append", self.path, RECOVER_HINT) from exc
+            logger.info("%s: discarded the unfinished segment %s", self.path, writer.path.name)
+            return True
+        finally:
+            self._release()
+            self._closed = True
+
     def _release(self) -> None:
         release_maps(self._segments)
         if self._lock_fh is not None:
