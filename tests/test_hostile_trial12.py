@@ -164,3 +164,34 @@ def test_t12_when_the_pairs_do_not_fit_the_reason_names_a_measured_jump() -> Non
     fits = RevisitCheck(cfg, [*pairs, RevisitProbe(100, 0.9, 0.8, 0.1, 0.33, 0.0, 0.01, True, 99, 90, 1.0, STEP)], 100,
                         (jump,))
     assert "jumps between" not in fits.reason(), fits.reason()  # a jump that fits as placed is no pose error
+
+
+@pytest.fixture(scope="module")
+def turning_lidar(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """The synthetic LiDAR room with two in-place turns of 8 x 45 deg (real jumps of the trajectory, many), built with
+    its true poses, and a revision with a 3 deg yaw step at frame 12 (a straight stretch)."""
+    root = tmp_path_factory.mktemp("trial13_turns")
+    log, store = root / "log", root / "store"
+    assert run_cli("synth", log, "--lidar", "--turns", 2, "--turn-deg-per-frame", 45, "--turn-frames", 8).returncode == 0
+    built = run_cli("build", log, "--sensor", "lidar", "--out", store, "--poses", log / "groundtruth.txt",
+                    "--no-loop-closure")
+    assert built.returncode == 0, built.stderr[-2000:]
+    assert run_cli("export", store, "--trajectory", root / "true.txt").returncode == 0
+    assert run_cli("perturb", root / "true.txt", root / "yaw3.txt", "--step-frame", 12, "--step-deg",
+                   "0,0,3").returncode == 0
+    corrected = run_cli("correct", store, "--poses", root / "yaw3.txt")
+    assert corrected.returncode == 0, corrected.stderr[-2000:]
+    return {"gt": _diagnose(store, root, 0), "yaw3": _diagnose(store, root, 1)}
+
+
+def test_t13_a_small_step_among_many_real_turns_is_checked_and_measured(turning_lidar: dict) -> None:
+    """Trial 13 (F9): on the street a 3 deg yaw step read 0.09 deg in the revisit check: its jump (3 deg beyond the
+    neighbouring turns) was crowded out of the 4 checked jumps by the street's real turns of 3-7 deg. With more jumps
+    than checks, each is screened frame on frame (a real turn fits as placed, a pose error fits with the jump undone)
+    and the disagreeing ones are checked first: here 16 real jump frames of 45 deg turns against one 3 deg step."""
+    check = turning_lidar["yaw3"]["revisit_check"]
+    step = _jump(check, 12)
+    assert step["correction_deg"] == pytest.approx(3.0, abs=0.3), check["jumps"]
+    assert check["steps_disagreement_deg"] == pytest.approx(3.0, abs=0.3), check
+    truth = turning_lidar["gt"]["revisit_check"]  # the real turns fit as placed
+    assert truth["jumps"] and all(j["correction_deg"] < 0.3 for j in truth["jumps"]), truth["jumps"]
