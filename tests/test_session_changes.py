@@ -377,3 +377,34 @@ def test_revisit_reason_names_sessions_not_travel_across_them() -> None:
     reason = check.reason()
     assert f"frame {SESSION_ID_STRIDE + 3} (session 1) on frame 3 (session 0), in another session" in reason, reason
     assert "travel" not in reason and check.drift_percent_per_m is None, reason  # no travel: no drift rate
+
+
+def test_view_latest_state_shows_the_chair_only_at_its_new_place(merged: dict, tmp_path: Path) -> None:
+    """``view --color state --latest-state`` (issue 26: latest-state layers in the viewer): the occupied voxels of the
+    newest state hold no chair at its old place, where the layers of every session's rays still do; through the
+    command line the picture is written and says so. Refused with another colour, and on a store of one session."""
+    from driftmap.viewer import colored_map
+
+    old = next(box for what, _, _, box in TRUTH if what == "chair, old place")
+    new = next(box for what, _, _, box in TRUTH if what == "chair, new place")
+
+    def seat(centres: np.ndarray, box: tuple[np.ndarray, np.ndarray]) -> int:
+        lo, hi = box
+        inside = ((centres >= lo - 0.02) & (centres <= hi + 0.02)).all(axis=1)
+        return int(np.count_nonzero(inside & (centres[:, 2] > 0.3)))
+
+    with FrameStore.open(merged["store"]) as store:
+        every = colored_map(store, revision=1, color="state").points_world
+        latest = colored_map(store, revision=1, color="state", latest_state=True).points_world
+    assert seat(every, old) > 20 and seat(latest, old) < 0.1 * seat(every, old), (seat(every, old), seat(latest, old))
+    assert seat(latest, new) > 20, seat(latest, new)
+    run = run_cli("view", merged["store"], "--revision", 1, "--color", "state", "--latest-state", "--out",
+                  tmp_path / "v", "--backend", "software")
+    _ok(run)
+    assert "revision 1, latest state, colour state" in " ".join(run.stdout.split()), run.stdout
+    assert list((tmp_path / "v").glob("*state*.png")), list((tmp_path / "v").iterdir())
+    wrong = run_cli("view", merged["store"], "--color", "frame", "--latest-state", "--out", tmp_path / "w")
+    assert wrong.returncode == 2 and "applies to --color state" in " ".join(wrong.stderr.split()), wrong.stderr
+    single = run_cli("view", merged["root"] / "A", "--color", "state", "--latest-state", "--out", tmp_path / "s",
+                     "--backend", "software")
+    assert "holds one session" in one_error(single), single.stderr

@@ -59,7 +59,7 @@ from driftmap.render import (  # noqa: E402,F401
     look_along,
     render_software,
 )
-from driftmap.viewer_sessions import SessionColor, session_colours, store_session_ids  # noqa: E402,F401
+from driftmap.viewer_sessions import SessionColor, latest_state_of, session_colours, store_session_ids  # noqa: E402,F401
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
 if TYPE_CHECKING:
@@ -300,7 +300,7 @@ def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.flo
 
 def colored_map(store: FrameStore, *, revision: int | None = None, color: str = "frame", voxel_size_m: float | None = None,
                 reference_revision: int | None = None, max_points: int = 3_000_000, double_wall_points_budget: int | None = None,
-                seed: int = 0) -> ColoredMap:
+                seed: int = 0, latest_state: bool = False) -> ColoredMap:
     """The map of ``revision`` (default head), one random real point per ``voxel_size_m`` voxel, coloured by:
 
     - ``frame``: the frame id of the point (time order; turbo colour map);
@@ -312,11 +312,13 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     - ``state``: not the map's points but the revision's volumetric layers (:func:`state_map`);
     - ``session``: the session of the point's frame, each session in its own colour (:data:`SESSION_PALETTE_RGB`,
       tab10; a store that no merge made is one session, one colour), listed in :attr:`ColoredMap.sessions`.
+    ``latest_state`` (colour ``state``, a merged store): the latest-state layers (:func:`latest_state_of`).
     """
     color = _check_color(color)
     rev = _check_revision(store, revision)
-    if color == "state":
-        return state_map(store, rev, voxel_size_m=voxel_size_m, max_points=max_points, seed=seed)
+    if color == "state" or latest_state:
+        return state_map(store, rev, voxel_size_m=voxel_size_m, max_points=max_points, seed=seed,
+                         layers=latest_state_of(store, rev, voxel_size_m, color) if latest_state else None)
     kind = store_sensor_kind(store)
     vs = DEFAULT_VOXEL_SIZE_M[kind] if voxel_size_m is None else float(voxel_size_m)
     if not vs > 0 or not math.isfinite(vs):
@@ -371,11 +373,11 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
 
 
 def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: float | None = None,
-              max_points: int = 3_000_000, seed: int = 0) -> ColoredMap:
-    """The volumetric layers of ``revision`` (:meth:`VolumeLayers.from_store`; ``voxel_size_m`` None: the sensor's
-    default, 2 cm for a depth camera) as a :class:`ColoredMap`: the centre of every occupied voxel (a random
-    ``max_points`` of them when there are more), coloured by its height along the up axis; the layers themselves,
-    free and unknown space included, in :attr:`ColoredMap.layers`."""
+              max_points: int = 3_000_000, seed: int = 0, layers: VolumeLayers | None = None) -> ColoredMap:
+    """The volumetric layers of ``revision`` (:meth:`VolumeLayers.from_store`, or ``layers`` made already; ``voxel_size_m``
+    None: the sensor's default, 2 cm for a depth camera) as a :class:`ColoredMap`: the centre of every occupied voxel
+    (a random ``max_points`` of them when there are more), coloured by its height along the up axis; the layers
+    themselves, free and unknown space included, in :attr:`ColoredMap.layers`."""
     from driftmap.volume import OCCUPIED, VolumeConfig, VolumeLayers
 
     rev = _check_revision(store, revision)
@@ -384,7 +386,8 @@ def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: f
     if max_points < 1:
         raise ConfigError(f"max_points must be positive, got {max_points}")
     kind = store_sensor_kind(store)
-    layers = VolumeLayers.from_store(store, rev, VolumeConfig(voxel_size_m=voxel_size_m))
+    if layers is None:
+        layers = VolumeLayers.from_store(store, rev, VolumeConfig(voxel_size_m=voxel_size_m))
     occupied = np.flatnonzero(layers.state_grid().ravel() == OCCUPIED)
     if len(occupied) == 0:
         raise StoreError(f"{store.path}: revision {rev} has no occupied voxel to show ({layers.grid.describe()})")
@@ -641,7 +644,7 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
                voxel_size_m: float | None = None, headless: bool | None = None, backend: str = "auto",
                reference_revision: int | None = None, width_px: int = 1024, height_px: int = 768, point_size_px: int = 2,
                top_view_clip_m: float | None | str = "auto", max_points: int = 3_000_000,
-               double_wall_points_budget: int | None = None) -> ViewResult:
+               double_wall_points_budget: int | None = None, latest_state: bool = False) -> ViewResult:
     """Show (window) or render (PNG views in ``out_dir``) the map of ``revision`` coloured by ``color``.
 
     ``headless=None`` detects it (no ``DISPLAY``/``WAYLAND_DISPLAY`` on Linux). ``voxel_size_m=None``: 2 cm
@@ -657,7 +660,8 @@ def view_store(store: FrameStore, *, revision: int | None = None, color: str = "
     seconds: dict[str, float] = {}
     t = time.perf_counter()
     cmap = colored_map(store, revision=revision, color=color, voxel_size_m=voxel_size_m, reference_revision=reference_revision,
-                       max_points=max_points, double_wall_points_budget=double_wall_points_budget)
+                       max_points=max_points, double_wall_points_budget=double_wall_points_budget,
+                       latest_state=latest_state)
     seconds["colour"] = time.perf_counter() - t
     title = (f"{store.path.name}: revision {cmap.revision}, colour {color}"
              + (f" (from revision {cmap.reference_revision})" if cmap.reference_revision is not None else "")

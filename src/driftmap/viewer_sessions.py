@@ -1,6 +1,7 @@
-"""The sessions of a store in the viewer's ``--color session`` (:mod:`driftmap.viewer`): which session each frame
+"""The sessions of a store in the viewer (:mod:`driftmap.viewer`): for ``--color session``, which session each frame
 belongs to (a merged store's, :func:`driftmap.pipeline.merge.store_sessions`; one session for a store that no merge
-made), each session's colour (:data:`~driftmap.render.SESSION_PALETTE_RGB`) and the legend."""
+made), each session's colour (:data:`~driftmap.render.SESSION_PALETTE_RGB`) and the legend; for ``--color state
+--latest-state``, a merged store's latest-state layers (:func:`latest_state_of`)."""
 
 from __future__ import annotations
 
@@ -13,8 +14,11 @@ from numpy.typing import NDArray
 
 from driftmap.render import SESSION_PALETTE_RGB, session_color_rgb, session_color_text
 
+from driftmap.errors import ConfigError
+
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
+    from driftmap.volume import VolumeLayers
 
 logger = logging.getLogger(__name__)
 
@@ -72,3 +76,24 @@ def session_colours(store: FrameStore, frame_ids: NDArray[np.int64]) -> tuple[ND
         logger.info("view: session %d %s: %d frames, %d points shown", entry.session, entry.color_text, entry.n_frames,
                     entry.n_points_shown)
     return point_sessions.astype(np.float64), colors, legend
+
+
+def latest_state_of(store: FrameStore, revision: int, voxel_size_m: float | None, color: str = "state") -> VolumeLayers:
+    """A merged store's latest-state layers of ``revision`` (:func:`driftmap.volume.sessions.latest_state_layers`: each
+    voxel as the newest session that observed it saw it) for ``--color state``; :class:`ConfigError` for another
+    colour and for a store of one session (its layers are its latest state already)."""
+    from driftmap.pipeline.merge import store_sessions
+    from driftmap.volume import VolumeConfig
+    from driftmap.volume.sessions import latest_state_layers
+
+    if color != "state":
+        raise ConfigError(f"--latest-state applies to --color state (the volumetric layers), not --color {color}")
+
+    sessions = store_sessions(store)
+    if len(sessions) < 2:
+        raise ConfigError(f"{store.path} holds one session (no store that driftmap merge made): its layers are its "
+                          f"latest state already; leave --latest-state out")
+    state = latest_state_layers(store, sessions, revision, VolumeConfig(voxel_size_m=voxel_size_m))
+    logger.info("view: latest-state layers of %d sessions, voxels decided per session %s", len(sessions),
+                state.voxels_per_session())
+    return state.layers

@@ -215,6 +215,7 @@ def view(
     backend: Annotated[str, typer.Option("--backend", help="auto | window | open3d | software | rerun (auto: a window with a display, else Open3D offscreen PNGs, else software PNGs)")] = "auto",
     headless: Annotated[Optional[bool], typer.Option("--headless/--no-headless", help="Force PNG output / a window (default: detected from DISPLAY / WAYLAND_DISPLAY).")] = None,
     reference: Annotated[Optional[int], typer.Option("--reference", help="--color revision: displacement from this revision (default: the viewed revision's parent).")] = None,
+    latest_state: Annotated[bool, typer.Option("--latest-state", help="--color state on a merged store (driftmap merge): the latest state of the world -- each voxel as the newest session that observed it saw it (a chair moved between sessions stands only at its new place) -- instead of every session's rays at once.")] = False,
 ) -> None:
     """Show the map of a revision coloured by frame, by correction displacement, by double-wall separation, by
     volumetric state or by session: an Open3D window with a display, PNG views (top + two oblique) without one."""
@@ -222,6 +223,9 @@ def view(
 
     color = choice(color, tuple(COLOR_MODES), "--color")
     backend = choice(backend, tuple(BACKENDS), "--backend")
+    if latest_state and color != "state":
+        raise typer.BadParameter(f"--latest-state applies to --color state (the volumetric layers), not --color {color}",
+                                 param_hint="--latest-state")
     if reference is not None and color != "revision":
         raise typer.BadParameter(f"--reference applies to --color revision (the displacement from that revision), "
                                  f"not --color {color}", param_hint="--reference")
@@ -232,11 +236,13 @@ def view(
     with open_store(store_path) as store:
         with console.status(f"preparing the {color} view of {store_path}"), writing_output(out, "--out"):
             result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
-                                headless=headless, backend=backend, reference_revision=reference)
+                                headless=headless, backend=backend, reference_revision=reference,
+                                latest_state=latest_state)
     if result.fallback_reason:
         err_console.print(Text(f"{result.fallback_reason}; used the software renderer", style="yellow"), highlight=False)
     lo, hi = result.value_range
-    console.print(f"revision {result.revision}, colour {result.color} ({result.value_label}: {lo:.4g} .. {hi:.4g}), "
+    console.print(f"revision {result.revision}{', latest state' if latest_state else ''}, colour {result.color} "
+                  f"({result.value_label}: {lo:.4g} .. {hi:.4g}), "
                   f"{result.n_points_shown:,} of {result.n_points_map:,} points (voxel {result.voxel_size_m:g} m), "
                   f"backend {result.backend}")
     if result.n_double_wall_voxels is not None:
