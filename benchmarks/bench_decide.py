@@ -32,8 +32,13 @@ with no volumetric layers (so no unknown space, no frames, no uncertainty):
 * explore: not answered (a point cloud has no free / unknown space; a ray cast per region would be a volumetric map of
   its own): the anchor's time covers the 800 other queries, which favours the anchor.
 
-Both get an untimed warm-up: ``decide``'s shared structures (surface KD-tree, unknown-voxel table, provenance index:
-cached on the layers, as for a stack) and one query of each kind; the anchor's KD-tree is built untimed.
+Both get an untimed warm-up: ``decide``'s shared structures (surface KD-tree, unknown-voxel table, provenance index,
+cell index of the points, the map's 1 cm voxel normals: cached on the layers, as for a stack) and one query of each
+kind; the anchor's KD-tree is built untimed.
+
+``python benchmarks/bench_decide.py --records OUT.json`` writes the records of the 1,000 decisions without their
+latencies, ``--compare A.json B.json`` lists the fields in which two such files differ (floats compared exactly): a
+speed-up must leave them identical.
 
 Checks (on the results of the last timed pass; the run fails when one does not hold):
 
@@ -518,3 +523,70 @@ def run(quick: bool = False) -> list[dict]:
                  "each); grasp/foothold point counts and too_few_points identical; explore not compared",
         "details": details,
     }]
+
+
+# ------------------------------------------------------------------------------------------------------ records
+def records(decisions) -> list[dict]:
+    """The JSON records of a decision set without their latencies: what must not change when only the speed does."""
+    out = []
+    for d in decisions.decisions:
+        j = d.to_json()
+        j.pop("latency_s")
+        out.append(j)
+    return out
+
+
+def write_records(path: Path) -> None:
+    """Answer the benchmark's 1,000 queries once on its store and write their records (:func:`records`) as JSON."""
+    import json
+
+    with tempfile.TemporaryDirectory(prefix="driftmap-bench-decide-") as tmp:
+        store_path = Path(tmp) / "kitchen"
+        build(shared_datasets_dir() / SCENE, store_path, poses_from_source=True, loop_closure=False, frames=FRAMES)
+        store = FrameStore.open(store_path)
+        layers = VolumeLayers.from_store(store, store.head)
+        pts, fids = range_limited_points(layers)
+        qs = make_queries(layers, pts, fids, np.random.default_rng(SEED))
+        path.write_text(json.dumps(records(decide(store, qs, layers=layers))))
+        store.close()
+
+
+def differences(a: list[dict], b: list[dict]) -> list[tuple]:
+    """Every field (path, a's value, b's value) in which two record lists differ; floats compared exactly."""
+    out: list[tuple] = []
+
+    def walk(x, y, where: str) -> None:
+        if isinstance(x, dict) and isinstance(y, dict) and x.keys() == y.keys():
+            for k in x:
+                walk(x[k], y[k], f"{where}.{k}")
+        elif isinstance(x, list) and isinstance(y, list) and len(x) == len(y):
+            for i, (u, v) in enumerate(zip(x, y)):
+                walk(u, v, f"{where}[{i}]")
+        elif x != y or type(x) is not type(y):
+            out.append((where, x, y))
+
+    if len(a) != len(b):
+        return [("<records>", len(a), len(b))]
+    for r, s in zip(a, b):
+        walk(r, s, str(r.get("id")))
+    return out
+
+
+if __name__ == "__main__":
+    import argparse
+    import json
+    import sys
+
+    parser = argparse.ArgumentParser(description="the decide benchmark's records (latency aside), to check that a "
+                                                 "speed-up changes no decision (timing: run.py --only decide)")
+    parser.add_argument("--records", type=Path, help="answer the 1,000 queries and write their records here")
+    parser.add_argument("--compare", type=Path, nargs=2, metavar=("A", "B"), help="compare two records files")
+    args = parser.parse_args()
+    if args.records:
+        write_records(args.records)
+    if args.compare:
+        diff = differences(*(json.loads(p.read_text()) for p in args.compare))
+        for row in diff[:20]:
+            print(*row)
+        print(f"{len(diff)} differing fields")
+        sys.exit(1 if diff else 0)

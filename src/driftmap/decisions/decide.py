@@ -23,6 +23,7 @@ from driftmap.decisions.point_index import point_index
 from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_queries
 from driftmap.decisions.records import Decision, DecisionSet, Representation
 from driftmap.decisions.settings import DecideConfig, settings_hash
+from driftmap.decisions.voxel_normals import voxel_normals
 from driftmap.decisions.walls import double_walls_of
 from driftmap.store.values import as_int
 from driftmap.volume.grid import BLOCK_RESOLUTION
@@ -186,7 +187,7 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
     tick = progress or (lambda stage, done, total: None)
     ctx = DecisionContext(store, layers.revision, layers, cfg, walls)
     t_all = time.perf_counter()
-    prepare(layers, cfg)
+    prepare(layers, cfg, kinds=[q.kind for q in qs])
     prepare_s = time.perf_counter() - t_all
     decisions: list[Decision] = []
     for n, q in enumerate(qs):
@@ -205,16 +206,28 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
                        {"layers": layers_s, "prepare": prepare_s, "decide": time.perf_counter() - t_all - prepare_s})
 
 
-def prepare(layers: VolumeLayers, decide_config: DecideConfig | None = None) -> None:
+SHARED_NORMALS_MIN_QUERIES = 50
+"""A run with at least this many grasp and foothold queries fits the map's voxel normals once (3-9 s for the benchmark
+map) and lets each region take them; fewer fit their own (milliseconds each): a run of one grasp stays fast."""
+
+
+def prepare(layers: VolumeLayers, decide_config: DecideConfig | None = None,
+            kinds: Iterable[str] | None = None) -> None:
     """Build what every query reads once (the surface KD-tree, the per-column unknown counts, the map points sorted
-    by cell; cached on the layers until they change), so that a query's latency is its own."""
+    by cell, and the map's voxel normals when ``kinds`` -- the run's queries' kinds, one per query; default: many of
+    every kind -- hold at least :data:`SHARED_NORMALS_MIN_QUERIES` grasps and footholds; cached on the layers until
+    they change), so that a query's latency is its own."""
     from driftmap.volume.queries import surface_tree
 
+    cfg = decide_config or DecideConfig()
+    kinds = list(DECIDERS) * SHARED_NORMALS_MIN_QUERIES if kinds is None else list(kinds)
     surface_tree(layers)
     space.unknown_sat(layers)
     space.surface_reach(layers)
     layers.observers(np.zeros((1, 3)))  # the sorted (voxel, frame) index the provenance lookups search
-    point_index(layers, (decide_config or DecideConfig()).range_limited_points)
+    point_index(layers, cfg.range_limited_points)
+    if sum(k in ("grasp", "foothold") for k in kinds) >= SHARED_NORMALS_MIN_QUERIES:
+        voxel_normals(layers, cfg)
 
 
 def _store_uuid(store: FrameStore) -> str | None:

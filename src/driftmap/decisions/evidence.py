@@ -53,6 +53,8 @@ class DecisionContext:
     _pose_revision: dict[int, int] | None = None
     _covariances: dict[int, NDArray[np.float64]] | None = None
     _point_index: PointIndex | None = None
+    _spread: dict[tuple[bytes, bytes | None], float | None] = field(default_factory=dict)
+    """frame spreads already measured, by evidence point and normal (queries often share an evidence point)"""
 
     def __post_init__(self) -> None:
         ids = np.asarray(self.store.frame_ids, dtype=np.int64)
@@ -129,6 +131,13 @@ class DecisionContext:
         """How far apart the frames near ``point`` place the surface along ``normal`` (fitted when None)."""
         if point is None:
             return None
+        key = (np.asarray(point, dtype=np.float64).tobytes(),
+               None if normal is None else np.asarray(normal, dtype=np.float64).tobytes())
+        if key not in self._spread:
+            self._spread[key] = self._frame_spread_m(point, normal)
+        return self._spread[key]
+
+    def _frame_spread_m(self, point: NDArray[np.float64], normal: NDArray[np.float64] | None) -> float | None:
         pts, fids = self.points_in_ball(point, self.config.spread_radius_m)
         if len(pts) < 2 * self.config.spread_min_points:
             return None
@@ -186,11 +195,22 @@ class DecisionContext:
                             "double_walls_in_reach": [w.to_json() for w in walls]}}
 
 
+def unique_ids(ids: NDArray[np.int64]) -> NDArray[np.int64]:
+    """``np.unique(ids)`` (sorted int64) of frame ids: from a count table when they span a small range."""
+    ids = np.asarray(ids, dtype=np.int64)
+    if len(ids) == 0:
+        return ids
+    lo, hi = int(ids.min()), int(ids.max())
+    if hi - lo <= 4 * len(ids) + 4096:
+        return np.flatnonzero(np.bincount(ids - lo)) + lo
+    return np.unique(ids)
+
+
 def group_medians(values: NDArray[np.float64], groups: NDArray[np.int64], min_count: int) -> NDArray[np.float64]:
     """The median of ``values`` per group (``np.median``'s value: the middle one, or the mean of the two middle
     ones) of the groups with at least ``min_count`` members, in ascending group order: the values sorted, then
     stably by group (a radix sort of the groups' ranks when they fit 16 bits), as ``np.lexsort((values, groups))``."""
-    uniq = np.sort(np.unique_values(groups))
+    uniq = unique_ids(groups)
     if len(uniq) <= 1 << 16:
         by_value = np.argsort(values)
         rank = np.searchsorted(uniq, groups).astype(np.uint16)

@@ -154,8 +154,8 @@ class PointIndex:
     def _result(self, at: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The points at sorted positions ``at``, in map order, as float64, and their frames."""
         g = np.sort(self.order[at]).astype(np.int64)  # their indices in the view: map order
-        rows = np.searchsorted(self.starts, g, "right") - 1
-        return self.world[g].astype(np.float64), self.frame_ids[rows]
+        per_frame = np.diff(np.searchsorted(g, self.starts))  # g is sorted: each frame's points are one run of it
+        return self.world[g].astype(np.float64), np.repeat(self.frame_ids, per_frame)
 
     def _in_box(self, at: NDArray[np.int64], lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.bool_]:
         """Which of the sorted positions ``at`` hold a point with ``lo <= p <= hi`` (compared in float64: ``lo`` and

@@ -55,7 +55,7 @@ def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
     k = int(np.argmin(d_surf))
     margin = float(d_surf[k]) - q.radius_m
     policy = _policy(ctx, q.unknown_is)
-    n_unknown = sum(unknown_in_ball(ctx.layers, p, q.radius_m) for p in q.points_m) if policy == "occupied" else 0
+    n_unknown = unknown_in_balls(ctx.layers, q.points_m, q.radius_m) if policy == "occupied" else 0
     if margin <= 0 and np.isfinite(margin):  # touching counts: a point inside a surface voxel is never free
         decision, failure = "blocked", "collision"
     elif n_unknown:
@@ -75,6 +75,18 @@ def clearance(ctx: DecisionContext, q: ClearanceQuery) -> dict:
 def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: float) -> int:
     """How many unknown voxels (or voxels outside the grid) have their cube within ``radius_m`` of ``point`` (the
     voxel holding the point always: a point inside unknown space is never free, whatever the radius)."""
+    return unknown_in_columns(layers, *_ball_columns(layers, point, radius_m))
+
+
+def unknown_in_balls(layers: VolumeLayers, points: NDArray[np.float64], radius_m: float) -> int:
+    """:func:`unknown_in_ball` summed over ``points`` (one summed-volume lookup for all their columns)."""
+    cols = [_ball_columns(layers, p, radius_m) for p in points]
+    return unknown_in_columns(layers, *(np.concatenate([c[k] for c in cols]) for k in range(4)))
+
+
+def _ball_columns(layers: VolumeLayers, point: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.int64], ...]:
+    """The lattice columns ``(gx, gy)`` whose square comes within ``radius_m`` of ``point`` and per column the z
+    range ``z0 .. z1`` of the voxels whose cube does."""
     vs = layers.grid.voxel_size_m
     lo = np.floor((point - radius_m) / vs).astype(np.int64)
     hi = np.floor((point + radius_m) / vs).astype(np.int64)
@@ -85,7 +97,7 @@ def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: 
     dz = np.sqrt(np.maximum(radius_m * radius_m - rho2[keep], 0.0))
     z0 = np.floor((point[2] - dz) / vs).astype(np.int64)
     z1 = np.floor((point[2] + dz) / vs).astype(np.int64)
-    return unknown_in_columns(layers, gx, gy, z0, z1)
+    return gx, gy, z0, z1
 
 
 def _gap(cells: NDArray[np.int64], x: float | NDArray[np.float64], vs: float) -> NDArray[np.float64]:
@@ -194,21 +206,32 @@ def footprint_signed_distance(q: CollisionQuery, offsets: NDArray[np.float64]) -
 def footprint_signed_distances(q: CollisionQuery, centres: NDArray[np.float64], points: NDArray[np.float64]
                                ) -> NDArray[np.float64]:
     """(S, M) signed distances of ``points`` to the footprint placed at each of ``centres`` (negative inside)."""
-    # per axis (S, M) arrays, no reduction over a last axis of 2 or 3 (the same sums and maxima, in the same order)
-    ox, oy, oz = (points[None, :, k] - centres[:, None, k] for k in range(3))
+    # per axis (S, M) arrays, no reduction over a last axis of 2 or 3 (the same sums and maxima, in the same order),
+    # computed in place where the value is the same
     if q.footprint == "box":
         half = 0.5 * np.asarray(q.size_m, dtype=np.float64)
-        d = [np.abs(ox) - half[0], np.abs(oy) - half[1], np.abs(oz) - half[2]]
+        d = []
+        for k in range(3):
+            t = np.subtract(points[None, :, k], centres[:, None, k])
+            np.abs(t, out=t)
+            t -= half[k]
+            d.append(t)
     else:
         r, h = q.size_m
+        ox, oy, oz = (points[None, :, k] - centres[:, None, k] for k in range(3))
         d = [np.hypot(ox, oy) - r, np.abs(oz) - 0.5 * h]
-    deepest = d[0]
+    deepest = d[0].copy()
     for c in d[1:]:
-        deepest = np.maximum(deepest, c)
-    out = np.maximum(d[0], 0.0) ** 2
+        np.maximum(deepest, c, out=deepest)
+    out = np.maximum(d[0], 0.0)
+    out *= out  # x ** 2 is x * x
+    tmp = np.empty_like(out)
     for c in d[1:]:
-        out += np.maximum(c, 0.0) ** 2
-    return np.where(deepest <= 0, deepest, np.sqrt(out))
+        np.maximum(c, 0.0, out=tmp)
+        tmp *= tmp
+        out += tmp
+    np.sqrt(out, out=out)
+    return np.where(deepest <= 0, deepest, out)
 
 
 GROUP = 8
@@ -248,6 +271,7 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
     need = np.flatnonzero(d_centre <= min(float(d_centre.min()), bound + MARGIN_CAP_M) + bound + r_max)
     if len(need) == 0:
         return signed, nearest
+    scratch = np.zeros(len(surface), bool)
     for start in range(0, len(need), GROUP):
         rows = need[start:start + GROUP]
         centre = samples[rows].mean(axis=0)
@@ -256,11 +280,40 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
         cand = np.asarray(tree.query_ball_point(centre, within), dtype=np.int64)
         if len(cand) == 0:
             continue
-        d = footprint_signed_distances(q, samples[rows], surface[cand]) - reach[cand][None, :]
+        cand = _could_be_nearest(q, samples[rows], centre, spread, bound, cand, nearest[rows], surface, reach, scratch)
+        d = footprint_signed_distances(q, samples[rows], surface[cand])
+        d -= reach[cand][None, :]
         j = np.argmin(d, axis=1)
         signed[rows] = d[np.arange(len(rows)), j]
         nearest[rows] = cand[j]
     return signed, nearest
+
+
+PRUNE_EPS_M = 1e-9
+"""_could_be_nearest: slack for the float rounding of the bounds compared"""
+
+
+def _could_be_nearest(q: CollisionQuery, centres: NDArray[np.float64], centre: NDArray[np.float64], spread: float,
+                      bound: float, cand: NDArray[np.int64], nearest: NDArray[np.int64], surface: NDArray[np.float64],
+                      reach: NDArray[np.float64], scratch: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """The candidates (in their order) that may give a placement of ``centres`` (within ``spread`` of ``centre``) its
+    smallest value: a point p gives at least ``|p - centre| - spread - bound - reach(p)`` (the footprint lies in the
+    ball of its bounding radius ``bound`` around its centre), and each placement's smallest value is at most what the
+    placements' nearest surface points among the candidates give it; a candidate whose bound exceeds the largest of
+    these cannot be any placement's smallest, nor tie with it, so the smallest values and their (first) indices are
+    those of all the candidates. ``scratch``: one False per surface point (left False)."""
+    scratch[cand] = True
+    nearest = nearest[scratch[nearest]]  # the smallest values are over the candidates only
+    scratch[cand] = False
+    if len(nearest) == 0:
+        return cand
+    upper = footprint_signed_distances(q, centres, surface[nearest])
+    upper -= reach[nearest][None, :]
+    limit = float(upper.min(axis=1).max()) + PRUNE_EPS_M
+    p = surface[cand]
+    dx, dy, dz = p[:, 0] - centre[0], p[:, 1] - centre[1], p[:, 2] - centre[2]
+    low = np.sqrt(dx * dx + dy * dy + dz * dz) - (spread + bound) - reach[cand]
+    return cand[low <= limit]
 
 
 def _unknown_counts(layers: VolumeLayers, q: CollisionQuery, samples: NDArray[np.float64]) -> NDArray[np.int64]:

@@ -23,75 +23,86 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap.decisions.evidence import unique_ids
 from driftmap.decisions.query_file import FootholdQuery, GraspQuery
+from driftmap.decisions.voxel_normals import DENSE_PER_POINT, voxel_cells, voxel_normals  # noqa: F401 - re-export
 from driftmap.preprocess.cloud import estimate_normals
 
 if TYPE_CHECKING:
     from driftmap.decisions.evidence import DecisionContext
 
 
-DENSE_PER_POINT = 8
-"""voxel_means: a region whose box spans at most this many voxels per point ranks them from a dense table"""
-
-
 def voxel_means(pts: NDArray[np.float64], voxel_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """The mean point of every occupied ``voxel_m`` voxel of the world lattice (in the order of their keys) and each
     point's voxel (an index into the means)."""
-    keys = np.floor(pts / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 1
-    packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    cells = int(np.prod(dims))
-    if cells <= DENSE_PER_POINT * len(pts):  # each point's rank among the occupied voxels, from a dense table
-        occupied = np.bincount(packed, minlength=cells) > 0
-        inv = (np.cumsum(occupied) - 1)[packed]  # the same as np.unique's inverse, without sorting every point
-    else:
-        _, inv = np.unique(packed, return_inverse=True)
-        inv = inv.ravel()
-    n = np.bincount(inv)
-    means = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(n)) for k in range(3)], axis=1) / n[:, None]
+    means, inv, _ = voxel_cells(pts, voxel_m)
     return means, inv
 
 
-def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], fids: NDArray[np.int64],
-                      which: NDArray[np.bool_]) -> NDArray[np.float64]:
-    """Normals of ``pts[which]`` (NaN where too few neighbours), each towards its frame's sensor origin: fitted on
-    the voxel means of all of ``pts`` (``normal_voxel_m``; None: on every point)."""
+def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], which: NDArray[np.bool_],
+                      box: tuple[NDArray[np.float64], NDArray[np.float64]], p_in: NDArray[np.float64],
+                      f_in: NDArray[np.int64], frames: NDArray[np.int64]
+                      ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Normals of ``p_in = pts[which]`` (NaN where too few neighbours) and which are finite, each towards the sensor
+    origin of its frame (``f_in``; ``frames``: their sorted set): fitted on the voxel means of all of ``pts``
+    (``normal_voxel_m``; None: on every point), the points in the world box ``box``. A voxel whose whole
+    neighbourhood lies inside the box takes the map's normal of that voxel (:mod:`driftmap.decisions.voxel_normals`:
+    the same value); the others are fitted here."""
     c = ctx.config
     if c.normal_voxel_m is None:  # every point's own normal (Open3D over the whole region)
         normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals[which]
+        ok = np.all(np.isfinite(normals), axis=1)
     else:
-        fit, inv = voxel_means(pts, c.normal_voxel_m)
-        held = np.bincount(inv[which], minlength=len(fit)) > 0  # only the voxels holding a point inside
+        fit, inv, cells = voxel_cells(pts, c.normal_voxel_m)
+        inv_in = inv[which]
+        held = np.bincount(inv_in, minlength=len(fit)) > 0  # only the voxels holding a point inside
         at = np.flatnonzero(held)
-        normals = estimate_normals(fit, k=c.normal_max_neighbors, radius_m=c.normal_radius_m, at=at).normals
-        normals = normals[(np.cumsum(held) - 1)[inv[which]]]  # each inside point: its voxel's rank in ``at``
+        normals = np.empty((len(at), 3), np.float32)
+        shared = voxel_normals(ctx.layers, c, build=False)  # as prepared for the run (decide.prepare)
+        rows = np.full(len(at), -1, np.int64)
+        if shared is not None and len(fit) >= c.normal_max_neighbors:  # fewer: the fit sums fewer columns
+            inner = shared.interior(fit[at], *box)
+            rows[inner] = shared.lookup(cells[at[inner]])
+            normals[rows >= 0] = shared.normals[rows[rows >= 0]]
+        own = rows < 0
+        if own.any():
+            normals[own] = estimate_normals(fit, k=c.normal_max_neighbors, radius_m=c.normal_radius_m,
+                                            at=at[own]).normals
+        rank = (np.cumsum(held) - 1)[inv_in]  # each inside point: its voxel's rank in ``at``
+        ok = np.all(np.isfinite(normals), axis=1)[rank]  # per voxel, then per point
+        normals = normals[rank]
     normals = normals.astype(np.float64)
-    p, f = pts[which], fids[which]
-    uniq = np.sort(np.unique_values(f))  # a few frames: each point's found by a search, not a sort of every point
-    origins = np.stack([ctx.origin(int(x)) for x in uniq])
-    flip = np.einsum("ij,ij->i", normals, origins[np.searchsorted(uniq, f)] - p) < 0
+    origins = np.stack([ctx.origin(int(x)) for x in frames])
+    flip = np.einsum("ij,ij->i", normals, origins[np.searchsorted(frames, f_in)] - p_in) < 0
     normals[flip] *= -1.0
-    return normals
+    return normals, ok
 
 
-def dominant_normal(normals: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """The principal direction of unit normals (oriented as most of them) and each normal's angle to it (deg)."""
+def _finite_rows(normals: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:
+    return normals if ok.all() else normals[ok]
+
+
+def dominant_normal(normals: NDArray[np.float64], angles: bool = True
+                    ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+    """The principal direction of unit normals (oriented as most of them) and each normal's angle to it (deg; None
+    with ``angles=False``)."""
     m = normals.T @ normals
     e = np.linalg.eigh(m)[1][:, -1]
     if float(normals.sum(axis=0) @ e) < 0:
         e = -e
-    angles = np.degrees(np.arccos(np.clip(normals @ e, -1.0, 1.0)))
-    return e, angles
+    if not angles:
+        return e, None
+    return e, np.degrees(np.arccos(np.clip(normals @ e, -1.0, 1.0)))
 
 
 def _region_points(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[np.float64], inside) -> tuple:
     """Points of the region grown by ``normal_margin_m``, which of them are inside (``inside(pts)``), their
     oriented normals (only computed when enough points are inside) and frames."""
     m = ctx.config.normal_margin_m
-    pts, fids = ctx.points_in_box(lo - m, hi + m)
+    box = (lo - m, hi + m)
+    pts, fids = ctx.points_in_box(*box)
     mask = inside(pts) if len(pts) else np.zeros(0, bool)
-    return pts, fids, mask
+    return pts, fids, mask, box
 
 
 # ------------------------------------------------------------------------------------------------ grasp
@@ -103,26 +114,34 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
     c = ctx.config
     min_points = q.min_points or c.grasp_min_points
     max_spread = q.max_normal_spread_deg if q.max_normal_spread_deg is not None else c.grasp_max_normal_spread_deg
-    pts, fids, inside = _region_points(ctx, q.roi_min_m, q.roi_max_m,
-                                       lambda p: np.all((p >= q.roi_min_m) & (p <= q.roi_max_m), axis=1))
+    lo, hi = q.roi_min_m, q.roi_max_m
+
+    def in_roi(p: NDArray[np.float64]) -> NDArray[np.bool_]:  # per axis: no reduction over a last axis of 3
+        mask = (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0])
+        mask &= (p[:, 1] >= lo[1]) & (p[:, 1] <= hi[1])
+        mask &= (p[:, 2] >= lo[2]) & (p[:, 2] <= hi[2])
+        return mask
+
+    pts, fids, inside, box = _region_points(ctx, lo, hi, in_roi)
     n_in = int(inside.sum())
+    f_in = fids[inside]
+    frames = unique_ids(f_in)
     if n_in < min_points:
-        out = ctx.finish("too_few_points", "too_few_points", q.roi_min_m, q.roi_max_m, None, fids[inside])
+        out = ctx.finish("too_few_points", "too_few_points", q.roi_min_m, q.roi_max_m, None, frames)
         out["margin"] = None
         out["evidence_m"] = 0.5 * (q.roi_min_m + q.roi_max_m)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals = _oriented_normals(ctx, pts, fids, inside)
     p_in = pts[inside]
-    ok = np.all(np.isfinite(normals), axis=1)
-    e, angles = dominant_normal(normals[ok])
+    normals, ok = _oriented_normals(ctx, pts, inside, box, p_in, f_in, frames)
+    e, angles = dominant_normal(_finite_rows(normals, ok))
     spread = float(np.percentile(angles, 90))
     offset = float(np.median(p_in @ e))
     centroid = p_in.mean(axis=0)
     contact = centroid - (float(centroid @ e) - offset) * e
     margin = max_spread - spread
     decision, failure = ("unstable_normal", "unstable_normal") if margin < 0 else ("graspable", None)
-    out = ctx.finish(decision, failure, q.roi_min_m, q.roi_max_m, contact, fids[inside], normal=e)
+    out = ctx.finish(decision, failure, q.roi_min_m, q.roi_max_m, contact, frames, normal=e)
     out["margin"] = margin
     out["details"].update(n_points=n_in, contact_point_m=contact, normal=e, approach=-e, normal_spread_deg=spread,
                           max_normal_spread_deg=max_spread, n_normals=int(ok.sum()))
@@ -141,23 +160,25 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
     max_flat = q.max_flatness_m if q.max_flatness_m is not None else c.foothold_max_flatness_m
     r, centre = q.radius_m, q.center_m
 
-    def inside(p: NDArray[np.float64]) -> NDArray[np.bool_]:
-        return (np.linalg.norm(p[:, :2] - centre[:2], axis=1) <= r) & (np.abs(p[:, 2] - centre[2]) <= r)
+    def inside(p: NDArray[np.float64]) -> NDArray[np.bool_]:  # the values of np.linalg.norm(p[:, :2] - c[:2], axis=1)
+        dx, dy = p[:, 0] - centre[0], p[:, 1] - centre[1]
+        return (np.sqrt(dx * dx + dy * dy) <= r) & (np.abs(p[:, 2] - centre[2]) <= r)
 
     lo, hi = q.extent_m()
-    pts, fids, mask = _region_points(ctx, lo, hi, inside)
+    pts, fids, mask, box = _region_points(ctx, lo, hi, inside)
     n_in = int(mask.sum())
+    f_in = fids[mask]
+    frames = unique_ids(f_in)
     if n_in < min_points:
-        out = ctx.finish("too_few_points", "too_few_points", lo, hi, None, fids[mask])
+        out = ctx.finish("too_few_points", "too_few_points", lo, hi, None, frames)
         out.update(margin=None, evidence_m=centre)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals = _oriented_normals(ctx, pts, fids, mask)
-    ok = np.all(np.isfinite(normals), axis=1)
-    e, _ = dominant_normal(normals[ok])
+    p_in = pts[mask]
+    normals, ok = _oriented_normals(ctx, pts, mask, box, p_in, f_in, frames)
+    e, _ = dominant_normal(_finite_rows(normals, ok), angles=False)
     if e[2] < 0:
         e = -e
-    p_in = pts[mask]
     along = p_in @ e
     offset = float(np.median(along))
     flatness = float(np.sqrt(np.mean((along - offset) ** 2)))
@@ -169,7 +190,7 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
     else:
         decision, failure = "stable", None
     on_plane = centre - (float(centre @ e) - offset) * e
-    out = ctx.finish(decision, failure, lo, hi, on_plane, fids[mask], normal=e)
+    out = ctx.finish(decision, failure, lo, hi, on_plane, frames, normal=e)
     out["margin"] = q.max_slope_deg - slope
     out["details"].update(n_points=n_in, slope_deg=slope, flatness_m=flatness, max_flatness_m=max_flat, normal=e,
                           surface_point_m=on_plane)
