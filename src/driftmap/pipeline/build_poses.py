@@ -135,9 +135,10 @@ def pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: s
                 f"{frame.stamp_ns} ns; the nearest is {int(stamps[j]) - frame.stamp_ns:+d} ns away, "
                 f"{abs(int(stamps[j]) - frame.stamp_ns) / 1e9:.3f} s {'after' if stamps[j] > frame.stamp_ns else 'before'} "
                 f"it); the file's {len(stamps)} rows span stamps {first_s:.3f} .. {last_s:.3f} s"
-                + (" and the frame lies outside them (trial 13: a file that ends before the log): build only the frames "
-                   "the file covers (--frames), or build with our odometry and import the file with `driftmap correct "
-                   "STORE --poses FILE` (frames without a row follow the nearest ones)" if outside else
+                + (" and the frame lies outside them (a file that ends before the log, or whose clock is offset from "
+                   "the frames'): build only the frames the file covers (--frames), or build with our odometry and "
+                   "import the file with `driftmap correct STORE --poses FILE` (frames without a row follow the "
+                   "nearest ones)" if outside else
                    ": a file with a row per frame, or --max-dt-ms for rows that lag the frames"))
         if frame_stamps is not None:  # a row is the pose of its nearest frame only (TUM's associate.py)
             other = int(frame_stamps[_nearest(frame_stamps, int(stamps[j]))])
