@@ -375,7 +375,8 @@ def test_revisit_reason_names_sessions_not_travel_across_them() -> None:
     sessions = {**{k: 0 for k in range(4)}, **{SESSION_ID_STRIDE + k: 1 for k in range(4)}}
     check = RevisitCheck(cfg, probes, 4, (), sessions)
     reason = check.reason()
-    assert f"frame {SESSION_ID_STRIDE + 3} (session 1) on frame 3 (session 0), in another session" in reason, reason
+    assert reason.startswith("sessions 0 and 1 disagree by 33 cm / 0.1 deg (4 frame pairs across them, the largest "
+                             f"frame {SESSION_ID_STRIDE + 3} (session 1) on frame 3 (session 0): 39 cm"), reason
     assert "travel" not in reason and check.drift_percent_per_m is None, reason  # no travel: no drift rate
 
 
@@ -408,3 +409,75 @@ def test_view_latest_state_shows_the_chair_only_at_its_new_place(merged: dict, t
     single = run_cli("view", merged["root"] / "A", "--color", "state", "--latest-state", "--out", tmp_path / "s",
                      "--backend", "software")
     assert "holds one session" in one_error(single), single.stderr
+
+
+def test_one_session_off_the_others_is_judged_from_its_own_pairs() -> None:
+    """Trial 14 (F1): a third session moved 40 cm read valid ("0.9 cm"): two of the twelve pairs measured it, and the
+    disagreement was the third largest correction over all pairs. The pairs across each two sessions are judged on
+    their own: two counted pairs that both put session 2 40 cm off make the map's disagreement 40 cm, and the reason
+    names the sessions."""
+    from driftmap.diagnostics.revisits import STRETCH, RevisitCheck, RevisitCheckConfig, RevisitProbe
+
+    S = SESSION_ID_STRIDE
+    cfg = RevisitCheckConfig(max_detectable_m=0.2)
+
+    def pair(probe: int, target: int, m: float) -> RevisitProbe:
+        cross = probe // S != target // S
+        return RevisitProbe(probe, 0.8, 0.9, 0.01, 0.3, m, 0.05, True, target, target, float("nan") if cross else 3.0,
+                            STRETCH, cross)
+
+    probes = [pair(S + k, k, 0.01) for k in range(5)] + [pair(20 + k, k, 0.008) for k in range(5)]
+    probes += [pair(2 * S + 3, 3, 0.405), pair(2 * S + 28, 1, 0.395)]
+    sessions = {f: f // S for p in probes for f in (p.frame_id, p.target_frame_id)}
+    check = RevisitCheck(cfg, probes, len(probes), (), sessions)
+    assert check.group_disagreement(False) == pytest.approx(0.01)  # the third largest of all pairs hides it
+    assert check.session_disagreements()[(0, 2)][0] == pytest.approx(0.395)
+    assert check.disagreement_m == pytest.approx(0.395) and check.beyond_detector
+    assert check.reason().startswith("sessions 0 and 2 disagree by 40 cm / 0.1 deg (2 frame pairs across them"), \
+        check.reason()
+    assert check.to_json()["sessions"][1] == {"session_a": 0, "session_b": 2, "disagreement_m": 0.395,
+                                              "disagreement_deg": 0.05, "n_pairs": 2}
+    one = RevisitCheck(cfg, probes[:-1], len(probes) - 1, (), sessions)  # one pair alone decides nothing
+    assert (0, 2) not in one.session_disagreements() and not one.beyond_detector
+
+
+def test_diagnostic_rows_of_sessions_that_share_stamps_run_session_by_session() -> None:
+    """Trial 14 (F3): sessions recorded apart share stamps (every data set's log starts at 0); rows in stamp order
+    interleaved them (0, 1e9, 1, 1e9 + 1, ...) and the revisit check's travel ran back and forth between sessions (a
+    rigid 15 cm session offset read as 1.40 %/m of drift). With the sessions, the rows run session by session, each
+    in time order, and the path is each session's own travel."""
+    from driftmap.diagnostics.double_wall import DiagnosticCloud
+    from driftmap.frame import Frame, PoseEstimate, SensorKind
+
+    rng = np.random.default_rng(0)
+    S = SESSION_ID_STRIDE
+
+    def frame(fid: int, stamp_s: int, x: float) -> Frame:
+        T = np.eye(4)
+        T[0, 3] = x
+        return Frame(frame_id=fid, stamp_ns=stamp_s * 10**9, sensor_name="lidar", sensor_kind=SensorKind.LIDAR,
+                     points_sensor=rng.uniform(-5, 5, (500, 3)).astype(np.float32), pose=PoseEstimate(T))
+
+    frames = [frame(k, k, 0.5 * k) for k in range(4)] + [frame(S + k, k, 10.0 + 0.5 * k) for k in range(4)]
+    poses = np.stack([f.pose.T_world_sensor for f in frames])
+    mixed = DiagnosticCloud.from_frames(frames)
+    assert list(mixed.frame_ids) == [0, S, 1, S + 1, 2, S + 2, 3, S + 3]  # stamp order interleaves the sessions
+    sessions = {0: [0, 1, 2, 3], 1: [S, S + 1, S + 2, S + 3]}
+    cloud = DiagnosticCloud.from_frames(frames, sessions=sessions)
+    assert list(cloud.frame_ids) == [0, 1, 2, 3, S, S + 1, S + 2, S + 3]
+    path = cloud.place(poses[np.searchsorted([f.frame_id for f in frames], cloud.frame_ids)]).path_length_m
+    assert np.allclose(np.diff(path)[[0, 1, 2, 4, 5, 6]], 0.5)  # each session's own steps; one jump between them
+
+
+def test_diagnose_says_how_many_regions_it_does_not_list(merged: dict) -> None:
+    """Trial 14 (W7): the table lists the first 5 double-wall and changed regions and dropped the rest without a word.
+    It says how many more there are, and where they are (every region is in the JSON)."""
+    seen_more = False
+    for rev in (1, 2, 3):
+        out = " ".join(merged[f"stdout{rev}"].split())
+        for n, what in ((len(merged[rev]["double_wall"]["regions"]), "double-wall"),
+                        (len(merged[rev]["session_changes"]["regions"]), "changed")):
+            line = f"... and {n - 5} more {what} regions (all in the JSON"
+            assert (line in out) == (n > 5), (rev, what, n, out[-3000:])
+            seen_more |= n > 5
+    assert seen_more, "no revision has more than 5 regions of a kind: the test checks only the absence"

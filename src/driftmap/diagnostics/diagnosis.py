@@ -266,7 +266,8 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
         config = DiagnoseConfig.for_store(store)
     t = time.perf_counter()
     if cloud is None:
-        cloud = DiagnosticCloud.from_store(store, config.sampling, noise)
+        cloud = DiagnosticCloud.from_store(store, config.sampling, noise,
+                                           sessions=sessions if sessions is not None and len(sessions) >= 2 else None)
     sampling_s = time.perf_counter() - t
     poses = store.poses(rev)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
     gt_rows = gt_poses = None

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import logging
 import math
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -74,6 +75,9 @@ finest voxels of the target: at 1.5 a 30 cm step at frame 58 of the room fits 0.
 
 STRETCH, MAP, STEP = "stretch", "map", "step"
 """The kinds of probe (:attr:`RevisitProbe.kind`, the ``target`` key of the JSON)."""
+
+MIN_SESSION_PAIRS = 2
+"""A merged store's two sessions are judged against each other from this many counted frame pairs across them."""
 
 MAX_SCREENED_JUMPS = 24
 """When more jumps exceed ``jump_min_share`` than ``max_step_checks`` allows, the largest this many are screened frame
@@ -234,11 +238,31 @@ class RevisitCheck:
         before them: a 180 deg flip, a 5 m step."""
         return [j for j in self.jumps if j.implausible and self.jump_correction(j) is None]
 
+    def session_disagreements(self) -> dict[tuple[int, int], tuple[float, float, int]]:
+        """A merged store's counted pairs across each two sessions ``(a, b)``: ``(m, deg, n)``, the ``min(n,
+        min_probes)``-th largest corrections of the ``n >= MIN_SESSION_PAIRS`` pairs. One session placed off the
+        others shows in every pair across it, however few of all the pairs those are (trial 14: two of twelve pairs
+        measured a third session 40 cm off, the third largest of all the pairs was 0.9 cm)."""
+        groups: dict[tuple[int, int], list[RevisitProbe]] = {}
+        for p in self.probes:
+            if p.counted and p.cross_session and p.kind == STRETCH:
+                a, b = self.frame_sessions.get(p.frame_id), self.frame_sessions.get(p.target_frame_id)
+                if a is not None and b is not None and a != b:
+                    groups.setdefault((min(a, b), max(a, b)), []).append(p)
+        out = {}
+        for key, group in groups.items():
+            if len(group) >= MIN_SESSION_PAIRS:
+                k = min(len(group), self.config.min_probes) - 1
+                out[key] = (float(sorted((p.correction_m for p in group), reverse=True)[k]),
+                            float(sorted((p.correction_deg for p in group), reverse=True)[k]), len(group))
+        return out
+
     def _kth_largest(self, degrees: bool) -> float | None:
-        """:meth:`group_disagreement` of the pairs and of the whole-map probes and :meth:`steps_disagreement`, the
-        largest."""
+        """:meth:`group_disagreement` of the pairs and of the whole-map probes, :meth:`steps_disagreement` and, on a
+        merged store, :meth:`session_disagreements`: the largest."""
         values = [v for v in (*(self.group_disagreement(m, degrees) for m in (False, True)),
                               self.steps_disagreement(degrees)) if v is not None]
+        values += [v[1] if degrees else v[0] for v in self.session_disagreements().values()]
         return float(max(values)) if values else None
 
     @property
@@ -303,6 +327,19 @@ class RevisitCheck:
                     f"out{self._measured_jump_note()}")
         if not self.beyond_detector:
             return None
+        sessions = {k: v for k, v in self.session_disagreements().items()
+                    if v[0] > cfg.max_detectable_m or v[1] > cfg.max_detectable_deg}
+        if sessions:
+            (a, b), (m, deg, n) = max(sessions.items(), key=lambda kv: kv[1][0] / cfg.max_detectable_m
+                                      + kv[1][1] / cfg.max_detectable_deg)
+            w = max((p for p in self.counted if p.cross_session and p.kind == STRETCH
+                     and {self.frame_sessions.get(p.frame_id), self.frame_sessions.get(p.target_frame_id)} == {a, b}),
+                    key=lambda p: p.correction_m / cfg.max_detectable_m + p.correction_deg / cfg.max_detectable_deg)
+            return (f"sessions {a} and {b} disagree by {100 * m:.0f} cm / {deg:.1f} deg ({n} frame pairs across them, "
+                    f"the largest {self._name(w.frame_id)} on {self._name(w.target_frame_id)}: "
+                    f"{100 * w.correction_m:.0f} cm / {w.correction_deg:.1f} deg; revisit check): one of them is placed off the other, beyond the {100 * cfg.max_detectable_m:.0f} "
+                    f"cm / {cfg.max_detectable_deg:g} deg the double-wall detector sees; the map is inconsistent by "
+                    f"more than its figures show")
         worst = max(self.counted, key=lambda p: p.correction_m / cfg.max_detectable_m
                     + p.correction_deg / cfg.max_detectable_deg)
         between = "in another session" if worst.cross_session else f"{worst.path_between_m:.3g} m of travel earlier"
@@ -339,6 +376,8 @@ class RevisitCheck:
                 "jumps": [{**j.to_json(), "correction_m": self.jump_correction(j),
                            "correction_deg": self.jump_correction(j, True)} for j in self.jumps],
                 "n_candidates": self.n_candidates, "n_registered": len(self.probes), "n_counted": len(self.counted),
+                "sessions": [{"session_a": a, "session_b": b, "disagreement_m": m, "disagreement_deg": deg,
+                              "n_pairs": n} for (a, b), (m, deg, n) in sorted(self.session_disagreements().items())],
                 "probes": [p.to_json() for p in self.probes]}
 
 
@@ -492,7 +531,8 @@ def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckC
     own |= across[index]
     nb_step = np.where(own[..., None], np.nan, step[index])
     nb_turn = np.where(own, np.nan, turn[index])
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():  # a step with no neighbour (a session's only one)
+        warnings.simplefilter("ignore", RuntimeWarning)              # has no median: NaN, then 0 (trial 14)
         excess_m = np.linalg.norm(step - np.nanmedian(nb_step, axis=1), axis=1)
         excess_deg = np.clip(turn - np.nanmedian(nb_turn, axis=1), 0.0, None)
     excess_m, excess_deg = np.nan_to_num(excess_m), np.nan_to_num(excess_deg)
@@ -584,7 +624,9 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
     chosen = sorted(_choose_pairs(a, b, overlap, travel, cfg), key=lambda k: (int(b[k]), int(a[k])))
     probes = [_register(placed, int(a[k]), int(b[k]), float(overlap[k]), cfg, cross_session=bool(cross[k]))
               for k in chosen]
-    probes += [_register(placed, end, row, ov, cfg, MAP) for end, row, ov in _map_pairs(placed, cfg)]
+    probes += [_register(placed, end, row, ov, cfg, MAP,
+                         cross_session=sessions is not None and bool(sessions[end] != sessions[row]))
+               for end, row, ov in _map_pairs(placed, cfg)]
     jumps = _find_jumps(placed, all_rows, cfg, sessions)
     starts = [k for k, _ in jumps]
     for i, k in enumerate(starts):

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
@@ -103,8 +103,10 @@ class DiagnosticCloud:
 
     @classmethod
     def from_frames(cls, frames: Iterable[Frame], config: SamplingConfig | None = None,
-                    noise: NoiseModel | None = None) -> DiagnosticCloud:
-        """Sample frames (any order; rows are sorted by stamp). ``noise`` defaults per sensor kind."""
+                    noise: NoiseModel | None = None,
+                    sessions: Mapping[int, Sequence[int]] | None = None) -> DiagnosticCloud:
+        """Sample frames (any order; rows are sorted by stamp, session by session with ``sessions``: see
+        :meth:`from_store`). ``noise`` defaults per sensor kind."""
         cfg = config or SamplingConfig()
         frames = list(frames)
         keep = cfg.per_frame(len(frames))
@@ -112,14 +114,18 @@ class DiagnosticCloud:
         for frame in frames:
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
                                       frame.attributes.normal_sensor, cfg, keep, noise))
-        return cls._assemble(rows)
+        return cls._assemble(rows, _session_of_frames(sessions))
 
     @classmethod
     def from_store(cls, store: FrameStore, config: SamplingConfig | None = None, noise: NoiseModel | None = None,
                    frame_ids: Sequence[int] | None = None,
-                   progress: Callable[[str, int, int | None], None] | None = None) -> DiagnosticCloud:
+                   progress: Callable[[str, int, int | None], None] | None = None,
+                   sessions: Mapping[int, Sequence[int]] | None = None) -> DiagnosticCloud:
         """Sample the frames of a store (all, or ``frame_ids``); poses are not needed here. ``progress(stage, done,
-        total)`` is called after each frame (the sampling with its normals is most of a diagnosis' time)."""
+        total)`` is called after each frame (the sampling with its normals is most of a diagnosis' time).
+        ``sessions`` (a merged store's ``{session: [frame ids]}``): the rows session by session, each in time order
+        -- sessions recorded apart may share stamps (every data set's log starts at 0), and rows in stamp order would
+        interleave them and run the travel back and forth between them (trial 14)."""
         cfg = config or SamplingConfig()
         ids = store.frame_ids if frame_ids is None else np.asarray(frame_ids, dtype=np.int64)
         keep = cfg.per_frame(len(ids))
@@ -130,13 +136,13 @@ class DiagnosticCloud:
                                       frame.attributes.normal_sensor, cfg, keep, noise))
             if progress is not None:
                 progress("sampling frames", k + 1, len(ids))
-        return cls._assemble(rows)
+        return cls._assemble(rows, _session_of_frames(sessions))
 
     @classmethod
-    def _assemble(cls, rows: list[tuple]) -> DiagnosticCloud:
+    def _assemble(cls, rows: list[tuple], group: Mapping[int, int] | None = None) -> DiagnosticCloud:
         if not rows:
             raise GeometryError("diagnostics: no frames to sample")
-        rows.sort(key=lambda r: (r[1], r[0]))
+        rows.sort(key=lambda r: (-1 if group is None else group.get(r[0], -1), r[1], r[0]))
         counts = np.array([len(r[3]) for r in rows], dtype=np.int64)
         refused = np.array([r[10] for r in rows], dtype=bool)
         if refused.any():
@@ -225,6 +231,10 @@ def _usable_stored_normals(frame_id: int, normals: NDArray[np.float32] | None) -
         return normals
     logger.debug("frame %d: %d of %d stored normals are not unit vectors", frame_id, len(unit) - int(unit.sum()), len(unit))
     return None
+
+
+def _session_of_frames(sessions: Mapping[int, Sequence[int]] | None) -> dict[int, int] | None:
+    return None if not sessions else {int(f): int(k) for k, fs in sessions.items() for f in fs}
 
 
 def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],

@@ -105,11 +105,12 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
     ground_truth = (read_ground_truth(store, gt, gt_format or "tum", kitti_frame=kitti_frame, calib_file=calib)
                     if gt is not None else None)
     t0 = time.perf_counter()
+    sessions = store_sessions(store)  # a merged store: its frames session by session, the changes between them too
     cloud = DiagnosticCloud.from_store(store, cfg.sampling,
-                                       progress=lambda stage, done, total: tick("sampling frames", done, len(store)))
+                                       progress=lambda stage, done, total: tick("sampling frames", done, len(store)),
+                                       sessions=sessions if len(sessions) >= 2 else None)
     sampling_s = time.perf_counter() - t0
     tick("diagnosing", 0, None)
-    sessions = store_sessions(store)  # a merged store: the changes between its sessions too
     if len(sessions) >= 2:
         tick("session changes", 0, None)
     result = diagnose_store(store, revision, config=cfg, cloud=cloud, ground_truth=ground_truth,
