@@ -193,12 +193,18 @@ def _render_diagnosis(run: DiagnoseRun, store_path: Path) -> None:
                       + ("" if result.causes is None else f"; cause: {result.causes[k].cause} ({result.causes[k].explanation})")
                       + _session_note(result, k),
                       highlight=False)
+    if len(dw.regions) > 5:
+        console.print(f"  ... and {len(dw.regions) - 5} more double-wall regions (all in the JSON: double_wall.regions)",
+                      highlight=False)
     if result.session_changes is not None:
         for k, c in enumerate(result.session_changes.regions[:5]):
             console.print(f"  changed {k + 1}: {c.kind} in session {max(c.sessions)} "
                           f"at {np.round(c.center_m, 2).tolist()}, {np.round(c.max_m - c.min_m, 2).tolist()} m, "
                           f"{c.n_voxels} voxels (surface of session {c.session_surface}, free in session "
                           f"{c.session_free})", highlight=False)
+        if len(result.session_changes.regions) > 5:
+            console.print(f"  ... and {len(result.session_changes.regions) - 5} more changed regions (all in the JSON: "
+                          f"session_changes.regions)", highlight=False)
     if result.attribution.revisit_note:
         console.print(Text(result.attribution.revisit_note, style="yellow"))
     for name, file in run.files.items():
