@@ -542,11 +542,12 @@ def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckC
     usual_m = float(np.percentile(np.linalg.norm(step[~across], axis=1), 90))
     usual_deg = float(np.percentile(turn[~across], 90))
     order = [int(i) for i in np.argsort(-score, kind="stable")[:MAX_SCREENED_JUMPS] if score[i] >= cfg.jump_min_share]
-    if len(order) > cfg.max_step_checks:  # more jumps than checks: the ones whose frames disagree first (trial 13)
-        screened = {i: _screen_jump(placed, rows, i + 1, cfg) for i in order}
-        order = sorted(order, key=lambda i: -screened[i])
+    if len(order) > cfg.max_step_checks:  # more jumps than checks: in turn the most disagreeing frame on frame
+        screened = {i: _screen_jump(placed, rows, i + 1, cfg) for i in order}  # (trial 13) and the largest jump (a
+        by_screen = sorted(order, key=lambda i: -screened[i])                  # step two frames cannot constrain:
+        order = list(dict.fromkeys(i for pair in zip(by_screen, order) for i in pair))  # trial 12's short log)
         logger.info("revisit check: %d jumps screened frame on frame (%s)", len(screened),
-                    ", ".join(f"{int(placed.frame_ids[rows[i + 1]])}: {screened[i]:.2f}" for i in order))
+                    ", ".join(f"{int(placed.frame_ids[rows[i + 1]])}: {screened[i]:.2f}" for i in by_screen))
     out = []
     for i in order[: cfg.max_step_checks]:
         implausible = bool(excess_m[i] > cfg.implausible_factor * usual_m or excess_deg[i] > cfg.implausible_factor * usual_deg)
