@@ -43,21 +43,7 @@ def merge(
 
         result = merge_stores(stores, out, config=cfg, progress=tick)
 
-    sessions = Table(title=f"driftmap merge -> {out}")
-    for col in ("session", "store", "frames", "keyframes", "head revision", "connected", "frame ids"):
-        sessions.add_column(col, justify="left" if col in ("store", "connected") else "right")
-    for s in result.sessions:
-        ids = f"{s.frame_id_offset}+" if s.connected else "-"
-        sessions.add_row(str(s.session), s.store, str(s.n_frames), str(s.n_keyframes), f"{s.head_revision} ({s.head_source})",
-                         "yes" if s.connected else "NO", ids)
-    console.print(sessions)
-    loops = Table(title="loops between sessions")
-    for col in ("sessions", "tried", "verified", "accepted", "connected"):
-        loops.add_column(col, justify="right")
-    for p in result.pairs:
-        loops.add_row(f"{p['session_a']}-{p['session_b']}", str(p["tried"]), str(p["verified"]), str(p["accepted"]),
-                      "yes" if p["connected"] else "no")
-    console.print(loops)
+    _print_sessions_and_loops(result, f"driftmap merge -> {out}", "loops between sessions")
     rows = [
         ("frames in the merged store", str(result.n_frames)),
         ("merge revision", "-" if result.revision_id is None else str(result.revision_id)),
@@ -87,21 +73,7 @@ def _append(stores: list[Path], cfg: object) -> None:
         raise ConfigError(f"--append: give the merged store and at least one new store (got {len(stores)} store)")
     with progress_bar() as progress:
         result = append_sessions(stores[0], stores[1:], config=cfg, progress=stage_ticker(progress))  # type: ignore[arg-type]
-    sessions = Table(title=f"driftmap merge --append -> {stores[0]}")
-    for col in ("session", "store", "frames", "keyframes", "head revision", "connected", "frame ids"):
-        sessions.add_column(col, justify="left" if col in ("store", "connected") else "right")
-    for s in result.sessions:
-        sessions.add_row(str(s.session), s.store, str(s.n_frames), str(s.n_keyframes),
-                         f"{s.head_revision} ({s.head_source})", "yes" if s.connected else "NO",
-                         f"{s.frame_id_offset}+" if s.connected else "-")
-    console.print(sessions)
-    loops = Table(title="loops of the new sessions")
-    for col in ("sessions", "tried", "verified", "accepted", "connected"):
-        loops.add_column(col, justify="right")
-    for p in result.pairs:
-        loops.add_row(f"{p['session_a']}-{p['session_b']}", str(p["tried"]), str(p["verified"]), str(p["accepted"]),
-                      "yes" if p["connected"] else "no")
-    console.print(loops)
+    _print_sessions_and_loops(result, f"driftmap merge --append -> {stores[0]}", "loops of the new sessions")
     rows = [
         ("frames appended / in the store", f"{result.n_frames_appended} / {result.n_frames}"),
         ("revision (previous head)", f"{result.revision_id} ({result.previous_head})"),
@@ -123,3 +95,22 @@ def _append(stores: list[Path], cfg: object) -> None:
             err_console.print(Text.assemble(("not connected:", "yellow"), f" session {s.session} ({s.store}): {s.reason}"
                                             " (nothing of it was appended)"), highlight=False)
     console.print(bold("store: ", Path(result.store), f" (revision {result.revision_id}; merge_summary.json updated)"))
+
+
+def _print_sessions_and_loops(result, title: str, loops_title: str) -> None:  # noqa: ANN001 - MergeResult | AppendResult
+    """The sessions table (one row per session of ``result``) and the loops between sessions."""
+    sessions = Table(title=title)
+    for col in ("session", "store", "frames", "keyframes", "head revision", "connected", "frame ids"):
+        sessions.add_column(col, justify="left" if col in ("store", "connected") else "right")
+    for s in result.sessions:
+        sessions.add_row(str(s.session), s.store, str(s.n_frames), str(s.n_keyframes),
+                         f"{s.head_revision} ({s.head_source})", "yes" if s.connected else "NO",
+                         f"{s.frame_id_offset}+" if s.connected else "-")
+    console.print(sessions)
+    loops = Table(title=loops_title)
+    for col in ("sessions", "tried", "verified", "accepted", "connected"):
+        loops.add_column(col, justify="right")
+    for p in result.pairs:
+        loops.add_row(f"{p['session_a']}-{p['session_b']}", str(p["tried"]), str(p["verified"]), str(p["accepted"]),
+                      "yes" if p["connected"] else "no")
+    console.print(loops)

@@ -68,7 +68,8 @@ from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frame
 
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
            "MergeResult", "SessionReport", "copy_frames", "frame_origin", "keyframe_range", "merge_stores",
-           "odometry_config", "session_frame_ids", "session_keyframes", "session_of", "store_sessions"]
+           "odometry_config", "record_graph_verdicts", "session_frame_ids", "session_keyframes", "session_of",
+           "store_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -477,6 +478,18 @@ def _optimise(connected: list[int], keyframes: list[list[Keyframe]], T_align: di
     stages["pose graph"] = time.perf_counter() - t
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     result.information_scale = scratch.information_scale
+    record_graph_verdicts(result, opt)
+    origins = ", ".join(f"session {k}: {result.sessions[k].store} revision {result.sessions[k].head_revision}"
+                        for k in connected)
+    note = (f"merge of {len(connected)} sessions ({origins}); {len(loops)} loops between sessions, graph error "
+            f"{opt.initial_error:.3g} -> {opt.final_error:.3g}")
+    return dict(opt.poses), dict(opt.covariances or {}), note
+
+
+def record_graph_verdicts(result: Any, opt: Any) -> None:
+    """The pose graph's verdict on each accepted loop of ``result.pairs`` (``graph_chi2``, ``graph_weight``,
+    ``kept_by_graph``) and ``result.loops_rejected_by_graph``, with a warning when it rejected any (a merge's
+    :class:`MergeResult` or an append's result; ``opt`` the optimisation)."""
     verdict = {(r.key_from, r.key_to): r for r in opt.loop_residuals}
     for p in result.pairs:
         for rec in p["loops"]:
@@ -487,11 +500,6 @@ def _optimise(connected: list[int], keyframes: list[list[Keyframe]], T_align: di
     if result.loops_rejected_by_graph:
         logger.warning("%d of %d loops between sessions rejected by the pose graph (chi2 > %.1f)",
                        result.loops_rejected_by_graph, len(opt.loop_residuals), opt.chi2_threshold)
-    origins = ", ".join(f"session {k}: {result.sessions[k].store} revision {result.sessions[k].head_revision}"
-                        for k in connected)
-    note = (f"merge of {len(connected)} sessions ({origins}); {len(loops)} loops between sessions, graph error "
-            f"{opt.initial_error:.3g} -> {opt.final_error:.3g}")
-    return dict(opt.poses), dict(opt.covariances or {}), note
 
 
 def copy_frames(merged: FrameStore, connected: Sequence[int], paths: Any, sources: Any, uuids: Any,

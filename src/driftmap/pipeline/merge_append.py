@@ -60,8 +60,9 @@ from driftmap.pipeline.merge import (
     SESSION_ID_STRIDE,
     SessionReport,
     copy_frames,
-    odometry_config,
     keyframe_range,
+    odometry_config,
+    record_graph_verdicts,
     session_keyframes,
     store_sessions,
 )
@@ -475,16 +476,7 @@ def _optimise(store: FrameStore, head: int, existing: list[int], connected_new: 
     result.seconds_per_stage["pose graph"] = time.perf_counter() - t
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     result.information_scale = scratch.information_scale
-    verdict = {(r.key_from, r.key_to): r for r in opt.loop_residuals}
-    for p in result.pairs:
-        for rec in p["loops"]:
-            r = verdict.get((rec["a"], rec["b"]))
-            if rec["accepted"] and r is not None:
-                rec |= {"graph_chi2": r.chi2, "graph_weight": r.weight, "kept_by_graph": r.accepted}
-    result.loops_rejected_by_graph = sum(not r.accepted for r in opt.loop_residuals)
-    if result.loops_rejected_by_graph:
-        logger.warning("%d of %d loops rejected by the pose graph (chi2 > %.1f)", result.loops_rejected_by_graph,
-                       len(opt.loop_residuals), opt.chi2_threshold)
+    record_graph_verdicts(result, opt)
     new = ", ".join(f"session {s.session}: {s.store} revision {s.head_revision}" for s in result.sessions
                     if s.session in connected_new)
     note = (f"append of {len(connected_new)} session(s) ({new}) to {len(existing)} merged; {len(new_loops)} new "
