@@ -16,6 +16,7 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 from driftmap.datasets import ENV_VAR, shared_datasets_dir
 from driftmap.diagnostics.double_wall import DiagnosticCloud
+from driftmap.pipeline.build import build
 from driftmap.sources.sevenscenes import SevenScenes
 from driftmap.store.frame_store import FrameStore
 
@@ -67,6 +68,15 @@ def kitchen(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> 
         for frame in source:
             store.append(frame)
     return FrameStore.open(path)
+
+
+@pytest.fixture(scope="session")
+def kitchen_session(tmp_path_factory: pytest.TempPathFactory, sevenscenes_dir: Path) -> Path:
+    """A store of 50 real 7-Scenes frames (0:300:6, full resolution) built as a user builds one, with the data
+    set's poses and no loop closure: a session of another place for the merge tests (hostile trial 14 F4)."""
+    path = tmp_path_factory.mktemp("kitchen_session") / "kitchen"
+    build(sevenscenes_dir, path, poses_from_source=True, frames="0:300:6", loop_closure=False)
+    return path
 
 
 @pytest.fixture(scope="session")

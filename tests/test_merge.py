@@ -95,6 +95,8 @@ def test_merge_recovers_the_second_session_in_the_first_sessions_frame(sessions:
     pair = result.pairs[0]
     assert (pair["session_a"], pair["session_b"], pair["connected"]) == (0, 1, True)
     assert pair["accepted"] >= 10 and pair["accepted"] <= pair["verified"] <= pair["tried"]
+    # one place seen twice: the agreeing loops' clouds hardly lie in each other's free space (docs/merge.md)
+    assert pair["free_space_conflict"] < 0.03, pair["free_space_conflict"]
     gt = read_trajectory(sessions["log"] / "groundtruth.txt", "tum")
     _, _, b_before = _ate_after_aligning_session_0(merged["out"], gt, revision=0)
     everything, a, b = _ate_after_aligning_session_0(merged["out"], gt)
@@ -181,6 +183,31 @@ def test_a_store_of_another_place_is_not_connected(sessions: dict, tmp_path: Pat
         merge_stores([sessions["A"], tmp_path / "street"], tmp_path / "out", config=FAST)
     assert "session 1" in str(exc.value) and str(tmp_path / "street") in str(exc.value)
     assert not (tmp_path / "out").exists()
+
+
+def test_a_real_session_of_another_room_is_not_merged(sessions: dict, kitchen_session: Path, tmp_path: Path) -> None:
+    """Hostile trial 14 F4, through the CLI: the 7-Scenes kitchen (real Kinect frames with the data set's poses)
+    against the synthetic room. Registrations of fitness ~0.5 agree on one placement, but placed there the kitchen
+    lies in free space the room's camera saw through (and the room in the kitchen's): refused naming the session
+    and the share, nothing written, the sources untouched."""
+    before = _hashes(kitchen_session)
+    err = one_error(run_cli("merge", sessions["A"], kitchen_session, "--out", tmp_path / "x"))
+    assert "no session could be connected to session 0" in err and "session 1" in err, err
+    assert "loops agree on where session 1 lies in session 0" in err and "free space the other saw through" in err
+    assert not (tmp_path / "x").exists() and _hashes(kitchen_session) == before
+
+
+def test_a_real_session_of_another_room_is_not_appended(merged: dict, kitchen_session: Path, tmp_path: Path) -> None:
+    """Hostile trial 14 F4 with ``merge --append`` (the merge's own loop-closure settings, the defaults here): the
+    kitchen appended to the merged room is refused by the free-space check with each session, and the store is
+    byte for byte as it was."""
+    store = tmp_path / "AB"
+    shutil.copytree(merged["out"], store)
+    before = {k: v for k, v in _hashes(store).items() if k != "writer.lock"}
+    err = one_error(run_cli("merge", store, kitchen_session, "--append"))
+    assert "no new session could be connected" in err and "nothing was written" in err, err
+    assert "with session 0" in err and "free space the other saw through" in err, err
+    assert {k: v for k, v in _hashes(store).items() if k != "writer.lock"} == before
 
 
 def test_a_third_session_of_another_place_is_reported_not_forced_in(sessions: dict, tmp_path: Path) -> None:

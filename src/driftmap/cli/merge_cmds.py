@@ -108,9 +108,10 @@ def _print_sessions_and_loops(result, title: str, loops_title: str) -> None:  # 
                          f"{s.frame_id_offset}+" if s.connected else "-")
     console.print(sessions)
     loops = Table(title=loops_title)
-    for col in ("sessions", "tried", "verified", "accepted", "connected"):
+    for col in ("sessions", "tried", "verified", "accepted", "in the other's free space", "connected"):
         loops.add_column(col, justify="right")
     for p in result.pairs:
+        conflict = p.get("free_space_conflict")
         loops.add_row(f"{p['session_a']}-{p['session_b']}", str(p["tried"]), str(p["verified"]), str(p["accepted"]),
-                      "yes" if p["connected"] else "no")
+                      "-" if conflict is None else f"{100 * conflict:.1f} %", "yes" if p["connected"] else "no")
     console.print(loops)

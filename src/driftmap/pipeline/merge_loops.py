@@ -19,6 +19,15 @@ sessions that connects to session 0.
   loops, and turn them alike within ``max_correction_deg``: what the two sessions' residual drift allows. The largest
   set of loops agreeing with one of them is kept; the others are refused ("inconsistent"). A pair of sessions is
   connected by at least :data:`MIN_CONSISTENT_LOOPS` agreeing loops: a single loop has nothing to be checked against.
+* **Free space.** Agreeing loops can still agree on a wrong placement: sessions of one place agree with each other
+  whatever they are registered to, so a session of another room, registered with fitness 0.5 onto a room whose
+  other sessions are alike, found three "independent" confirmations (hostile trial 14 F4). Each agreeing loop's two
+  keyframe clouds are therefore checked against each other's free space
+  (:func:`~driftmap.registration.visibility.free_space_conflict`, both ways, margin ``2 * registration_voxel_m`` or
+  5 % of the range): pooled over the loops, the larger of the two shares of points lying where the other keyframe's
+  sensor saw through (of those it saw through or onto) must stay within :data:`MAX_FREE_SPACE_CONFLICT`. A refused set
+  does not end the pair: the next largest agreeing set without its loops is tried, and must stay within half the
+  bound (a place one wrong placement fits is confusable; a symmetric room turned by half a turn is the case).
 """
 
 from __future__ import annotations
@@ -34,11 +43,16 @@ from numpy.typing import NDArray
 from driftmap import geometry
 from driftmap.registration.loops import CandidateKind, Keyframe, LoopCandidate, LoopClosureConfig, verify
 from driftmap.registration.place import scan_context_distance, yaw_guess
+from driftmap.registration.visibility import FreeSpaceConflict, free_space_conflict
 
 logger = logging.getLogger(__name__)
 
 MIN_CONSISTENT_LOOPS = 2
 """A pair of sessions is connected by at least this many verified loops that agree on where one lies in the other."""
+
+MAX_FREE_SPACE_CONFLICT = 0.06
+"""The agreeing loops' keyframe clouds may lie in each other's seen-through free space by at most this share of their
+judged points (pooled over the loops, the worse direction); above it the pair is not connected (module docstring)."""
 
 
 @dataclass
@@ -58,6 +72,15 @@ class PairLoops:
     connected"""
     records: list[dict] = field(default_factory=list)
     """one record per candidate (frame ids, kind, verdict, reason, fitness, RMSE)"""
+    free_space_conflict: float | None = None
+    """pooled over the agreeing loops, the larger share of one keyframe cloud's points lying in the free space the
+    other's sensor saw through: of the set taken, else of the largest set refused (None: not measured, fewer than
+    :data:`MIN_CONSISTENT_LOOPS` agreed)"""
+    refused_shares: list[float] = field(default_factory=list)
+    """the free-space conflict of each agreeing set refused, largest set first"""
+    conflicting: list[LoopCandidate] = field(default_factory=list)
+    """agreeing loops refused together because their placement conflicts with the free space (a smaller agreeing
+    set without them may still connect the pair)"""
 
     @property
     def connected(self) -> bool:
@@ -66,6 +89,15 @@ class PairLoops:
     def why_not_connected(self) -> str:
         if self.connected:
             return ""
+        if self.conflicting and not self.consistent:
+            lo, hi = (100 * min(self.refused_shares), 100 * max(self.refused_shares))
+            how = (f"there {hi:.0f} % of one session's points lie" if len(self.refused_shares) == 1 else
+                   f"the {len(self.refused_shares)} placements they agree on put {lo:.0f}-{hi:.0f} % of one "
+                   f"session's points")
+            return (f"{len(self.conflicting)} loops agree on where session {self.session_b} lies in session "
+                    f"{self.session_a}, but {how} in free space the other saw through (at most "
+                    f"{100 * MAX_FREE_SPACE_CONFLICT:.0f} % for one place seen twice, {50 * MAX_FREE_SPACE_CONFLICT:.0f} "
+                    f"% for a placement tried after a refused one): another place?")
         if self.candidates == 0:
             return "no keyframe pair had matching place descriptors"
         if not self.verified:
@@ -78,7 +110,8 @@ class PairLoops:
     def summary(self) -> dict:
         return {"session_a": self.session_a, "session_b": self.session_b, "tried": self.candidates,
                 "verified": len(self.verified), "accepted": len(self.consistent), "connected": self.connected,
-                "reason": self.why_not_connected(), "loops": self.records,
+                "reason": self.why_not_connected(), "free_space_conflict": self.free_space_conflict,
+                "loops": self.records,
                 "T_a_b": None if self.T_a_b is None else [float(v) for v in self.T_a_b.ravel()]}
 
 
@@ -155,23 +188,71 @@ def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], n
             agree[p, q] = _agree(pair.verified[p], pair.verified[q], align[p], align[q], older, newer, by_id_a,
                                  by_id_b, path_a, path_b, lc)
     fitness = np.array([c.result.fitness if c.result is not None else 0.0 for c in pair.verified])
-    # the loop that most others agree with (ties: the best fitting), and every loop agreeing with it
-    best = max(range(n), key=lambda p: (int(agree[p].sum()), float(fitness[p])))
-    keep = np.flatnonzero(agree[best])
-    pair.consistent = [pair.verified[int(q)] for q in keep]
-    pair.T_a_b = align[best]
+    # the loop that most others agree with (ties: the best fitting), and every loop agreeing with it; a set whose
+    # placement conflicts with the free space is refused and the next largest set not holding a refused loop tried
+    shares: dict[tuple[int, int], float] = {}
+    refused_rows: set[int] = set()
+    for best in sorted(range(n), key=lambda p: (-int(agree[p].sum()), -float(fitness[p]))):
+        if best in refused_rows:
+            continue
+        keep = [int(q) for q in np.flatnonzero(agree[best]) if int(q) not in refused_rows]
+        loops = [pair.verified[q] for q in keep]
+        if len(loops) < MIN_CONSISTENT_LOOPS:
+            if not pair.conflicting:
+                pair.consistent, pair.T_a_b = loops, align[best]
+            break
+        share, per_loop = _free_space_conflict(loops, older, newer, by_id_a, by_id_b, lc)
+        shares |= per_loop
+        # a place that one wrong placement already fits is confusable: a placement tried after it must fit better
+        allowed = MAX_FREE_SPACE_CONFLICT / (2.0 if pair.conflicting else 1.0)
+        if pair.free_space_conflict is None or share <= allowed:
+            pair.free_space_conflict = share
+        if share <= allowed:
+            pair.consistent, pair.T_a_b = loops, align[best]
+            break
+        logger.info("sessions %d <-> %d: %d agreeing loops refused: %.1f %% of their points in the other's free space",
+                    session_a, session_b, len(loops), 100 * share)
+        pair.conflicting += loops
+        pair.refused_shares.append(share)
+        refused_rows |= set(keep)
     kept = {(c.a, c.b): c for c in pair.consistent}
+    refused = {(c.a, c.b) for c in pair.conflicting}
     for r in pair.records:
+        if (r["a"], r["b"]) in shares:
+            r["free_space_conflict"] = shares[(r["a"], r["b"])]
         if (r["a"], r["b"]) in kept:
             r["accepted"] = True
             r |= loop_measurement(kept[(r["a"], r["b"])])
+        elif (r["a"], r["b"]) in refused:
+            r["reason"] = ("passed the registration gates and agrees with others, but their placement puts one "
+                           "session's points in free space the other saw through (another place, or a symmetric one "
+                           "turned)" + (f"; {len(kept)} other loops were taken" if pair.connected else ""))
         elif r["verified"]:
-            r["reason"] = (f"passed the registration gates, but disagrees with the {len(keep)} agreeing loops on "
+            r["reason"] = (f"passed the registration gates, but disagrees with the {len(kept)} agreeing loops on "
                            f"where session {session_b} lies in session {session_a}")
     logger.info("sessions %d <-> %d: %d candidates, %d verified, %d agree%s", session_a, session_b, pair.candidates,
                 len(pair.verified), len(pair.consistent),
                 "" if pair.connected else f" (not connected: {pair.why_not_connected()})")
     return pair
+
+
+def _free_space_conflict(loops: Sequence[LoopCandidate], older: Sequence[Keyframe], newer: Sequence[Keyframe],
+                         by_id_a: dict[int, int], by_id_b: dict[int, int],
+                         lc: LoopClosureConfig) -> tuple[float, dict[tuple[int, int], float]]:
+    """Each loop's two keyframe clouds in each other's free space (module docstring): the pooled share (the worse
+    direction) and each loop's own."""
+    margin_m = 2.0 * lc.registration_voxel_m
+    b_in_a, a_in_b = FreeSpaceConflict(0, 0, 0), FreeSpaceConflict(0, 0, 0)
+    shares = {}
+    for c in loops:
+        ka, kb = older[by_id_a[c.a]], newer[by_id_b[c.b]]
+        assert c.T_a_b is not None
+        one = free_space_conflict(ka.points_m, geometry.transform_points(c.T_a_b, kb.points_m), margin_m=margin_m)
+        other = free_space_conflict(kb.points_m, geometry.transform_points(geometry.invert(c.T_a_b), ka.points_m),
+                                    margin_m=margin_m)
+        b_in_a, a_in_b = b_in_a + one, a_in_b + other
+        shares[(c.a, c.b)] = max(one.share, other.share)
+    return max(b_in_a.share, a_in_b.share), shares
 
 
 def loop_measurement(c: LoopCandidate) -> dict:
