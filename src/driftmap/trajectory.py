@@ -146,6 +146,10 @@ def _poses_from_rows(path: Path, translation_m: NDArray[np.float64], quat_xyzw: 
     bad = np.flatnonzero(np.abs(norms - 1.0) > 1e-3)
     if bad.size:
         raise SourceError(f"{path}:{linenos[bad[0]]}: quaternion has norm {norms[bad[0]]:.4f}, expected 1")
+    far = np.flatnonzero(np.max(np.abs(translation_m), axis=1) > geometry.MAX_TRANSLATION_M)
+    if far.size:
+        raise SourceError(f"{path}:{linenos[far[0]]}: translation {translation_m[far[0]].tolist()} m is beyond "
+                          f"{geometry.MAX_TRANSLATION_M:g} m from the origin (a unit error?)")
     poses = np.tile(np.eye(4), (len(translation_m), 1, 1))
     poses[:, :3, :3] = Rotation.from_quat(quat_xyzw).as_matrix()
     poses[:, :3, 3] = translation_m
@@ -582,13 +586,50 @@ def detect_trajectory_format(path: str | Path) -> str:
     )
 
 
+SPIKE_MIN_M = 1.0
+SPIKE_FACTOR = 20.0
+"""A row is a **spike** when it lies more than ``max(SPIKE_MIN_M, SPIKE_FACTOR * (b + s))`` from both its neighbours,
+``b`` the distance between the two neighbours and ``s`` the file's median step: a jump away and straight back that
+no vehicle makes (hostile trial 14 W5: one row at 1e8 m among 5 cm steps)."""
+
+
+def spike_rows(positions_m: NDArray[np.floating]) -> NDArray[np.int64]:
+    """Rows (indices) of ``positions_m`` that jump away from both neighbours and back (:data:`SPIKE_FACTOR`). The
+    first and last rows have one neighbour each and are not judged."""
+    p = np.asarray(positions_m, dtype=np.float64)
+    if len(p) < 3:
+        return np.zeros(0, dtype=np.int64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        typical = float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1)))
+        away = np.minimum(np.linalg.norm(p[1:-1] - p[:-2], axis=1), np.linalg.norm(p[1:-1] - p[2:], axis=1))
+        base = np.linalg.norm(p[2:] - p[:-2], axis=1)
+        spike = away > np.maximum(SPIKE_MIN_M, SPIKE_FACTOR * (base + typical))
+    return np.flatnonzero(spike).astype(np.int64) + 1
+
+
+def _warn_spikes(path: Path, trajectory: Trajectory) -> None:
+    rows = spike_rows(trajectory.positions_m)
+    if not rows.size:
+        return
+    k = int(rows[0])
+    p = trajectory.positions_m
+    line = (f"{path}:{int(trajectory.source_lines[k])}" if trajectory.source_lines is not None
+            else f"{path} (row {k + 1})")
+    logger.warning("%s: the pose jumps %.3g m away from its neighbours and straight back (they lie %.3g m apart, the "
+                   "file's median step is %.3g m): a corrupt row? (%d such row(s); it is used as written)", line,
+                   float(np.linalg.norm(p[k] - p[k - 1])), float(np.linalg.norm(p[k + 1] - p[k - 1])),
+                   float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1))), rows.size)
+
+
 def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
     """Read a TUM, KITTI, EuRoC, Redwood ``.log`` or ``4x4`` trajectory; ``format=None`` detects it from the
-    contents."""
+    contents. A row that jumps away from both neighbours and back (:func:`spike_rows`) is logged naming its line."""
     readers = {"tum": read_tum, "kitti": read_kitti, "euroc": read_euroc, "redwood": read_redwood_log,
                "4x4": read_matrix4x4}
     if format is None:
         format = detect_trajectory_format(path)
     if format not in readers:
         raise SourceError(f"{path}: unknown trajectory format {format!r}; known: {', '.join(readers)}")
-    return readers[format](path)
+    trajectory = readers[format](path)
+    _warn_spikes(Path(path), trajectory)
+    return trajectory
