@@ -247,8 +247,17 @@ def test_a_killed_append_keeps_the_old_revisions_and_is_finished_by_running_it_a
         assert len(s) == 3 * N and s.head == 1  # the frames are there, no revision names them
         assert np.array_equal(s.poses()[: 2 * N], s.poses(1)[: 2 * N])
     assert PENDING_KEY in json.loads((store / MERGE_SUMMARY_FILE).read_text())
-    with pytest.raises(ConfigError, match="an earlier append of .* was interrupted"):
+    with pytest.raises(ConfigError, match=r"an append of .* \(session 2\) was interrupted: .*the head revision 1 is "
+                                          r"the map before it.*finish it before another append"):
         append_sessions(store, [room["root"] / "A"], config=BuildConfig.model_validate(FAST))
+    # trial 14 W2: info says so, and the refusal reads the store's real head (here after a rollback)
+    info = " ".join(_ok(run_cli("info", store)).stdout.split())
+    assert "append interrupted" in info and "(session 2) was interrupted" in info and "--append" in info
+    rolled = room["root"] / "AB_killed_rolled"
+    shutil.copytree(store, rolled)
+    _ok(run_cli("rollback", rolled, "--to", 0))
+    err = one_error(run_cli("merge", rolled, room["root"] / "A", "--append"))
+    assert "revision 1 is the map before it; the head is now revision 2" in err, err
     result = append_sessions(store, [room["root"] / "C"], config=BuildConfig.model_validate(FAST))
     assert result.resumed and result.n_frames_appended == 0 and result.revision_id == 2
     with FrameStore.open(store) as s, FrameStore.open(appended["store"]) as a:
@@ -300,3 +309,4 @@ def test_a_session_of_another_place_is_not_appended(room: dict, tmp_path: Path) 
         append_sessions(store, [tmp_path / "street"], config=BuildConfig.model_validate(FAST))
     assert "nothing was written" in str(exc.value)
     assert _hashes(store) == before
+

@@ -367,6 +367,11 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
                 table.add_row(f"session {k}", f"{len(mine)} frames from {mine[0].store} (revision {mine[0].revision}); "
                               f"stamps {min(span) / 1e9:.3f} .. {max(span) / 1e9:.3f} s "
                               f"({(max(span) - min(span)) / 1e9:.2f} s)")
+        from driftmap.pipeline.merge_append import interrupted_append
+
+        unfinished = interrupted_append(store.path, store.head)
+        if unfinished:
+            table.add_row("[red]append interrupted[/red]", unfinished)
         table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
         if stamps:
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")

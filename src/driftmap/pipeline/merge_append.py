@@ -73,7 +73,8 @@ from driftmap.store.frame_store import FrameStore
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
 
-__all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult", "append_sessions"]
+__all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult", "append_sessions",
+           "interrupted_append"]
 
 logger = logging.getLogger(__name__)
 
@@ -253,7 +254,26 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
     return uuids
 
 
-def _refuse_if_interrupted(merged: Path, summary: dict[str, Any], paths: list[Path]) -> None:
+def interrupted_append(merged: Path, head: int) -> str | None:
+    """What an interrupted append left (``append_in_progress`` in the merged store's summary) and the command that
+    finishes it; None when no append was interrupted (``driftmap info``, and the refusal of another append)."""
+    try:
+        summary = json.loads((merged / MERGE_SUMMARY_FILE).read_text())
+    except (OSError, ValueError):
+        return None
+    pending = summary.get(PENDING_KEY) if isinstance(summary, dict) else None
+    if not pending:
+        return None
+    stores = " ".join(str(s["store"]) for s in pending["sessions"])
+    numbers = ", ".join(str(s["session"]) for s in pending["sessions"])
+    before = int(pending["previous_head"])
+    where = (f"the head revision {head} is the map before it" if head == before else
+             f"revision {before} is the map before it; the head is now revision {head}")
+    return (f"an append of {stores} (session {numbers}) was interrupted: some of its frames may be stored without "
+            f"its revision ({where}); finish it by running it again: `driftmap merge {merged} {stores} --append`")
+
+
+def _refuse_if_interrupted(merged: Path, store: FrameStore, summary: dict[str, Any], paths: list[Path]) -> None:
     """An interrupted append (``append_in_progress``) is finished by the same stores, in the same order, before
     any other: their frames carry its session numbers."""
     pending = summary.get(PENDING_KEY)
@@ -267,11 +287,7 @@ def _refuse_if_interrupted(merged: Path, summary: dict[str, Any], paths: list[Pa
         except StoreError:
             given.append("")
     if was != given:
-        stores = " ".join(str(s["store"]) for s in pending["sessions"])
-        raise ConfigError(f"{merged}: an earlier append of {stores} was interrupted (some of its frames may be "
-                          f"stored without its revision; the head revision {pending['previous_head']} is the map "
-                          f"before it); finish it first by running it again: `driftmap merge {merged} {stores} "
-                          f"--append`")
+        raise ConfigError(f"{merged}: {interrupted_append(merged, store.head)}; finish it before another append")
 
 
 def _numbers(merged: Path, summary: dict[str, Any], paths: list[Path], uuids: list[str]) -> tuple[list[int], bool]:
@@ -308,7 +324,7 @@ def _lc_and_range(summary: dict[str, Any], store: FrameStore, first_session: dic
 def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: list[Path], sources: list[FrameStore],
             config: BuildConfig, tick: ProgressCallback, tol_m: float, tol_deg: float) -> AppendResult:
     stages: dict[str, float] = {}
-    _refuse_if_interrupted(merged, summary, paths)
+    _refuse_if_interrupted(merged, store, summary, paths)
     uuids = _check_new(merged, store, summary, paths, sources)
     numbers, resumed = _numbers(merged, summary, paths, uuids)
     existing = sorted(int(s["session"]) for s in summary["sessions"] if s.get("connected"))
