@@ -450,15 +450,22 @@ def split_scan(cloud: PlacedCloud, sg: SurfaceGroups, config: AttributionConfig 
 
 
 def change_points(cloud: PlacedCloud, scan: SplitScan, jumps: FrameAlignment | None = None,
-                  config: AttributionConfig | None = None) -> list[ChangePoint]:
+                  config: AttributionConfig | None = None,
+                  row_sessions: NDArray[np.int64] | None = None) -> list[ChangePoint]:
     """Pose jumps: splits whose F statistic is the largest within ``split_window`` frames, at least
     ``change_point_f``, with a step of at least ``min_jump_m``. ``jump_deg`` is the rotation of the frame's
     own step against the frames just before it (``jumps``); ``z_score`` is the split's robust z-score of
-    ``ln F`` over the sequence (how unusual it is for this map)."""
+    ``ln F`` over the sequence (how unusual it is for this map). ``row_sessions`` (a merged store's session of each
+    frame row): a session's first frame is where two recordings meet, not a jump of one trajectory -- its split is
+    left out (how the sessions sit on each other is the revisit check's cross-session pairs; hostile trial 14 W8)."""
     from scipy.ndimage import maximum_filter1d
 
     cfg = config or AttributionConfig()
     F, t = scan.f_statistic, scan.step_norm_m
+    if row_sessions is not None and len(row_sessions) == len(F):
+        starts = np.flatnonzero(np.diff(np.asarray(row_sessions)) != 0) + 1
+        F = F.copy()
+        F[starts] = 0.0
     if not np.any(F > 0):
         return []
     peak = F >= maximum_filter1d(F, 2 * cfg.split_window + 1, mode="constant")
@@ -505,11 +512,13 @@ def drift_rate(revisit: FrameAlignment, revisit_path_m: NDArray[np.float64], con
     return DriftRate(100.0 * rate_t, rate_r, int(ok.sum()), float(s.max()), floor_t, floor_r)
 
 
-def attribute(cloud: PlacedCloud, config: AttributionConfig | None = None) -> Attribution:
-    """Disagreement, jumps, change points, drift rate and revisit fraction of a placed cloud."""
+def attribute(cloud: PlacedCloud, config: AttributionConfig | None = None,
+              row_sessions: NDArray[np.int64] | None = None) -> Attribution:
+    """Disagreement, jumps, change points, drift rate and revisit fraction of a placed cloud (``row_sessions``: a
+    merged store's session of each frame row, see :func:`change_points`)."""
     cfg = config or AttributionConfig()
     steps = _all_steps(cloud, cfg)
-    cps = change_points(cloud, steps.split, steps.jumps, cfg)
+    cps = change_points(cloud, steps.split, steps.jumps, cfg, row_sessions)
     drift = drift_rate(steps.revisit, steps.revisit_path_m, cfg)
     result = Attribution(cloud.frame_ids.copy(), cloud.stamps_ns.copy(), cloud.path_length_m.copy(), steps.disagreement,
                          steps.jumps, steps.revisit, steps.revisit_path_m, cps, drift, steps.revisit_fraction, cfg,

@@ -206,7 +206,7 @@ def diagnose_cloud(cloud: DiagnosticCloud, poses: NDArray[np.float64], *, revisi
     seconds: dict[str, float] = {}
     placed = _timed(seconds, "place", lambda: cloud.place(poses))
     walls = _timed(seconds, "double_walls", lambda: detect_double_walls(placed, cfg.double_wall))
-    attribution = _timed(seconds, "attribution", lambda: attribute(placed, cfg.attribution))
+    attribution = _timed(seconds, "attribution", lambda: attribute(placed, cfg.attribution, row_sessions))
     e = cfg.entropy
     entropy = _timed(seconds, "mme_mpv", lambda: map_entropy(placed.points_world, radius_m=e.radius_m,
                                                              min_neighbors=e.min_neighbors, max_neighbors=e.max_neighbors,
