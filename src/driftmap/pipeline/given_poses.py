@@ -74,6 +74,9 @@ MAX_MOUNTING_RESIDUAL = 0.75
 """... it must leave at most this share of the pairs' disagreement (rms) unexplained: a rotation fitted to noise
 leaves 0.93-1.0 of it (the Livox LIO poses, KITTI, 7-Scenes and synthetic ground truth, our own poses), the rosette's
 true poses 0.81, a 10 deg offset 0.09-0.65 (on 7-Scenes, whose registrations' own floor is 2.8 cm, 0.65) ..."""
+LEVER_AMBIGUITY = 0.05
+"""A turn and a lever arm are interchangeable when the joint fit's scaled Jacobian has a singular value below this
+share of its largest along a direction mixing both (:func:`mounting_rotation`)."""
 MIN_MOUNTING_F = 12.0
 """... and its drop of the residual must be significant against what is left: ``F = ((before / after)^2 - 1) (6 n -
 3) / 3`` over the n pairs' 6 n numbers and the rotation's 3 (an F-test). Correct poses: 0.1-2.2, the rosette's
@@ -128,8 +131,11 @@ class MountingRotation:
     residual_before_m: float
     """rms of the registrations' motions minus the file's (translations and range-scaled rotations, m)."""
     residual_after_m: float
-    """... after turning the file's motions by ``R``."""
+    """... after turning the file's motions by ``R`` (and moving its sensor by the lever arm)."""
     n_pairs: int
+    lever_ambiguous_axis: tuple[float, float, float] | None = None
+    """The pairs' motions fit a turn about this axis (sensor frame) with a sideways lever arm as well as ``R`` (a path
+    of one curvature): that part of the angle is one of a family (:func:`mounting_rotation`). None: told apart."""
 
     @property
     def angle_deg(self) -> float:
@@ -150,12 +156,20 @@ class MountingRotation:
 
     def describe(self) -> str:
         axis = np.asarray(self.rotvec_deg) / max(self.angle_deg, 1e-12)
-        return (f"{self.angle_deg:.1f} deg about the sensor's ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) axis "
-                f"(the pairs' disagreement {100 * self.residual_before_m:.1f} cm rms, "
+        family = ""
+        if self.lever_ambiguous_axis is not None:
+            a = self.lever_ambiguous_axis
+            family = (f" -- of which the part about the sensor's ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}) axis may be a "
+                      f"sideways lever arm instead: these pairs move along one curve, on which a turn about it and an "
+                      f"offset look alike")
+        return (f"{self.angle_deg:.1f} deg about the sensor's ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) axis"
+                f"{family} (the pairs' disagreement {100 * self.residual_before_m:.1f} cm rms, "
                 f"{100 * self.residual_after_m:.1f} cm with it)")
 
     def to_json(self) -> dict:
         return {"angle_deg": round(self.angle_deg, 3), "rotvec_deg": [round(v, 3) for v in self.rotvec_deg],
+                "lever_ambiguous_axis": None if self.lever_ambiguous_axis is None else [
+                    round(v, 3) for v in self.lever_ambiguous_axis],
                 "residual_before_m": round(self.residual_before_m, 5),
                 "residual_after_m": round(self.residual_after_m, 5), "n_pairs": self.n_pairs,
                 "f_statistic": round(self.f_statistic, 2), "explains": self.explains}
@@ -165,23 +179,69 @@ def _motion(T: NDArray[np.float64]) -> tuple[float, ...]:
     return tuple(float(v) for v in np.concatenate([T[:3, 3], Rotation.from_matrix(T[:3, :3]).as_rotvec()]))
 
 
+def _kabsch(X: NDArray[np.float64], Y: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The rotation ``R`` minimising ``sum |Y - X R^T|^2`` (rows)."""
+    U, _, Vt = np.linalg.svd(X.T @ Y)
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
+    return Vt.T @ D @ U.T
+
+
 def mounting_rotation(pairs: Sequence[GivenPosePair], range_m: float) -> MountingRotation | None:
     """The rotation ``R`` minimising ``sum |m_registered - R m_file|^2`` over the deciding pairs' translations and
     rotation vectors (scaled by ``range_m``: a rotation error moves points at the scene's range by ``range * angle``);
-    None with fewer than :data:`MIN_DISAGREEING` deciding pairs."""
+    None with fewer than :data:`MIN_DISAGREEING` deciding pairs.
+
+    A sensor mounted with a lever arm ``l`` as well moves by ``R (t + (R_file - I) l)``. Along a path of one curvature
+    (a circle: the synthetic rooms, a car in a long bend) a turn and a sideways lever arm are interchangeable: every
+    point of the body moves on a circle, and the motions fit a family of (angle, offset) equally (hostile trial 14 W1:
+    5 deg with a 32 cm lever arm fits exactly as a 13.5 deg turn). ``lever_ambiguous_axis`` says so: the joint problem's
+    Jacobian at ``(R, l = 0)``, its columns scaled to unit length, has a singular value below
+    :data:`LEVER_AMBIGUITY` of the largest along a direction that mixes the turn and the offset."""
     used = [p for p in pairs if p.decisive and len(p.motion_file) == 6 and len(p.motion_registered) == 6]
     if len(used) < MIN_DISAGREEING:
         return None
     scale = np.array([1.0, 1.0, 1.0, range_m, range_m, range_m])
     X = np.array([np.asarray(p.motion_file) * scale for p in used]).reshape(-1, 3)
     Y = np.array([np.asarray(p.motion_registered) * scale for p in used]).reshape(-1, 3)
-    U, _, Vt = np.linalg.svd(X.T @ Y)
-    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R = Vt.T @ D @ U.T
+    R = _kabsch(X, Y)
     before = float(np.sqrt(np.mean(np.sum((Y - X) ** 2, axis=1)) * 2))  # per pair: translation + rotation rows
     after = float(np.sqrt(np.mean(np.sum((Y - X @ R.T) ** 2, axis=1)) * 2))
     rotvec = np.degrees(Rotation.from_matrix(R).as_rotvec())
-    return MountingRotation((float(rotvec[0]), float(rotvec[1]), float(rotvec[2])), before, after, len(used))
+    file = np.array([p.motion_file for p in used])
+    return MountingRotation((float(rotvec[0]), float(rotvec[1]), float(rotvec[2])), before, after, len(used),
+                            _lever_ambiguous(file, R, range_m))
+
+
+def _lever_ambiguous(file: NDArray[np.float64], R: NDArray[np.float64],
+                     range_m: float) -> tuple[float, float, float] | None:
+    """Can a lever arm stand in for part of the turn ``R`` (:func:`mounting_rotation`)? The Jacobian of the predicted
+    motions ``(R_x R (t + (R_file - I) l), R_x R r range)`` in the small rotation ``x`` and the lever arm ``l`` at 0;
+    the axis of the turn a lever arm can stand in for, or None."""
+    M = Rotation.from_rotvec(file[:, 3:]).as_matrix() - np.eye(3)
+    t, r = file[:, :3] @ R.T, range_m * file[:, 3:] @ R.T
+    columns = []
+    for axis in np.eye(3):  # d/dx of R_x v = x cross v
+        columns.append(np.concatenate([np.cross(axis, t).ravel(), np.cross(axis, r).ravel()]))
+    for axis in np.eye(3):  # d/dl of R (R_file - I) l
+        columns.append(np.concatenate([(np.einsum("nij,j->ni", M, axis) @ R.T).ravel(), np.zeros(r.size)]))
+    J = np.array(columns).T
+    norms = np.linalg.norm(J, axis=0)
+    live = norms > 1e-9 * max(float(norms.max()), 1e-12)
+    if live[:3].sum() == 0 or live[3:].sum() == 0:
+        return None
+    Jn = J[:, live] / norms[live]
+    _, S, Vt = np.linalg.svd(Jn, full_matrices=False)
+    n_rot = int(live[:3].sum())
+    for value, v in zip(S, Vt, strict=True):
+        if value < LEVER_AMBIGUITY * S[0] and np.linalg.norm(v[:n_rot]) > 0.2 and np.linalg.norm(v[n_rot:]) > 0.2:
+            turn = np.zeros(3)
+            turn[live[:3]] = v[:n_rot] / norms[:3][live[:3]]
+            turn = R.T @ turn  # in the sensor's frame, as the rotation vector is named
+            turn /= np.linalg.norm(turn)
+            turn *= -1.0 if turn[int(np.argmax(np.abs(turn)))] < 0 else 1.0
+            turn = np.round(turn, 3) + 0.0  # no "-0.00" in the message
+            return (float(turn[0]), float(turn[1]), float(turn[2]))
+    return None
 
 
 @dataclass(frozen=True)
