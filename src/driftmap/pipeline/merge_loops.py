@@ -26,8 +26,8 @@ sessions that connects to session 0.
   (:func:`~driftmap.registration.visibility.free_space_conflict`, both ways, margin ``2 * registration_voxel_m`` or
   5 % of the range): pooled over the loops, the larger of the two shares of points lying where the other keyframe's
   sensor saw through (of those it saw through or onto) must stay within :data:`MAX_FREE_SPACE_CONFLICT`. A refused set
-  does not end the pair: the next largest agreeing set without its loops is tried, and must stay within half the
-  bound (a place one wrong placement fits is confusable; a symmetric room turned by half a turn is the case).
+  does not end the pair: the next largest agreeing set without its loops is tried (a symmetric room turned by half a
+  turn is the case: the true set is smaller).
 """
 
 from __future__ import annotations
@@ -90,14 +90,14 @@ class PairLoops:
         if self.connected:
             return ""
         if self.conflicting and not self.consistent:
-            lo, hi = (100 * min(self.refused_shares), 100 * max(self.refused_shares))
-            how = (f"there {hi:.0f} % of one session's points lie" if len(self.refused_shares) == 1 else
-                   f"the {len(self.refused_shares)} placements they agree on put {lo:.0f}-{hi:.0f} % of one "
-                   f"session's points")
+            lo, hi = (round(100 * min(self.refused_shares)), round(100 * max(self.refused_shares)))
+            share = f"{hi} %" if lo == hi else f"{lo}-{hi} %"
+            how = (f"there {share} of one session's points lie" if len(self.refused_shares) == 1 else
+                   f"the {len(self.refused_shares)} placements they agree on put {share} of one session's points")
             return (f"{len(self.conflicting)} loops agree on where session {self.session_b} lies in session "
                     f"{self.session_a}, but {how} in free space the other saw through (at most "
-                    f"{100 * MAX_FREE_SPACE_CONFLICT:.0f} % for one place seen twice, {50 * MAX_FREE_SPACE_CONFLICT:.0f} "
-                    f"% for a placement tried after a refused one): another place?")
+                    f"{100 * MAX_FREE_SPACE_CONFLICT:.0f} % for one place seen twice): another place, or a "
+                    f"symmetric one the loops see turned?")
         if self.candidates == 0:
             return "no keyframe pair had matching place descriptors"
         if not self.verified:
@@ -203,11 +203,9 @@ def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], n
             break
         share, per_loop = _free_space_conflict(loops, older, newer, by_id_a, by_id_b, lc)
         shares |= per_loop
-        # a place that one wrong placement already fits is confusable: a placement tried after it must fit better
-        allowed = MAX_FREE_SPACE_CONFLICT / (2.0 if pair.conflicting else 1.0)
-        if pair.free_space_conflict is None or share <= allowed:
+        if pair.free_space_conflict is None or share <= MAX_FREE_SPACE_CONFLICT:
             pair.free_space_conflict = share
-        if share <= allowed:
+        if share <= MAX_FREE_SPACE_CONFLICT:
             pair.consistent, pair.T_a_b = loops, align[best]
             break
         logger.info("sessions %d <-> %d: %d agreeing loops refused: %.1f %% of their points in the other's free space",
