@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import logging
+import re
 import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
 from cli_run import one_error, run_cli
+from scipy.spatial.transform import Rotation
 
 from driftmap.errors import SourceError
 from driftmap.trajectory import read_trajectory, read_tum, spike_rows
@@ -57,14 +59,36 @@ def test_t14_w5_a_pose_row_that_jumps_away_and_back_is_named(room10: dict, tmp_p
         read_trajectory(gt)
         assert not caplog.records
         read_trajectory(spiked)
-    assert f"spiked.txt:{line}: the pose jumps 1e+08 m away from its neighbours" in caplog.text
+    assert re.search(rf"spiked.txt:{line}: the pose jumps 1e\+08 m / [\d.e+-]+ deg away from its neighbour and back",
+                     caplog.text), caplog.text
     out = run_cli("build", room10["log"], "--poses", spiked, "--out", tmp_path / "st", "--no-loop-closure")
     assert out.returncode == 0, out.stderr[-2000:]
     assert f"spiked.txt:{line}: the pose jumps" in " ".join(out.stderr.split())
+    # trial 15: the first row, a 2.7 m spike among 24 cm steps, every third row off, a 170 deg flip
+    rng = np.random.default_rng(0)
+    path = np.cumsum(np.full((40, 3), [0.24, 0.0, 0.0]) + rng.normal(0, 0.01, (40, 3)), axis=0)
+    assert spike_rows(path).size == 0
+    first = path.copy()
+    first[0] += [0.0, 49.0, 0.0]
+    assert spike_rows(first).tolist() == [0]
+    last = path.copy()
+    last[-1] += [0.0, 49.0, 0.0]
+    assert spike_rows(last).tolist() == [39]
+    small = path.copy()
+    small[13] += [0.0, 2.7, 0.0]
+    assert spike_rows(small).tolist() == [13]
+    periodic = path.copy()
+    periodic[2::3] += [100.0, 0.0, 0.0]
+    assert spike_rows(periodic).tolist() == list(range(2, 40, 3))
+    R = np.tile(np.eye(3), (40, 1, 1))
+    R[20] = Rotation.from_euler("z", 170, degrees=True).as_matrix()
+    assert spike_rows(path, R).tolist() == [20]
+    uturn = np.array([[np.cos(a), np.sin(a), 0.0] for a in np.linspace(0, np.pi, 12)]) * 0.5  # a tight U-turn
+    assert spike_rows(np.concatenate([uturn, uturn[::-1][1:] + [0, 0.01, 0]])).size == 0
     straight = np.zeros((50, 3))
     straight[:, 0] = np.arange(50) * 30.0  # 30 m a row: fast, but no spike
     assert spike_rows(straight).size == 0
-    straight[20] += [0.0, 5.0, 0.0]  # 5 m off a 30 m/row line: within 20 x the steps
+    straight[20] += [0.0, 5.0, 0.0]  # 5 m off a 30 m/row line: within the steps
     assert spike_rows(straight).size == 0
     straight[30] += [0.0, 5000.0, 0.0]
     assert spike_rows(straight).tolist() == [30]

@@ -586,39 +586,73 @@ def detect_trajectory_format(path: str | Path) -> str:
     )
 
 
-SPIKE_MIN_M = 1.0
-SPIKE_FACTOR = 20.0
+SPIKE_MIN_M = 0.5
+SPIKE_FACTOR = 3.0
+SPIKE_MIN_DEG = 30.0
 """A row is a **spike** when it lies more than ``max(SPIKE_MIN_M, SPIKE_FACTOR * (b + s))`` from both its neighbours,
-``b`` the distance between the two neighbours and ``s`` the file's median step: a jump away and straight back that
-no vehicle makes (hostile trial 14 W5: one row at 1e8 m among 5 cm steps)."""
+``b`` the distance between the two neighbours and ``s`` the file's typical step (its lower quartile: a file whose every
+third row is off still has its true steps there), or turns more than ``max(SPIKE_MIN_DEG, SPIKE_FACTOR * (b + s))``
+degrees from both (the same in angles): a jump away and straight back that no vehicle makes (hostile trial 14 W5: one
+row at 1e8 m among 24 cm steps; trial 15: 2.7 m, a 170 deg flip). A U-turn or a real fast motion keeps the distance
+from a neighbour within about ``b + s``. The first and last rows are judged against the step beyond their one
+neighbour the same way."""
 
 
-def spike_rows(positions_m: NDArray[np.floating]) -> NDArray[np.int64]:
-    """Rows (indices) of ``positions_m`` that jump away from both neighbours and back (:data:`SPIKE_FACTOR`). The
-    first and last rows have one neighbour each and are not judged."""
-    p = np.asarray(positions_m, dtype=np.float64)
-    if len(p) < 3:
-        return np.zeros(0, dtype=np.int64)
+def _spikes(values_away: NDArray[np.float64], base: NDArray[np.float64], typical: float,
+            floor: float) -> NDArray[np.bool_]:
     with np.errstate(over="ignore", invalid="ignore"):
-        typical = float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1)))
-        away = np.minimum(np.linalg.norm(p[1:-1] - p[:-2], axis=1), np.linalg.norm(p[1:-1] - p[2:], axis=1))
-        base = np.linalg.norm(p[2:] - p[:-2], axis=1)
-        spike = away > np.maximum(SPIKE_MIN_M, SPIKE_FACTOR * (base + typical))
-    return np.flatnonzero(spike).astype(np.int64) + 1
+        return values_away > np.maximum(floor, SPIKE_FACTOR * (base + typical))
+
+
+def spike_rows(positions_m: NDArray[np.floating],
+               rotations: NDArray[np.floating] | None = None) -> NDArray[np.int64]:
+    """Rows (indices) of ``positions_m`` (and of the ``(N, 3, 3)`` ``rotations``, when given) that jump away from
+    their neighbours and back (:data:`SPIKE_FACTOR`)."""
+    p = np.asarray(positions_m, dtype=np.float64)
+    n = len(p)
+    if n < 3:
+        return np.zeros(0, dtype=np.int64)
+    flagged = np.zeros(n, dtype=bool)
+    with np.errstate(over="ignore", invalid="ignore"):
+        def dist(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+            return np.linalg.norm(a - b, axis=-1)
+
+        measures = [(dist, p, SPIKE_MIN_M)]
+        if rotations is not None:
+            R = np.asarray(rotations, dtype=np.float64)
+
+            def turn(a: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+                cos = (np.einsum("nij,nij->n", a, b) - 1.0) / 2.0
+                return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+            measures.append((turn, R, SPIKE_MIN_DEG))
+        for measure, x, floor in measures:
+            steps = measure(x[1:], x[:-1])
+            typical = float(np.percentile(steps, 25))
+            away = np.minimum(measure(x[1:-1], x[:-2]), measure(x[1:-1], x[2:]))
+            flagged[1:-1] |= _spikes(away, measure(x[2:], x[:-2]), typical, floor)
+            # the ends: away from their one neighbour, against that neighbour's next step
+            flagged[0] |= bool(_spikes(steps[:1], steps[1:2], typical, floor)[0])
+            flagged[-1] |= bool(_spikes(steps[-1:], steps[-2:-1], typical, floor)[0])
+    return np.flatnonzero(flagged).astype(np.int64)
 
 
 def _warn_spikes(path: Path, trajectory: Trajectory) -> None:
-    rows = spike_rows(trajectory.positions_m)
+    rows = spike_rows(trajectory.positions_m, trajectory.poses[:, :3, :3])
     if not rows.size:
         return
     k = int(rows[0])
-    p = trajectory.positions_m
+    p, R = trajectory.positions_m, trajectory.poses[:, :3, :3]
     line = (f"{path}:{int(trajectory.source_lines[k])}" if trajectory.source_lines is not None
             else f"{path} (row {k + 1})")
-    logger.warning("%s: the pose jumps %.3g m away from its neighbours and straight back (they lie %.3g m apart, the "
-                   "file's median step is %.3g m): a corrupt row? (%d such row(s); it is used as written)", line,
-                   float(np.linalg.norm(p[k] - p[k - 1])), float(np.linalg.norm(p[k + 1] - p[k - 1])),
-                   float(np.median(np.linalg.norm(np.diff(p, axis=0), axis=1))), rows.size)
+    near = k - 1 if k > 0 else k + 1
+    turned = float(np.degrees(np.arccos(np.clip((np.trace(R[k].T @ R[near]) - 1.0) / 2.0, -1.0, 1.0))))
+    logger.warning("%s: the pose jumps %.3g m / %.3g deg away from its neighbour and back (the file's typical step is "
+                   "%.3g m): a corrupt row? (%d such row(s)%s; they are used as written)", line,
+                   float(np.linalg.norm(p[k] - p[near])), turned,
+                   float(np.percentile(np.linalg.norm(np.diff(p, axis=0), axis=1), 25)), rows.size,
+                   "" if rows.size == 1 else f": rows {', '.join(str(int(r) + 1) for r in rows[:5])}"
+                   + (" ..." if rows.size > 5 else ""))
 
 
 def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
