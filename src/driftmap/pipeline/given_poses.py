@@ -142,6 +142,14 @@ class MountingRotation:
         return float(np.linalg.norm(self.rotvec_deg))
 
     @property
+    def lever_ambiguous_deg(self) -> float:
+        """The part of the turn about :attr:`lever_ambiguous_axis` (deg; 0 without one): what a lever arm may stand in
+        for (a roll on a circle about the vertical has none, and is named without the caveat)."""
+        if self.lever_ambiguous_axis is None:
+            return 0.0
+        return float(np.dot(self.rotvec_deg, self.lever_ambiguous_axis))
+
+    @property
     def f_statistic(self) -> float:
         """How significantly ``R`` lowers the pairs' disagreement (:data:`MIN_MOUNTING_F`)."""
         ratio = (self.residual_before_m / max(self.residual_after_m, 1e-12)) ** 2
@@ -157,11 +165,11 @@ class MountingRotation:
     def describe(self) -> str:
         axis = np.asarray(self.rotvec_deg) / max(self.angle_deg, 1e-12)
         family = ""
-        if self.lever_ambiguous_axis is not None:
+        if self.lever_ambiguous_axis is not None and abs(self.lever_ambiguous_deg) >= MIN_MOUNTING_DEG:
             a = self.lever_ambiguous_axis
-            family = (f" -- of which the part about the sensor's ({a[0]:.2f}, {a[1]:.2f}, {a[2]:.2f}) axis may be a "
-                      f"sideways lever arm instead: these pairs move along one curve, on which a turn about it and an "
-                      f"offset look alike")
+            family = (f" -- of which the {abs(self.lever_ambiguous_deg):.1f} deg about the sensor's ({a[0]:.2f}, "
+                      f"{a[1]:.2f}, {a[2]:.2f}) axis may be a lever arm instead: these pairs move along one curve, on "
+                      f"which a turn about it and an offset of the sensor look alike")
         return (f"{self.angle_deg:.1f} deg about the sensor's ({axis[0]:.2f}, {axis[1]:.2f}, {axis[2]:.2f}) axis"
                 f"{family} (the pairs' disagreement {100 * self.residual_before_m:.1f} cm rms, "
                 f"{100 * self.residual_after_m:.1f} cm with it)")
@@ -170,6 +178,7 @@ class MountingRotation:
         return {"angle_deg": round(self.angle_deg, 3), "rotvec_deg": [round(v, 3) for v in self.rotvec_deg],
                 "lever_ambiguous_axis": None if self.lever_ambiguous_axis is None else [
                     round(v, 3) for v in self.lever_ambiguous_axis],
+                "lever_ambiguous_deg": round(self.lever_ambiguous_deg, 3),
                 "residual_before_m": round(self.residual_before_m, 5),
                 "residual_after_m": round(self.residual_after_m, 5), "n_pairs": self.n_pairs,
                 "f_statistic": round(self.f_statistic, 2), "explains": self.explains}
