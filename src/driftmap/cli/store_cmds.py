@@ -30,7 +30,7 @@ from driftmap.cli.common import (
 def correct(
     store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")],
     poses: Annotated[Path, typer.Option("--poses", help="Pose file (T_world_sensor per frame).")],
-    format: Annotated[str, typer.Option("--format", help="tum | kitti | redwood (.log) | 4x4 (one 4x4 matrix per frame, the last row 0 0 0 stamp_s or 0 0 0 1)")] = "tum",
+    format: Annotated[str, typer.Option("--format", help="tum | kitti | redwood (.log) | 4x4 (one 4x4 matrix per frame, the last row 0 0 0 stamp_s or 0 0 0 1) | euroc (CSV, stamps in ns)")] = "tum",
     match: Annotated[Optional[str], typer.Option("--match", help="stamp | index (default: stamp for TUM and 4x4 files with stamps, index for KITTI and 4x4 files without: row i = frame_id i; a Redwood .log matches by the frame ids it names)")] = None,
     source: Annotated[str, typer.Option("--source", help="Revision source: external_file, loop_closure, ground_truth, ...")] = "external_file",
     max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", callback=finite, min=0.0, help="Stamp matching tolerance (ms).")] = 10.0,
@@ -371,7 +371,7 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
 
         unfinished = interrupted_append(store.path, store.head)
         if unfinished:
-            table.add_row("[red]append interrupted[/red]", unfinished)
+            table.add_row("append interrupted", unfinished)
         table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")
         if stamps:
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")

@@ -70,8 +70,11 @@ def poses_from_values(values: gtsam.Values, keys: Iterable[int]) -> dict[int, ND
 
 def gtsam_call(what: str, fn: Callable[[], object]) -> object:
     """``fn()``, with GTSAM's C++ exceptions (IndeterminantLinearSystem, ...), which arrive as
-    ``RuntimeError``, raised as :class:`PoseGraphError` prefixed with ``what``."""
+    ``RuntimeError``, raised as :class:`PoseGraphError` prefixed with ``what`` (their first line: the rest is generic
+    advice)."""
     try:
         return fn()
     except RuntimeError as exc:
-        raise PoseGraphError(f"{what}: GTSAM failed: {exc}") from exc
+        # GTSAM's messages run to 20 lines of advice and a URL: the first line names the failure and the variable
+        lines = [line.strip() for line in str(exc).strip().splitlines() if line.strip()]
+        raise PoseGraphError(f"{what}: GTSAM failed: {lines[0] if lines else type(exc).__name__}") from exc

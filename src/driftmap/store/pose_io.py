@@ -50,6 +50,7 @@ class TrajectoryFormat(enum.Enum):
     KITTI = "kitti"
     REDWOOD = "redwood"
     MATRIX_4X4 = "4x4"
+    EUROC = "euroc"
 
 
 def import_poses(store: PoseFileStore, file: str | Path, *, format: TrajectoryFormat | str, match: PoseMatchMode | str | None,
