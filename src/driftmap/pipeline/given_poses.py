@@ -131,11 +131,11 @@ class MountingRotation:
     residual_before_m: float
     """rms of the registrations' motions minus the file's (translations and range-scaled rotations, m)."""
     residual_after_m: float
-    """... after turning the file's motions by ``R`` (and moving its sensor by the lever arm)."""
+    """... after turning the file's motions by ``R``."""
     n_pairs: int
     lever_ambiguous_axis: tuple[float, float, float] | None = None
-    """The pairs' motions fit a turn about this axis (sensor frame) with a sideways lever arm as well as ``R`` (a path
-    of one curvature): that part of the angle is one of a family (:func:`mounting_rotation`). None: told apart."""
+    """The pairs' motions fit a turn about this axis (sensor frame) with a lever arm as well as ``R`` (a path of one
+    curvature): that part of the angle is one of a family (:func:`mounting_rotation`). None: told apart."""
 
     @property
     def angle_deg(self) -> float:
@@ -201,7 +201,7 @@ def mounting_rotation(pairs: Sequence[GivenPosePair], range_m: float) -> Mountin
     None with fewer than :data:`MIN_DISAGREEING` deciding pairs.
 
     A sensor mounted with a lever arm ``l`` as well moves by ``R (t + (R_file - I) l)``. Along a path of one curvature
-    (a circle: the synthetic rooms, a car in a long bend) a turn and a sideways lever arm are interchangeable: every
+    (a circle: the synthetic rooms, a car in a long bend) a turn and a lever arm are interchangeable: every
     point of the body moves on a circle, and the motions fit a family of (angle, offset) equally (hostile trial 14 W1:
     5 deg with a 32 cm lever arm fits exactly as a 13.5 deg turn). ``lever_ambiguous_axis`` says so: the joint problem's
     Jacobian at ``(R, l = 0)``, its columns scaled to unit length, has a singular value below

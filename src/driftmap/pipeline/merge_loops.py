@@ -198,9 +198,10 @@ def find_pair_loops(session_a: int, session_b: int, older: Sequence[Keyframe], n
         keep = [int(q) for q in np.flatnonzero(agree[best]) if int(q) not in refused_rows]
         loops = [pair.verified[q] for q in keep]
         if len(loops) < MIN_CONSISTENT_LOOPS:
-            if not pair.conflicting:
+            if not pair.conflicting:  # the largest set is too small: so is every other
                 pair.consistent, pair.T_a_b = loops, align[best]
-            break
+                break
+            continue  # this loop's others were refused; another loop may still have enough of its own
         share, per_loop = _free_space_conflict(loops, older, newer, by_id_a, by_id_b, lc)
         shares |= per_loop
         if pair.free_space_conflict is None or share <= MAX_FREE_SPACE_CONFLICT:
