@@ -135,7 +135,7 @@ def test_bad_appends_are_rejected_and_change_nothing(tmp_path: Path, synthetic_f
             store.add_revision({1: np.eye(4)}, source="bogus")
         poses = tmp_path / "poses.txt"
         store.export_trajectory(poses)
-        with pytest.raises(ConfigError, match=r"poses.txt: format: 'xyz' is not one of \['tum', 'kitti', 'redwood', '4x4'\]"):
+        with pytest.raises(ConfigError, match=r"poses.txt: format: 'xyz' is not one of \['tum', 'kitti', 'redwood', '4x4', 'euroc'\]"):
             store.import_poses(poses, format="xyz")
         with pytest.raises(ConfigError, match=r"poses.txt: match: 'nearest' is not one of"):
             store.import_poses(poses, match="nearest")
