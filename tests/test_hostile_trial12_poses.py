@@ -265,19 +265,25 @@ def test_t13_a_resume_that_adds_no_frame_keeps_the_given_poses_check(logs: dict)
     assert re.search(r"given poses fit the frames .* NO: \d+ of \d+ frame pairs disagree", _out(run)), _out(run)
 
 
+def _build_mounted(logs: dict, name: str, sensor: np.ndarray) -> tuple[Path, object, dict]:
+    """``build --poses`` of the LiDAR log with its own poses moved by ``sensor`` about each pose (a sensor mounted
+    otherwise): the pose file, the run, and the check's mounting rotation, which must say NO and explain it."""
+    poses = _moved(logs["lidar_poses"], logs["root"] / f"{name}.txt", sensor=sensor)
+    run = run_cli("build", logs["root"] / "lidar_log", "--out", logs["root"] / name, "--sensor", "lidar", "--poses",
+                  poses, "--no-loop-closure")
+    assert run.returncode == 0, run.stderr[-2000:]
+    check = _given_check(logs["root"] / name)
+    mounting = check["mounting_rotation"]
+    assert check["consistent"] is False and mounting["explains"] is True, check
+    return poses, run, mounting
+
+
 def test_t13_poses_of_a_sensor_mounted_turned_are_read_as_such(logs: dict) -> None:
     """Trial 13 (F1): the LiDAR's own poses turned 10 deg about its z (a scanner mounted turned against the file's
     sensor) read "given poses fit the frames: yes": each 12 cm step comes out turned by 10 deg, 2 cm off, within the
     registration's inlier distance. Across the pairs the frames move as the file's poses would with the sensor turned
     (the relative motions conjugated by the rotation): the fitted rotation is the offset, and the build warns."""
-    out = logs["root"] / "lidar_turned"
-    turned = _moved(logs["lidar_poses"], logs["root"] / "lidar_turned.txt", sensor=_transform("z", 10.0))
-    run = run_cli("build", logs["root"] / "lidar_log", "--out", out, "--sensor", "lidar", "--poses", turned,
-                  "--no-loop-closure")
-    assert run.returncode == 0, run.stderr[-2000:]
-    check = _given_check(out)
-    mounting = check["mounting_rotation"]
-    assert check["consistent"] is False and mounting["explains"] is True, check
+    turned, run, mounting = _build_mounted(logs, "lidar_turned", _transform("z", 10.0))
     assert abs(mounting["angle_deg"] - 10.0) < 1.0 and abs(mounting["rotvec_deg"][2] - 10.0) < 1.0, mounting
     err = _err(run)
     assert "mounted turned by 10." in err and "about the sensor's (0.0" in err and str(turned) in err, err
@@ -294,14 +300,7 @@ def test_t14_w1_a_turn_with_a_lever_arm_on_a_circle_is_named_with_its_ambiguity(
     axis and a sideways lever arm fit the motions alike (the fitted angle is one of a family). The check still says
     NO, and now names the turn about z as possibly a lever arm instead; a pure 10 deg turn on the same circle is
     named with the same caveat, a real camera's path (7-Scenes, below) without it."""
-    out = logs["root"] / "lidar_lever"
-    lever = _moved(logs["lidar_poses"], logs["root"] / "lidar_lever.txt", sensor=_transform("z", 5.0, (0.3, 0.1, 0.0)))
-    run = run_cli("build", logs["root"] / "lidar_log", "--out", out, "--sensor", "lidar", "--poses", lever,
-                  "--no-loop-closure")
-    assert run.returncode == 0, run.stderr[-2000:]
-    check = _given_check(out)
-    mounting = check["mounting_rotation"]
-    assert check["consistent"] is False and mounting["explains"] is True, check
+    _, run, mounting = _build_mounted(logs, "lidar_lever", _transform("z", 5.0, (0.3, 0.1, 0.0)))
     axis = mounting["lever_ambiguous_axis"]
     assert axis is not None and abs(axis[2]) > 0.99 and abs(mounting["lever_ambiguous_deg"]) > 10.0, mounting
     err = _err(run)
