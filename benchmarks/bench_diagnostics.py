@@ -5,7 +5,7 @@
   on the samples of 200 real 7-Scenes frames (3000 per frame, 600k points, a 4 cm step injected at frame
   500) vs Mean Map Entropy computed the usual fast way on the same points (Open3D hybrid neighbourhoods,
   r = 0.1 m, at most 64 neighbours, C++ covariances, then ``0.5 ln det(2 pi e C)``), and vs the time budget
-  of 1 million points per second (target: within it).
+  of 2 million points per second (issue 27's target: within it; a fleet's diagnose time is dominated by it).
 * ``diagnose_store``: the whole ``diagnose`` of that store (sampling with own-frame normals, detector,
   attribution, MME/MPV) vs a one-minute budget (target: well under, <= 0.25x).
 """
@@ -80,17 +80,17 @@ def run(quick: bool = False) -> list[dict]:
 
         timings = time_per_item({"driftmap": lambda _: detect_double_walls(placed),
                                  "mme_open3d": lambda _: mme_open3d(points)}, [None], repeats=repeats)
-        budget = {"median_s": n / 1e6, "min_s": n / 1e6, "max_s": n / 1e6, "repeats": 0, "items": 1,
+        budget = {"median_s": n / 2e6, "min_s": n / 2e6, "max_s": n / 2e6, "repeats": 0, "items": 1,
                   "page_faults_per_item": 0.0, "samples_s": []}
         ours = timings.pop("driftmap")
         results.append({
             "name": "double_wall_detector",
             "description": f"double-wall detector (voxels 0.1/0.2/0.4 m) on {n / 1e3:.0f}k samples of 200 real 7-Scenes frames "
                            f"({ours['items'] and n / ours['median_s'] / 1e6:.2f} M points/s) vs MME on the same points "
-                           f"(Open3D hybrid r={MME_RADIUS_M} m, <= {MME_MAX_NN} nn) and vs the 1 M points/s budget",
+                           f"(Open3D hybrid r={MME_RADIUS_M} m, <= {MME_MAX_NN} nn) and vs the 2 M points/s budget",
             "unit": "map",
             "ours": ours,
-            "anchors": {"mme_open3d": timings["mme_open3d"], "budget_1M_points_per_s": budget},
+            "anchors": {"mme_open3d": timings["mme_open3d"], "budget_2M_points_per_s": budget},
             "target_ratio": 1.0,
             "check": f"a 4 cm step is found in {rate:.0%} of {affected} affected voxels; our MME/MPV equal Open3D's "
                      f"({ours_e.mme:.3f} vs {ref_mme:.3f})",

@@ -225,6 +225,40 @@ def test_kitchen_ground_truth_map_flags_little_and_finds_the_known_pose_jump(kit
     assert 0.03 <= top.jump_m <= 0.07
 
 
+def test_kitchen_detector_kernels_equal_numpy(kitchen: FrameStore, kitchen_cloud: DiagnosticCloud) -> None:
+    """The compiled per-group sums and dot products the detector runs on (driftmap.kernels.groups) equal the numpy
+    expressions they replaced, bit for bit, on real samples (scattered group ids, real normals and positions):
+    the voxel normals' outer-product sums, the per-group position sums and the lateral cells."""
+    from driftmap.diagnostics.surfaces import surface_groups, voxel_ids
+    from driftmap.kernels.groups import group_outer_sums, group_row_sums, plane_cells
+
+    placed = kitchen_cloud.place(kitchen.poses(0))
+    P, Nw = placed.world_columns
+    vox, _, _ = voxel_ids(P, 0.1)
+    n_vox = int(vox.max()) + 1
+    outer = group_outer_sums(vox, n_vox, Nw)
+    sums = group_row_sums(vox, n_vox, P)
+    for a in range(3):
+        assert np.array_equal(sums[a], np.bincount(vox, weights=P[a], minlength=n_vox))
+        for b in range(3):
+            assert np.array_equal(outer[:, a, b], np.bincount(vox, weights=Nw[a] * Nw[b], minlength=n_vox))
+    sg = surface_groups(placed, 0.1)
+    p = P.take(sg.point_index, axis=1)
+    u = np.cross(sg.normals, [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    v = np.cross(sg.normals, u)
+    along, keys = plane_cells(p, sg.group, sg.normals, u, v, sg.centers_m, 0.025, 22)
+
+    def from_center(axes: np.ndarray) -> np.ndarray:  # the numpy expression of the stop before the kernels
+        t, g = np.ascontiguousarray(axes.T), sg.group
+        return p[0] * t[0].take(g) + p[1] * t[1].take(g) + p[2] * t[2].take(g) - np.einsum("ij,ij->i", sg.centers_m, axes).take(g)
+
+    assert np.array_equal(along, from_center(sg.normals)) and np.array_equal(along, sg.offset_m)
+    cu = np.clip(np.floor(from_center(u) / 0.025).astype(np.int64) + 11, 0, 21)
+    cv = np.clip(np.floor(from_center(v) / 0.025).astype(np.int64) + 11, 0, 21)
+    assert np.array_equal(keys, (sg.group * 22 + cu) * 22 + cv)
+
+
 @pytest.mark.parametrize("mag", [0.02, 0.04])
 def test_kitchen_step_detection_separation_and_location(kitchen: FrameStore, kitchen_cloud: DiagnosticCloud, mag: float) -> None:
     """A translation step at frame 500 along the dominant surface normal. Affected voxels: normal within 25 deg

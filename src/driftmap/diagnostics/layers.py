@@ -26,8 +26,9 @@ from numpy.typing import NDArray
 from scipy.special import ndtr
 
 from driftmap.diagnostics.samples import PlacedCloud
-from driftmap.diagnostics.surfaces import SurfaceGroups, group_sums, surface_groups
+from driftmap.diagnostics.surfaces import SurfaceGroups, surface_groups
 from driftmap.diagnostics.wall_results import DoubleWallConfig, ScaleResult
+from driftmap.kernels.groups import group_counts, group_min_max, group_row_sums, group_sums
 from driftmap.voxels import dense_ids
 
 
@@ -70,10 +71,12 @@ def _cell_residuals(sg: SurfaceGroups, f: NDArray[np.int64]) -> tuple[NDArray[np
     """Per grouped point: its offset minus the mean offset of its lateral cell, and whether the cell holds more
     than one distinct frame (only then is the cell a reference)."""
     c, C, o = sg.cell, sg.n_cells, sg.offset_m
-    c_n = group_sums(c, C)
-    c_sum = group_sums(c, C, o)
-    ff = f.astype(np.float64)
-    c_f1, c_f2 = group_sums(c, C, ff), group_sums(c, C, ff * ff)
+    rows = np.empty((3, len(c)))
+    rows[0] = o
+    rows[1] = f
+    np.multiply(rows[1], rows[1], out=rows[2])
+    c_n = group_counts(c, C)
+    c_sum, c_f1, c_f2 = group_row_sums(c, C, rows)
     multi = (c_f2 / np.maximum(c_n, 1) - (c_f1 / np.maximum(c_n, 1)) ** 2) > 1e-9  # >1 distinct frame
     r = o - c_sum[c] / np.maximum(c_n[c], 1)
     return r, multi[c]
@@ -88,11 +91,13 @@ def frame_means(sg: SurfaceGroups, f: NDArray[np.int64], n_frames_total: int, s2
     gf, gf_keys = dense_ids(g * M + f)
     E = len(gf_keys)
     e_group, e_frame = gf_keys // M, gf_keys % M
-    wv = valid.astype(np.float64)
-    e_n = group_sums(gf, E, wv)
-    e_sum = group_sums(gf, E, r * wv)
-    e_sq = group_sums(gf, E, r * r * wv)
-    e_s2 = group_sums(gf, E, s2 * wv)
+    rows = np.empty((4, len(gf)))
+    wv = rows[0]
+    wv[:] = valid
+    np.multiply(r, wv, out=rows[1])
+    np.multiply(r * r, wv, out=rows[2])
+    np.multiply(s2, wv, out=rows[3])
+    e_n, e_sum, e_sq, e_s2 = group_row_sums(gf, E, rows)
     e_ok = e_n >= min_points_per_frame
     okf = e_ok.astype(np.float64)
     e_mean = np.where(e_ok, e_sum / np.maximum(e_n, 1), 0.0)
@@ -121,9 +126,7 @@ def _smearing(fm: FrameMeans, G: int, path_length_m: NDArray[np.float64],
     smear = np.sqrt(np.maximum(disp - noise, 0.0))
     # path travelled between the first and the last frame that saw the group (a revisit when large)
     e_path = path_length_m[fm.frame]
-    s_lo, s_hi = np.full(G, np.inf), np.full(G, -np.inf)
-    np.minimum.at(s_lo, e_group[e_ok], e_path[e_ok])
-    np.maximum.at(s_hi, e_group[e_ok], e_path[e_ok])
+    s_lo, s_hi = group_min_max(e_group[e_ok], G, e_path[e_ok])
     path_span = np.where(fm.n_frames > 0, s_hi - s_lo, 0.0)
     visits, n_visits = visit_smear(e_group, e_path, fm.n_points.astype(np.float64), e_mean, e_ok, fm.point_var_m2, G,
                                    visit_gap_m)
@@ -148,8 +151,15 @@ class _Layers:
     """Per group: the precision of each layer's mean (inverse variance)."""
 
 
-def _wmean(e_group: NDArray[np.int64], G: int, weights: NDArray[np.float64], values: NDArray[np.float64]) -> NDArray[np.float64]:
-    return group_sums(e_group, G, weights * values) / np.maximum(group_sums(e_group, G, weights), 1e-300)
+def _wmeans(e_group: NDArray[np.int64], G: int, weights: NDArray[np.float64], *values: NDArray[np.float64]) -> list[NDArray[np.float64]]:
+    """Per group, the ``weights``-weighted mean of each of ``values`` (the sums in one pass)."""
+    rows = np.empty((len(values) + 1, len(e_group)))
+    rows[0] = weights
+    for k, v in enumerate(values):
+        np.multiply(weights, v, out=rows[k + 1])
+    sums = group_row_sums(e_group, G, rows)
+    total = np.maximum(sums[0], 1e-300)
+    return [sums[k + 1] / total for k in range(len(values))]
 
 
 def _layer_fit(fm: FrameMeans, G: int, member: NDArray[np.bool_], pw: NDArray[np.float64], ev: NDArray[np.float64],
@@ -158,13 +168,14 @@ def _layer_fit(fm: FrameMeans, G: int, member: NDArray[np.bool_], pw: NDArray[np
     e_group, e_mean = fm.group, fm.mean_m
     m = member & fm.ok
     wt = np.where(m, pw, 0.0)
-    mu = _wmean(e_group, G, wt, e_mean)
-    obs = _wmean(e_group, G, wt, (e_mean - mu[e_group]) ** 2)
-    tau2 = np.maximum(obs - _wmean(e_group, G, wt, ev), 0.0)
+    mu, = _wmeans(e_group, G, wt, e_mean)
+    obs, mean_ev = _wmeans(e_group, G, wt, (e_mean - mu[e_group]) ** 2, ev)
+    tau2 = np.maximum(obs - mean_ev, 0.0)
     for _ in range(2):
         wt = np.where(m, 1.0 / (tau2[e_group] + ev + floor2), 0.0)
-        mu = _wmean(e_group, G, wt, e_mean)
-        tau2 = np.maximum(_wmean(e_group, G, wt, (e_mean - mu[e_group]) ** 2) - _wmean(e_group, G, wt, ev), 0.0)
+        mu, = _wmeans(e_group, G, wt, e_mean)
+        spread, mean_ev = _wmeans(e_group, G, wt, (e_mean - mu[e_group]) ** 2, ev)
+        tau2 = np.maximum(spread - mean_ev, 0.0)
     var = tau2[e_group] + ev + floor2
     ll = -0.5 * group_sums(e_group, G, np.where(m, np.log(2 * np.pi * var) + (e_mean - mu[e_group]) ** 2 / var, 0.0))
     return mu, tau2, obs, ll
@@ -175,15 +186,26 @@ def _two_layers(fm: FrameMeans, G: int, cfg: DoubleWallConfig) -> _Layers:
     e_group, e_mean, e_ok, okf, w = fm.group, fm.mean_m, fm.ok, fm.okf, fm.weight
     floor2 = cfg.frame_jitter_floor_m**2
     pw = np.where(e_ok, 1.0 / (np.where(e_ok, fm.var_m2, 1.0) + floor2), 0.0)
-    thr = _wmean(e_group, G, pw, e_mean)
+    thr, = _wmeans(e_group, G, pw, e_mean)
+    rows = np.empty((6, len(e_mean)))
     for _ in range(cfg.kmeans_iterations):
         isB = e_mean > thr[e_group]
-        muA, muB = _wmean(e_group, G, pw * ~isB, e_mean), _wmean(e_group, G, pw * isB, e_mean)
-        both = (group_sums(e_group, G, okf * ~isB) > 0) & (group_sums(e_group, G, okf * isB) > 0)
+        np.multiply(pw, ~isB, out=rows[0])
+        np.multiply(rows[0], e_mean, out=rows[1])
+        np.multiply(pw, isB, out=rows[2])
+        np.multiply(rows[2], e_mean, out=rows[3])
+        np.multiply(okf, ~isB, out=rows[4])
+        np.multiply(okf, isB, out=rows[5])
+        sums = group_row_sums(e_group, G, rows)
+        muA, muB = sums[1] / np.maximum(sums[0], 1e-300), sums[3] / np.maximum(sums[2], 1e-300)
+        both = (sums[4] > 0) & (sums[5] > 0)
         thr = np.where(both, 0.5 * (muA + muB), thr)
     isB = e_mean > thr[e_group]
-    nA, nB = group_sums(e_group, G, okf * ~isB), group_sums(e_group, G, okf * isB)
-    wA, wB = group_sums(e_group, G, w * ~isB), group_sums(e_group, G, w * isB)
+    np.multiply(okf, ~isB, out=rows[0])
+    np.multiply(okf, isB, out=rows[1])
+    np.multiply(w, ~isB, out=rows[2])
+    np.multiply(w, isB, out=rows[3])
+    nA, nB, wA, wB = group_row_sums(e_group, G, rows[:4])
     ev = np.where(e_ok, fm.var_m2, 0.0)
     muA, tauA2, obsA, llA = _layer_fit(fm, G, ~isB, pw, ev, floor2)
     muB, tauB2, obsB, llB = _layer_fit(fm, G, isB, pw, ev, floor2)
@@ -223,9 +245,12 @@ def _separation(sg: SurfaceGroups, fm: FrameMeans, layers: _Layers) -> _Separati
     c, C, o, G, cell_group = sg.cell, sg.n_cells, sg.offset_m, sg.n_groups, sg.cell_group
     e_layer = np.where(fm.ok, layers.is_b.astype(np.int8), np.int8(-1))
     layer = e_layer[fm.entry]
-    inA, inB = (layer == 0).astype(np.float64), (layer == 1).astype(np.float64)
-    cA, cB = group_sums(c, C, inA), group_sums(c, C, inB)
-    sA, sB = group_sums(c, C, inA * o), group_sums(c, C, inB * o)
+    rows = np.empty((4, len(c)))
+    inA, inB = rows[0], rows[1]
+    inA[:], inB[:] = layer == 0, layer == 1
+    np.multiply(inA, o, out=rows[2])
+    np.multiply(inB, o, out=rows[3])
+    cA, cB, sA, sB = group_row_sums(c, C, rows)
     shared = (cA > 0) & (cB > 0)
     d_c = np.where(shared, sB / np.maximum(cB, 1) - sA / np.maximum(cA, 1), 0.0)
     w_c = np.where(shared, cA * cB / np.maximum(cA + cB, 1), 0.0)
@@ -252,10 +277,12 @@ def _purity(sg: SurfaceGroups, sep: _Separation, point_var: NDArray[np.float64])
     mid = np.where(shared, 0.5 * (sep.s_a / np.maximum(sep.c_a, 1) + sep.s_b / np.maximum(sep.c_b, 1)), 0.0)
     on_shared = shared[c] & (layer >= 0)
     sgn = np.where(layer == 1, 1.0, -1.0)
-    correct = ((o - mid[c]) * sgn * np.sign(sep.separation_m[g]) > 0) & on_shared
-    expect = ndtr(np.abs(sep.separation_m) / (2.0 * np.sqrt(point_var)))[g] * on_shared
-    n_sh = group_sums(g, G, on_shared.astype(np.float64))
-    purity = (group_sums(g, G, correct.astype(np.float64)) - 0.5 * n_sh) / np.maximum(group_sums(g, G, expect) - 0.5 * n_sh, 1e-12)
+    rows = np.empty((3, len(g)))
+    rows[0] = on_shared
+    rows[1] = ((o - mid[c]) * sgn * np.sign(sep.separation_m[g]) > 0) & on_shared  # on the frame's layer
+    np.multiply(ndtr(np.abs(sep.separation_m) / (2.0 * np.sqrt(point_var)))[g], on_shared, out=rows[2])  # expected
+    n_sh, n_correct, n_expect = group_row_sums(g, G, rows)
+    purity = (n_correct - 0.5 * n_sh) / np.maximum(n_expect - 0.5 * n_sh, 1e-12)
     return np.clip(purity, 0.0, 1.5)
 
 

@@ -17,6 +17,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from driftmap.diagnostics.samples import PlacedCloud
+from driftmap.kernels.groups import dot_gathered, group_counts, group_outer_sums, group_row_sums, group_sums, plane_cells
 from driftmap.voxels import VoxelGrid, dense_ids, keys_on_bounding_grid, voxel_coord_columns
 
 
@@ -39,25 +40,10 @@ class SurfaceGroups:
     cell_group: NDArray[np.int64]
 
 
-def group_sums(ids: NDArray[np.int64], n: int, weights: NDArray | None = None) -> NDArray[np.float64]:
-    """Per group ``0 .. n-1``: the count of ``ids`` (or the sum of ``weights``) as float64 (``np.bincount``)."""
-    return np.bincount(ids, weights=weights, minlength=n).astype(np.float64)
-
-
 def _dominant_axis(ids: NDArray[np.int64], n: int, normals: NDArray[np.float64]) -> NDArray[np.float64]:
     """Per group, the axis the (3, N) normal columns cluster around (sign-free: top eigenvector of sum n n^T)."""
-    S = np.empty((n, 3, 3))
-    for a in range(3):
-        for b in range(a, 3):
-            S[:, a, b] = S[:, b, a] = group_sums(ids, n, normals[a] * normals[b])
-    _, vec = np.linalg.eigh(S)
+    _, vec = np.linalg.eigh(group_outer_sums(ids, n, normals))
     return vec[:, :, 2]
-
-
-def _dot_gathered(columns: NDArray[np.float64], table: NDArray[np.float64], ids: NDArray[np.int64]) -> NDArray[np.float64]:
-    """``columns[:, i] . table[ids[i]]`` for every point i: (3, N) columns against rows of a small (G, 3) table."""
-    t = np.ascontiguousarray(table.T)
-    return columns[0] * t[0].take(ids) + columns[1] * t[1].take(ids) + columns[2] * t[2].take(ids)
 
 
 def _tangent_basis(n: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
@@ -81,14 +67,14 @@ def _voxel_surfaces(vox: NDArray[np.int64], n_vox: int, Nw: NDArray[np.float64],
     """Per point: its surface in its voxel (0: the dominant normal, 1: the second one, -1: neither) and the
     side the sensor was on (the sign of its normal along the surface's axis)."""
     axis1 = _dominant_axis(vox, n_vox, Nw)
-    c1 = _dot_gathered(Nw, axis1, vox)
+    c1 = dot_gathered(Nw, axis1, vox)
     surface = np.where(np.abs(c1) >= cos_max, 0, -1)
     side = c1 > 0
     if second_surface:
         rest = np.flatnonzero(surface < 0)
         vox_r, Nw_r = vox[rest], Nw.take(rest, axis=1)
         axis2 = _dominant_axis(vox_r, n_vox, Nw_r)
-        c2 = _dot_gathered(Nw_r, axis2, vox_r)
+        c2 = dot_gathered(Nw_r, axis2, vox_r)
         ok2 = np.abs(c2) >= cos_max
         surface[rest[ok2]] = 1
         side[rest] = np.where(ok2, c2 > 0, side[rest])
@@ -117,9 +103,9 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     # per group: point count, sum of normals, sum of positions (points in no group go to the extra bin G)
     g_all = np.full(n_pts, G, np.int64)
     g_all[use] = g
-    cnt = group_sums(g, G)
-    n_sum = np.stack([group_sums(g_all, G + 1, Nw[k])[:G] for k in range(3)], axis=1)
-    p_sum = np.stack([group_sums(g_all, G + 1, P[k])[:G] for k in range(3)], axis=1)
+    cnt = group_counts(g, G)
+    n_sum = group_row_sums(g_all, G + 1, Nw)[:, :G].T
+    p_sum = group_row_sums(g_all, G + 1, P)[:, :G].T
     label = np.arange(G, dtype=np.int64)
     if join_faces and G:
         label, n_lab = _join_across_faces(cnt, n_sum, p_sum, g_keys, vox_keys, grid, size_m, cos_max)
@@ -149,17 +135,12 @@ def _lateral_cells(p: NDArray[np.float64], g: NDArray[np.int64], G: int, normal:
     ``cell_fraction * size_m`` (at most ``max_cell_m``) in the group's tangent plane. Returns the offsets, the
     cell per point, the number of cells and the group of every cell."""
 
-    def from_center(axes: NDArray[np.float64]) -> NDArray[np.float64]:
-        """Each point's offset from its group's centroid along the group's axis: ``p . a - c . a``."""
-        return _dot_gathered(p, axes, g) - np.einsum("ij,ij->i", center, axes).take(g)
-
-    o = from_center(normal)  # along the normal; in the tangent plane below
     cell_m = size_m * cell_fraction if max_cell_m is None else min(size_m * cell_fraction, max_cell_m)
     K = int(math.ceil(2.0 * math.sqrt(6.0) * size_m / cell_m)) + 2  # a group joined across a face spans 1 x 1 x 2 voxels
     u, v = _tangent_basis(normal) if G else (np.zeros((0, 3)), np.zeros((0, 3)))
-    cu = np.clip(np.floor(from_center(u) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
-    cv = np.clip(np.floor(from_center(v) / cell_m).astype(np.int64) + K // 2, 0, K - 1)
-    c, _ = dense_ids((g * K + cu) * K + cv)
+    # the offset from the centroid along the normal; the cell in the tangent plane (u, v)
+    o, cell_keys = plane_cells(p, g, normal, u, v, center, cell_m, K)
+    c, _ = dense_ids(cell_keys)
     C = int(c.max()) + 1 if len(c) else 0
     cell_group = np.zeros(C, np.int64)
     cell_group[c] = g
