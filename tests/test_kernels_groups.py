@@ -12,12 +12,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from driftmap.kernels.groups import (
+    cell_residuals,
     dot_gathered,
     group_counts,
     group_min_max,
     group_outer_sums,
     group_row_sums,
     group_sums,
+    layer_purity_counts,
     plane_cells,
 )
 
@@ -85,6 +87,42 @@ def test_gathered_dots_and_cells_equal_numpy(seed: int, n_points: int, n_groups:
     cv = np.clip(np.floor(from_center(v) / cell_m).astype(np.int64) + k // 2, 0, k - 1)
     assert np.array_equal(along, from_center(normal))
     assert np.array_equal(keys, (ids * k + cu) * k + cv)
+
+
+@CASES
+@given(seed=st.integers(0, 2**32 - 1), n_points=st.integers(0, 3000), n_cells=st.integers(1, 300),
+       n_frames=st.integers(1, 40))
+def test_cell_residuals_and_purity_counts_equal_numpy(seed: int, n_points: int, n_cells: int, n_frames: int) -> None:
+    rng = np.random.default_rng(seed)
+    c = rng.integers(0, n_cells, n_points)
+    o = rng.standard_normal(n_points) * 0.01
+    f = rng.integers(0, n_frames, n_points)
+    # the numpy expressions of the detector before the kernels (layers._cell_residuals, layers._purity)
+    c_n = np.bincount(c, minlength=n_cells).astype(np.float64)
+    c_f1 = np.bincount(c, f.astype(np.float64), minlength=n_cells)
+    c_f2 = np.bincount(c, f.astype(np.float64) ** 2, minlength=n_cells)
+    multi = (c_f2 / np.maximum(c_n, 1) - (c_f1 / np.maximum(c_n, 1)) ** 2) > 1e-9
+    r = o - np.bincount(c, o, minlength=n_cells)[c] / np.maximum(c_n[c], 1)
+    got_r, got_valid = cell_residuals(c, n_cells, o, f)
+    assert np.array_equal(got_r, r) and np.array_equal(got_valid, multi[c])
+
+    n_groups = max(1, n_cells // 3)
+    cell_group = rng.integers(0, n_groups, n_cells)
+    g = cell_group[c]
+    layer = rng.integers(-1, 2, n_points).astype(np.int8)
+    shared = rng.random(n_cells) < 0.7
+    mid = np.where(shared, rng.standard_normal(n_cells) * 0.01, 0.0)
+    sign_sep = np.sign(rng.standard_normal(n_groups))
+    expect = rng.random(n_groups)
+    on_shared = shared[c] & (layer >= 0)
+    sgn = np.where(layer == 1, 1.0, -1.0)
+    correct = ((o - mid[c]) * sgn * sign_sep[g] > 0) & on_shared
+    expected = (np.bincount(g, on_shared.astype(np.float64), minlength=n_groups),
+                np.bincount(g, correct.astype(np.float64), minlength=n_groups),
+                np.bincount(g, expect[g] * on_shared, minlength=n_groups))
+    got = layer_purity_counts(c, g, n_groups, o, layer, shared, mid, sign_sep, expect)
+    for a, b in zip(got, expected):
+        assert np.array_equal(a, b)
 
 
 def test_bad_ids_and_shapes_raise() -> None:

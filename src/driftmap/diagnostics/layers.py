@@ -28,7 +28,7 @@ from scipy.special import ndtr
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.diagnostics.surfaces import SurfaceGroups, surface_groups
 from driftmap.diagnostics.wall_results import DoubleWallConfig, ScaleResult
-from driftmap.kernels.groups import group_counts, group_min_max, group_row_sums, group_sums
+from driftmap.kernels.groups import cell_residuals, group_min_max, group_row_sums, group_sums, layer_purity_counts
 from driftmap.voxels import dense_ids
 
 
@@ -70,16 +70,7 @@ class FrameMeans:
 def _cell_residuals(sg: SurfaceGroups, f: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Per grouped point: its offset minus the mean offset of its lateral cell, and whether the cell holds more
     than one distinct frame (only then is the cell a reference)."""
-    c, C, o = sg.cell, sg.n_cells, sg.offset_m
-    rows = np.empty((3, len(c)))
-    rows[0] = o
-    rows[1] = f
-    np.multiply(rows[1], rows[1], out=rows[2])
-    c_n = group_counts(c, C)
-    c_sum, c_f1, c_f2 = group_row_sums(c, C, rows)
-    multi = (c_f2 / np.maximum(c_n, 1) - (c_f1 / np.maximum(c_n, 1)) ** 2) > 1e-9  # >1 distinct frame
-    r = o - c_sum[c] / np.maximum(c_n[c], 1)
-    return r, multi[c]
+    return cell_residuals(sg.cell, sg.n_cells, sg.offset_m, f)
 
 
 def frame_means(sg: SurfaceGroups, f: NDArray[np.int64], n_frames_total: int, s2: NDArray[np.float64],
@@ -275,13 +266,8 @@ def _purity(sg: SurfaceGroups, sep: _Separation, point_var: NDArray[np.float64])
     c, g, o, G = sg.cell, sg.group, sg.offset_m, sg.n_groups
     shared, layer = sep.shared, sep.layer
     mid = np.where(shared, 0.5 * (sep.s_a / np.maximum(sep.c_a, 1) + sep.s_b / np.maximum(sep.c_b, 1)), 0.0)
-    on_shared = shared[c] & (layer >= 0)
-    sgn = np.where(layer == 1, 1.0, -1.0)
-    rows = np.empty((3, len(g)))
-    rows[0] = on_shared
-    rows[1] = ((o - mid[c]) * sgn * np.sign(sep.separation_m[g]) > 0) & on_shared  # on the frame's layer
-    np.multiply(ndtr(np.abs(sep.separation_m) / (2.0 * np.sqrt(point_var)))[g], on_shared, out=rows[2])  # expected
-    n_sh, n_correct, n_expect = group_row_sums(g, G, rows)
+    expect = ndtr(np.abs(sep.separation_m) / (2.0 * np.sqrt(point_var)))  # per group: the share noise allows
+    n_sh, n_correct, n_expect = layer_purity_counts(c, g, G, o, layer, shared, mid, np.sign(sep.separation_m), expect)
     purity = (n_correct - 0.5 * n_sh) / np.maximum(n_expect - 0.5 * n_sh, 1e-12)
     return np.clip(purity, 0.0, 1.5)
 

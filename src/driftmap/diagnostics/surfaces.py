@@ -124,14 +124,14 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     normal = n_sum[big]
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     center = p_sum[big] / np.maximum(cnt, 1)[:, None]
-    offset, c, C, cell_group = _lateral_cells(P.take(use, axis=1), g, G, normal, center, size_m, cell_fraction, max_cell_m)
+    offset, c, C, cell_group = _lateral_cells(P, use, g, G, normal, center, size_m, cell_fraction, max_cell_m)
     return SurfaceGroups(size_m, use, g, c, offset, G, C, normal, center, cnt, cell_group)
 
 
-def _lateral_cells(p: NDArray[np.float64], g: NDArray[np.int64], G: int, normal: NDArray[np.float64],
+def _lateral_cells(P: NDArray[np.float64], use: NDArray[np.int64], g: NDArray[np.int64], G: int, normal: NDArray[np.float64],
                    center: NDArray[np.float64], size_m: float, cell_fraction: float,
                    max_cell_m: float | None) -> tuple[NDArray[np.float64], NDArray[np.int64], int, NDArray[np.int64]]:
-    """Each grouped point's offset along its group normal (from the centroid) and its lateral cell: a square of
+    """Each grouped point (``P[:, use]``)'s offset along its group normal (from the centroid) and its lateral cell: a square of
     ``cell_fraction * size_m`` (at most ``max_cell_m``) in the group's tangent plane. Returns the offsets, the
     cell per point, the number of cells and the group of every cell."""
 
@@ -139,7 +139,7 @@ def _lateral_cells(p: NDArray[np.float64], g: NDArray[np.int64], G: int, normal:
     K = int(math.ceil(2.0 * math.sqrt(6.0) * size_m / cell_m)) + 2  # a group joined across a face spans 1 x 1 x 2 voxels
     u, v = _tangent_basis(normal) if G else (np.zeros((0, 3)), np.zeros((0, 3)))
     # the offset from the centroid along the normal; the cell in the tangent plane (u, v)
-    o, cell_keys = plane_cells(p, g, normal, u, v, center, cell_m, K)
+    o, cell_keys = plane_cells(P, g, normal, u, v, center, cell_m, K, index=use)
     c, _ = dense_ids(cell_keys)
     C = int(c.max()) + 1 if len(c) else 0
     cell_group = np.zeros(C, np.int64)

@@ -88,8 +88,9 @@ def _dot_gathered(columns, table, offsets, ids):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _plane_cells(columns, ids, normal, u, v, offsets, cell_m, k):  # pragma: no cover - compiled
+def _plane_cells(columns, index, ids, normal, u, v, offsets, cell_m, k):  # pragma: no cover - compiled
     m = ids.shape[0]
+    n_columns = columns.shape[1]
     n = normal.shape[1]
     along = np.empty(m)
     keys = np.empty(m, np.int64)
@@ -98,9 +99,12 @@ def _plane_cells(columns, ids, normal, u, v, offsets, cell_m, k):  # pragma: no 
         g = ids[i]
         if g < 0 or g >= n:
             raise IndexError("group id out of range")
-        x = columns[0, i]
-        y = columns[1, i]
-        z = columns[2, i]
+        p = index[i]
+        if p < 0 or p >= n_columns:
+            raise IndexError("point index out of range")
+        x = columns[0, p]
+        y = columns[1, p]
+        z = columns[2, p]
         along[i] = x * normal[0, g] + y * normal[1, g] + z * normal[2, g] - offsets[0, g]
         du = x * u[0, g] + y * u[1, g] + z * u[2, g] - offsets[1, g]
         dv = x * v[0, g] + y * v[1, g] + z * v[2, g] - offsets[2, g]
@@ -124,6 +128,58 @@ def _min_max(ids, n, values):  # pragma: no cover - compiled
         if x > hi[g]:
             hi[g] = x
     return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_residuals(c, n, offsets, frames):  # pragma: no cover - compiled
+    m = c.shape[0]
+    count = np.zeros(n)
+    total = np.zeros(n)
+    f1 = np.zeros(n)
+    f2 = np.zeros(n)
+    for i in range(m):
+        k = c[i]
+        if k < 0 or k >= n:
+            raise IndexError("cell id out of range")
+        f = np.float64(frames[i])
+        count[k] += 1.0
+        total[k] += offsets[i]
+        f1[k] += f
+        f2[k] += f * f
+    mean = np.empty(n)
+    multi = np.empty(n, np.bool_)
+    for k in range(n):
+        d = max(count[k], 1.0)
+        mean[k] = total[k] / d
+        a = f1[k] / d
+        multi[k] = (f2[k] / d - a * a) > 1e-9
+    residual = np.empty(m)
+    valid = np.empty(m, np.bool_)
+    for i in range(m):
+        residual[i] = offsets[i] - mean[c[i]]
+        valid[i] = multi[c[i]]
+    return residual, valid
+
+
+@numba.njit(cache=True, nogil=True)
+def _layer_purity_counts(c, g, n_groups, offsets, layer, shared, mid, sign_sep, expect):  # pragma: no cover - compiled
+    n_cells = shared.shape[0]
+    on_shared = np.zeros(n_groups)
+    on_layer = np.zeros(n_groups)
+    expected = np.zeros(n_groups)
+    for i in range(c.shape[0]):
+        k = c[i]
+        j = g[i]
+        if k < 0 or k >= n_cells or j < 0 or j >= n_groups:
+            raise IndexError("cell or group id out of range")
+        if not shared[k] or layer[i] < 0:
+            continue
+        on_shared[j] += 1.0
+        s = 1.0 if layer[i] == 1 else -1.0
+        if (offsets[i] - mid[k]) * s * sign_sep[j] > 0:
+            on_layer[j] += 1.0
+        expected[j] += expect[j]
+    return on_shared, on_layer, expected
 
 
 def _ids(ids: np.ndarray) -> np.ndarray:
@@ -177,17 +233,20 @@ def dot_gathered(columns: np.ndarray, table: np.ndarray, ids: np.ndarray, offset
 
 
 def plane_cells(columns: np.ndarray, ids: np.ndarray, normal: np.ndarray, u: np.ndarray, v: np.ndarray,
-                center: np.ndarray, cell_m: float, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per point of the (3, N) ``columns`` in group ``ids[i]`` (per group: a unit ``normal``, tangent axes ``u``,
+                center: np.ndarray, cell_m: float, k: int, index: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per point ``columns[:, index[i]]`` of the (3, M) ``columns`` (``index`` 0 .. N-1 when not given: every
+    column), in group ``ids[i]`` (per group: a unit ``normal``, tangent axes ``u``,
     ``v`` and a ``center``, each (G, 3)): its offset from the centre along the normal, and its lateral cell key
     ``(g * k + cu) * k + cv`` with ``cu = clip(floor(((p - c) . u) / cell_m) + k // 2, 0, k - 1)`` (and ``cv`` along
     ``v``), the dot products taken as :func:`dot_gathered` does (``p . a - c . a``)."""
     c = np.ascontiguousarray(columns, dtype=np.float64)
-    if c.shape != (3, len(ids)):
-        raise ValueError(f"columns must be (3, {len(ids)}), got {c.shape}")
+    every = index is None
+    index = np.arange(len(ids)) if every else _ids(index)
+    if c.shape[0] != 3 or index.shape != (len(ids),) or (every and c.shape[1] != len(ids)):
+        raise ValueError(f"columns must be (3, M) with one index per id ({len(ids)}), got {c.shape} and {index.shape}")
     axes = [np.ascontiguousarray(np.asarray(a, dtype=np.float64).T) for a in (normal, u, v)]
     offsets = np.ascontiguousarray(np.stack([np.einsum("ij,ij->i", center, a) for a in (normal, u, v)]))
-    return _plane_cells(c, _ids(ids), axes[0], axes[1], axes[2], offsets, float(cell_m), int(k))
+    return _plane_cells(c, index, _ids(ids), axes[0], axes[1], axes[2], offsets, float(cell_m), int(k))
 
 
 def group_min_max(ids: np.ndarray, n: int, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -199,3 +258,27 @@ def group_min_max(ids: np.ndarray, n: int, values: np.ndarray) -> tuple[np.ndarr
     if not np.isfinite(x).all():
         raise ValueError("group_min_max: values must be finite")
     return _min_max(_ids(ids), int(n), x)
+
+
+def cell_residuals(cells: np.ndarray, n_cells: int, offsets: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: its offset minus the mean offset of its cell (``cells`` 0 .. n_cells-1), and whether that cell
+    holds more than one distinct frame (the variance of the points' frame numbers above 1e-9). Equal to the numpy
+    ``o - bincount(c, o)[c] / max(bincount(c)[c], 1)`` and ``(E[f^2] - E[f]^2 > 1e-9)[c]``."""
+    o = np.ascontiguousarray(offsets, dtype=np.float64)
+    f = np.ascontiguousarray(frames, dtype=np.int64)
+    if o.shape != (len(cells),) or f.shape != (len(cells),):
+        raise ValueError(f"offsets and frames must be ({len(cells)},), got {o.shape} and {f.shape}")
+    return _cell_residuals(_ids(cells), int(n_cells), o, f)
+
+
+def layer_purity_counts(cells: np.ndarray, groups: np.ndarray, n_groups: int, offsets: np.ndarray, layer: np.ndarray,
+                        shared: np.ndarray, mid: np.ndarray, sign_sep: np.ndarray,
+                        expect: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The double-wall detector's time-purity counts per group: points in a ``shared`` cell whose frame has a
+    layer (``layer`` 0 / 1, -1 none), those of them on their frame's side of the cell's midpoint ``mid`` (offset
+    minus midpoint, times +1 for layer 1 / -1 for layer 0, times the group's ``sign_sep`` > 0), and the sum of the
+    group's ``expect`` over them."""
+    return _layer_purity_counts(_ids(cells), _ids(groups), int(n_groups), np.ascontiguousarray(offsets, dtype=np.float64),
+                                np.ascontiguousarray(layer, dtype=np.int8), np.ascontiguousarray(shared, dtype=np.bool_),
+                                np.ascontiguousarray(mid, dtype=np.float64), np.ascontiguousarray(sign_sep, dtype=np.float64),
+                                np.ascontiguousarray(expect, dtype=np.float64))
