@@ -20,8 +20,11 @@ from driftmap.kernels.groups import (
     group_row_sums,
     group_sums,
     layer_purity_counts,
+    pack_coords,
     plane_cells,
+    voxel_coords_bounds,
 )
+from driftmap.voxels import keys_on_bounding_grid, voxel_coord_columns
 
 CASES = settings(max_examples=60, deadline=None, derandomize=True)
 
@@ -123,6 +126,25 @@ def test_cell_residuals_and_purity_counts_equal_numpy(seed: int, n_points: int, 
     got = layer_purity_counts(c, g, n_groups, o, layer, shared, mid, sign_sep, expect)
     for a, b in zip(got, expected):
         assert np.array_equal(a, b)
+
+
+@CASES
+@given(seed=st.integers(0, 2**32 - 1), n_points=st.integers(1, 3000), size_m=st.sampled_from([0.013, 0.1, 0.2, 0.4, 1.7]))
+def test_voxel_coords_and_keys_equal_numpy(seed: int, n_points: int, size_m: float) -> None:
+    rng = np.random.default_rng(seed)
+    columns = rng.standard_normal((3, n_points)) * rng.choice([0.01, 1.0, 50.0]) + rng.uniform(-100, 100, (3, 1))
+    coords, lo, hi = voxel_coords_bounds(columns, size_m)
+    expected = voxel_coord_columns(columns, size_m)
+    assert all(np.array_equal(coords[a], expected[a]) for a in range(3))
+    keys, grid = keys_on_bounding_grid(expected)
+    assert grid.lo == tuple(lo) and grid.hi == tuple(hi)
+    assert np.array_equal(pack_coords(coords, grid.lo, grid.span), keys)
+    single = columns.astype(np.float32)  # divided in float32, as numpy does
+    coords, lo, hi = voxel_coords_bounds(single, size_m)
+    expected = voxel_coord_columns(single, size_m)
+    assert all(np.array_equal(coords[a], expected[a]) for a in range(3))
+    columns[1, n_points // 2] = np.nan
+    assert voxel_coords_bounds(columns, size_m) is None
 
 
 def test_bad_ids_and_shapes_raise() -> None:

@@ -124,8 +124,14 @@ class VoxelGrid:
         cols = _columns(coords)
         if len(cols[0]) == 0:
             return cls((0, 0, 0), (1, 1, 1))
-        lo = tuple(int(c.min()) for c in cols)
-        span = tuple(int(c.max()) - lo_a + 1 for c, lo_a in zip(cols, lo))
+        return cls.between([int(c.min()) for c in cols], [int(c.max()) for c in cols], what)
+
+    @classmethod
+    def between(cls, lo: Sequence[int], hi: Sequence[int], what: str = "voxel grid") -> VoxelGrid:
+        """The grid from voxel coordinates ``lo`` to ``hi`` (inclusive, per axis); :class:`ConfigError` as
+        :meth:`around`."""
+        lo = tuple(int(a) for a in lo)
+        span = tuple(int(h) - lo_a + 1 for h, lo_a in zip(hi, lo))
         if float(span[0]) * float(span[1]) * float(span[2]) >= float(BOUNDING_GRID_MAX_VOXELS):
             raise ConfigError(f"{what}: voxel grid too large to index ({span[0]} x {span[1]} x {span[2]} voxels; "
                               "voxel_size_m too small for the map extent)")

@@ -17,7 +17,16 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from driftmap.diagnostics.samples import PlacedCloud
-from driftmap.kernels.groups import dot_gathered, group_counts, group_outer_sums, group_row_sums, group_sums, plane_cells
+from driftmap.kernels.groups import (
+    dot_gathered,
+    group_counts,
+    group_outer_sums,
+    group_row_sums,
+    group_sums,
+    pack_coords,
+    plane_cells,
+    voxel_coords_bounds,
+)
 from driftmap.voxels import VoxelGrid, dense_ids, keys_on_bounding_grid, voxel_coord_columns
 
 
@@ -57,7 +66,14 @@ def voxel_ids(columns: NDArray[np.floating], size_m: float) -> tuple[NDArray[np.
     """Per point of the (3, N) coordinate ``columns``: its voxel id (0 .. V-1, voxels in key order, i.e. sorted
     like their ``(x, y, z)`` coordinates), the V voxel keys and the bounding grid they are packed on
     (:mod:`driftmap.voxels`)."""
-    keys, grid = keys_on_bounding_grid(voxel_coord_columns(columns, size_m), f"surface groups at {size_m} m")
+    what = f"surface groups at {size_m} m"
+    found = voxel_coords_bounds(columns, size_m) if len(columns[0]) and size_m > 0 and math.isfinite(size_m) else None
+    if found is None:  # empty, or the numpy path names what is wrong
+        keys, grid = keys_on_bounding_grid(voxel_coord_columns(columns, size_m), what)
+    else:
+        coords, lo, hi = found
+        grid = VoxelGrid.between(lo, hi, what)
+        keys = pack_coords(coords, grid.lo, grid.span)
     vox, vox_keys = dense_ids(keys)
     return vox, vox_keys, grid
 

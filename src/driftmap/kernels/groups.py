@@ -182,6 +182,33 @@ def _layer_purity_counts(c, g, n_groups, offsets, layer, shared, mid, sign_sep, 
     return on_shared, on_layer, expected
 
 
+@numba.njit(cache=True, nogil=True)
+def _voxel_coords(columns, size_m):  # pragma: no cover - compiled
+    m = columns.shape[1]
+    coords = np.empty((3, m), np.int64)
+    lo = np.full(3, np.iinfo(np.int64).max)
+    hi = np.full(3, np.iinfo(np.int64).min)
+    for i in range(m):
+        for a in range(3):
+            x = columns[a, i]
+            if not np.isfinite(x):
+                return coords, lo, hi, False
+            c = np.int64(np.floor(x / size_m))
+            coords[a, i] = c
+            lo[a] = min(lo[a], c)
+            hi[a] = max(hi[a], c)
+    return coords, lo, hi, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _pack(coords, lo, span1, span2):  # pragma: no cover - compiled
+    m = coords.shape[1]
+    keys = np.empty(m, np.int64)
+    for i in range(m):
+        keys[i] = ((coords[0, i] - lo[0]) * span1 + (coords[1, i] - lo[1])) * span2 + (coords[2, i] - lo[2])
+    return keys
+
+
 def _ids(ids: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(ids, dtype=np.int64)
 
@@ -282,3 +309,21 @@ def layer_purity_counts(cells: np.ndarray, groups: np.ndarray, n_groups: int, of
                                 np.ascontiguousarray(layer, dtype=np.int8), np.ascontiguousarray(shared, dtype=np.bool_),
                                 np.ascontiguousarray(mid, dtype=np.float64), np.ascontiguousarray(sign_sep, dtype=np.float64),
                                 np.ascontiguousarray(expect, dtype=np.float64))
+
+
+def voxel_coords_bounds(columns: np.ndarray, voxel_size_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Integer voxel coordinates ``floor(x / voxel_size_m)`` of the (3, N) ``columns`` as a (3, N) int64 array, with
+    their smallest and largest value per axis; None when a coordinate is not finite (the caller's numpy path then
+    names the error) or the columns are neither float32 nor float64. Equal to :func:`driftmap.voxels.voxel_coord_columns`."""
+    c = np.asarray(columns)
+    if c.dtype not in (np.float32, np.float64):
+        return None
+    # numpy divides float32 coordinates by a Python float in float32 (NEP 50): the same here
+    coords, lo, hi, finite = _voxel_coords(np.ascontiguousarray(c), c.dtype.type(voxel_size_m))
+    return (coords, lo, hi) if finite else None
+
+
+def pack_coords(coords: np.ndarray, lo: tuple[int, int, int], span: tuple[int, int, int]) -> np.ndarray:
+    """Keys ``((c0 - l0) * s1 + (c1 - l1)) * s2 + (c2 - l2)`` of (3, N) voxel coordinates on a grid from ``lo`` with
+    ``span`` voxels per axis (:meth:`driftmap.voxels.VoxelGrid.pack` without its range check)."""
+    return _pack(np.ascontiguousarray(coords, dtype=np.int64), np.asarray(lo, np.int64), int(span[1]), int(span[2]))
