@@ -23,6 +23,10 @@ MAX_TRANSLATION_M = 1e9
 beyond it a pose is a unit or arithmetic error, and float32 world points would overflow (``max change inf m``)."""
 
 
+_EYE3 = np.eye(3)
+_EYE3.setflags(write=False)
+
+
 def identity() -> NDArray[np.float64]:
     """A fresh 4x4 identity (never use a shared module-level array as a default)."""
     return np.eye(4)
@@ -43,13 +47,15 @@ def as_rigid(T: ArrayLike, name: str = "transform", *, tolerance: float = RIGID_
     if float(np.max(np.abs(M[:3, 3]))) > MAX_TRANSLATION_M:
         raise TransformError(f"{name}: translation {M[:3, 3].tolist()} m is beyond {MAX_TRANSLATION_M:g} m from the "
                              f"origin (a unit error? poses are in metres)")
-    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=tolerance, rtol=0.0):
-        raise TransformError(f"{name}: last row must be [0, 0, 0, 1], got {M[3].tolist()}")
+    last = M[3].tolist()
+    if max(abs(last[0]), abs(last[1]), abs(last[2]), abs(last[3] - 1.0)) > tolerance:
+        raise TransformError(f"{name}: last row must be [0, 0, 0, 1], got {last}")
     R = M[:3, :3]
-    ortho_err = float(np.max(np.abs(R.T @ R - np.eye(3))))
+    ortho_err = float(np.max(np.abs(R.T @ R - _EYE3)))
     if ortho_err > tolerance:
         raise TransformError(f"{name}: rotation block is not orthonormal (max |R^T R - I| = {ortho_err:.3g})")
-    det = float(np.linalg.det(R))
+    (a, b, c), (d, e, f), (g, h, i) = R.tolist()
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
     if abs(det - 1.0) > tolerance:
         raise TransformError(f"{name}: rotation block has determinant {det:.6g}, expected +1 (a reflection?)")
     M[3] = (0.0, 0.0, 0.0, 1.0)
