@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import logging
 import re
 import shutil
@@ -64,6 +65,13 @@ def test_t14_w5_a_pose_row_that_jumps_away_and_back_is_named(room10: dict, tmp_p
     out = run_cli("build", room10["log"], "--poses", spiked, "--out", tmp_path / "st", "--no-loop-closure")
     assert out.returncode == 0, out.stderr[-2000:]
     assert f"spiked.txt:{line}: the pose jumps" in " ".join(out.stderr.split())
+    # and the build's "given poses fit the frames" row says so (stop 42; trial 15 W1: it said a plain "yes")
+    summary = json.loads((tmp_path / "st" / "build_summary.json").read_text())
+    spikes = summary["given_poses_check"]["spike_frames"]
+    assert len(spikes) == 1
+    assert re.search(rf"frame {spikes[0]} jumps away and back \(a corrupt pose row\?\)", " ".join(out.stdout.split()))
+    assert run_cli("build", room10["log"], "--poses", gt, "--out", tmp_path / "st_gt", "--no-loop-closure").returncode == 0
+    assert json.loads((tmp_path / "st_gt" / "build_summary.json").read_text())["given_poses_check"]["spike_frames"] == []
     # trial 15: the first row, a 2.7 m spike among 24 cm steps, every third row off, a 170 deg flip
     rng = np.random.default_rng(0)
     path = np.cumsum(np.full((40, 3), [0.24, 0.0, 0.0]) + rng.normal(0, 0.01, (40, 3)), axis=0)

@@ -377,15 +377,19 @@ def _given_poses_row(check: dict | None) -> str:
     overlap enough to decide)."""
     if check is not None and check.get("error"):
         return "not checked (see the warning)"
+    spikes = (check or {}).get("spike_frames") or []
+    but = (f"; but frame{'s' if len(spikes) > 1 else ''} {', '.join(str(f) for f in spikes[:5])}"
+           f"{' ...' if len(spikes) > 5 else ''} jump{'' if len(spikes) > 1 else 's'} away and back (a corrupt pose row?)"
+           if spikes else "")
     if check is None or check.get("consistent") is None:
-        return "-"
+        return "-" + but
     if check["consistent"]:
-        return f"yes ({check['n_decisive']} frame pairs)"
+        return f"yes ({check['n_decisive']} frame pairs){but}"
     mounting = check.get("mounting_rotation") or {}
     if mounting.get("explains") and 2 * check["n_disagreeing"] < max(check["n_decisive"], 6):
         return (f"NO: the {check['n_decisive']} frame pairs fit a sensor mounted turned by "
-                f"{mounting['angle_deg']:.1f} deg")
-    return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree"
+                f"{mounting['angle_deg']:.1f} deg{but}")
+    return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree{but}"
 
 
 def _tracking_counts(tracking: dict) -> str:

@@ -39,6 +39,7 @@ from scipy.spatial.transform import Rotation
 from driftmap import geometry
 from driftmap.registration.pairwise import PreparedCloud, nearest_distances, register_prepared
 from driftmap.store.frame_store import FrameStore
+from driftmap.trajectory import spike_rows
 
 logger = logging.getLogger(__name__)
 
@@ -261,6 +262,9 @@ class GivenPosesCheck:
     pairs: tuple[GivenPosePair, ...]
     range_m: float = 0.0
     """The scene's range the rotations are scaled by (the median range of a frame half way along the log)."""
+    spike_frames: tuple[int, ...] = ()
+    """Frames whose pose jumps away from both neighbours' and back (:func:`driftmap.trajectory.spike_rows`: a corrupt
+    row of the pose file?). The pairs rarely see them (one or two of eight), so the verdict does not say it alone."""
 
     @property
     def mounting(self) -> MountingRotation | None:
@@ -325,7 +329,8 @@ class GivenPosesCheck:
         return {"consistent": self.consistent, "voxel_size_m": round(self.voxel_size_m, 4),
                 "n_pairs": len(self.pairs), "n_decisive": self.n_decisive, "n_disagreeing": self.n_disagreeing,
                 "pairs": [p.to_json() for p in self.pairs],
-                "mounting_rotation": None if mounting is None else mounting.to_json()}
+                "mounting_rotation": None if mounting is None else mounting.to_json(),
+                "spike_frames": list(self.spike_frames)}
 
 
 def _median_range(points_sensor: NDArray[np.floating]) -> float:
@@ -365,6 +370,7 @@ def check_given_poses(store: FrameStore, revision: int = 0, n_pairs: int = 8) ->
     poses = store.poses(revision)
     if len(ids) < 2:
         return GivenPosesCheck(0.0, ())
+    spikes = tuple(int(ids[k]) for k in spike_rows(poses[:, :3, 3], poses[:, :3, :3]))
     middle = store.frame(int(ids[len(ids) // 2]), revision)
     voxel = _voxel_for(middle.points_sensor)  # the scene's scale from a frame half way along the log
     pairs = []
@@ -398,6 +404,6 @@ def check_given_poses(store: FrameStore, revision: int = 0, n_pairs: int = 8) ->
                                    float(np.linalg.norm(origin_reg - origin_file)),
                                    float(geometry.rotation_angle_deg(T_file, best_T)), voxel,
                                    _motion(T_file), _motion(best_T)))
-    check = GivenPosesCheck(voxel, tuple(pairs), _median_range(middle.points_sensor))
+    check = GivenPosesCheck(voxel, tuple(pairs), _median_range(middle.points_sensor), spikes)
     logger.debug("given poses check: %s", check.to_json())
     return check
