@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -229,11 +231,23 @@ def test_cli_merge_prints_the_summary_and_refuses_bad_input(sessions: dict, lida
     assert "the same store twice" in err
     err = one_error(run_cli("merge", sessions["A"], lidar_store, "--out", tmp_path / "y"))
     assert "different sensors" in err
+    # a merge killed while writing left its scratch folder (trial 14/15, weak): the next merge into the same --out
+    # removes it and says so; a scratch folder whose merge is still running (its writer lock held) stays
+    dead, live = tmp_path / ".AB.merge-dead0000", tmp_path / ".AB.merge-live0000"
+    FrameStore.create(dead).close()
+    old = time.time() - 3600
+    os.utime(dead, (old, old))
+    running = FrameStore.create(live)
+    os.utime(live, (old, old))
     out = run_cli("merge", sessions["A"], sessions["B"], "--out", tmp_path / "AB", "--config", _fast_config(tmp_path))
+    running.abandon()
     assert out.returncode == 0, out.stderr[-2000:]
     assert "loops between sessions" in out.stdout and "merge revision" in out.stdout
     with FrameStore.open(tmp_path / "AB") as m:
         assert m.head == 1 and len(m) == 120
+    assert not dead.exists() and live.exists()
+    assert "removed the scratch folder of an earlier merge" in " ".join(out.stderr.split())
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".AB.")) == [live.name]
 
 
 def _fast_config(tmp_path: Path) -> Path:

@@ -62,6 +62,7 @@ from driftmap.registration.odometry import OdometryConfig
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.guards import refuse_inside_store
 from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE
+from driftmap.store.lock import writer_alive
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
 from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frames
@@ -232,6 +233,7 @@ def merge_stores(stores: Sequence[str | Path], out: str | Path, *, config: Build
     paths = [Path(p) for p in stores]
     out = Path(out)
     _check_paths(paths, out)
+    _remove_abandoned_scratch(out)
     sources: list[FrameStore] = []
     try:
         for p in paths:
@@ -241,6 +243,33 @@ def merge_stores(stores: Sequence[str | Path], out: str | Path, *, config: Build
     finally:
         for s in sources:
             s.close()
+
+
+SCRATCH_MIN_AGE_S = 60.0
+"""A merge's scratch folder this old whose writer is gone was left by a merge that was killed."""
+
+
+def _scratch_dirs(out: Path) -> list[Path]:
+    """The hidden folders merges into ``out`` write before renaming them to ``out`` (``.OUT.merge-XXXXXXXX``)."""
+    try:
+        return sorted(out.parent.glob(f".{out.name}.merge-*"))
+    except OSError:
+        return []
+
+
+def _remove_abandoned_scratch(out: Path) -> None:
+    """Remove the scratch folders of merges into ``out`` that were killed (no process holds their writer lock and they
+    are older than :data:`SCRATCH_MIN_AGE_S`): a SIGKILL leaves one behind, nothing else ever uses it."""
+    for folder in _scratch_dirs(out):
+        try:
+            age_s = time.time() - folder.stat().st_mtime
+        except OSError:
+            continue
+        if not folder.is_dir() or age_s < SCRATCH_MIN_AGE_S or writer_alive(folder):
+            continue
+        shutil.rmtree(folder, ignore_errors=True)
+        logger.warning("%s: removed the scratch folder of an earlier merge into %s that did not finish (killed?)",
+                       folder, out)
 
 
 def _check_paths(paths: list[Path], out: Path) -> None:
