@@ -14,6 +14,7 @@ from driftmap.frame import Frame, PoseSource, SensorKind
 from driftmap.pipeline.build_config import DEFAULT_POSES_MAX_DT_NS
 from driftmap.pipeline.source_options import source_params
 from driftmap.sources.base import FrameSource
+from driftmap.store.pose_match import refuse_conflicting_rows
 from driftmap.trajectory import detect_trajectory_format, has_stamps, read_trajectory
 
 logger = logging.getLogger(__name__)
@@ -122,6 +123,7 @@ def pose_file_lookup(poses_file: str | Path, source: FrameSource, kitti_frame: s
                 raise SourceError(f"{poses_file}: {len(rows)} rows, no pose for frame {frame.frame_id} (row {frame.frame_id})")
             return rows[frame.frame_id]
         return by_index
+    refuse_conflicting_rows(traj, str(poses_file), SourceError)  # two poses for one instant: which is the frame's?
     stamps = traj.stamps_ns
     frame_stamps = _source_stamps(source)
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from driftmap.errors import StoreError, parse_enum
+from driftmap.errors import DriftmapError, StoreError, parse_enum
 from driftmap.store.values import as_int
 from driftmap.trajectory import Trajectory
 
@@ -105,7 +105,7 @@ def match_trajectory(
         max_dt = as_int(max_dt_ns, "max_dt_ns")
         if max_dt < 0:
             raise StoreError(f"max_dt_ns must be >= 0, got {max_dt}")
-        _refuse_conflicting_rows(trajectory, where)
+        refuse_conflicting_rows(trajectory, where)
         _refuse_shared_stamps(ids, stamps, min(SHARED_STAMP_NS, max_dt), where)
         if n_rows == 0 or len(ids) == 0:
             frame_idx, row_of = np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
@@ -174,17 +174,19 @@ def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps:
     return frame_idx, row[frame_idx]
 
 
-def _refuse_conflicting_rows(trajectory: Trajectory, where: str) -> None:
-    """Two rows with one stamp but different poses leave a frame at that instant with two poses: refused, naming the
-    rows by their lines in the file where the reader kept them (else 1-based among the pose rows). The same row
-    written twice (the TUM fr2_desk ground truth has one) is fine."""
+def refuse_conflicting_rows(trajectory: Trajectory, where: str, error: type[DriftmapError] = StoreError) -> None:
+    """Two rows with one stamp but different poses leave a frame at that instant with two poses: refused (``error``),
+    naming the rows by their lines in the file where the reader kept them (else 1-based among the pose rows), wherever
+    they are in the file. The same row written twice (the TUM fr2_desk ground truth has one) is fine."""
     stamps = np.asarray(trajectory.stamps_ns, dtype=np.int64)
-    for k in np.flatnonzero(np.diff(stamps) == 0).tolist():
-        a, b = trajectory.poses[k], trajectory.poses[k + 1]
+    order = np.argsort(stamps, kind="stable")
+    for i in np.flatnonzero(np.diff(stamps[order]) == 0).tolist():
+        k, j = sorted((int(order[i]), int(order[i + 1])))
+        a, b = trajectory.poses[k], trajectory.poses[j]
         if not np.allclose(a, b, rtol=0.0, atol=1e-9):
             moved = float(np.linalg.norm(a[:3, 3] - b[:3, 3]))
             lines = trajectory.source_lines
-            rows = (f"the pose rows on lines {int(lines[k])} and {int(lines[k + 1])}" if lines is not None
-                    else f"pose rows {k + 1} and {k + 2}")
-            raise StoreError(f"{where}: {rows} share the stamp {int(stamps[k])} ns but give different "
-                             f"poses ({moved:.3g} m apart): which one is the frame's? Remove one of them")
+            rows = (f"the pose rows on lines {int(lines[k])} and {int(lines[j])}" if lines is not None
+                    else f"pose rows {k + 1} and {j + 1}")
+            raise error(f"{where}: {rows} share the stamp {int(stamps[k])} ns but give different "
+                        f"poses ({moved:.3g} m apart): which one is the frame's? Remove one of them")
