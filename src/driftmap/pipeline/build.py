@@ -59,6 +59,7 @@ from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, Odomet
 from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.layout import BUILD_CONFIG_FILE, BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE, MANIFEST
+from driftmap.store.propagation import propagate_correction
 
 __all__ = [  # the names other modules and users take from here (several live in the sibling modules now)
     "BUILD_SOURCE_FILE", "DEFAULT_POSES_MAX_DT_NS", "SOURCE_OPTION_FLAGS", "BuildConfig", "BuildResult",
@@ -183,6 +184,27 @@ def _open_store(out: Path, new_store: bool, src: FrameSource, record: dict[str, 
     return store, recorded
 
 
+def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> None:
+    """``--resume`` on a store whose head is a correction (revision ``head``, not revision 0): the frames just added
+    have only revision-0 poses, which the head would place beside its corrected ones (a seam; hostile trial 16 B3). A
+    new revision keeps the head's poses of the frames it had and carries its correction on to the new frames (as
+    ``correct`` does for frames its file has no row for)."""
+    ids = store.frame_ids
+    kept = np.array([int(f) in existing for f in ids])
+    poses = np.array(store.poses(head))
+    parent = store.ledger.revision(head)
+    new_ids = ids[~kept]
+    # the head's world-frame correction of the neighbouring old frames, applied to the new frames' revision-0 poses
+    prop_ids, prop_poses = propagate_correction(ids, store.ledger.stamps_ns, store.poses(0), ids[kept], poses[kept])
+    poses[np.searchsorted(ids, prop_ids)] = prop_poses
+    revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=parent.source, parent=head,
+                                  propagate=False,
+                                  note=f"resume: revision {head}'s correction carried on to the {len(new_ids)} new frames")
+    logger.warning("resume: the store's head was revision %d (%s), a correction; the %d new frames (%d..%d) would have "
+                   "sat at their uncorrected poses beside it, so revision %d carries that correction on to them",
+                   head, parent.source.value, len(new_ids), int(new_ids.min()), int(new_ids.max()), revision.revision_id)
+
+
 STORED_POSE_TOLERANCE_M = 1e-6
 """``--resume`` with given poses: a stored frame's pose and the source's may differ by this (m, and rad) at most."""
 
@@ -206,6 +228,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
            pose_of_source: PoseSource = PoseSource.EXTERNAL_FILE) -> BuildResult:
     existing = {int(i) for i in store.frame_ids}
     last_stored = max(existing) if existing else -1
+    head_before = store.head if existing else 0
     poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing, tick)
     n_total = len(src)
     invalid: list[float] = []
@@ -291,6 +314,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         logger.warning("odometry: %d of %d frames degenerate (a direction of motion unconstrained by the scan, bridged "
                        "along it by the motion model): %s", len(result.tracking["degenerate"]),
                        result.tracking["frames"], ", ".join(str(f["frame_id"]) for f in result.tracking["degenerate"][:10]))
+    if n_new and head_before != 0 and not (loop_closure and len(store) >= 2):
+        _carry_head_correction(store, head_before, existing)
     if loop_closure and len(store) >= 2:
         close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)

@@ -276,7 +276,15 @@ def _record_graph_verdicts(result: BuildResult, opt: PoseGraphResult) -> None:
 def _store_correction(store: FrameStore, result: BuildResult, opt: PoseGraphResult) -> None:
     """The optimised keyframe poses as a new ``loop_closure`` revision (propagated to the other frames) applied to
     the map; the largest correction into ``result``."""
-    revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, propagate=True, covariances=opt.covariances,
+    head = store.ledger.revision(store.head)
+    if store.head != 0 and head.source is not PoseSource.LOOP_CLOSURE:  # a --resume after `correct` (trial 16 B6)
+        logger.warning("loop closure: the store's head was revision %d (%s), a correction; the new loop-closure revision "
+                       "is optimised from the odometry's poses (revision 0), so that correction is not in it (it stays "
+                       "in the history: `driftmap correct` again, or compare with `driftmap revisions`)", store.head,
+                       head.source.value)
+    # the keyframes were optimised from revision 0's poses: the other frames follow them from revision 0 as well
+    revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, parent=0, propagate=True,
+                                  covariances=opt.covariances,
                                   note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
     changes = MapView.from_store(store, 0).apply(revision.revision_id)
     result.loop_revision = revision.revision_id
