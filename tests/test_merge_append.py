@@ -253,6 +253,14 @@ def test_a_killed_append_keeps_the_old_revisions_and_is_finished_by_running_it_a
     # trial 14 W2: info says so, and the refusal reads the store's real head (here after a rollback)
     info = " ".join(_ok(run_cli("info", store)).stdout.split())
     assert "append interrupted" in info and "(session 2) was interrupted" in info and "--append" in info
+    # trial 16 B2: the commands that read a revision's map refuse it (its orphan frames sit at their unmerged poses
+    # in every revision) and name the way out; nothing is written
+    for command in (("export", store, "--trajectory", room["root"] / "t_killed.txt"),
+                    ("diagnose", store, "--json", room["root"] / "d_killed.json"), ("view", store, "--headless", "--out",
+                                                                                     room["root"] / "v_killed")):
+        err = one_error(run_cli(*command))
+        assert "(session 2) was interrupted" in err and "--append" in err and "unmerged poses" in err, (command, err)
+        assert not Path(command[-1]).exists()
     rolled = room["root"] / "AB_killed_rolled"
     shutil.copytree(store, rolled)
     _ok(run_cli("rollback", rolled, "--to", 0))

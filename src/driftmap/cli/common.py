@@ -280,10 +280,21 @@ KITTI_FRAME_HELP = ("Frame of a KITTI pose file on a store of KITTI Velodyne sca
 CALIB_HELP = "KITTI calib.txt (line Tr) for --kitti-frame cam0 (default: the data set's calib.txt)."
 
 
-def open_store(path: Path, mode: str = "r"):
+def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
+    """Open a store for a command, printing what opening recovered. ``reads_map``: the command reads a revision's map
+    (export, diagnose, decide, view): a store whose merge append was interrupted is refused, since its frames stored
+    so far sit in every revision's map at their unmerged poses (hostile trial 16 B2); `info` shows it, running the
+    append again finishes it."""
+    from driftmap.errors import ConfigError
     from driftmap.store.frame_store import FrameStore
 
     store = FrameStore.open(path, mode)
+    if reads_map:
+        from driftmap.pipeline.merge_append import interrupted_append
+
+        if (unfinished := interrupted_append(store.path, store.head)) is not None:
+            store.close()
+            raise ConfigError(f"{path}: {unfinished}; until then its frames would be read at their unmerged poses")
     for event in store.recovery_events:
         err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
     if store.loss:

@@ -98,7 +98,7 @@ def decide(
     if diagnosis is not None:
         _check_diagnosis_shape(diagnosis)
     volume, decide_config = settings.volume, settings.decide
-    with open_store(store_path) as store:
+    with open_store(store_path, reads_map=True) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
         _precheck(store, query_set, volume, revisions, decide_config)
         if diagnosis is not None:
@@ -294,7 +294,7 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
         return b, compare(a, b), layers
     rev = store.head if revision is None else revision
     if against is not None:
-        with open_store(against) as other:
+        with open_store(against, reads_map=True) as other:
             other_rev = other.head if against_revision is None else against_revision
             if against_revision is not None and not 0 <= against_revision <= other.head:
                 from driftmap.errors import StoreError

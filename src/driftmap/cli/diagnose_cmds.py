@@ -72,7 +72,7 @@ def diagnose(
         refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it
     check_output(report, "--report", folder=True)
-    with open_store(store_path) as store, progress_bar() as progress:
+    with open_store(store_path, reads_map=True) as store, progress_bar() as progress:
         from driftmap.errors import ConfigError
 
         for rev, flag in ((revision, "--revision"), (compare_revision, "--compare-revision")):
@@ -239,7 +239,7 @@ def view(
         raise typer.BadParameter(f"must be at most 1000 m, got {voxel_size_m}", param_hint="--voxel-size-m")
     check_output(out, "--out", folder=True)
 
-    with open_store(store_path) as store:
+    with open_store(store_path, reads_map=True) as store:
         with console.status(f"preparing the {color} view of {store_path}"), writing_output(out, "--out"):
             result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
                                 headless=headless, backend=backend, reference_revision=reference,

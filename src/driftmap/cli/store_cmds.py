@@ -184,7 +184,7 @@ def export(
     for path, flag in outputs:  # every output checked before anything is written
         if path is not None:
             refuse_existing(path, flag, overwrite)
-    with open_store(store_path) as store:
+    with open_store(store_path, reads_map=True) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
         if session is not None:
