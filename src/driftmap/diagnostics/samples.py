@@ -88,6 +88,18 @@ class DiagnosticCloud:
     """(M, 3) per frame: samples drawn for normals, of them without a defined normal, of them not planar."""
     stored_normals_refused: NDArray[np.bool_] | None = None
     """(M,) frames whose stored normals were not unit vectors (estimated from the points instead)."""
+    time_offset_ns: NDArray[np.int64] | None = None
+    """(N,) per-point time of every sample relative to its frame's stamp (``PointAttributes.time_offset_ns``), 0 for
+    frames without per-point times; None when no frame has them. :meth:`place` deskews the ``timed`` frames."""
+    rejected_time_offset_ns: NDArray[np.int64] | None = None
+    """The same for the rejected samples (``rejected_points_sensor``)."""
+    timed: NDArray[np.bool_] | None = None
+    """(M,) frames with per-point times (None: none has them)."""
+    time_span_ns: NDArray[np.int64] | None = None
+    """(M,) span of each frame's per-point times over *all* its points (as the map view judges a scan), 0 untimed."""
+    row_group: NDArray[np.int64] | None = None
+    """(M,) session of each row when the rows are ordered session by session (deskew neighbours stay within one
+    session); None: one time line."""
 
     @property
     def n_frames(self) -> int:
@@ -113,7 +125,7 @@ class DiagnosticCloud:
         rows = []
         for frame in frames:
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
-                                      frame.attributes.normal_sensor, cfg, keep, noise))
+                                      frame.attributes.normal_sensor, cfg, keep, noise, frame.attributes.time_offset_ns))
         return cls._assemble(rows, _session_of_frames(sessions))
 
     @classmethod
@@ -133,7 +145,7 @@ class DiagnosticCloud:
         for k, fid in enumerate(ids):
             frame = store.frame(int(fid))
             rows.append(_sample_frame(frame.frame_id, frame.stamp_ns, frame.sensor_kind, frame.points_sensor,
-                                      frame.attributes.normal_sensor, cfg, keep, noise))
+                                      frame.attributes.normal_sensor, cfg, keep, noise, frame.attributes.time_offset_ns))
             if progress is not None:
                 progress("sampling frames", k + 1, len(ids))
         return cls._assemble(rows, _session_of_frames(sessions))
@@ -151,7 +163,21 @@ class DiagnosticCloud:
                            "normalised; frames %s): their normals are estimated from their points instead", len(ids),
                            len(rows), ", ".join(map(str, ids[:5])) + (" ..." if len(ids) > 5 else ""))
         rejected_counts = np.array([len(r[7]) for r in rows], dtype=np.int64)
+        timed = np.array([r[11] is not None for r in rows], dtype=bool)
+        times: dict = {}
+        if timed.any():
+            times = {
+                "time_offset_ns": np.concatenate([np.zeros(len(r[3]), np.int64) if r[11] is None else r[11]
+                                                  for r in rows]).astype(np.int64),
+                "rejected_time_offset_ns": np.concatenate([np.zeros(len(r[7]), np.int64) if r[12] is None else r[12]
+                                                           for r in rows]).astype(np.int64),
+                "timed": timed,
+                "time_span_ns": np.array([r[13] for r in rows], dtype=np.int64),
+            }
+        if group is not None:
+            times["row_group"] = np.array([group.get(r[0], -1) for r in rows], dtype=np.int64)
         return cls(
+            **times,
             rejected_points_sensor=np.concatenate([r[7] for r in rows]).astype(np.float32).reshape(-1, 3),
             rejected_offsets=np.concatenate([[0], np.cumsum(rejected_counts)]).astype(np.int64),
             rejected_reason=np.concatenate([r[8] for r in rows]).astype(np.uint8),
@@ -179,8 +205,21 @@ class DiagnosticCloud:
             offsets=np.concatenate([[0], np.cumsum(counts)]).astype(np.int64),
             points_sensor=self.points_sensor[idx], normals_sensor=self.normals_sensor[idx],
             sigma_normal_m=self.sigma_normal_m[idx], sensor_kinds=tuple(self.sensor_kinds[r] for r in rows),
-            n_points_source=self.n_points_source[rows], **self._rejected_subset(rows),
+            n_points_source=self.n_points_source[rows], **self._rejected_subset(rows), **self._times_subset(rows, idx),
         )
+
+    def _times_subset(self, rows: NDArray[np.int64], idx: NDArray[np.int64]) -> dict:
+        out: dict = {}
+        if self.row_group is not None:
+            out["row_group"] = self.row_group[rows]
+        if self.timed is None or self.time_offset_ns is None or not self.timed[rows].any():
+            return out
+        out.update(time_offset_ns=self.time_offset_ns[idx], timed=self.timed[rows],
+                   time_span_ns=None if self.time_span_ns is None else self.time_span_ns[rows])
+        if self.rejected_time_offset_ns is not None and self.rejected_offsets is not None:
+            ridx = np.concatenate([np.arange(self.rejected_offsets[r], self.rejected_offsets[r + 1]) for r in rows])
+            out["rejected_time_offset_ns"] = self.rejected_time_offset_ns[ridx]
+        return out
 
     def _rejected_subset(self, rows: NDArray[np.int64]) -> dict:
         if self.rejected_offsets is None:
@@ -205,10 +244,48 @@ class DiagnosticCloud:
             R, t = T[k, :3, :3], T[k, :3, 3]
             pts[a:b] = self.points_sensor[a:b].astype(np.float64) @ R.T + t
             nrm[a:b] = self.normals_sensor[a:b].astype(np.float64) @ R.T
+        motions = self.scan_motions(T)
+        times = self.time_offset_ns
+        for k, (xi, dt) in motions.items():  # frames with per-point times: deskewed as the map view places them
+            a, b = self.offsets[k], self.offsets[k + 1]
+            if b > a and times is not None:
+                D = _deskew_motions(times[a:b], xi, dt)
+                pts[a:b] = _apply(D, self.points_sensor[a:b], T[k])
+                nrm[a:b] = _apply(D, self.normals_sensor[a:b], T[k], rotate_only=True)
         origins = T[:, :3, 3].copy()
         steps = np.linalg.norm(np.diff(origins, axis=0), axis=1)
         path = np.concatenate([[0.0], np.cumsum(steps)])
-        return PlacedCloud(self, T, pts, nrm, self.frame_index(), origins, path)
+        return PlacedCloud(self, T, pts, nrm, self.frame_index(), origins, path, motions)
+
+    def scan_motions(self, poses: NDArray[np.float64]) -> dict[int, tuple[NDArray[np.float64], int]]:
+        """``{row: (xi, dt_ns)}``: the constant motion that deskews each frame row with per-point times, from
+        ``poses`` (rows' ``T_world_sensor``) as the map view takes it (:func:`driftmap.map.deskew.scan_motion`: towards
+        the next frame in time, the last one extrapolating the motion before it). Rows that cannot be deskewed are
+        left out (placed rigidly; the reason is logged at debug level). Empty when no frame has per-point times."""
+        if self.timed is None or self.time_offset_ns is None or not self.timed.any():
+            return {}
+        from driftmap.map.deskew import scan_motion
+
+        T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
+        group = np.zeros(self.n_frames, np.int64) if self.row_group is None else self.row_group
+        span = np.zeros(self.n_frames, np.int64) if self.time_span_ns is None else self.time_span_ns
+        out: dict[int, tuple[NDArray[np.float64], int]] = {}
+        rigid: list[str] = []
+        for g in np.unique(group[self.timed]):
+            rows = np.flatnonzero(group == g)
+            order = rows[np.argsort(self.stamps_ns[rows], kind="stable")]
+            rank = np.zeros(self.n_frames, np.int64)
+            rank[order] = np.arange(len(order))
+            for r in order[self.timed[order]]:
+                motion, why = scan_motion(self.stamps_ns, T, int(r), order, rank, int(span[r]))
+                if motion is None:
+                    rigid.append(f"frame {int(self.frame_ids[r])}: {why}")
+                else:
+                    out[int(r)] = (motion.xi, int(motion.dt_ns))
+        if rigid:
+            logger.debug("diagnostics: %d of %d frames with per-point times are not deskewed (placed with their pose "
+                         "alone): %s", len(rigid), int(self.timed.sum()), "; ".join(rigid[:5]) + (" ..." if len(rigid) > 5 else ""))
+        return out
 
 
 class RejectReason(enum.IntEnum):
@@ -237,10 +314,30 @@ def _session_of_frames(sessions: Mapping[int, Sequence[int]] | None) -> dict[int
     return None if not sessions else {int(f): int(k) for k, fs in sessions.items() for f in fs}
 
 
+def _deskew_motions(offsets_ns: NDArray[np.int64], xi: NDArray[np.float64], dt_ns: int) -> NDArray[np.float64]:
+    """(n, 4, 4) ``exp((t_i / dt) xi)``: where each sample of a scan was seen from, relative to the frame's pose (the
+    map view's deskew, :func:`driftmap.map.deskew.deskew_to_world`)."""
+    from driftmap import geometry
+
+    alpha = np.asarray(offsets_ns, dtype=np.float64) / float(dt_ns)
+    return geometry.se3_exp(alpha[:, None] * xi[None, :])
+
+
+def _apply(D: NDArray[np.float64], v_sensor: NDArray[np.float32], T_world_sensor: NDArray[np.float64],
+           rotate_only: bool = False) -> NDArray[np.float64]:
+    """``T_world_sensor @ D_i @ v_i`` per sample (float64; directions such as normals: rotations only)."""
+    local = np.einsum("nij,nj->ni", D[:, :3, :3], np.asarray(v_sensor, dtype=np.float64))
+    if rotate_only:
+        return local @ T_world_sensor[:3, :3].T
+    return (local + D[:, :3, 3]) @ T_world_sensor[:3, :3].T + T_world_sensor[:3, 3]
+
+
 def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArray[np.float32],
-                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, keep_n: int, noise: NoiseModel | None) -> tuple:
+                  normals: NDArray[np.float32] | None, cfg: SamplingConfig, keep_n: int, noise: NoiseModel | None,
+                  times: NDArray[np.int64] | None = None) -> tuple:
     """``(frame_id, stamp_ns, kind, points, normals, sigma, n_source, rejected points, rejected reasons,
-    (drawn, no_normal, not_planar), stored normals refused)`` of one frame."""
+    (drawn, no_normal, not_planar), stored normals refused, times of the points, times of the rejected points,
+    span of the frame's times)`` of one frame (the times None and the span 0 without per-point times)."""
     rng = np.random.default_rng([cfg.seed, frame_id & 0x7FFFFFFF])
     pts = np.asarray(points, dtype=np.float32)
     finite = np.flatnonzero(np.all(np.isfinite(pts), axis=1))
@@ -281,7 +378,14 @@ def _sample_frame(frame_id: int, stamp_ns: int, kind: SensorKind, points: NDArra
     sigma = model.sigma_normal_m(sub[keep], nrm[keep]) if len(keep) else np.zeros(0)
     counts = (len(sub), int(np.count_nonzero(reason == RejectReason.NO_NORMAL)),
               int(np.count_nonzero(reason == RejectReason.NOT_PLANAR)))
-    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src, sub[bad], reason[bad], counts, refused)
+    t_keep = t_bad = None
+    span = 0
+    if times is not None and len(times) == n_src:
+        t_all = np.asarray(times, dtype=np.int64)
+        span = int(np.ptp(t_all)) if len(t_all) else 0  # the whole scan's, as the map view judges it
+        t_keep, t_bad = t_all[pick][keep], t_all[pick][bad]
+    return (int(frame_id), int(stamp_ns), kind, sub[keep], nrm[keep], sigma, n_src, sub[bad], reason[bad], counts, refused,
+            t_keep, t_bad, span)
 
 
 @dataclass(frozen=True)
@@ -297,6 +401,8 @@ class PlacedCloud:
     """(M, 3) sensor origin of every frame."""
     path_length_m: NDArray[np.float64]
     """(M,) distance travelled by the sensor up to each frame (frames in time order)."""
+    scan_motions: Mapping[int, tuple[NDArray[np.float64], int]] = field(default_factory=dict)
+    """``{row: (xi, dt_ns)}`` of the frame rows whose samples were deskewed (:meth:`DiagnosticCloud.scan_motions`)."""
 
     @property
     def frame_ids(self) -> NDArray[np.int64]:
@@ -319,7 +425,14 @@ class PlacedCloud:
         rows = np.repeat(np.arange(s.n_frames), np.diff(s.rejected_offsets))
         p = s.rejected_points_sensor.astype(np.float64)
         R, t = self.poses[rows, :3, :3], self.poses[rows, :3, 3]
-        return np.einsum("nij,nj->ni", R, p) + t
+        world = np.einsum("nij,nj->ni", R, p) + t
+        if self.scan_motions and s.rejected_time_offset_ns is not None:
+            for k, (xi, dt) in self.scan_motions.items():
+                a, b = s.rejected_offsets[k], s.rejected_offsets[k + 1]
+                if b > a:
+                    world[a:b] = _apply(_deskew_motions(s.rejected_time_offset_ns[a:b], xi, dt),
+                                        s.rejected_points_sensor[a:b], self.poses[k])
+        return world
 
     @cached_property
     def world_columns(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
