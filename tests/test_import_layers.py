@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 SRC = Path(__file__).resolve().parents[1] / "src" / "driftmap"
-DIAGNOSTICS_MAY_IMPORT = {"errors", "geometry", "voxels", "frame", "config", "trajectory", "preprocess", "store",
+DIAGNOSTICS_MAY_IMPORT = {"errors", "geometry", "voxels", "kernels", "frame", "config", "trajectory", "preprocess", "store",
                           "registration", "posegraph", "map", "volume", "diagnostics"}
 """Lower layers (and the package itself, .importlinter); never export, pipeline, cli, viewer, report or demo."""
 
