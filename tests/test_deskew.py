@@ -17,7 +17,7 @@ from driftmap import geometry
 from driftmap.diagnostics import perturb
 from driftmap.diagnostics.trajectory_metrics import trajectory_errors
 from driftmap.frame import Frame, PointAttributes, PoseEstimate, PoseSource, SensorKind
-from driftmap.map.deskew import deskew_to_world, scan_motion
+from driftmap.preprocess.deskew import deskew_to_world, scan_motion
 from driftmap.map.view import MapView
 from driftmap.sources.synthetic import SyntheticLog, SyntheticLogConfig, boxes_of, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore

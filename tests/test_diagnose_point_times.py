@@ -16,7 +16,7 @@ import pytest
 
 from driftmap import geometry
 from driftmap.diagnostics.samples import DiagnosticCloud, SamplingConfig
-from driftmap.map.deskew import scan_motion
+from driftmap.preprocess.deskew import scan_motion
 from driftmap.map.view import MapView
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log

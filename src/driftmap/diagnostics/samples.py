@@ -259,12 +259,12 @@ class DiagnosticCloud:
 
     def scan_motions(self, poses: NDArray[np.float64]) -> dict[int, tuple[NDArray[np.float64], int]]:
         """``{row: (xi, dt_ns)}``: the constant motion that deskews each frame row with per-point times, from
-        ``poses`` (rows' ``T_world_sensor``) as the map view takes it (:func:`driftmap.map.deskew.scan_motion`: towards
+        ``poses`` (rows' ``T_world_sensor``) as the map view takes it (:func:`driftmap.preprocess.deskew.scan_motion`: towards
         the next frame in time, the last one extrapolating the motion before it). Rows that cannot be deskewed are
         left out (placed rigidly; the reason is logged at debug level). Empty when no frame has per-point times."""
         if self.timed is None or self.time_offset_ns is None or not self.timed.any():
             return {}
-        from driftmap.map.deskew import scan_motion
+        from driftmap.preprocess.deskew import scan_motion
 
         T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         group = np.zeros(self.n_frames, np.int64) if self.row_group is None else self.row_group
@@ -316,7 +316,7 @@ def _session_of_frames(sessions: Mapping[int, Sequence[int]] | None) -> dict[int
 
 def _deskew_motions(offsets_ns: NDArray[np.int64], xi: NDArray[np.float64], dt_ns: int) -> NDArray[np.float64]:
     """(n, 4, 4) ``exp((t_i / dt) xi)``: where each sample of a scan was seen from, relative to the frame's pose (the
-    map view's deskew, :func:`driftmap.map.deskew.deskew_to_world`)."""
+    map view's deskew, :func:`driftmap.preprocess.deskew.deskew_to_world`)."""
     from driftmap import geometry
 
     alpha = np.asarray(offsets_ns, dtype=np.float64) / float(dt_ns)

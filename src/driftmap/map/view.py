@@ -104,7 +104,7 @@ class MapView:
         self._store = store
         self._release_pages = release_pages
         self.deskew = deskew
-        """Place frames with per-point times with the revision's continuous trajectory (:mod:`driftmap.map.deskew`)."""
+        """Place frames with per-point times with the revision's continuous trajectory (:mod:`driftmap.preprocess.deskew`)."""
         self._timed = np.zeros(0, bool)
         self._frame_times: dict[int, NDArray[np.int64]] = {}
         self.deskew_problems: dict[int, str] = {}
@@ -340,7 +340,7 @@ class MapView:
 
     def _deskew_row(self, r: int) -> None:
         """Re-place frame row ``r`` from its sensor points and per-point times with the view's trajectory."""
-        from driftmap.map.deskew import deskew_to_world, scan_motion
+        from driftmap.preprocess.deskew import deskew_to_world, scan_motion
 
         fid = int(self.frame_ids[r])
         pts, offsets = self._times(fid)

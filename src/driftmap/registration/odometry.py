@@ -450,7 +450,7 @@ class KissOdometry:
     def _at_stamp(self, frame: Frame, T_mid: NDArray[np.float64]) -> NDArray[np.float64]:
         """KISS-ICP's pose of a scan with per-point times is the pose at the middle of its times (it deskews about
         it, and an undeskewed scan fits there best); the stored pose is the one at the frame's stamp, the map view's
-        convention (:mod:`driftmap.map.deskew`): moved back along the motion model by the middle's offset."""
+        convention (:mod:`driftmap.preprocess.deskew`): moved back along the motion model by the middle's offset."""
         t = frame.attributes.time_offset_ns
         if t is None or len(t) == 0 or self._last_stamp_ns is None:
             return T_mid
