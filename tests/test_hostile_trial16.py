@@ -124,3 +124,31 @@ def test_t16_b4_ground_truth_maps_are_not_read_as_broken_by_a_sliding_jump_probe
     _ok(run_cli("diagnose", tmp_path / "r", "--json", tmp_path / "r.json"))
     d = json.loads((tmp_path / "r.json").read_text())
     assert d["valid"] and d["revisit_check"]["disagreement_m"] < 0.03, d["revisit_check"]["disagreement_m"]
+
+
+def test_t16_w2_batch_shows_cannot_judge_instead_of_an_invalid_diagnosis_figures() -> None:
+    """W2: a log whose build lost track read "drift 0.000 %/m", status ok, in the batch table and fleet.html, and the
+    fleet was ranked worst first by figures its own diagnosis called unusable (``valid: false`` only in fleet.json).
+    The table and the report now say "cannot judge" in place of those figures (ATE, from ground truth, stays), and such
+    a log ranks first."""
+    from rich.console import Console
+
+    from driftmap.cli.batch_cmds import _summary_table
+    from driftmap.fleet.report import _results_table, rank_worst_first
+
+    def row(name: str, valid: bool | None, flagged: float) -> dict:
+        return {"name": name, "input": name, "status": "ok", "error": None, "frames": 15, "time_s": 10.0,
+                "ate_rmse_m": 1.921, "drift_percent_per_m": 0.0, "fraction_flagged": flagged,
+                "smearing_score_m": 0.00012, "valid": valid, "folder": None}
+
+    rows = [row("good", True, 0.02), row("lost", False, 0.0), row("undiagnosed", None, 0.01)]
+    assert [r["name"] for r in rank_worst_first(rows)] == ["lost", "good", "undiagnosed"]
+    console = Console(record=True, width=200)
+    console.print(_summary_table(rows, Path("bt")))
+    lines = {line.split()[1]: " ".join(line.split()) for line in console.export_text().splitlines()
+             if len(line.split()) > 1 and line.split()[1] in ("good", "lost", "undiagnosed")}
+    assert lines["lost"].count("cannot judge") == 4 and "0.000" not in lines["lost"] and "192.10" in lines["lost"]
+    assert "valid" in lines["good"] and "0.000" in lines["good"] and "cannot judge" not in lines["good"]
+    html = _results_table(rows)
+    lost = html[html.index(">lost<"):].split("</tr>")[0]
+    assert lost.count("cannot judge") >= 4 and "0.000" not in lost and "192.10" in lost

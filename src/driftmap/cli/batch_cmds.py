@@ -39,14 +39,21 @@ def _interrupted_line(out: Path) -> str:
 
 
 def _summary_table(rows: list[dict], out: Path) -> Table:
+    from driftmap.fleet.report import cannot_judge
+
     table = Table(title=f"driftmap batch -> {out}")
-    for col in ("log", "status", "frames", "time (s)", "drift (%/m)", "doubled (%)", "smearing (mm)", "ATE (cm)"):
-        table.add_column(col, justify="left" if col in ("log", "status") else "right")
+    for col in ("log", "status", "diagnosis", "frames", "time (s)", "drift (%/m)", "doubled (%)", "smearing (mm)",
+                "ATE (cm)"):
+        table.add_column(col, justify="left" if col in ("log", "status", "diagnosis") else "right")
     for r in rows:
         style = {"failed": "red", "skipped": "dim"}.get(r["status"], "")
-        table.add_row(r["name"], Text(r["status"], style=style), str(r["frames"]), _number(r["time_s"], digits=1),
-                      _number(r["drift_percent_per_m"], digits=3), _number(r["fraction_flagged"], 100),
-                      _number(r["smearing_score_m"], 1000), _number(r["ate_rmse_m"], 100))
+        unjudged = cannot_judge(r)  # its figures are no measure of the map (trial 16 W2)
+        judged = ["cannot judge"] * 3 if unjudged else [
+            _number(r["drift_percent_per_m"], digits=3), _number(r["fraction_flagged"], 100),
+            _number(r["smearing_score_m"], 1000)]
+        verdict = Text("cannot judge", style="yellow") if unjudged else Text("valid" if r.get("valid") else "-")
+        table.add_row(r["name"], Text(r["status"], style=style), verdict, str(r["frames"]), _number(r["time_s"], digits=1),
+                      *judged, _number(r["ate_rmse_m"], 100))
     return table
 
 

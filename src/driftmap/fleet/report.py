@@ -2,8 +2,10 @@
 (``fleet_ranking.png``: the logs ranked worst first; ``fleet_drift.png``: drift rate against double-wall fraction
 across the fleet), and the failures with their reasons.
 
-"Worst" is the larger fraction of surface voxels doubled (``fraction_flagged``), then the larger drift rate, then the
-larger smearing score; a log without a figure ranks after those with one.
+"Worst" is first a log whose diagnosis says it cannot judge its map (``valid`` false: its figures are no measure of
+it), then the larger fraction of surface voxels doubled (``fraction_flagged``), then the larger drift rate, then the
+larger smearing score; a log without a figure ranks after those with one. The table shows "cannot judge" in place of
+the figures of such a diagnosis (they stay in ``fleet.json``, beside ``valid``).
 """
 
 from __future__ import annotations
@@ -19,12 +21,21 @@ from driftmap._version import __version__
 from driftmap.files import atomic_write
 from driftmap.fleet.folders import FLEET_JSON
 
-__all__ = ["CONTRACT_KEYS", "rank_worst_first", "write_fleet_json", "write_fleet_report"]
+__all__ = ["CONTRACT_KEYS", "JUDGED_KEYS", "cannot_judge", "rank_worst_first", "write_fleet_json", "write_fleet_report"]
 
 CONTRACT_KEYS = ("name", "input", "status", "error", "frames", "time_s", "ate_rmse_m", "drift_percent_per_m",
                  "fraction_flagged", "smearing_score_m")
 """The keys every row of ``fleet.json`` has (issue 27's contract: extended, never renamed)."""
+JUDGED_KEYS = frozenset({"drift_percent_per_m", "drift_deg_per_m", "revisit_fraction", "fraction_flagged",
+                         "fraction_flagged_before", "smearing_score_m", "smearing_score_before_m"})
+"""The figures of a log's diagnosis that mean nothing when it says it cannot judge the map (ATE, from ground truth,
+and the counts do not depend on it)."""
 FLEET_HTML = "fleet.html"
+
+
+def cannot_judge(row: dict[str, Any]) -> bool:
+    """The log's diagnosis says it cannot judge its map (``valid`` false; None: no diagnosis)."""
+    return row.get("valid") is False
 RANKING_PNG = "fleet_ranking.png"
 DRIFT_PNG = "fleet_drift.png"
 
@@ -53,8 +64,9 @@ def _number(row: dict[str, Any], key: str) -> float:
 def rank_worst_first(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """The logs with results (ok or skipped), worst first (see the module docstring)."""
     measured = [r for r in rows if r["status"] != "failed"]
-    return sorted(measured, key=lambda r: (_number(r, "fraction_flagged"), _number(r, "drift_percent_per_m"),
-                                           _number(r, "smearing_score_m")), reverse=True)
+    return sorted(measured, key=lambda r: (cannot_judge(r), _number(r, "fraction_flagged"),
+                                           _number(r, "drift_percent_per_m"), _number(r, "smearing_score_m")),
+                  reverse=True)
 
 
 def _plot_ranking(path: Path, ranked: list[dict[str, Any]]) -> None:
@@ -118,7 +130,7 @@ def _cell(value: Any, scale: float = 1.0, digits: int = 2) -> str:
     return html.escape(str(value))
 
 
-RESULT_COLUMNS = (("log", "name", 1, 0), ("status", "status", 1, 0), ("frames", "frames", 1, 0),
+RESULT_COLUMNS = (("log", "name", 1, 0), ("status", "status", 1, 0), ("diagnosis", "valid", 1, 0), ("frames", "frames", 1, 0),
                   ("duration (s)", "duration_s", 1, 1), ("time (s)", "time_s", 1, 1), ("ATE (cm)", "ate_rmse_m", 100, 2),
                   ("drift (%/m)", "drift_percent_per_m", 1, 3), ("drift (deg/m)", "drift_deg_per_m", 1, 3),
                   ("revisited (%)", "revisit_fraction", 100, 0), ("doubled (%)", "fraction_flagged", 100, 2),
@@ -133,7 +145,12 @@ def _results_table(ranked: list[dict[str, Any]]) -> str:
     for r in ranked:
         cells = []
         for _, key, scale, digits in RESULT_COLUMNS:
-            text = _cell(r.get(key), scale, digits) if key not in ("name", "status") else html.escape(str(r[key]))
+            if key == "valid":
+                text = {True: "valid", False: "cannot judge"}.get(r.get("valid"), "-")
+            elif key in JUDGED_KEYS and cannot_judge(r):
+                text = "cannot judge"
+            else:
+                text = _cell(r.get(key), scale, digits) if key not in ("name", "status") else html.escape(str(r[key]))
             if key == "name" and r.get("folder"):
                 text = f'<a href="{html.escape(r["folder"])}/diagnosis.json">{text}</a>'
             cells.append(f"<td>{text}</td>")
