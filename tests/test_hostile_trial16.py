@@ -152,3 +152,21 @@ def test_t16_w2_batch_shows_cannot_judge_instead_of_an_invalid_diagnosis_figures
     html = _results_table(rows)
     lost = html[html.index(">lost<"):].split("</tr>")[0]
     assert lost.count("cannot judge") >= 4 and "0.000" not in lost and "192.10" in lost
+
+
+def test_t16_w4_diagnose_reads_euroc_ground_truth(room10: dict, tmp_path: Path) -> None:
+    """W4: `diagnose --gt FILE.csv` could not read an EuRoC file (`--gt-format euroc` was "not one of tum, kitti,
+    redwood, 4x4") although `build --poses` and `correct --format euroc` read it. Now it does: the store placed with its
+    ground truth reads an ATE of zero against the same poses as EuRoC."""
+    from scipy.spatial.transform import Rotation
+
+    traj = read_tum(room10["log"] / "groundtruth.txt")
+    lines = ["#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []"]
+    for stamp, P in zip(traj.stamps_ns, traj.poses, strict=True):
+        x, y, z, w = Rotation.from_matrix(P[:3, :3]).as_quat()
+        lines.append(",".join([str(int(stamp))] + [repr(float(v)) for v in (*P[:3, 3], w, x, y, z)]))
+    (tmp_path / "gt.csv").write_text("\n".join(lines) + "\n")
+    _ok(run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json", "--gt", tmp_path / "gt.csv", "--gt-format",
+                "euroc"))
+    ate = json.loads((tmp_path / "d.json").read_text())["trajectory"]["ate_rmse_m"]
+    assert ate < 1e-6, ate

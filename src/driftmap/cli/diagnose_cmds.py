@@ -50,7 +50,7 @@ def diagnose(
     json_path: Annotated[Path, typer.Option("--json", help="Write the diagnosis here (JSON).")],
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     gt: Annotated[Optional[Path], typer.Option("--gt", help="Ground-truth poses (T_world_sensor) for ATE/RPE.")] = None,
-    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i) | redwood (.log: by the frame ids it names) | 4x4 (one 4x4 matrix per frame: by stamp when the last rows hold stamps, else block i = frame_id i)")] = None,
+    gt_format: Annotated[Optional[str], typer.Option("--gt-format", help="tum (matched by stamp; the default) | kitti (row i = frame_id i) | redwood (.log: by the frame ids it names) | 4x4 (one 4x4 matrix per frame: by stamp when the last rows hold stamps, else block i = frame_id i) | euroc (EuRoC / ASL CSV, stamps in ns: by stamp)")] = None,
     report: Annotated[Optional[Path], typer.Option("--report", help="Write PNG figures to this folder.")] = None,
     compare_revision: Annotated[Optional[int], typer.Option("--compare-revision", help="Also diagnose this revision; the report shows the score before/after.")] = None,
     points_per_frame: Annotated[Optional[int], typer.Option("--points-per-frame", min=50, help="Points sampled per frame (default: a budget of 600k RGB-D / 1M LiDAR points shared by the frames).")] = None,

@@ -20,7 +20,7 @@ MIN_GT_FRAMES = 3
 """ATE (a rigid alignment) and RPE need at least this many frames with a ground-truth pose."""
 
 #: formats of ``diagnose --gt`` (``--gt-format``)
-GT_FORMATS = ("tum", "kitti", "redwood", "4x4")
+GT_FORMATS = ("tum", "kitti", "redwood", "4x4", "euroc")
 
 
 @dataclass(frozen=True)

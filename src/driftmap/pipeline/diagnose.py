@@ -85,7 +85,7 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
     """Diagnose ``revision`` (default: the head) of an open ``store`` and write the JSON to ``json_path`` (and the
     figures to ``report_dir``).
 
-    ``gt`` (``gt_format`` tum | kitti | redwood | 4x4; ``kitti_frame`` / ``calib`` for a KITTI file): ground truth for
+    ``gt`` (``gt_format`` tum | kitti | redwood | 4x4 | euroc; ``kitti_frame`` / ``calib`` for a KITTI file): ground truth for
     ATE / RPE. ``compare_revision``: also diagnosed, its score added as ``comparison`` and to the report. ``verify``:
     every double-wall region re-measured from the full-resolution frames (``verification``). ``config_file``: its
     ``[diagnose]`` table over the scene's defaults. ``report_dir``: the figures, and the revision's volumetric layers
