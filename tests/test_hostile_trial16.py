@@ -170,3 +170,17 @@ def test_t16_w4_diagnose_reads_euroc_ground_truth(room10: dict, tmp_path: Path) 
                 "euroc"))
     ate = json.loads((tmp_path / "d.json").read_text())["trajectory"]["ate_rmse_m"]
     assert ate < 1e-6, ate
+
+
+def test_t16_w9_rollback_counts_the_frames_it_moves(room10: dict, tmp_path: Path) -> None:
+    """W9: `rollback --to 0` after a correction that moved half the frames said "(10 frames changed)" while
+    `revisions` listed 5 for the same revision. It now counts as `revisions` does: the frames whose pose differs."""
+    store = tmp_path / "gt"
+    shutil.copytree(room10["gt"], store)
+    gt = read_tum(room10["log"] / "groundtruth.txt")
+    stepped = perturb.translation_step(gt.poses, 5, np.array([0.1, 0.0, 0.0]))
+    write_tum(tmp_path / "step.txt", Trajectory(gt.stamps_ns, stepped))
+    _ok(run_cli("correct", store, "--poses", tmp_path / "step.txt"))
+    out = run_cli("rollback", store, "--to", 0)
+    _ok(out)
+    assert "poses of revision 0 restored (5 frames changed)" in " ".join(out.stdout.split()), out.stdout

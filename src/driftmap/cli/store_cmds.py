@@ -101,7 +101,8 @@ def rollback(
     """Create a new revision equal to revision N (history is kept)."""
     with open_store(store_path, "a") as store:
         rev = store.rollback(to)
-    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({len(rev.set_directly)} frames changed)")
+        changed = store.diff(rev.parent_id, rev.revision_id).n_changed  # as `revisions` counts them (trial 16 W9)
+    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({changed} frames changed)")
 
 
 # longer than 80 lines: 16 of them are the typer options (the CLI contract); the body checks every output before
