@@ -184,3 +184,23 @@ def test_t16_w9_rollback_counts_the_frames_it_moves(room10: dict, tmp_path: Path
     out = run_cli("rollback", store, "--to", 0)
     _ok(out)
     assert "poses of revision 0 restored (5 frames changed)" in " ".join(out.stdout.split()), out.stdout
+
+
+def test_t16_w13_diagnose_gt_on_shared_stamps_names_its_own_way_out(tmp_path: Path) -> None:
+    """W13: `diagnose --gt` on a store whose frames share stamps (sessions of a merged store) was refused rightly, but
+    the error pointed to `driftmap correct --match index`, an option diagnose does not have. It now says what diagnose
+    can do; `correct` keeps its own hint."""
+    from driftmap.frame import Frame, PoseEstimate, SensorKind
+
+    store = tmp_path / "shared"
+    rng = np.random.default_rng(0)
+    with FrameStore.create(store) as s:
+        for fid, stamp in ((0, 0), (1, 100_000_000), (1_000_000_000, 0), (1_000_000_001, 100_000_000)):
+            s.append(Frame(frame_id=fid, stamp_ns=stamp, sensor_name="lidar", sensor_kind=SensorKind.LIDAR,
+                           points_sensor=rng.normal(size=(500, 3)).astype(np.float32), pose=PoseEstimate(np.eye(4))))
+    write_tum(tmp_path / "gt.txt", Trajectory(np.array([0, 100_000_000]), np.stack([np.eye(4)] * 2)))
+    err = one_error(run_cli("diagnose", store, "--json", tmp_path / "d.json", "--gt", tmp_path / "gt.txt"))
+    assert "cannot match rows to frames by stamp" in err and "diagnose each session's own store" in err, err
+    assert "--match index" not in err and not (tmp_path / "d.json").exists()
+    err = one_error(run_cli("correct", store, "--poses", tmp_path / "gt.txt"))
+    assert "`driftmap correct --match index`" in err, err

@@ -357,7 +357,10 @@ def read_ground_truth(store: FrameStore, path: str | Path, format: str = "tum", 
                                      calib_file=calib_file)
     mode = PoseMatchMode.STAMP if has_stamps(traj, fmt) else PoseMatchMode.INDEX
     matched = match_pose_rows(traj, fmt, store.ledger.frame_ids, store.ledger.stamps_ns, match=mode, max_dt_ns=max_dt_ns,
-                              where=str(path))
+                              where=str(path), index_hint=(
+                                  "frames of one instant (sessions of a merged store that share their stamps) are "
+                                  "told apart by no ground-truth row: diagnose each session's own store against its "
+                                  "ground truth"))
     if not matched.poses:
         why = f" ({stamp_ranges_text(traj, store.ledger.stamps_ns)})" if mode is PoseMatchMode.STAMP else ""
         raise StoreError(f"{path}: no ground-truth row matched a stored frame (by {mode.value}){why}")

@@ -39,6 +39,11 @@ class PoseMatch:
         return len(self.poses)
 
 
+INDEX_HINT = "match the rows by their order instead (`driftmap correct --match index`: data row i is frame_id i)"
+"""What :func:`match_trajectory` suggests when stamps cannot tell frames apart (``correct``'s way; a caller with
+another way out passes its own ``index_hint``)."""
+
+
 def match_pose_rows(
     trajectory: Trajectory,
     format: str,
@@ -48,6 +53,7 @@ def match_pose_rows(
     match: PoseMatchMode | str,
     max_dt_ns: int = 10_000_000,
     where: str = "the pose file",
+    index_hint: str = INDEX_HINT,
 ) -> PoseMatch:
     """:func:`match_trajectory` for a pose file read as ``format`` (``correct``, ``diagnose --gt``): a Redwood
     ``.log`` names its frames (the ``i`` of each ``i j n`` line), so ``match="index"`` takes those ids rather than
@@ -58,7 +64,8 @@ def match_pose_rows(
         named = trajectory.frame_ids if trajectory.frame_ids is not None else np.arange(len(trajectory))
         return match_trajectory(Trajectory(np.asarray(named, dtype=np.int64), trajectory.poses, trajectory.frame_ids),
                                 ids, ids, match=PoseMatchMode.STAMP, max_dt_ns=0)  # the same id, exactly
-    return match_trajectory(trajectory, frame_ids, stamps_ns, match=mode, max_dt_ns=max_dt_ns, where=where)
+    return match_trajectory(trajectory, frame_ids, stamps_ns, match=mode, max_dt_ns=max_dt_ns, where=where,
+                            index_hint=index_hint)
 
 
 def stamp_ranges_text(trajectory: Trajectory, stamps_ns: ArrayLike) -> str:
@@ -77,6 +84,7 @@ def match_trajectory(
     match: PoseMatchMode | str,
     max_dt_ns: int = 10_000_000,
     where: str = "the pose file",
+    index_hint: str = INDEX_HINT,
 ) -> PoseMatch:
     """Match the rows of ``trajectory`` to stored frames (``frame_ids`` with their ``stamps_ns``).
 
@@ -106,7 +114,7 @@ def match_trajectory(
         if max_dt < 0:
             raise StoreError(f"max_dt_ns must be >= 0, got {max_dt}")
         refuse_conflicting_rows(trajectory, where)
-        _refuse_shared_stamps(ids, stamps, min(SHARED_STAMP_NS, max_dt), where)
+        _refuse_shared_stamps(ids, stamps, min(SHARED_STAMP_NS, max_dt), where, index_hint)
         if n_rows == 0 or len(ids) == 0:
             frame_idx, row_of = np.zeros(0, dtype=np.intp), np.zeros(0, dtype=np.intp)
         else:
@@ -138,7 +146,8 @@ SHARED_STAMP_NS = 1_000_000
 told apart by a row's stamp: matching by stamp is refused (sessions of a merged store that share their stamps)."""
 
 
-def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], within_ns: int, where: str) -> None:
+def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], within_ns: int, where: str,
+                          index_hint: str = "") -> None:
     """Refuse stored frames whose stamps are closer than ``within_ns`` (the tolerance, at most
     :data:`SHARED_STAMP_NS`), or equal: a row cannot tell which of them it is for."""
     order = np.argsort(stamps, kind="stable")
@@ -149,8 +158,7 @@ def _refuse_shared_stamps(ids: NDArray[np.int64], stamps: NDArray[np.int64], wit
         raise StoreError(f"{where}: cannot match rows to frames by stamp: {close.size} pair(s) of stored frames have "
                          f"stamps less than {max(within_ns, 1) / 1e6:g} ms apart (frames {a} and {b}: "
                          f"{int(stamps[order[close[0]]])} and {int(stamps[order[close[0] + 1]])} ns), so a row "
-                         f"cannot tell which it is for; match the rows by their order instead (`driftmap correct --match index`: data "
-                         f"row i is frame_id i)")
+                         f"cannot tell which it is for; {index_hint or INDEX_HINT}")
 
 
 def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps: NDArray[np.int64],
