@@ -14,7 +14,6 @@ from hypothesis import strategies as st
 from driftmap.kernels.groups import (
     cell_residuals,
     dot_gathered,
-    group_counts,
     group_min_max,
     group_outer_sums,
     group_row_sums,
@@ -44,7 +43,6 @@ def test_sums_equal_bincount(seed: int, n_points: int, n_groups: int) -> None:
     assert np.array_equal(group_row_sums(ids, n_groups, values), expected)
     assert np.array_equal(group_sums(ids, n_groups, values[1]), expected[1])
     counts = np.bincount(ids, minlength=n_groups).astype(np.float64)
-    assert np.array_equal(group_counts(ids, n_groups), counts)
     assert np.array_equal(group_sums(ids, n_groups), counts)
     outer = group_outer_sums(ids, n_groups, values)
     for a in range(3):
@@ -154,7 +152,7 @@ def test_bad_ids_and_shapes_raise() -> None:
     with pytest.raises(IndexError):
         group_row_sums(np.array([-1, 0, 1]), 3, np.ones((2, 3)))
     with pytest.raises(IndexError):
-        group_counts(ids, 2)
+        group_sums(ids, 2)
     with pytest.raises(ValueError, match="weights must be"):
         group_row_sums(ids, 4, np.ones((2, 4)))
     with pytest.raises(ValueError, match="finite"):

@@ -23,6 +23,7 @@ from driftmap.config import SettingsModel
 from driftmap.errors import GeometryError
 from driftmap.frame import Frame, SensorKind
 from driftmap.preprocess.cloud import estimate_normals
+from driftmap.preprocess.deskew import point_motions, scan_motion
 from driftmap.preprocess.noise import NoiseModel
 
 if TYPE_CHECKING:
@@ -249,7 +250,7 @@ class DiagnosticCloud:
         for k, (xi, dt) in motions.items():  # frames with per-point times: deskewed as the map view places them
             a, b = self.offsets[k], self.offsets[k + 1]
             if b > a and times is not None:
-                D = _deskew_motions(times[a:b], xi, dt)
+                D = point_motions(times[a:b], xi, dt)
                 pts[a:b] = _apply(D, self.points_sensor[a:b], T[k])
                 nrm[a:b] = _apply(D, self.normals_sensor[a:b], T[k], rotate_only=True)
         origins = T[:, :3, 3].copy()
@@ -264,8 +265,6 @@ class DiagnosticCloud:
         left out (placed rigidly; the reason is logged at debug level). Empty when no frame has per-point times."""
         if self.timed is None or self.time_offset_ns is None or not self.timed.any():
             return {}
-        from driftmap.preprocess.deskew import scan_motion
-
         T = np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4)
         group = np.zeros(self.n_frames, np.int64) if self.row_group is None else self.row_group
         span = np.zeros(self.n_frames, np.int64) if self.time_span_ns is None else self.time_span_ns
@@ -312,15 +311,6 @@ def _usable_stored_normals(frame_id: int, normals: NDArray[np.float32] | None) -
 
 def _session_of_frames(sessions: Mapping[int, Sequence[int]] | None) -> dict[int, int] | None:
     return None if not sessions else {int(f): int(k) for k, fs in sessions.items() for f in fs}
-
-
-def _deskew_motions(offsets_ns: NDArray[np.int64], xi: NDArray[np.float64], dt_ns: int) -> NDArray[np.float64]:
-    """(n, 4, 4) ``exp((t_i / dt) xi)``: where each sample of a scan was seen from, relative to the frame's pose (the
-    map view's deskew, :func:`driftmap.preprocess.deskew.deskew_to_world`)."""
-    from driftmap import geometry
-
-    alpha = np.asarray(offsets_ns, dtype=np.float64) / float(dt_ns)
-    return geometry.se3_exp(alpha[:, None] * xi[None, :])
 
 
 def _apply(D: NDArray[np.float64], v_sensor: NDArray[np.float32], T_world_sensor: NDArray[np.float64],
@@ -430,7 +420,7 @@ class PlacedCloud:
             for k, (xi, dt) in self.scan_motions.items():
                 a, b = s.rejected_offsets[k], s.rejected_offsets[k + 1]
                 if b > a:
-                    world[a:b] = _apply(_deskew_motions(s.rejected_time_offset_ns[a:b], xi, dt),
+                    world[a:b] = _apply(point_motions(s.rejected_time_offset_ns[a:b], xi, dt),
                                         s.rejected_points_sensor[a:b], self.poses[k])
         return world
 

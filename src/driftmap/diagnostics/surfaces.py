@@ -19,7 +19,6 @@ from scipy.sparse.csgraph import connected_components
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.kernels.groups import (
     dot_gathered,
-    group_counts,
     group_outer_sums,
     group_row_sums,
     group_sums,
@@ -119,7 +118,7 @@ def surface_groups(cloud: PlacedCloud, size_m: float, *, normal_max_angle_deg: f
     # per group: point count, sum of normals, sum of positions (points in no group go to the extra bin G)
     g_all = np.full(n_pts, G, np.int64)
     g_all[use] = g
-    cnt = group_counts(g, G)
+    cnt = group_sums(g, G)
     n_sum = group_row_sums(g_all, G + 1, Nw)[:, :G].T
     p_sum = group_row_sums(g_all, G + 1, P)[:, :G].T
     label = np.arange(G, dtype=np.int64)

@@ -234,11 +234,6 @@ def group_sums(ids: np.ndarray, n: int, weights: np.ndarray | None = None) -> np
     return _sums(_ids(ids), int(n), w)
 
 
-def group_counts(ids: np.ndarray, n: int) -> np.ndarray:
-    """Per group ``0 .. n-1`` the number of points with that id as float64 (``np.bincount(ids, minlength=n)``)."""
-    return _counts(_ids(ids), int(n))
-
-
 def group_outer_sums(ids: np.ndarray, n: int, columns: np.ndarray) -> np.ndarray:
     """Per group the (3, 3) sum of ``c c^T`` over the (3, N) ``columns`` of its points: (n, 3, 3), every entry equal
     to ``np.bincount(ids, columns[a] * columns[b], minlength=n)``."""

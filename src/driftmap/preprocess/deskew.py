@@ -69,13 +69,18 @@ def scan_motion(stamps_ns: NDArray[np.int64], poses: NDArray[np.float64], row: i
     return ScanMotion(xi, dt, a if extrapolated else b, extrapolated), ""
 
 
+def point_motions(offsets_ns: NDArray[np.integer], xi: NDArray[np.float64], dt_ns: int) -> NDArray[np.float64]:
+    """(n, 4, 4) ``exp((t_i / dt) xi)``: where each point of a scan was seen from, relative to the frame's pose."""
+    alpha = np.asarray(offsets_ns, dtype=np.float64) / float(dt_ns)
+    return geometry.se3_exp(alpha[:, None] * np.asarray(xi, dtype=np.float64)[None, :])
+
+
 def deskew_to_world(points_sensor: NDArray[np.floating], offsets_ns: NDArray[np.integer],
                     T_world_sensor: NDArray[np.float64], motion: ScanMotion) -> NDArray[np.float32]:
     """World points of one scan: point ``i`` placed with ``T_world_sensor @ exp((t_i / dt) xi)`` (float64 products,
     float32 result)."""
     p = np.asarray(points_sensor, dtype=np.float64)
-    alpha = np.asarray(offsets_ns, dtype=np.float64) / float(motion.dt_ns)
-    D = geometry.se3_exp(alpha[:, None] * motion.xi[None, :])
+    D = point_motions(offsets_ns, motion.xi, motion.dt_ns)
     local = np.einsum("nij,nj->ni", D[:, :3, :3], p) + D[:, :3, 3]
     T = np.asarray(T_world_sensor, dtype=np.float64)
     return (local @ T[:3, :3].T + T[:3, 3]).astype(np.float32)
