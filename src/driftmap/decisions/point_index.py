@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from driftmap.kernels.queries import ball_members, box_members, column_runs, frames_in_box
 from driftmap.voxels import ABSOLUTE_GRID
 
 if TYPE_CHECKING:
@@ -118,53 +119,15 @@ class PointIndex:
         b = np.floor(np.minimum(hi, (e_hi + 2) * self.cell_m) / self.cell_m).astype(np.int64)
         return np.maximum(a, e_lo - 1), np.minimum(b, e_hi + 1)
 
-    def _runs(self, a: NDArray[np.int64], b: NDArray[np.int64], columns: NDArray[np.int64] | None = None,
-              keys: NDArray[np.int64] | None = None) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """Start and stop (into the sorted points, or into ``keys``) of the cells ``a .. b`` (inclusive), one run per
-        (x, y) column (or per given column, (M, 2), over z ``a[2] .. b[2]``)."""
-        keys = self.keys if keys is None else keys
-        if columns is None:
-            i, j = np.meshgrid(np.arange(a[0], b[0] + 1), np.arange(a[1], b[1] + 1), indexing="ij")
-            i, j = i.ravel(), j.ravel()
-        else:
-            i, j = columns[:, 0], columns[:, 1]
-        # a query may reach beyond the grid, where no point lies: its columns there are empty, its z range clipped
-        inside = (i >= _CELL_LO) & (i <= _CELL_HI) & (j >= _CELL_LO) & (j <= _CELL_HI)
-        if b[2] < _CELL_LO or a[2] > _CELL_HI or a[2] > b[2]:
-            inside[:] = False
-        za, zb = np.clip([a[2], b[2]], _CELL_LO, _CELL_HI)
-        starts, stops = np.zeros(len(i), np.int64), np.zeros(len(i), np.int64)
-        ii, jj = i[inside], j[inside]
-        starts[inside] = np.searchsorted(keys, _pack(ii, jj, np.full_like(ii, za)), "left")
-        stops[inside] = np.searchsorted(keys, _pack(ii, jj, np.full_like(ii, zb)), "right")
-        return starts, stops
+    def _column_runs(self, a: NDArray[np.int64], b: NDArray[np.int64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """:meth:`_runs` of the cells ``a .. b``, one per (x, y) column (compiled)."""
+        return column_runs(self.keys, a, b, _CELL_LO, _CELL_HI, ABSOLUTE_GRID.lo, ABSOLUTE_GRID.span)
 
-    @staticmethod
-    def _gather(starts: NDArray[np.int64], stops: NDArray[np.int64]) -> NDArray[np.int64]:
-        """The sorted positions of the runs, concatenated."""
-        n = stops - starts
-        keep = n > 0
-        starts, n = starts[keep], n[keep]
-        total = int(n.sum())
-        if total == 0:
-            return np.zeros(0, np.int64)
-        shift = np.repeat(starts - np.concatenate([[0], np.cumsum(n)[:-1]]), n)
-        return shift + np.arange(total, dtype=np.int64)
-
-    def _result(self, at: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """The points at sorted positions ``at``, in map order, as float64, and their frames."""
-        g = np.sort(self.order[at]).astype(np.int64)  # their indices in the view: map order
-        per_frame = np.diff(np.searchsorted(g, self.starts))  # g is sorted: each frame's points are one run of it
+    def _members(self, members: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """The points of the view indices ``members`` (any order), in map order, as float64, and their frames."""
+        g = np.sort(members)
+        per_frame = np.diff(np.searchsorted(g, self.starts))
         return self.world[g].astype(np.float64), np.repeat(self.frame_ids, per_frame)
-
-    def _in_box(self, at: NDArray[np.int64], lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.bool_]:
-        """Which of the sorted positions ``at`` hold a point with ``lo <= p <= hi`` (compared in float64: ``lo`` and
-        ``hi`` are float64 arrays, their items float64 scalars, so the float32 coordinates are promoted)."""
-        p = self.points[at]
-        inside = (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0])
-        inside &= (p[:, 1] >= lo[1]) & (p[:, 1] <= hi[1])
-        inside &= (p[:, 2] >= lo[2]) & (p[:, 2] <= hi[2])
-        return inside
 
     # ------------------------------------------------------------------------------------------- queries
     def box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -172,42 +135,24 @@ class PointIndex:
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         if np.any(hi < lo):
             return np.zeros((0, 3)), np.zeros(0, np.int64)
-        at = self._gather(*self._runs(*self._cell_range(lo, hi)))
-        return self._result(at[self._in_box(at, lo, hi)])
+        return self._members(box_members(self.points, self.order, *self._column_runs(*self._cell_range(lo, hi)), lo, hi))
 
     def ball(self, centre: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The points with ``dx*dx + dy*dy + dz*dz <= radius_m**2`` (float64) and their frames, in map order."""
         c = np.asarray(centre, dtype=np.float64)
-        at = self._gather(*self._runs(*self._cell_range(c - radius_m, c + radius_m)))
-        p = self.points[at]
-        dx, dy, dz = p[:, 0] - c[0], p[:, 1] - c[1], p[:, 2] - c[2]  # float64 (c's items are float64 scalars)
-        return self._result(at[dx * dx + dy * dy + dz * dz <= radius_m**2])
+        runs = self._column_runs(*self._cell_range(c - radius_m, c + radius_m))
+        return self._members(ball_members(self.points, self.order, *runs, c, float(radius_m) ** 2))
 
     def frames_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.int64]:
         """The frames (sorted) with a point in the box ``lo .. hi``: every frame of a cell lying wholly inside it
         (floor(p / cell) strictly between the box's corner cells on every axis), and of the points of the border
-        cells those of the other frames that pass the box test."""
+        cells those of the other frames that pass the box test (compiled)."""
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         if np.any(hi < lo):
             return np.zeros(0, np.int64)
         a, b = self._cell_range(lo, hi)
-        found = np.zeros(len(self.frame_ids), bool)
-        if np.all(b - a >= 2):  # inner cells: a + 1 .. b - 1 on every axis (their points are inside the box)
-            found[self.pair_rows[self._gather(*self._runs(a + 1, b - 1, keys=self.pair_keys))]] = True
-            ii, jj = np.meshgrid(np.arange(a[0], b[0] + 1), np.arange(a[1], b[1] + 1), indexing="ij")
-            ii, jj = ii.ravel(), jj.ravel()
-            rim = (ii == a[0]) | (ii == b[0]) | (jj == a[1]) | (jj == b[1])
-            cols_rim = np.column_stack([ii[rim], jj[rim]])
-            cols_in = np.column_stack([ii[~rim], jj[~rim]])
-            border = [self._runs(a, b, cols_rim),  # the rim columns, whole
-                      self._runs(a, np.array([b[0], b[1], a[2]]), cols_in),  # the bottom and top cells of the rest
-                      self._runs(np.array([a[0], a[1], b[2]]), b, cols_in)]
-            at = self._gather(np.concatenate([s for s, _ in border]), np.concatenate([t for _, t in border]))
-        else:
-            at = self._gather(*self._runs(a, b))
-        at = at[~found[self.rows[at]]]
-        if len(at):
-            found[self.rows[at[self._in_box(at, lo, hi)]]] = True
+        found = frames_in_box(self.keys, self.points, self.rows, self.pair_keys, self.pair_rows, len(self.frame_ids),
+                              a, b, lo, hi, _CELL_LO, _CELL_HI, ABSOLUTE_GRID.lo, ABSOLUTE_GRID.span)
         return self.frame_ids[found]  # frame_ids in view order; sorted below by the caller's np.unique
 
 

@@ -20,6 +20,8 @@ from numpy.typing import NDArray
 
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
+from driftmap.kernels import queries as kq
+from driftmap.kernels.queries import group_balls, group_minima
 from driftmap.volume.queries import surface_box_distances, surface_tree, surface_voxel_reach_m
 
 logger = logging.getLogger(__name__)
@@ -271,88 +273,46 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
     need = np.flatnonzero(d_centre <= min(float(d_centre.min()), bound + MARGIN_CAP_M) + bound + r_max)
     if len(need) == 0:
         return signed, nearest
-    scratch = np.zeros(len(surface), bool)
-    for start in range(0, len(need), GROUP):
-        rows = need[start:start + GROUP]
-        centre = samples[rows].mean(axis=0)
-        spread = float(np.linalg.norm(samples[rows] - centre, axis=1).max())
-        within = spread + bound + r_max + min(float(d_centre[rows].max()), bound + MARGIN_CAP_M)
-        cand = np.asarray(tree.query_ball_point(centre, within), dtype=np.int64)
-        if len(cand) == 0:
-            continue
-        cand = _could_be_nearest(q, samples[rows], centre, spread, bound, cand, nearest[rows], surface, reach, scratch)
-        d = footprint_signed_distances(q, samples[rows], surface[cand])
-        d -= reach[cand][None, :]
-        j = np.argmin(d, axis=1)
-        signed[rows] = d[np.arange(len(rows)), j]
-        nearest[rows] = cand[j]
+    if q.footprint == "box":
+        s0, s1, s2 = (float(x) for x in 0.5 * np.asarray(q.size_m, dtype=np.float64))
+    else:
+        s0, s1, s2 = float(q.size_m[0]), 0.5 * float(q.size_m[1]), 0.0
+    centres, radius = group_balls(samples, need, GROUP, bound, r_max, d_centre, bound + MARGIN_CAP_M, surface, reach,
+                                  nearest,
+                                  q.footprint == "box", s0, s1, s2)
+    found = tree.query_ball_point(centres, radius, return_sorted=False)  # per group, in the tree's order (as one query)
+    counts = np.fromiter((len(c) for c in found), np.int64, len(found))
+    cand = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(counts.sum()))
+    group_minima(samples, need, GROUP, surface, reach, cand, np.concatenate([[0], np.cumsum(counts)]),
+                 q.footprint == "box", s0, s1, s2, signed, nearest)
     return signed, nearest
-
-
-PRUNE_EPS_M = 1e-9
-"""_could_be_nearest: slack for the float rounding of the bounds compared"""
-
-
-def _could_be_nearest(q: CollisionQuery, centres: NDArray[np.float64], centre: NDArray[np.float64], spread: float,
-                      bound: float, cand: NDArray[np.int64], nearest: NDArray[np.int64], surface: NDArray[np.float64],
-                      reach: NDArray[np.float64], scratch: NDArray[np.bool_]) -> NDArray[np.int64]:
-    """The candidates (in their order) that may give a placement of ``centres`` (within ``spread`` of ``centre``) its
-    smallest value: a point p gives at least ``|p - centre| - spread - bound - reach(p)`` (the footprint lies in the
-    ball of its bounding radius ``bound`` around its centre), and each placement's smallest value is at most what the
-    placements' nearest surface points among the candidates give it; a candidate whose bound exceeds the largest of
-    these cannot be any placement's smallest, nor tie with it, so the smallest values and their (first) indices are
-    those of all the candidates. ``scratch``: one False per surface point (left False)."""
-    scratch[cand] = True
-    nearest = nearest[scratch[nearest]]  # the smallest values are over the candidates only
-    scratch[cand] = False
-    if len(nearest) == 0:
-        return cand
-    upper = footprint_signed_distances(q, centres, surface[nearest])
-    upper -= reach[nearest][None, :]
-    limit = float(upper.min(axis=1).max()) + PRUNE_EPS_M
-    p = surface[cand]
-    dx, dy, dz = p[:, 0] - centre[0], p[:, 1] - centre[1], p[:, 2] - centre[2]
-    low = np.sqrt(dx * dx + dy * dy + dz * dz) - (spread + bound) - reach[cand]
-    return cand[low <= limit]
 
 
 def _unknown_counts(layers: VolumeLayers, q: CollisionQuery, samples: NDArray[np.float64]) -> NDArray[np.int64]:
     """Per sample, how many unknown voxels (or voxels outside the grid) the footprint overlaps (their cubes, not only
     their centres: a footprint smaller than a voxel inside unknown space is never clear): one summed-volume lookup
-    per sample for a box, one per column of its cross-section for a cylinder."""
+    per sample for a box, one per column of its cross-section for a cylinder (compiled)."""
     vs, half = layers.grid.voxel_size_m, q.half_extent_m
     lo = np.floor((samples - half) / vs).astype(np.int64)
     hi = np.floor((samples + half) / vs).astype(np.int64)
     if q.footprint == "box":
         return unknown_in_boxes(layers, lo, hi)
-    n = int((hi[:, :2] - lo[:, :2]).max()) + 1
-    grid = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), axis=-1).reshape(-1, 2)
-    cols = lo[:, None, :2] + grid[None]  # (S, n*n, 2) candidate columns
-    gap2 = _gap(cols[..., 0], samples[:, None, 0], vs) ** 2 + _gap(cols[..., 1], samples[:, None, 1], vs) ** 2
-    inside = (gap2 <= q.size_m[0] ** 2) & np.all(cols <= hi[:, None, :2], axis=-1)
-    which, k = np.nonzero(inside)
-    boxes_lo = np.column_stack([cols[which, k], lo[which, 2]])
-    boxes_hi = np.column_stack([cols[which, k], hi[which, 2]])
-    counts = unknown_in_boxes(layers, boxes_lo, boxes_hi)
-    return np.bincount(which, weights=counts, minlength=len(samples)).astype(np.int64)
+    o, shape = _grid_index(layers)
+    return kq.unknown_in_cylinders(unknown_sat(layers), o, shape, samples, lo, hi, float(vs),
+                                   float(q.size_m[0] ** 2))
+
+
+def _grid_index(layers: VolumeLayers) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    return (np.asarray(layers.grid.origin_index, dtype=np.int64).reshape(3),
+            np.asarray(layers.grid.shape, dtype=np.int64).reshape(3))
 
 
 def unknown_in_boxes(layers: VolumeLayers, lo: NDArray[np.int64], hi: NDArray[np.int64]) -> NDArray[np.int64]:
     """Unknown voxels in lattice boxes ``lo .. hi`` (inclusive, (K, 3) each; voxels outside the grid count as
-    unknown), from the summed-volume table of the unknown voxels: eight lookups per box."""
-    sat = unknown_sat(layers)
-    o, shape = np.asarray(layers.grid.origin_index), np.asarray(layers.grid.shape)
-    size = np.prod(np.maximum(hi - lo + 1, 0), axis=1)
-    a = np.clip(lo - o, 0, shape)  # first voxel inside, as a SAT index (SAT[i] sums voxels < i)
-    b = np.clip(hi - o + 1, 0, shape)
-    inside = np.prod(np.maximum(b - a, 0), axis=1)
-    total = np.zeros(len(lo), dtype=np.int64)
-    for corner in range(8):
-        pick = [(corner >> k) & 1 for k in range(3)]
-        idx = [np.where(pick[k], b[:, k], a[:, k]) for k in range(3)]
-        sign = (-1) ** (3 - sum(pick))
-        total += sign * sat[idx[0], idx[1], idx[2]].astype(np.int64)
-    return np.where(inside > 0, total, 0) + (size - inside)
+    unknown), from the summed-volume table of the unknown voxels: eight lookups per box (compiled)."""
+    o, shape = _grid_index(layers)
+    return kq.unknown_in_boxes(unknown_sat(layers), o, shape, np.ascontiguousarray(lo, dtype=np.int64),
+                               np.ascontiguousarray(hi, dtype=np.int64))
 
 
 def unknown_in_columns(layers: VolumeLayers, gx: NDArray[np.int64], gy: NDArray[np.int64],

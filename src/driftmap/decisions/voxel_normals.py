@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.decisions.point_index import point_index
+from driftmap.kernels.queries import voxel_cells as _voxel_cells
 from driftmap.preprocess.cloud import estimate_normals
 
 if TYPE_CHECKING:
@@ -45,24 +46,12 @@ EPS_M = 1e-6
 def voxel_cells(pts: NDArray[np.float64], voxel_m: float
                 ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
     """The mean point of every occupied ``voxel_m`` voxel of the world lattice (in the order of their keys), each
-    point's voxel (an index into the means) and each voxel's lattice cell (M, 3)."""
-    keys = np.floor(pts / voxel_m).astype(np.int64)
-    base = np.array([keys[:, k].min() for k in range(3)])  # per column: no reduction over a short last axis
-    keys -= base
-    dims = np.array([keys[:, k].max() for k in range(3)]) + 1
-    packed = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    cells = int(np.prod(dims))
-    if cells <= DENSE_PER_POINT * len(pts):  # each point's rank among the occupied voxels, from a dense table
-        occupied = np.bincount(packed, minlength=cells) > 0
-        inv = (np.cumsum(occupied) - 1)[packed]  # the same as np.unique's inverse, without sorting every point
-        uniq = np.flatnonzero(occupied)
-    else:
-        uniq, inv = np.unique(packed, return_inverse=True)
-        inv = inv.ravel()
-    n = np.bincount(inv)
-    means = np.stack([np.bincount(inv, weights=pts[:, k], minlength=len(n)) for k in range(3)], axis=1) / n[:, None]
-    lattice = np.stack(np.unravel_index(uniq, tuple(int(d) for d in dims)), axis=1).astype(np.int64) + base
-    return means, inv, lattice
+    point's voxel (an index into the means) and each voxel's lattice cell (M, 3): the points' sums per voxel in
+    point order, divided by the count (compiled; a region whose box spans at most :data:`DENSE_PER_POINT` voxels per
+    point ranks them from a dense table, a larger one by sorting)."""
+    if len(pts) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 3), np.int64)
+    return _voxel_cells(np.ascontiguousarray(pts, dtype=np.float64), float(voxel_m), DENSE_PER_POINT)
 
 
 @dataclass

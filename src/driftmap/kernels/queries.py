@@ -1,0 +1,356 @@
+"""Compiled hot loops of the decisions' per-query work (numba): the points of a box or a ball read from a point index
+sorted by cell (:mod:`driftmap.decisions.point_index`).
+
+Each kernel does what the numpy expressions it replaces do, in the same float64 arithmetic (float32 coordinates
+promoted, no fused multiply-add: numba compiles without fast-math), so the points it selects are the same ones;
+tests/test_kernels_queries.py checks them against the numpy expressions.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def _column_runs(keys, i0, i1, j0, j1, za, zb, cell_lo, cell_hi, l0, l1, l2, s1, s2):  # pragma: no cover - compiled
+    """Start and stop (into the sorted ``keys``) of the cells ``(i, j, za .. zb)`` of every column ``i0 .. i1`` x
+    ``j0 .. j1`` (i outer, j inner); columns and z cut to the key grid ``cell_lo .. cell_hi``."""
+    n_cols = max(i1 - i0 + 1, 0) * max(j1 - j0 + 1, 0)
+    starts = np.zeros(n_cols, np.int64)
+    stops = np.zeros(n_cols, np.int64)
+    if zb < cell_lo or za > cell_hi or za > zb:
+        return starts, stops
+    za, zb = max(za, cell_lo), min(zb, cell_hi)
+    c = 0
+    for i in range(i0, i1 + 1):
+        for j in range(j0, j1 + 1):
+            if cell_lo <= i <= cell_hi and cell_lo <= j <= cell_hi:
+                base = ((i - l0) * s1 + (j - l1)) * s2
+                starts[c] = np.searchsorted(keys, base + (za - l2), side="left")
+                stops[c] = np.searchsorted(keys, base + (zb - l2), side="right")
+            c += 1
+    return starts, stops
+
+
+@numba.njit(cache=True, nogil=True)
+def box_members(points, order, starts, stops, lo, hi):  # pragma: no cover - compiled
+    """``order[at]`` of the sorted positions ``at`` in the runs ``starts .. stops`` whose point ``p`` has
+    ``lo <= p <= hi`` on every axis (float64)."""
+    total = 0
+    for c in range(len(starts)):
+        total += max(stops[c] - starts[c], 0)
+    out = np.empty(total, np.int64)
+    n = 0
+    for c in range(len(starts)):
+        for at in range(starts[c], stops[c]):
+            x, y, z = np.float64(points[at, 0]), np.float64(points[at, 1]), np.float64(points[at, 2])
+            if x >= lo[0] and x <= hi[0] and y >= lo[1] and y <= hi[1] and z >= lo[2] and z <= hi[2]:
+                out[n] = order[at]
+                n += 1
+    return out[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def ball_members(points, order, starts, stops, centre, radius2):  # pragma: no cover - compiled
+    """``order[at]`` of the sorted positions in the runs whose point has ``dx*dx + dy*dy + dz*dz <= radius2``
+    (float64, summed left to right)."""
+    total = 0
+    for c in range(len(starts)):
+        total += max(stops[c] - starts[c], 0)
+    out = np.empty(total, np.int64)
+    n = 0
+    for c in range(len(starts)):
+        for at in range(starts[c], stops[c]):
+            dx = np.float64(points[at, 0]) - centre[0]
+            dy = np.float64(points[at, 1]) - centre[1]
+            dz = np.float64(points[at, 2]) - centre[2]
+            if dx * dx + dy * dy + dz * dz <= radius2:
+                out[n] = order[at]
+                n += 1
+    return out[:n]
+
+
+def column_runs(keys: np.ndarray, a: np.ndarray, b: np.ndarray, cell_lo: int, cell_hi: int,
+                lo: tuple[int, int, int], span: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of the cells ``a .. b`` (inclusive) in ``keys`` packed on the grid ``lo``/``span``, one per (x, y)
+    column (numpy's ``meshgrid(..., indexing="ij")`` order)."""
+    return _column_runs(keys, int(a[0]), int(b[0]), int(a[1]), int(b[1]), int(a[2]), int(b[2]), int(cell_lo),
+                        int(cell_hi), int(lo[0]), int(lo[1]), int(lo[2]), int(span[1]), int(span[2]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _frames_in_box(keys, points, rows, pair_keys, pair_rows, n_rows, a, b, lo, hi, cell_lo, cell_hi, l0, l1, l2,
+                   s1, s2):  # pragma: no cover - compiled
+    found = np.zeros(n_rows, np.bool_)
+    if b[2] < cell_lo or a[2] > cell_hi or a[2] > b[2]:
+        return found
+    za, zb = max(a[2], cell_lo), min(b[2], cell_hi)
+    inner = b[0] - a[0] >= 2 and b[1] - a[1] >= 2 and b[2] - a[2] >= 2
+    if inner:  # every frame of a cell wholly inside the box (cells a + 1 .. b - 1 on every axis)
+        for i in range(max(a[0] + 1, cell_lo), min(b[0] - 1, cell_hi) + 1):
+            for j in range(max(a[1] + 1, cell_lo), min(b[1] - 1, cell_hi) + 1):
+                base = ((i - l0) * s1 + (j - l1)) * s2
+                s = np.searchsorted(pair_keys, base + (max(a[2] + 1, cell_lo) - l2), side="left")
+                t = np.searchsorted(pair_keys, base + (min(b[2] - 1, cell_hi) - l2), side="right")
+                for k in range(s, t):
+                    found[pair_rows[k]] = True
+    for i in range(max(a[0], cell_lo), min(b[0], cell_hi) + 1):
+        for j in range(max(a[1], cell_lo), min(b[1], cell_hi) + 1):
+            base = ((i - l0) * s1 + (j - l1)) * s2
+            rim = (not inner) or i == a[0] or i == b[0] or j == a[1] or j == b[1]
+            for part in range(1 if rim else 2):  # a rim column whole, another its bottom and top cells
+                z_lo = za if rim or part == 0 else zb
+                z_hi = zb if rim or part == 1 else za
+                s = np.searchsorted(keys, base + (z_lo - l2), side="left")
+                t = np.searchsorted(keys, base + (z_hi - l2), side="right")
+                for at in range(s, t):
+                    r = rows[at]
+                    if found[r]:
+                        continue
+                    x, y, z = np.float64(points[at, 0]), np.float64(points[at, 1]), np.float64(points[at, 2])
+                    if x >= lo[0] and x <= hi[0] and y >= lo[1] and y <= hi[1] and z >= lo[2] and z <= hi[2]:
+                        found[r] = True
+    return found
+
+
+def frames_in_box(keys: np.ndarray, points: np.ndarray, rows: np.ndarray, pair_keys: np.ndarray, pair_rows: np.ndarray,
+                  n_rows: int, a: np.ndarray, b: np.ndarray, lo: np.ndarray, hi: np.ndarray, cell_lo: int, cell_hi: int,
+                  grid_lo: tuple[int, int, int], span: tuple[int, int, int]) -> np.ndarray:
+    """Per frame row, whether a point of it lies in the box ``lo .. hi`` (float64 test), the box's cells being
+    ``a .. b``: the frames of the cells wholly inside from the (cell, frame) pairs, the points of the border cells
+    tested (those of frames not found yet)."""
+    return _frames_in_box(keys, points, rows, pair_keys, pair_rows, int(n_rows), np.asarray(a, np.int64),
+                          np.asarray(b, np.int64), np.asarray(lo, np.float64), np.asarray(hi, np.float64),
+                          int(cell_lo), int(cell_hi), int(grid_lo[0]), int(grid_lo[1]), int(grid_lo[2]), int(span[1]),
+                          int(span[2]))
+
+
+# ------------------------------------------------------------------------------------------------ footprints
+@numba.njit(cache=True, nogil=True)
+def group_balls(samples, need, group, bound, r_max, d_centre, cap, surface, reach, nearest, is_box, s0, s1, s2
+                ):  # pragma: no cover - compiled
+    """Per group of ``group`` consecutive rows of ``need`` (footprint placements): the mean of its samples (summed
+    in row order, then divided) and the radius around it that holds every surface point that can give a placement
+    its smallest signed distance. That is ``within = spread + bound + r_max + min(largest d_centre, cap)``
+    (``spread``: the largest distance of a sample from the mean), cut to ``limit + spread + bound + r_max`` where
+    ``limit`` is the largest over the placements of the smallest value (signed distance less reach) the group's
+    nearest points (``nearest``) give it: a point p gives a placement at least ``|p - mean| - spread - bound - reach(p)``, so one farther away gives no
+    placement less than its limit (nor ties with it). The cut is made only when every one of those nearest points lies
+    inside ``within`` (surely: by a margin of rounding), so that the limit bounds the smallest value over that ball."""
+    n_groups = (len(need) + group - 1) // group
+    centres = np.zeros((n_groups, 3))
+    radius = np.zeros(n_groups)
+    for g in range(n_groups):
+        a, b = g * group, min((g + 1) * group, len(need))
+        for k in range(3):
+            s = 0.0
+            for r in range(a, b):
+                s += samples[need[r], k]
+            centres[g, k] = s / (b - a)
+        spread = 0.0
+        far = -np.inf
+        for r in range(a, b):
+            dx = samples[need[r], 0] - centres[g, 0]
+            dy = samples[need[r], 1] - centres[g, 1]
+            dz = samples[need[r], 2] - centres[g, 2]
+            spread = max(spread, np.sqrt(dx * dx + dy * dy + dz * dz))
+            far = max(far, d_centre[need[r]])
+        within = spread + bound + r_max + min(far, cap)
+        radius[g] = within
+        inside = True
+        for r in range(a, b):
+            m = nearest[need[r]]
+            dx = surface[m, 0] - centres[g, 0]
+            dy = surface[m, 1] - centres[g, 1]
+            dz = surface[m, 2] - centres[g, 2]
+            inside = inside and np.sqrt(dx * dx + dy * dy + dz * dz) <= within - 1e-9
+        if not inside:
+            continue
+        limit = -np.inf
+        for r in range(a, b):
+            row = need[r]
+            best = np.inf
+            for t in range(a, b):
+                m = nearest[need[t]]
+                best = min(best, _signed(surface[m, 0], surface[m, 1], surface[m, 2], samples[row, 0], samples[row, 1],
+                                         samples[row, 2], is_box, s0, s1, s2) - reach[m])
+            limit = max(limit, best)
+        radius[g] = min(within, limit + spread + bound + r_max + 1e-9)
+    return centres, radius
+
+
+@numba.njit(cache=True, nogil=True)
+def _signed(px, py, pz, cx, cy, cz, is_box, s0, s1, s2):  # pragma: no cover - compiled
+    """The footprint's signed distance (as ``space.footprint_signed_distances``) of one point to one placement: a
+    box of half sizes ``s0, s1, s2``, or a cylinder of radius ``s0`` and half height ``s1``."""
+    if is_box:
+        d0 = abs(px - cx) - s0
+        d1 = abs(py - cy) - s1
+        d2 = abs(pz - cz) - s2
+        deepest = max(max(d0, d1), d2)
+        m0, m1, m2 = max(d0, 0.0), max(d1, 0.0), max(d2, 0.0)
+        out = np.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+    else:
+        d0 = np.hypot(px - cx, py - cy) - s0
+        d1 = abs(pz - cz) - s1
+        deepest = max(d0, d1)
+        m0, m1 = max(d0, 0.0), max(d1, 0.0)
+        out = np.sqrt(m0 * m0 + m1 * m1)
+    return deepest if deepest <= 0 else out
+
+
+@numba.njit(cache=True, nogil=True)
+def group_minima(samples, need, group, surface, reach, cand, cand_starts, is_box, s0, s1, s2, signed, nearest
+                 ):  # pragma: no cover - compiled
+    """Per sample of each group: the smallest signed distance of the footprint to the group's candidate surface
+    points ``cand[cand_starts[g]:cand_starts[g + 1]]`` less their reach, and the first candidate giving it (written
+    into ``signed`` / ``nearest``; a group without candidates is left as it is)."""
+    n_groups = len(cand_starts) - 1
+    for g in range(n_groups):
+        c0, c1 = cand_starts[g], cand_starts[g + 1]
+        if c1 == c0:
+            continue
+        for r in range(g * group, min((g + 1) * group, len(need))):
+            row = need[r]
+            cx, cy, cz = samples[row, 0], samples[row, 1], samples[row, 2]
+            best = np.inf
+            at = -1
+            for c in range(c0, c1):
+                j = cand[c]
+                v = _signed(surface[j, 0], surface[j, 1], surface[j, 2], cx, cy, cz, is_box, s0, s1, s2) - reach[j]
+                if at < 0 or v < best:
+                    best, at = v, j
+            signed[row] = best
+            nearest[row] = at
+
+
+# ------------------------------------------------------------------------------------------------ unknown voxels
+@numba.njit(cache=True, nogil=True)
+def _sat_box(sat, o, shape, l0, l1, l2, h0, h1, h2):  # pragma: no cover - compiled
+    """Unknown voxels in the lattice box ``l .. h`` (inclusive) from the summed-volume table ``sat``; voxels outside
+    the grid (origin ``o``, ``shape``) count as unknown."""
+    size = max(h0 - l0 + 1, 0) * max(h1 - l1 + 1, 0) * max(h2 - l2 + 1, 0)
+    a0, b0 = min(max(l0 - o[0], 0), shape[0]), min(max(h0 - o[0] + 1, 0), shape[0])
+    a1, b1 = min(max(l1 - o[1], 0), shape[1]), min(max(h1 - o[1] + 1, 0), shape[1])
+    a2, b2 = min(max(l2 - o[2], 0), shape[2]), min(max(h2 - o[2] + 1, 0), shape[2])
+    inside = max(b0 - a0, 0) * max(b1 - a1, 0) * max(b2 - a2, 0)
+    total = 0
+    if inside > 0:
+        total = (np.int64(sat[b0, b1, b2]) - np.int64(sat[a0, b1, b2]) - np.int64(sat[b0, a1, b2])
+                 - np.int64(sat[b0, b1, a2]) + np.int64(sat[a0, a1, b2]) + np.int64(sat[a0, b1, a2])
+                 + np.int64(sat[b0, a1, a2]) - np.int64(sat[a0, a1, a2]))
+    return total + (size - inside)
+
+
+@numba.njit(cache=True, nogil=True)
+def unknown_in_boxes(sat, origin, shape, lo, hi):  # pragma: no cover - compiled
+    """Per lattice box ``lo[k] .. hi[k]`` (inclusive), its unknown voxels (:func:`_sat_box`)."""
+    out = np.empty(len(lo), np.int64)
+    for k in range(len(lo)):
+        out[k] = _sat_box(sat, origin, shape, lo[k, 0], lo[k, 1], lo[k, 2], hi[k, 0], hi[k, 1], hi[k, 2])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _gap(cell, x, vs):  # pragma: no cover - compiled
+    return max(max(cell * vs - x, x - (cell + 1) * vs), 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def unknown_in_cylinders(sat, origin, shape, samples, lo, hi, vs, radius2):  # pragma: no cover - compiled
+    """Per placement of a vertical cylinder (centre ``samples[s]``, lattice bounding box ``lo[s] .. hi[s]``): the
+    unknown voxels of the columns of its box whose square comes within the radius (``gap_x**2 + gap_y**2 <=
+    radius2``), between its box's z bounds."""
+    out = np.zeros(len(samples), np.int64)
+    n = 0
+    for s in range(len(samples)):
+        n = max(n, max(hi[s, 0] - lo[s, 0], hi[s, 1] - lo[s, 1]) + 1)
+    for s in range(len(samples)):
+        total = 0
+        for di in range(n):
+            cx = lo[s, 0] + di
+            if cx > hi[s, 0]:
+                continue
+            gx = _gap(cx, samples[s, 0], vs)
+            for dj in range(n):
+                cy = lo[s, 1] + dj
+                if cy > hi[s, 1]:
+                    continue
+                gy = _gap(cy, samples[s, 1], vs)
+                if gx * gx + gy * gy <= radius2:
+                    total += _sat_box(sat, origin, shape, cx, cy, lo[s, 2], cx, cy, hi[s, 2])
+        out[s] = total
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ voxel means
+@numba.njit(cache=True, nogil=True)
+def voxel_cells(pts, voxel_m, dense_per_point):  # pragma: no cover - compiled
+    """The mean point of every occupied ``voxel_m`` voxel of the world lattice (ordered by lattice cell, x slowest),
+    each point's voxel and each voxel's lattice cell, as ``decisions.voxel_normals.voxel_cells`` computes them: the
+    sums in point order (``np.bincount``'s), then divided by the count."""
+    n = len(pts)
+    keys = np.empty((n, 3), np.int64)
+    for i in range(n):
+        for k in range(3):
+            keys[i, k] = np.int64(np.floor(pts[i, k] / voxel_m))
+    base = np.empty(3, np.int64)
+    dims = np.empty(3, np.int64)
+    for k in range(3):
+        lo, hi = keys[0, k], keys[0, k]
+        for i in range(1, n):
+            lo = min(lo, keys[i, k])
+            hi = max(hi, keys[i, k])
+        base[k], dims[k] = lo, hi - lo + 1
+    packed = np.empty(n, np.int64)
+    for i in range(n):
+        packed[i] = ((keys[i, 0] - base[0]) * dims[1] + (keys[i, 1] - base[1])) * dims[2] + (keys[i, 2] - base[2])
+    inv = np.empty(n, np.int64)
+    if dims[0] * dims[1] * dims[2] <= dense_per_point * n:
+        rank = np.zeros(dims[0] * dims[1] * dims[2], np.int64)
+        for i in range(n):
+            rank[packed[i]] = 1
+        m = 0
+        for c in range(len(rank)):
+            if rank[c]:
+                rank[c] = m
+                m += 1
+            else:
+                rank[c] = -1
+        uniq = np.empty(m, np.int64)
+        for c in range(len(rank)):
+            if rank[c] >= 0:
+                uniq[rank[c]] = c
+        for i in range(n):
+            inv[i] = rank[packed[i]]
+    else:
+        order = np.argsort(packed)
+        m = 0
+        for j in range(n):
+            if j == 0 or packed[order[j]] != packed[order[j - 1]]:
+                m += 1
+        uniq = np.empty(m, np.int64)
+        m = -1
+        for j in range(n):
+            if j == 0 or packed[order[j]] != packed[order[j - 1]]:
+                m += 1
+                uniq[m] = packed[order[j]]
+            inv[order[j]] = m
+        m += 1
+    sums = np.zeros((m, 3))
+    counts = np.zeros(m, np.int64)
+    for i in range(n):
+        v = inv[i]
+        counts[v] += 1
+        for k in range(3):
+            sums[v, k] += pts[i, k]
+    lattice = np.empty((m, 3), np.int64)
+    for v in range(m):
+        for k in range(3):
+            sums[v, k] = sums[v, k] / counts[v]
+        c = uniq[v]
+        lattice[v, 2] = c % dims[2] + base[2]
+        lattice[v, 1] = (c // dims[2]) % dims[1] + base[1]
+        lattice[v, 0] = c // (dims[1] * dims[2]) + base[0]
+    return sums, inv, lattice
