@@ -185,7 +185,17 @@ def test_demo_without_a_loop_still_reports(tmp_path: Path) -> None:
     assert "loop wall spread" in out.stdout
     summary = json.loads((tmp_path / "d" / "summary.json").read_text())
     assert summary["n_frames"] == 8 and summary["loop_revision"] is None and summary["diagnosis_after"] is None
-    assert Path(summary["files"]["report_md"]).exists()
+    # the reports tell what happened (trial 16 W5: they described a loop closure that never ran, and an invalid
+    # diagnosis's figures as a verdict)
+    md, html = Path(summary["files"]["report_md"]).read_text(), Path(summary["files"]["report_html"]).read_text()
+    for text in (md, html, out.stdout):
+        assert "corrected by loop closure" not in text and "single after the correction" not in text
+    assert "loop closure made no correction" in md and "loop closure made no correction" in html
+    assert "no correction:" in out.stdout
+    before = summary["diagnosis_before"]
+    assert before["valid"] in (True, False)
+    if before["valid"] is False:  # 8 frames: the check cannot rule out what it does not see
+        assert before["reasons"] and "cannot judge the map" in md and "cannot judge" in out.stdout
     # the volumetric layers of revision 0 only: one top view, no update
     assert Path(summary["files"]["volume_top_view_before_png"]).exists()
     assert "volume_top_view_after_png" not in summary["files"]

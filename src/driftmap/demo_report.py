@@ -28,6 +28,10 @@ class DiagnosisSummary:
     regions: list[dict[str, Any]]
     ate_rmse_m: float | None
     json_path: str | None
+    valid: bool | None = None
+    """the diagnosis can judge the map (False: its figures are not a verdict; None: no coverage check ran)"""
+    reasons: list[str] = field(default_factory=list)
+    """why it cannot judge (empty when valid)"""
 
     @classmethod
     def of(cls, label: str, d: Diagnosis, json_path: Path | None, *, revision: int | None, max_regions: int = 5) -> DiagnosisSummary:
@@ -39,7 +43,13 @@ class DiagnosisSummary:
         return cls(label, revision, float(dw.smearing_score_m), int(dw.voxels_evaluated), int(dw.voxels_flagged),
                    float(dw.fraction_flagged), dw.median_separation_m, len(dw.regions), regions,
                    None if d.trajectory is None else float(d.trajectory["ate_rmse_m"]),
-                   None if json_path is None else str(json_path))
+                   None if json_path is None else str(json_path),
+                   None if d.coverage is None else bool(d.coverage.valid),
+                   [] if d.coverage is None else list(d.coverage.reasons))
+
+    @property
+    def cannot_judge(self) -> bool:
+        return self.valid is False
 
 
 @dataclass(frozen=True)
@@ -146,7 +156,11 @@ def summary_rows(r: DemoResult) -> list[tuple[str, str]]:
         ("loops tried / accepted", f"{r.loops_tried} / {r.loops_accepted}"),
         ("frames re-transformed by the correction", f"{r.frames_retransformed} (max {_cm(r.max_correction_m)})"),
     ]
+    if r.loop_revision is None:
+        rows.append(("loop closure", f"no correction: {r.loops_tried} loops tried, {r.loops_accepted} accepted"))
     if before is not None:
+        rows.append(("diagnosis: revision 0 -> corrected",
+                     f"{_verdict(before)} -> {'-' if after is None else _verdict(after)}"))
         rows.append(("double-wall regions: revision 0 -> corrected",
                      f"{before.n_regions} -> {'-' if after is None else after.n_regions}"))
         rows.append(("surface voxels doubled: revision 0 -> corrected",
@@ -162,6 +176,27 @@ def summary_rows(r: DemoResult) -> list[tuple[str, str]]:
         rows += volume_rows(r.volume)
     rows.append(("time", f"{r.seconds:.1f} s"))
     return rows
+
+
+def _verdict(s: DiagnosisSummary) -> str:
+    """``valid`` or ``cannot judge`` (the figures beside it are then no verdict on the map)."""
+    return "cannot judge" if s.cannot_judge else "valid" if s.valid else "-"
+
+
+def story(r: DemoResult) -> str:
+    """The report's first sentence: what was done to the log (the loop closure only when it made a revision)."""
+    text = ("The embedded synthetic log (a robot driving a loop in a furnished room, with drifting odometry) was built "
+            "into a frame store and diagnosed")
+    if r.loop_revision is None:
+        text += (f"; loop closure made no correction ({r.loops_tried} loops tried, {r.loops_accepted} accepted), so "
+                 "there is no corrected revision to compare with.")
+    else:
+        text += ", corrected by loop closure and diagnosed again."
+    judged = [s for s in (r.diagnosis_before, r.diagnosis_after) if s is not None and s.cannot_judge]
+    for s in judged:
+        text += (f" The diagnosis of {s.label} cannot judge the map ({'; '.join(s.reasons) or 'see its JSON'}): its "
+                 "double-wall figures are no verdict on it.")
+    return text
 
 
 def volume_rows(v: VolumeSummary) -> list[tuple[str, str]]:
@@ -185,6 +220,13 @@ def region_lines(s: DiagnosisSummary) -> list[str]:
             f"{g['frames_a'][0]}-{g['frames_a'][1]} vs {g['frames_b'][0]}-{g['frames_b'][1]}" for g in s.regions]
 
 
+_UNCORRECTED = {
+    "top_view_png": "Top view (0.9-2.4 m slice) coloured by frame: revision 0, the drifting odometry (no correction was made).",
+    "volume_top_view_before_png": ("Volumetric layers of revision 0 from above (free white, occupied black, never "
+                                   "observed grey, the sensor path blue)."),
+}
+"""captions of a run without a loop-closure revision (the others compare revision 0 with the correction)"""
+
 _FIGURES = [
     ("top_view_png", "Top view (0.9-2.4 m slice) coloured by frame: the loop wall is doubled with the drifting odometry and single after the correction."),
     ("double_walls_rev0_png", "Revision 0: map coloured by double-wall separation."),
@@ -200,15 +242,21 @@ _FIGURES = [
 ]
 
 
+def _figures(r: DemoResult) -> list[tuple[str, str]]:
+    """(file key, caption) of the figures the run wrote."""
+    out = []
+    for key, caption in _FIGURES:
+        if key in r.files:
+            out.append((key, _UNCORRECTED.get(key, caption) if r.loop_revision is None else caption))
+    return out
+
+
 def _rel(path: str, root: Path) -> str:
     return Path(path).resolve().relative_to(root.resolve()).as_posix()
 
 
 def write_markdown_report(path: Path, r: DemoResult) -> Path:
-    lines = ["# driftmap demo report", "",
-             "The embedded synthetic log (a robot driving a loop in a furnished room, with drifting odometry) was built "
-             "into a frame store, diagnosed, corrected by loop closure and diagnosed again.", "",
-             "| quantity | value |", "|---|---|"]
+    lines = ["# driftmap demo report", "", story(r), "", "| quantity | value |", "|---|---|"]
     lines += [f"| {k} | {v} |" for k, v in summary_rows(r)]
     for s in (r.diagnosis_before, r.diagnosis_after):
         if s is None:
@@ -216,9 +264,8 @@ def write_markdown_report(path: Path, r: DemoResult) -> Path:
         lines += ["", f"## Double walls, {s.label}", ""]
         lines += [f"- {line}" for line in region_lines(s)] or ["- none flagged"]
     lines += ["", "## Figures", ""]
-    for key, caption in _FIGURES:
-        if key in r.files:
-            lines += [f"![{caption}]({_rel(r.files[key], path.parent)})", "", f"*{caption}*", ""]
+    for key, caption in _figures(r):
+        lines += [f"![{caption}]({_rel(r.files[key], path.parent)})", "", f"*{caption}*", ""]
     lines += ["## Files", ""]
     lines += [f"- `{k}`: `{_rel(v, path.parent)}`" for k, v in r.files.items() if Path(v).exists()]
     path.write_text("\n".join(lines) + "\n")
@@ -231,8 +278,7 @@ def write_html_report(path: Path, r: DemoResult) -> Path:
              "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto}table{border-collapse:collapse}"
              "td,th{border:1px solid #ccc;padding:4px 8px}td:last-child{text-align:right}img{max-width:100%}</style>",
              "</head><body><h1>driftmap demo report</h1>",
-             "<p>The embedded synthetic log was built into a frame store, diagnosed, corrected by loop closure and "
-             "diagnosed again.</p><table><tr><th>quantity</th><th>value</th></tr>"]
+             f"<p>{esc(story(r))}</p><table><tr><th>quantity</th><th>value</th></tr>"]
     parts += [f"<tr><td>{esc(k)}</td><td>{esc(v)}</td></tr>" for k, v in summary_rows(r)]
     parts.append("</table>")
     for s in (r.diagnosis_before, r.diagnosis_after):
@@ -242,10 +288,9 @@ def write_html_report(path: Path, r: DemoResult) -> Path:
         parts += [f"<li>{esc(line)}</li>" for line in region_lines(s)] or ["<li>none flagged</li>"]
         parts.append("</ul>")
     parts.append("<h2>Figures</h2>")
-    for key, caption in _FIGURES:
-        if key in r.files:
-            parts.append(f"<figure><img src='{esc(_rel(r.files[key], path.parent))}' alt='{esc(caption)}'>"
-                         f"<figcaption>{esc(caption)}</figcaption></figure>")
+    for key, caption in _figures(r):
+        parts.append(f"<figure><img src='{esc(_rel(r.files[key], path.parent))}' alt='{esc(caption)}'>"
+                     f"<figcaption>{esc(caption)}</figcaption></figure>")
     parts.append("</body></html>")
     path.write_text("\n".join(parts) + "\n")
     return path
