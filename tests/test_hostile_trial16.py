@@ -204,3 +204,26 @@ def test_t16_w13_diagnose_gt_on_shared_stamps_names_its_own_way_out(tmp_path: Pa
     assert "--match index" not in err and not (tmp_path / "d.json").exists()
     err = one_error(run_cli("correct", store, "--poses", tmp_path / "gt.txt"))
     assert "`driftmap correct --match index`" in err, err
+
+
+def test_t16_w8_decide_on_a_lidar_store_built_with_given_poses(tmp_path: Path) -> None:
+    """W8: every query on a LiDAR store built with `--poses` was refused ("a LiDAR store without a max range for its
+    rays ... set volume.max_range_m"). Its layers now take the range our odometry's defaults take for its frames, and
+    say so; the decisions are made, and a set range still wins."""
+    log = tmp_path / "L"
+    _ok(run_cli("synth", log, "--lidar", "--frames", 10, "--seed", 4))
+    store = tmp_path / "st"
+    _ok(run_cli("build", log, "--sensor", "lidar", "--poses", log / "groundtruth.txt", "--no-loop-closure",
+                "--out", store))
+    origin = read_tum(log / "groundtruth.txt").poses[0][:3, 3]
+    queries = tmp_path / "q.json"
+    queries.write_text(json.dumps({"queries": [
+        {"id": "here", "kind": "clearance", "points_m": [origin.tolist()], "radius_m": 0.1},
+        {"id": "around", "kind": "explore", "min_m": (origin - 0.5).tolist(), "max_m": (origin + 0.5).tolist(),
+         "max_unknown_fraction": 0.5}]}))
+    out = run_cli("decide", store, "--queries", queries, "--json", tmp_path / "d.json")
+    _ok(out)
+    assert "volume.max_range_m" in " ".join(out.stderr.split()) and "given poses" in out.stderr, out.stderr
+    decisions = {d["id"]: d for d in json.loads((tmp_path / "d.json").read_text())["decisions"]}
+    assert decisions["here"]["decision"] == "free"  # the sensor stood there: observed, nothing within 10 cm
+    assert decisions["around"]["decision"] == "known"  # the rays passed through it (no map point lies in it)

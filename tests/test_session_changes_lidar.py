@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 from cli_run import run_cli
 
-from driftmap.errors import ConfigError
 from driftmap.sources.synthetic_scene import scene_boxes
 from driftmap.store.frame_store import FrameStore
 from driftmap.volume import VolumeConfig
@@ -66,16 +65,15 @@ def lidar_merged(tmp_path_factory: pytest.TempPathFactory) -> dict:
 
 
 def test_merged_lidar_store_has_a_max_range(lidar_merged: dict) -> None:
-    """Sessions built with given poses record no odometry range (their own layers need ``volume.max_range_m``, as
-    before); ``merge`` records for each the range our odometry's defaults take for its frames (the median reach of 15
+    """Sessions built with given poses record no odometry range (their own layers take the frames' rule, with a
+    warning); ``merge`` records for each the range our odometry's defaults take for its frames (the median reach of 15
     frames, never one) and the merged store's layers take session 0's (``merge_summary``)."""
     root = lidar_merged["root"]
     summary = json.loads((root / "AB" / "merge_summary.json").read_text())["volume_defaults"]
     with FrameStore.open(root / "A") as a, FrameStore.open(root / "B") as b, FrameStore.open(root / "AB") as ab:
         assert lidar_max_range(a) == (None, "none") and lidar_max_range(b) == (None, "none")
-        with pytest.raises(ConfigError, match="volume.max_range_m"):
-            resolve_config(a, VolumeConfig())
         range_a, range_b = lidar_max_range_from_frames(a), lidar_max_range_from_frames(b)
+        assert resolve_config(a, VolumeConfig()).max_range_m == range_a  # the frames' rule, with a warning
         range_ab, how_ab = lidar_max_range(ab)
         resolved = resolve_config(ab, VolumeConfig())
         assert resolve_config(ab, VolumeConfig(max_range_m=7.0)).max_range_m == 7.0  # a set range wins

@@ -292,8 +292,12 @@ def test_bad_settings_and_inputs_are_typed_errors_and_change_nothing(gt_store: F
     assert grid.origin_index[0] % 8 == 0 and grid.shape[0] % 8 == 0
 
 
-def test_a_lidar_store_without_a_max_range_is_refused(kitti_dir: Path, tmp_path: Path) -> None:
-    """LiDAR rays set the grid's extent: a store that records no odometry range needs ``volume.max_range_m``."""
+def test_a_lidar_store_without_a_recorded_max_range_takes_the_frames_reach(kitti_dir: Path, tmp_path: Path,
+                                                                           caplog: pytest.LogCaptureFixture) -> None:
+    """LiDAR rays set the grid's extent: a store that records no odometry range (built with given poses) takes the
+    range our odometry's defaults would take for its frames, with a warning naming the setting (it was refused,
+    trial 16 W8); a set ``volume.max_range_m`` wins."""
+    from driftmap.volume.defaults import lidar_max_range_from_frames
     from driftmap.frame import PoseEstimate, PoseSource
     from driftmap.sources.base import open_source
 
@@ -301,8 +305,11 @@ def test_a_lidar_store_without_a_max_range_is_refused(kitti_dir: Path, tmp_path:
         for frame in open_source(kitti_dir, frames="0:2", poses_from_ground_truth=True):
             store.append(frame.with_pose(PoseEstimate(frame.T_world_sensor, revision=0, source=PoseSource.GROUND_TRUTH)))
     with FrameStore.open(tmp_path / "k") as store:
-        with pytest.raises(ConfigError, match="volume.max_range_m"):
-            VolumeLayers.from_store(store)
+        with caplog.at_level("WARNING", logger="driftmap.volume.defaults"):
+            resolved = resolve_config(store, VolumeConfig())
+        assert resolved.max_range_m == lidar_max_range_from_frames(store) and 50.0 < resolved.max_range_m < 200.0
+        assert "volume.max_range_m" in caplog.text and "given poses" in caplog.text
+        assert resolve_config(store, VolumeConfig(max_range_m=30.0)).max_range_m == 30.0
         layers = VolumeLayers.from_store(store, config=VolumeConfig(max_range_m=30.0))
         assert layers.grid.voxel_size_m == pytest.approx(0.4) and layers.stats().occupied > 1000
 

@@ -34,9 +34,10 @@ def resolve_config(store: FrameStore, config: VolumeConfig) -> VolumeConfig:
     """``config`` with its sensor defaults filled in for ``store``: a depth camera's 2 cm voxels and the range where
     its depth noise stays within half a voxel (:data:`NOISE_PER_VOXEL`, 1..4 m); a
     LiDAR's voxel scaled with the scene as the odometry's lengths are, and the odometry's max range
-    (:func:`lidar_max_range`: recorded in ``build_summary.json``, or for a merged store in ``merge_summary.json``). A
-    LiDAR store whose range cannot be told is a :class:`ConfigError` (its rays would set the grid's extent: set
-    ``volume.max_range_m``)."""
+    (:func:`lidar_max_range`: recorded in ``build_summary.json``, or for a merged store in ``merge_summary.json``;
+    else, for a store built with given poses, :func:`lidar_max_range_from_frames`, with a warning). A LiDAR store
+    whose range cannot be told at all (no frame with a point) is a :class:`ConfigError` (its rays would set the
+    grid's extent: set ``volume.max_range_m``)."""
     if len(store) == 0:
         raise StoreError(f"{store.path}: the store holds no frames: there is no map to build volumetric layers of")
     first = store.frame(int(store.frame_ids[0]))
@@ -50,6 +51,13 @@ def resolve_config(store: FrameStore, config: VolumeConfig) -> VolumeConfig:
     max_range = config.max_range_m
     if max_range is None:
         max_range, _ = lidar_max_range(store)
+    if max_range is None:  # built with given poses: the range our odometry's defaults take for these frames
+        max_range = lidar_max_range_from_frames(store)
+        if max_range is not None:
+            logger.warning("%s: no max range recorded for the LiDAR rays (built with given poses?): the volumetric "
+                           "layers take %.2f m, the odometry defaults' rule on the frames' reach; set "
+                           "volume.max_range_m (--config [volume] or DRIFTMAP_VOLUME__MAX_RANGE_M) to choose it",
+                           store.path, max_range)
     if max_range is None:
         raise ConfigError(f"{store.path}: a LiDAR store without a max range for its rays (no odometry settings in "
                           f"{BUILD_SUMMARY}, no merged range in {MERGE_SUMMARY}): set volume.max_range_m (metres) in "
