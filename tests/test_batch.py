@@ -372,3 +372,27 @@ def test_cli_a_ray_that_cannot_start_is_one_error_line(fleet_logs: Path, tmp_pat
     line = _one_line_error(ran)
     assert "Ray could not start" in line and "The current node timed out during startup" in line, line
     assert not out.exists()
+
+
+def test_cli_resume_redoes_a_log_replaced_in_place(config_file: Path, tmp_path: Path) -> None:
+    """Trial 16 W12: `--resume` kept a log's old results after its files were replaced (same path, same options): 15
+    frames recorded for a log of 12. result.json now records the input files' fingerprint; a changed one is run
+    again, an unchanged one skipped."""
+    logs = tmp_path / "logs"
+    for name, seed in (("room-a", 1), ("room-b", 2)):
+        assert _cli("synth", logs / name, "--frames", 10, "--seed", seed).returncode == 0
+    out = tmp_path / "out"
+    first = _cli("batch", logs / "room-a", logs / "room-b", "--out", out, "--workers", 1, "--config", config_file,
+                 timeout=600)
+    assert first.returncode == 0, first.stderr
+    kept = (out / "room-b" / RESULT_FILE).stat().st_mtime_ns
+    assert json.loads((out / "room-a" / RESULT_FILE).read_text())["input_fingerprint"]
+    replaced = _cli("synth", logs / "room-a", "--frames", 8, "--seed", 3, "--overwrite")
+    assert replaced.returncode == 0, replaced.stderr
+    again = _cli("batch", logs / "room-a", logs / "room-b", "--out", out, "--resume", "--workers", 1, "--config",
+                 config_file, timeout=600)
+    assert again.returncode == 0, again.stderr
+    assert "input files changed" in " ".join(again.stderr.split()), again.stderr
+    status = {r["name"]: (r["status"], r["frames"]) for r in json.loads((out / "fleet.json").read_text())["logs"]}
+    assert status == {"room-a": ("ok", 8), "room-b": ("skipped", 10)}
+    assert (out / "room-b" / RESULT_FILE).stat().st_mtime_ns == kept

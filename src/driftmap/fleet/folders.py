@@ -11,16 +11,20 @@
 
 A log is written into ``DIR/.fleet-tmp/<name>.<token>/`` and renamed to ``DIR/<name>/`` when it is complete
 (:func:`publish`: a rename within one file system, so ``DIR/<name>/`` is never half-written). ``result.json``
-records the log's row and the hash of the config it was made with (:func:`completed_result`).
+records the log's row, the hash of the config it was made with and the fingerprint of its input files
+(:func:`input_fingerprint`; :func:`completed_result`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import json
 import logging
+import os
 import secrets
 import shutil
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -29,7 +33,7 @@ from driftmap.errors import ConfigError
 from driftmap.files import fsync_dir
 
 __all__ = ["FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "damage",
-           "prepare_out_dir", "publish", "temp_folder"]
+           "input_fingerprint", "prepare_out_dir", "publish", "temp_folder"]
 
 logger = logging.getLogger(__name__)
 
@@ -91,16 +95,58 @@ def publish(tmp: Path, final: Path) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
-def completed_result(folder: Path, expected_hash: str | None = None, *, verify: bool = True) -> dict[str, Any] | None:
+def input_fingerprint(paths: Iterable[str | Path | None]) -> str:
+    """A fingerprint of a log's input files as they are now: every file under each path (a file, or a folder walked
+    without following links to folders) by its path relative to it, size and modification time (ns); a missing
+    path counts as missing. ``--resume`` redoes a log whose fingerprint changed (a log replaced in place)."""
+    digest = hashlib.sha256()
+    for path in paths:
+        if path is None:
+            continue
+        digest.update(f"{path}\n".encode())
+        for rel, size, mtime_ns in _file_stats(Path(path)):
+            digest.update(f"{rel}\0{size}\0{mtime_ns}\n".encode())
+    return digest.hexdigest()[:32]
+
+
+def _file_stats(root: Path) -> Iterator[tuple[str, int, int]]:
+    try:
+        if not root.is_dir():
+            st = root.stat()
+            yield "", st.st_size, st.st_mtime_ns
+            return
+    except OSError:
+        yield "<missing>", -1, -1
+        return
+    for here, dirs, files in os.walk(root):
+        dirs.sort()
+        for name in sorted(files):
+            full = Path(here) / name
+            try:
+                st = full.stat()
+                yield full.relative_to(root).as_posix(), st.st_size, st.st_mtime_ns
+            except OSError:  # a broken link: counted as such
+                yield full.relative_to(root).as_posix(), -1, -1
+
+
+def completed_result(folder: Path, expected_hash: str | None = None, *, verify: bool = True,
+                     expected_input: str | None = None) -> dict[str, Any] | None:
     """The ``result.json`` of a complete log folder (None if the folder is missing, incomplete, failed, or was
-    made with another config than ``expected_hash``). With ``verify`` the folder's data is checked against its
-    recorded row too (:func:`damage`): a log whose store was damaged or changed since is not complete."""
+    made with another config than ``expected_hash``, or -- ``expected_input`` given -- from input files whose
+    :func:`input_fingerprint` has changed since; a result that records none, from before fingerprints were kept, is
+    taken as it is). With ``verify`` the folder's data is checked against its recorded row too (:func:`damage`): a
+    log whose store was damaged or changed since is not complete."""
     if not all((folder / f).exists() for f in LOG_FILES):
         return None
     with contextlib.suppress(OSError, ValueError, RecursionError):
         result = json.loads((folder / RESULT_FILE).read_text())
         if (isinstance(result, dict) and isinstance(result.get("row"), dict) and result["row"].get("status") == "ok"
                 and (expected_hash is None or result.get("config_hash") == expected_hash)):
+            recorded = result.get("input_fingerprint")
+            if expected_input is not None and recorded is not None and recorded != expected_input:
+                logger.warning("%s: the log's input files changed since it was processed (names, sizes or times); the "
+                               "log is run again", folder)
+                return None
             if verify and (problem := damage(folder, result["row"])) is not None:
                 logger.warning("%s: %s; the log is run again", folder, problem)
                 return None

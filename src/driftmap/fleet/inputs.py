@@ -87,6 +87,10 @@ class LogSpec:
             options["period_ns"] = round(self.period_s * 1e9)
         return {k: v for k, v in options.items() if v is not None}
 
+    def input_paths(self) -> list[str | None]:
+        """The files this log reads: the log, its pose file and its ground truth."""
+        return [self.input, self.poses, self.gt]
+
     def options_record(self) -> dict[str, Any]:
         """Everything that decides this log's results apart from the config (hashed for ``--resume``)."""
         return {k: v for k, v in vars(self).items() if k not in ("name", "origin")}

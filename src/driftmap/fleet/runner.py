@@ -31,7 +31,7 @@ from typing import Any
 
 from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
-from driftmap.fleet.folders import clean_temp, completed_result, prepare_out_dir
+from driftmap.fleet.folders import clean_temp, completed_result, input_fingerprint, prepare_out_dir
 from driftmap.fleet.inputs import LogSpec
 from driftmap.fleet.reaper import adopt_orphans, descendants, interrupts_deferred, is_subreaper, stop_descendants
 from driftmap.fleet.report import write_fleet_json, write_fleet_report
@@ -299,7 +299,8 @@ def _skipped_rows(specs: Sequence[LogSpec], config: BatchConfig, out_dir: Path) 
     """``--resume``: the logs whose folder is complete and made with this config, as ``skipped`` rows."""
     rows = {}
     for spec in specs:
-        result = completed_result(out_dir / spec.name, config_hash(config, spec))
+        result = completed_result(out_dir / spec.name, config_hash(config, spec),
+                                  expected_input=input_fingerprint(spec.input_paths()))
         if result is not None:
             rows[spec.name] = {**empty_row(spec, "skipped"), **result["row"], "status": "skipped"}
     return rows

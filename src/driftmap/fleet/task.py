@@ -30,7 +30,7 @@ import numpy as np
 from driftmap._version import __version__
 from driftmap.errors import DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
-from driftmap.fleet.folders import RESULT_FILE, publish, temp_folder
+from driftmap.fleet.folders import RESULT_FILE, input_fingerprint, publish, temp_folder
 from driftmap.fleet.inputs import LogSpec
 
 __all__ = ["LOG_FILE", "LogHook", "empty_row", "failed_row", "run_log"]
@@ -211,12 +211,14 @@ def run_log(spec: LogSpec, config: BatchConfig, out_dir: str | Path, *, threads:
     hook(spec, "start")
     numba_threads = _limit_threads(threads)
     folder = temp_folder(out_dir, spec.name)
+    fingerprint = input_fingerprint(spec.input_paths())  # before reading: a change while it runs shows next time
     published = False
     try:
         with _FileLog(folder / LOG_FILE):
             row = _process(spec, config, folder, threads, None if config_file is None else Path(config_file), hook)
         row["time_s"] = round(time.perf_counter() - t0, 3)
-        record = {"row": row, "config_hash": config_hash(config, spec), "threads": threads, "driftmap": __version__,
+        record = {"row": row, "config_hash": config_hash(config, spec), "input_fingerprint": fingerprint,
+                  "threads": threads, "driftmap": __version__,
                   "finished": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
                   "host": socket.gethostname(), "pid": os.getpid()}
         (folder / RESULT_FILE).write_text(json.dumps(record, indent=1) + "\n")
