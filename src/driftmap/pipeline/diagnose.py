@@ -34,6 +34,7 @@ from driftmap.diagnostics.report import (
 )
 from driftmap.errors import ConfigError, DriftmapError
 from driftmap.files import atomic_write
+from driftmap.pipeline.given_poses import check_given_poses
 from driftmap.pipeline.merge import store_sessions
 from driftmap.pipeline.pose_files import read_ground_truth
 from driftmap.store.frame_store import FrameStore
@@ -63,6 +64,25 @@ class DiagnoseRun:
     """the report figures, by name (empty without ``report_dir``)"""
     volume: VolumeLayers | None = None
     """the volumetric layers of the diagnosed revision (built for a report only)"""
+
+
+def check_ground_truth(store: FrameStore, path: str | Path, frame_ids: NDArray[np.int64],
+                       poses: NDArray[np.float64]) -> str | None:
+    """The ground truth checked against the frames as a pose file given to ``build`` or ``correct`` is
+    (:func:`~driftmap.pipeline.given_poses.check_given_poses`): a file in another convention (quaternion order, the
+    wrong sensor frame) moves the frames as they do not move, and its ATE / RPE would measure that, not the map (trial
+    17 B3: RPE 34 cm / 19 deg on the ground truth itself). Returns the warning logged (None when they agree)."""
+    try:
+        check = check_given_poses(store, store.head, poses=poses, frame_ids=frame_ids)
+    except (DriftmapError, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
+        logger.warning("%s: the ground truth was not checked against the frames (%s: %s)", path, type(exc).__name__,
+                       exc)
+        return None
+    reason = check.reason(f"{path} (--gt)", then="ATE / RPE against it measure that, not the map: check its format "
+                                                 "(--gt-format, the quaternion order x y z w) and its sensor frame")
+    if reason is not None:
+        logger.warning("%s", reason)
+    return reason
 
 
 def diagnose_config(store: FrameStore, config_file: str | Path | None = None,
@@ -104,6 +124,8 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
     cfg = diagnose_config(store, config_file, points_per_frame)
     ground_truth = (read_ground_truth(store, gt, gt_format or "tum", kitti_frame=kitti_frame, calib_file=calib)
                     if gt is not None else None)
+    if ground_truth is not None:
+        check_ground_truth(store, gt, *ground_truth)
     t0 = time.perf_counter()
     sessions = store_sessions(store)  # a merged store: its frames session by session, the changes between them too
     cloud = DiagnosticCloud.from_store(store, cfg.sampling,

@@ -364,10 +364,15 @@ def _pair_indices(poses: NDArray[np.float64], voxel_m: float, n_pairs: int) -> l
     return [candidates[i] for i in pick]
 
 
-def check_given_poses(store: FrameStore, revision: int = 0, n_pairs: int = 8) -> GivenPosesCheck:
-    """Register up to ``n_pairs`` frame pairs of ``store`` (see the module docstring) against ``revision``'s poses."""
-    ids = store.frame_ids
-    poses = store.poses(revision)
+def check_given_poses(store: FrameStore, revision: int = 0, n_pairs: int = 8, *,
+                      poses: NDArray[np.float64] | None = None,
+                      frame_ids: NDArray[np.int64] | None = None) -> GivenPosesCheck:
+    """Register up to ``n_pairs`` frame pairs of ``store`` (see the module docstring) against ``revision``'s poses,
+    or against ``poses`` of the frames ``frame_ids`` (e.g. ground truth: ``diagnose --gt``)."""
+    if poses is None:
+        ids, poses = store.frame_ids, store.poses(revision)
+    else:
+        ids, poses = np.asarray(frame_ids, dtype=np.int64), np.asarray(poses, dtype=np.float64)
     if len(ids) < 2:
         return GivenPosesCheck(0.0, ())
     spikes = tuple(int(ids[k]) for k in spike_rows(poses[:, :3, 3], poses[:, :3, :3]))
