@@ -234,9 +234,13 @@ def test_cli_merge_prints_the_summary_and_refuses_bad_input(sessions: dict, lida
     # a merge killed while writing left its scratch folder (trial 14/15, weak): the next merge into the same --out
     # removes it and says so; a scratch folder whose merge is still running (its writer lock held) stays
     dead, live = tmp_path / ".AB.merge-dead0000", tmp_path / ".AB.merge-live0000"
+    mine = tmp_path / ".AB.merge-deadbeef"  # trial 17 W3: a user's folder of that name (no store in it) is kept
     FrameStore.create(dead).close()
+    mine.mkdir()
+    (mine / "precious.txt").write_text("keep me")
     old = time.time() - 3600
     os.utime(dead, (old, old))
+    os.utime(mine, (old, old))
     running = FrameStore.create(live)
     os.utime(live, (old, old))
     out = run_cli("merge", sessions["A"], sessions["B"], "--out", tmp_path / "AB", "--config", _fast_config(tmp_path))
@@ -247,7 +251,15 @@ def test_cli_merge_prints_the_summary_and_refuses_bad_input(sessions: dict, lida
         assert m.head == 1 and len(m) == 120
     assert not dead.exists() and live.exists()
     assert "removed the scratch folder of an earlier merge" in " ".join(out.stderr.split())
-    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".AB.")) == [live.name]
+    assert (mine / "precious.txt").read_text() == "keep me"
+    assert "holds other files: left alone" in " ".join(out.stderr.split())
+    assert sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".AB.")) == [mine.name, live.name]
+    # trial 17 W3: a merge refused because --out exists still removes a killed merge's scratch folder (else every
+    # later merge into that --out was refused before the cleanup ran, and it stayed for good)
+    FrameStore.create(dead).close()
+    os.utime(dead, (old, old))
+    again = run_cli("merge", sessions["A"], sessions["B"], "--out", tmp_path / "AB")
+    assert again.returncode == 1 and not dead.exists(), again.stderr
 
 
 def _fast_config(tmp_path: Path) -> Path:

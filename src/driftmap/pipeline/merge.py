@@ -28,6 +28,7 @@ Stages, each reusing what ``build`` does:
 from __future__ import annotations
 
 import dataclasses
+import fnmatch
 import json
 import logging
 import os
@@ -232,8 +233,8 @@ def merge_stores(stores: Sequence[str | Path], out: str | Path, *, config: Build
     stages: dict[str, float] = {}
     paths = [Path(p) for p in stores]
     out = Path(out)
+    _remove_abandoned_scratch(out)  # first: an --out refused below must not keep a killed merge's scratch forever
     _check_paths(paths, out)
-    _remove_abandoned_scratch(out)
     sources: list[FrameStore] = []
     try:
         for p in paths:
@@ -257,15 +258,38 @@ def _scratch_dirs(out: Path) -> list[Path]:
         return []
 
 
+SCRATCH_FILES = ("store.json", "writer.lock", MERGE_SUMMARY_FILE, "segment-*.mcap", ".*.tmp*")
+"""What a merge's scratch folder holds (a frame store being written, and atomic writes' temporary files): a folder of
+that name holding anything else is not removed."""
+
+
+def _is_merge_scratch(folder: Path) -> bool:
+    """``folder`` holds a frame store being written by a merge and nothing else (no sub-folder, no other file)."""
+    try:
+        entries = list(folder.iterdir())
+    except OSError:
+        return False
+    names = {e.name for e in entries}
+    if "store.json" not in names and "writer.lock" not in names:
+        return False
+    return all(not e.is_symlink() and e.is_file() and any(fnmatch.fnmatchcase(e.name, p) for p in SCRATCH_FILES)
+               for e in entries)
+
+
 def _remove_abandoned_scratch(out: Path) -> None:
     """Remove the scratch folders of merges into ``out`` that were killed (no process holds their writer lock and they
-    are older than :data:`SCRATCH_MIN_AGE_S`): a SIGKILL leaves one behind, nothing else ever uses it."""
+    are older than :data:`SCRATCH_MIN_AGE_S`): a SIGKILL leaves one behind, nothing else ever uses it. A folder of
+    that name that holds anything but a store being written (:func:`_is_merge_scratch`) is left alone, with a
+    warning."""
     for folder in _scratch_dirs(out):
         try:
             age_s = time.time() - folder.stat().st_mtime
         except OSError:
             continue
-        if not folder.is_dir() or age_s < SCRATCH_MIN_AGE_S or writer_alive(folder):
+        if folder.is_symlink() or not folder.is_dir() or age_s < SCRATCH_MIN_AGE_S or writer_alive(folder):
+            continue
+        if not _is_merge_scratch(folder):
+            logger.warning("%s: named like a merge's scratch folder but holds other files: left alone", folder)
             continue
         shutil.rmtree(folder, ignore_errors=True)
         logger.warning("%s: removed the scratch folder of an earlier merge into %s that did not finish (killed?)",
