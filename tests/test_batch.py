@@ -238,6 +238,11 @@ def test_list_file_mistakes_name_the_line(tmp_path: Path, fleet_logs: Path) -> N
     listing.write_text("no-such-log --sensor depth\n")
     with pytest.raises(errors.ConfigError, match=rf"{listing}:1: no-such-log: no such log"):
         expand_inputs([str(listing)])
+    # trial 17 W6: --gt-format without --gt was ignored; diagnose refuses it, and so does a list line (CLI path)
+    listing.write_text(f"{fleet_logs / 'room-00'}\n{fleet_logs / 'room-01'} --gt-format euroc\n")
+    line = _one_line_error(_cli("batch", listing, "--out", tmp_path / "out"))
+    assert f"{listing}:2: --gt-format describes the --gt FILE; give one" in line, line
+    assert not (tmp_path / "out").exists()
 
 
 def test_cli_synth_fleet_then_batch_writes_the_contract(tmp_path: Path, config_file: Path) -> None:

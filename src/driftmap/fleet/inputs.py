@@ -173,6 +173,8 @@ def parse_log_options(words: list[str], where: str, base: Path) -> dict[str, Any
         fields[key] = float(value) if key == "period_s" else value
     if fields.get("poses") is not None and fields.get("poses_from_source"):
         raise ConfigError(f"{where}: --poses and --poses-from-source both say where the poses come from: give one")
+    if fields.get("gt_format") is not None and fields.get("gt") is None:  # as `diagnose` refuses it (trial 17 W6)
+        raise ConfigError(f"{where}: --gt-format describes the --gt FILE; give one")
     return fields
 
 
