@@ -21,7 +21,6 @@ from numpy.typing import NDArray
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery, ExploreQuery
 from driftmap.kernels import queries as kq
-from driftmap.kernels.queries import group_balls, group_minima
 from driftmap.volume.queries import surface_box_distances, surface_tree, surface_voxel_reach_m
 
 logger = logging.getLogger(__name__)
@@ -277,14 +276,13 @@ def _footprint_distances(q: CollisionQuery, samples: NDArray[np.float64], tree: 
         s0, s1, s2 = (float(x) for x in 0.5 * np.asarray(q.size_m, dtype=np.float64))
     else:
         s0, s1, s2 = float(q.size_m[0]), 0.5 * float(q.size_m[1]), 0.0
-    centres, radius = group_balls(samples, need, GROUP, bound, r_max, d_centre, bound + MARGIN_CAP_M, surface, reach,
-                                  nearest,
-                                  q.footprint == "box", s0, s1, s2)
+    centres, radius = kq.group_balls(samples, need, GROUP, bound, r_max, d_centre, bound + MARGIN_CAP_M, surface,
+                                     reach, nearest, q.footprint == "box", s0, s1, s2)
     found = tree.query_ball_point(centres, radius, return_sorted=False)  # per group, in the tree's order (as one query)
     counts = np.fromiter((len(c) for c in found), np.int64, len(found))
     cand = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(counts.sum()))
-    group_minima(samples, need, GROUP, surface, reach, cand, np.concatenate([[0], np.cumsum(counts)]),
-                 q.footprint == "box", s0, s1, s2, signed, nearest)
+    kq.group_minima(samples, need, GROUP, surface, reach, cand, np.concatenate([[0], np.cumsum(counts)]),
+                    q.footprint == "box", s0, s1, s2, signed, nearest)
     return signed, nearest
 
 

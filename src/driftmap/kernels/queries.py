@@ -1,5 +1,7 @@
-"""Compiled hot loops of the decisions' per-query work (numba): the points of a box or a ball read from a point index
-sorted by cell (:mod:`driftmap.decisions.point_index`).
+"""Compiled hot loops of the decisions' per-query work (numba): the points of a box or a ball and the frames of a box
+read from a point index sorted by cell (:mod:`driftmap.decisions.point_index`), the footprint sweep's smallest signed
+distances (:mod:`driftmap.decisions.space`), the unknown voxels of boxes and of a cylinder's columns from a
+summed-volume table, and a region's voxel means (:mod:`driftmap.decisions.voxel_normals`).
 
 Each kernel does what the numpy expressions it replaces do, in the same float64 arithmetic (float32 coordinates
 promoted, no fused multiply-add: numba compiles without fast-math), so the points it selects are the same ones;
