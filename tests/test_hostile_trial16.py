@@ -170,6 +170,11 @@ def test_t16_w4_diagnose_reads_euroc_ground_truth(room10: dict, tmp_path: Path) 
                 "euroc"))
     ate = json.loads((tmp_path / "d.json").read_text())["trajectory"]["ate_rmse_m"]
     assert ate < 1e-6, ate
+    # trial 17 W5: the same file without its format (read as TUM) named the stamps' unit, not the format it is
+    for args in (("diagnose", room10["gt"], "--json", tmp_path / "e.json", "--gt", tmp_path / "gt.csv"),
+                 ("correct", room10["gt"], "--poses", tmp_path / "gt.csv")):
+        line = one_error(run_cli(*args))
+        assert "looks like a euroc trajectory" in line and "give its format ('euroc')" in line, line
 
 
 def test_t16_w9_rollback_counts_the_frames_it_moves(room10: dict, tmp_path: Path) -> None:

@@ -664,6 +664,25 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
         format = detect_trajectory_format(path)
     if format not in readers:
         raise SourceError(f"{path}: unknown trajectory format {format!r}; known: {', '.join(readers)}")
-    trajectory = readers[format](path)
+    try:
+        trajectory = readers[format](path)
+    except SourceError as exc:
+        hint = _other_format_hint(Path(path), format)
+        if hint is None:
+            raise
+        raise SourceError(f"{exc}; {hint}") from exc
     _warn_spikes(Path(path), trajectory)
     return trajectory
+
+
+def _other_format_hint(path: Path, format: str) -> str | None:
+    """When a file refused as ``format`` looks like another trajectory format: which (trial 17 W5: a EuRoC file read
+    as TUM got a seconds-versus-nanoseconds question, not the format)."""
+    try:
+        detected = detect_trajectory_format(path)
+    except SourceError:
+        return None
+    if detected == format:
+        return None
+    return (f"the file looks like a {detected} trajectory ({TRAJECTORY_FORMATS[detected]}), not {format}: give its "
+            f"format ({detected!r})")
