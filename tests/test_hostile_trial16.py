@@ -142,9 +142,13 @@ def test_t16_w2_batch_shows_cannot_judge_instead_of_an_invalid_diagnosis_figures
                 "smearing_score_m": 0.00012, "valid": valid, "folder": None}
 
     rows = [row("good", True, 0.02), row("lost", False, 0.0), row("undiagnosed", None, 0.01)]
+    failed = {**row("broken", None, 0.0), "status": "failed", "error": "SourceError: no frames"}
     assert [r["name"] for r in rank_worst_first(rows)] == ["lost", "good", "undiagnosed"]
     console = Console(record=True, width=200)
-    console.print(_summary_table(rows, Path("bt")))
+    console.print(_summary_table([failed, *rows], Path("bt")))
+    shown = [line.split()[1] for line in console.export_text(clear=False).splitlines()
+             if len(line.split()) > 1 and line.split()[1] in ("good", "lost", "undiagnosed", "broken")]
+    assert shown == ["lost", "good", "undiagnosed", "broken"]  # fleet.html's order (trial 17 W7), failures last
     lines = {line.split()[1]: " ".join(line.split()) for line in console.export_text().splitlines()
              if len(line.split()) > 1 and line.split()[1] in ("good", "lost", "undiagnosed")}
     assert lines["lost"].count("cannot judge") == 4 and "0.000" not in lines["lost"] and "192.10" in lines["lost"]

@@ -39,9 +39,13 @@ def _interrupted_line(out: Path) -> str:
 
 
 def _summary_table(rows: list[dict], out: Path) -> Table:
-    from driftmap.fleet.report import cannot_judge
+    """Every log's row, in fleet.html's order (trial 17 W7): the logs with results worst first
+    (:func:`~driftmap.fleet.report.rank_worst_first`: a log whose diagnosis cannot judge its map first), then the
+    failed ones in input order."""
+    from driftmap.fleet.report import cannot_judge, rank_worst_first
 
-    table = Table(title=f"driftmap batch -> {out}")
+    rows = rank_worst_first(rows) + [r for r in rows if r["status"] == "failed"]
+    table = Table(title=f"driftmap batch -> {out} (worst first)")
     for col in ("log", "status", "diagnosis", "frames", "time (s)", "drift (%/m)", "doubled (%)", "smearing (mm)",
                 "ATE (cm)"):
         table.add_column(col, justify="left" if col in ("log", "status", "diagnosis") else "right")
