@@ -36,9 +36,10 @@ def _column_runs(keys, i0, i1, j0, j1, za, zb, cell_lo, cell_hi, l0, l1, l2, s1,
 
 
 @numba.njit(cache=True, nogil=True)
-def box_members(points, order, starts, stops, lo, hi):  # pragma: no cover - compiled
-    """``order[at]`` of the sorted positions ``at`` in the runs ``starts .. stops`` whose point ``p`` has
-    ``lo <= p <= hi`` on every axis (float64)."""
+def _members(points, order, starts, stops, a, b, radius2, ball):  # pragma: no cover - compiled
+    """``order[at]`` of the sorted positions ``at`` in the runs ``starts .. stops`` whose point passes the test: with
+    ``ball``, ``dx*dx + dy*dy + dz*dz <= radius2`` about the centre ``a`` (float64, summed left to right); else
+    ``a <= p <= b`` on every axis (float64)."""
     total = 0
     for c in range(len(starts)):
         total += max(stops[c] - starts[c], 0)
@@ -47,30 +48,27 @@ def box_members(points, order, starts, stops, lo, hi):  # pragma: no cover - com
     for c in range(len(starts)):
         for at in range(starts[c], stops[c]):
             x, y, z = np.float64(points[at, 0]), np.float64(points[at, 1]), np.float64(points[at, 2])
-            if x >= lo[0] and x <= hi[0] and y >= lo[1] and y <= hi[1] and z >= lo[2] and z <= hi[2]:
+            if ball:
+                dx, dy, dz = x - a[0], y - a[1], z - a[2]
+                keep = dx * dx + dy * dy + dz * dz <= radius2
+            else:
+                keep = x >= a[0] and x <= b[0] and y >= a[1] and y <= b[1] and z >= a[2] and z <= b[2]
+            if keep:
                 out[n] = order[at]
                 n += 1
     return out[:n]
 
 
 @numba.njit(cache=True, nogil=True)
+def box_members(points, order, starts, stops, lo, hi):  # pragma: no cover - compiled
+    """``order[at]`` of the positions in the runs whose point has ``lo <= p <= hi`` on every axis (float64)."""
+    return _members(points, order, starts, stops, lo, hi, 0.0, False)
+
+
+@numba.njit(cache=True, nogil=True)
 def ball_members(points, order, starts, stops, centre, radius2):  # pragma: no cover - compiled
-    """``order[at]`` of the sorted positions in the runs whose point has ``dx*dx + dy*dy + dz*dz <= radius2``
-    (float64, summed left to right)."""
-    total = 0
-    for c in range(len(starts)):
-        total += max(stops[c] - starts[c], 0)
-    out = np.empty(total, np.int64)
-    n = 0
-    for c in range(len(starts)):
-        for at in range(starts[c], stops[c]):
-            dx = np.float64(points[at, 0]) - centre[0]
-            dy = np.float64(points[at, 1]) - centre[1]
-            dz = np.float64(points[at, 2]) - centre[2]
-            if dx * dx + dy * dy + dz * dz <= radius2:
-                out[n] = order[at]
-                n += 1
-    return out[:n]
+    """``order[at]`` of the positions in the runs whose point has ``dx*dx + dy*dy + dz*dz <= radius2``."""
+    return _members(points, order, starts, stops, centre, centre, radius2, True)
 
 
 def column_runs(keys: np.ndarray, a: np.ndarray, b: np.ndarray, cell_lo: int, cell_hi: int,
