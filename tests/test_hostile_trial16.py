@@ -74,6 +74,11 @@ def test_t16_b3_resume_on_a_corrected_store_carries_the_correction_on(tmp_path: 
         # the new frames continue the corrected trajectory: the step at frame 15 is carried on, no seam at 20
         moved = np.linalg.norm(head[20:, :3, 3] - stepped[20:30, :3, 3], axis=1)
         assert moved.max() < 0.01, moved
+        assert len(s.members(1)) == 20 and len(s.members()) == 30
+    # trial 17 B1: revision 1 was made before the resumed frames: it places its own 20 frames, not the new ones at
+    # their uncorrected poses beside them (the seam again, through the older revision)
+    _ok(run_cli("export", store, "--revision", 1, "--trajectory", tmp_path / "r1.txt"))
+    assert len(read_tum(tmp_path / "r1.txt").stamps_ns) == 20
 
 
 def test_t16_b6_resume_with_loop_closure_after_a_correction_stays_in_one_frame(tmp_path: Path) -> None:

@@ -537,6 +537,68 @@ def test_frames_added_after_a_revision_keep_their_revision0_pose() -> None:
     np.testing.assert_array_equal(ledger.pose(1, 10), Tr(10, 0, 0))
 
 
+def test_a_revision_places_the_frames_it_was_made_over_not_those_stored_later() -> None:
+    """Hostile trial 17 B1: frames stored after revision 1 (an append, a resume) are not among its members once a later
+    revision exists; the head alone shows them (at revision-0 poses) until one does; a rollback to revision 1 leaves
+    them out again, and a correction's propagation never moves a frame its parent does not place."""
+    ledger = line_ledger()
+    ledger.commit(ledger.plan_correction({0: Tr(0, 1, 0), 4: Tr(4, 1, 0)}, source=PoseSource.LOOP_CLOSURE))
+    np.testing.assert_array_equal(ledger.members(1), [0, 1, 2, 3, 4])
+    for f in (10, 11):
+        ledger.add_frame(f, f * S, Tr(f, 0, 0))
+    np.testing.assert_array_equal(ledger.members(1), [0, 1, 2, 3, 4, 10, 11])  # the head shows frames stored since
+    np.testing.assert_array_equal(ledger.members(1, later=False), [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(ledger.members(0), [0, 1, 2, 3, 4, 10, 11])
+    ledger.commit(ledger.plan_correction({10: Tr(10, 1, 0), 11: Tr(11, 1, 0)}, source=PoseSource.LOOP_CLOSURE,
+                                         propagate=False))
+    np.testing.assert_array_equal(ledger.members(1), [0, 1, 2, 3, 4])  # no longer the head: its own frames only
+    np.testing.assert_array_equal(ledger.members(2), [0, 1, 2, 3, 4, 10, 11])
+    d = ledger.diff(1, 2)
+    np.testing.assert_array_equal(d.frame_ids, [0, 1, 2, 3, 4])  # over the frames both place
+    assert d.n_changed == 0
+    rollback = ledger.commit(ledger.plan_rollback(1))
+    np.testing.assert_array_equal(rollback.frames, [0, 1, 2, 3, 4])
+    assert rollback.n_changed == 0  # the poses of revision 1's frames are those of revision 2: only the frames change
+    np.testing.assert_array_equal(ledger.members(3), [0, 1, 2, 3, 4])
+    # a correction on the rollback: its propagation stays on the rollback's frames; a frame it sets joins them
+    rev = ledger.commit(ledger.plan_correction({0: Tr(0, 2, 0)}, source=PoseSource.EXTERNAL_FILE))
+    np.testing.assert_array_equal(rev.frames, [0, 1, 2, 3, 4])
+    assert 10 not in rev.propagated and 11 not in rev.propagated
+    rev = ledger.commit(ledger.plan_correction({11: Tr(11, 3, 0)}, source=PoseSource.EXTERNAL_FILE, propagate=False))
+    np.testing.assert_array_equal(rev.frames, [0, 1, 2, 3, 4, 11])
+    # a rollback to the head drops what was stored after it (an interrupted append, abandoned)
+    ledger.add_frame(20, 20 * S, Tr(20, 0, 0))
+    assert 20 in ledger.members(ledger.head)
+    ledger.commit(ledger.plan_rollback(ledger.head))
+    assert 20 not in ledger.members(ledger.head)
+
+
+def test_revisions_without_recorded_frames_take_the_frames_stored_before_them() -> None:
+    """Revisions written before membership was recorded: a correction places the frames the ledger held when it was
+    committed (store order), a rollback its target's; the JSON round trip keeps ``frames`` (ranges) or its absence."""
+    ledger = line_ledger()
+    ledger.commit(Revision(1, 0, PoseSource.LOOP_CLOSURE, 1, set_directly={0: Tr(0, 1, 0)}))
+    ledger.add_frame(7, 7 * S, Tr(7, 0, 0))
+    ledger.commit(Revision(2, 1, PoseSource.LOOP_CLOSURE, 2, set_directly={7: Tr(7, 1, 0)}))
+    ledger.commit(Revision(3, 2, PoseSource.ROLLBACK, 3, set_directly={}, restores=1))
+    np.testing.assert_array_equal(ledger.members(1), [0, 1, 2, 3, 4])
+    np.testing.assert_array_equal(ledger.members(2), [0, 1, 2, 3, 4, 7])
+    np.testing.assert_array_equal(ledger.members(3), [0, 1, 2, 3, 4])
+    legacy = ledger.revision(2).to_json()
+    assert "frames" not in legacy and Revision.from_json(legacy).frames is None
+    made = ledger.plan_correction({0: Tr(0, 5, 0)}, source=PoseSource.LOOP_CLOSURE, propagate=False)
+    data = made.to_json()
+    assert data["frames"] == [[0, 4]]
+    assert Revision.from_json(data) == made
+    with pytest.raises(StoreError, match="changes frames \\[9\\] that are not among its frames"):
+        Revision(5, 4, PoseSource.LOG, 5, set_directly={9: Tr(9, 0, 0)}, frames=[0, 1])
+    with pytest.raises(StoreError, match="frames must be a list of"):
+        Revision.from_json(data | {"frames": [[4, 0]]})
+    bad = Revision(5, 4, PoseSource.LOG, 5, set_directly={0: Tr(0, 0, 1)}, frames=[0, 99])
+    with pytest.raises(StoreError, match="its frames \\[99\\] are not in the pose ledger"):
+        ledger.commit(dataclasses.replace(bad, revision_id=ledger.head + 1, parent_id=ledger.head))
+
+
 def test_diff_numbers() -> None:
     ledger = line_ledger()
     # frame 2 turns 30 deg about its own x axis and moves by (3, 4, 0): 5 m

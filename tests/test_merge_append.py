@@ -132,7 +132,8 @@ def test_the_appended_session_lands_in_the_first_sessions_frame_as_merging_all_a
     assert float(d.max()) < 0.01, float(d.max())  # measured 0.7-5.9 mm max over runs (RANSAC), median 0.03-1.5 mm
 
 
-def test_the_append_is_one_new_revision_that_names_only_moved_and_new_frames(room: dict, appended: dict) -> None:
+def test_the_append_is_one_new_revision_that_names_only_moved_and_new_frames(room: dict, appended: dict,
+                                                                            tmp_path: Path) -> None:
     """Revision count + 1; the frames of A and B the new loops move less than the tolerance keep their previous pose
     to the bit (the revision does not name them); every moved one moved more than it; rollback restores A+B."""
     before = appended["before"]
@@ -156,11 +157,25 @@ def test_the_append_is_one_new_revision_that_names_only_moved_and_new_frames(roo
         assert (record["existing_moved"], record["existing_kept"]) == (int(moved.sum()), int(kept.sum()))
         assert record["existing_moved"] + record["existing_kept"] == len(before["ids"])
         assert record["loops_reused"] > 0 and record["loops_new"] >= 2 and record["loops_reverified"] == 0
-        assert s.diff(before["head"], s.head).translation_m[kept].max(initial=0.0) == 0.0
+        d = s.diff(before["head"], s.head)  # over the frames both place: the revision before the append has no new one
+        assert np.array_equal(d.frame_ids, before["ids"])
+        assert d.translation_m[~named[old]].max(initial=0.0) == 0.0
+        assert np.array_equal(s.members(before["head"]), before["ids"]) and np.array_equal(s.members(), s.frame_ids)
+    # hostile trial 17 B1: the revision made before the append places the frames it was made over, not the new
+    # session at its unmerged poses, through every reader; rolling back to it leaves the new session out
+    traj = tmp_path / "before_append.txt"
+    _ok(run_cli("export", appended["store"], "--revision", before["head"], "--trajectory", traj))
+    assert len(traj.read_text().splitlines()) - 1 == len(before["ids"])
+    _ok(run_cli("diagnose", appended["store"], "--revision", before["head"], "--json", tmp_path / "d.json"))
+    diagnosis = json.loads((tmp_path / "d.json").read_text())
+    assert diagnosis["n_frames"] == len(before["ids"]) and diagnosis["revision"] == before["head"]
     out = _ok(run_cli("rollback", appended["store"], "--to", before["head"]))
     assert "restored" in out.stdout
+    new = int(np.count_nonzero(~old))
+    assert f"{new} frames stored after revision {before['head']} left out" in " ".join(out.stdout.split()), out.stdout
     with FrameStore.open(appended["store"]) as s:
         assert np.array_equal(s.poses()[old], before["poses"])
+        assert np.array_equal(s.members(), before["ids"])  # the rollback undoes the append: its session is left out
         s_head = s.head
     _ok(run_cli("rollback", appended["store"], "--to", s_head - 1))  # back to the append for the other tests
     assert "existing frames moved / kept" in appended["stdout"] and appended["c_unchanged"]
@@ -266,6 +281,24 @@ def test_a_killed_append_keeps_the_old_revisions_and_is_finished_by_running_it_a
     _ok(run_cli("rollback", rolled, "--to", 0))
     err = one_error(run_cli("merge", rolled, room["root"] / "A", "--append"))
     assert "revision 1 is the map before it; the head is now revision 2" in err, err
+    # hostile trial 17 B4: rolling back to the map before the append abandons it (its session store may be gone):
+    # the frames stay stored, outside the map; the readers take the store again; a new append takes new numbers
+    abandoned = room["root"] / "AB_killed_abandoned"
+    shutil.copytree(store, abandoned)
+    out = " ".join(_ok(run_cli("rollback", abandoned, "--to", 1)).stdout.split())
+    assert f"{N} frames stored after revision 1 left out" in out and "append of session 2 is abandoned" in out, out
+    traj = room["root"] / "t_abandoned.txt"
+    _ok(run_cli("export", abandoned, "--trajectory", traj))
+    assert len(traj.read_text().splitlines()) - 1 == 2 * N
+    info = " ".join(_ok(run_cli("info", abandoned)).stdout.split())
+    assert "frames in the head" in info and f"{2 * N} of {3 * N}" in info and "append interrupted" not in info, info
+    summary = json.loads((abandoned / MERGE_SUMMARY_FILE).read_text())
+    assert PENDING_KEY not in summary and summary["abandoned_appends"][0]["frames_stored"] == N
+    again = append_sessions(abandoned, [room["root"] / "C"], config=BuildConfig.model_validate(FAST))
+    assert [s.session for s in again.sessions] == [3] and again.n_frames_appended == N
+    with FrameStore.open(abandoned) as s:
+        assert len(s) == 4 * N and len(s.members()) == 3 * N
+        assert not np.isin(s.members() // SESSION_ID_STRIDE, [2]).any()
     result = append_sessions(store, [room["root"] / "C"], config=BuildConfig.model_validate(FAST))
     assert result.resumed and result.n_frames_appended == 0 and result.revision_id == 2
     with FrameStore.open(store) as s, FrameStore.open(appended["store"]) as a:

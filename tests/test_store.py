@@ -670,3 +670,34 @@ def test_an_index_match_of_a_stamped_file_whose_stamps_disagree_is_warned_about(
         assert not [m for m in messages if "is the file for these frames" in m], messages
         assert [m for m in messages if "shifted.tum" in m and f"revision {rev.revision_id} moves every frame by one "
                 "rigid transform (up to 40.00 m): the map is re-anchored" in m], messages
+
+
+def test_revisions_place_the_frames_stored_before_them_also_after_reopening_and_recovery(
+        tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 17 B1 at the store: a revision's frames come back from the segments as they were -- recorded
+    (``frames``) for new revisions, and for revisions written before that, the frames stored before them in store
+    order, within one segment too; recovery of a crashed segment keeps that order."""
+    from driftmap.store.revision import Revision
+
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:3]:
+            store.append(f)
+        # as a driftmap before membership was recorded wrote it: no ``frames``
+        store._persist(Revision(1, 0, PoseSource.LOOP_CLOSURE, 1, set_directly={0: _moved(store.poses(0)[0], 0.1)}))
+        for f in synthetic_frames[3:5]:
+            store.append(f)
+        store._persist(Revision(2, 1, PoseSource.LOOP_CLOSURE, 2, set_directly={3: _moved(store.poses(0)[3], 0.1)}))
+        store.add_revision({4: _moved(store.poses(0)[4], 0.2)}, source=PoseSource.EXTERNAL_FILE, propagate=False)
+        store.rollback(1)
+        for f in synthetic_frames[5:6]:
+            store.append(f)
+        expected = {r: store.members(r).tolist() for r in range(5)}
+        store.abandon()  # the writer "crashes": its segment stays open
+    assert expected == {0: [0, 1, 2, 3, 4, 5], 1: [0, 1, 2], 2: [0, 1, 2, 3, 4], 3: [0, 1, 2, 3, 4],
+                        4: [0, 1, 2, 5]}  # the head shows frame 5, stored after it
+    with FrameStore.open(path, "a") as store:  # recovers the open segment, rewriting its chunks in store order
+        assert store.recovery_events
+        assert {r: store.members(r).tolist() for r in range(5)} == expected
+    with FrameStore.open(path) as store:
+        assert {r: store.members(r).tolist() for r in range(5)} == expected

@@ -274,7 +274,7 @@ def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.flo
 
     cfg = DiagnoseConfig.for_store(store)
     sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
-    cloud = DiagnosticCloud.from_store(store, sampling)
+    cloud = DiagnosticCloud.from_store(store, sampling, frame_ids=store.members(revision))  # the revision's frames
     poses = store.poses(revision)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
     result = detect_double_walls(cloud.place(poses), cfg.double_wall)
     values = np.full(len(points), np.nan)
@@ -396,7 +396,7 @@ def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: f
         logger.info("view: %d occupied voxels; showing a random %d of them", n_occupied, max_points)
         occupied = np.sort(np.random.default_rng(seed).choice(occupied, max_points, replace=False))
     centres = layers.grid.centers_m(occupied)
-    poses = store.poses(rev)
+    poses = store.poses(rev)[store.ledger.member_rows(rev)]
     up = _up_axis(poses, kind)
     heights = centres @ up
     lo, hi = (float(v) for v in np.percentile(heights, [1.0, 99.0]))

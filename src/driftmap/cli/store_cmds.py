@@ -99,10 +99,21 @@ def rollback(
     to: Annotated[int, typer.Option("--to", help="Revision to restore.")],
 ) -> None:
     """Create a new revision equal to revision N (history is kept)."""
+    import numpy as np
+
+    from driftmap.pipeline.merge_append import abandon_interrupted_append
+
     with open_store(store_path, "a") as store:
+        placed_before = store.members()  # the head's frames, with any stored after it
         rev = store.rollback(to)
         changed = store.diff(rev.parent_id, rev.revision_id).n_changed  # as `revisions` counts them (trial 16 W9)
-    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({changed} frames changed)")
+        left_out = np.setdiff1d(placed_before, store.members(rev.revision_id))
+        abandoned = abandon_interrupted_append(store.path, store)
+    extra = (f"; {left_out.size} frames stored after revision {to} left out ({int(left_out[0])}..{int(left_out[-1])})"
+             if left_out.size else "")
+    console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({changed} frames changed{extra})")
+    if abandoned:
+        console.print(abandoned)
 
 
 # longer than 80 lines: 16 of them are the typer options (the CLI contract); the body checks every output before
@@ -378,6 +389,9 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             table.add_row("time span", f"{(max(stamps) - min(stamps)) / 1e9:.2f} s ({min(stamps)} .. {max(stamps)} ns)")
         table.add_row("points (sensor frames)", f"{n_points:,}")
         table.add_row("revisions", f"{len(store.revisions)} (head {store.head}: {store.revisions[store.head].source.value})")
+        if (placed := len(store.members())) != len(store):  # e.g. a rollback to the map before an append
+            table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: stored after "
+                          "the revision it restores, or by an abandoned append)")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))
         table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")

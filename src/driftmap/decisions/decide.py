@@ -76,7 +76,7 @@ def reach_of(store: FrameStore, revision: int, config: VolumeConfig | None) -> t
     cfg = resolve_config(store, config or VolumeConfig())
     if cfg.max_range_m is None:
         return np.full(3, -np.inf), np.full(3, np.inf)
-    origins = np.asarray(store.poses(revision))[:, :3, 3]
+    origins = np.asarray(store.poses(revision))[store.ledger.member_rows(revision), :3, 3]
     block = 2 * BLOCK_RESOLUTION * float(cfg.voxel_size_m)  # the grid's corners are rounded out to whole blocks
     grow = float(cfg.max_range_m) + cfg.padding_m + float(cfg.truncation_m or 0.0) + block
     return origins.min(axis=0) - grow, origins.max(axis=0) + grow
@@ -201,8 +201,9 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
         driftmap_version=__version__, store_uuid=_store_uuid(store), n_frames=len(store),
         settings={"volume": layers.config.model_dump(mode="json"), "decide": cfg.model_dump(mode="json")},
         query_file=None if qs.source == "<memory>" else qs.source)
-    return DecisionSet(representation, decisions, qs, np.asarray(store.frame_ids, dtype=np.int64).copy(),
-                       np.asarray(store.poses(rev)).copy(), walls,
+    placed = store.ledger.member_rows(rev)  # the frames the revision places
+    return DecisionSet(representation, decisions, qs, np.asarray(store.frame_ids, dtype=np.int64)[placed],
+                       np.asarray(store.poses(rev))[placed], walls,
                        {"layers": layers_s, "prepare": prepare_s, "decide": time.perf_counter() - t_all - prepare_s})
 
 

@@ -142,11 +142,12 @@ def perturbed_frames(store: FrameStore, revision: int, assumption: str, magnitud
     if a.name.startswith("dropout") and magnitude >= 1.0:
         raise ConfigError(f"perturbation sweep: {assumption}: a fraction below 1 is needed, got {magnitude}")
     draw = _draw(seed)
-    poses = store.poses(revision)
+    placed = store.ledger.member_rows(revision)  # the frames the revision places
+    poses = store.poses(revision)[placed]
     if a.perturb_poses is not None:
         poses = a.perturb_poses(poses, magnitude, draw)
     rng = np.random.default_rng([seed, 25])
-    for row, fid in enumerate(store.frame_ids):
+    for row, fid in enumerate(store.frame_ids[placed]):
         frame = store.frame(int(fid))
         if a.needs_image and frame.intrinsics is None:
             raise ConfigError(f"perturbation sweep: {assumption} masks image pixels; frame {int(fid)} has no camera "

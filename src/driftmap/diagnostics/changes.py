@@ -198,9 +198,12 @@ def session_changes(store: FrameStore, sessions: dict[int, list[int]], revision:
     cfg = config or ChangeConfig()
     if cfg.margin_m is None:
         cfg = dataclasses.replace(cfg, margin_m=DiagnoseConfig.for_store(store).revisits.max_detectable_m)
-    if len(sessions) < 2:
-        raise ConfigError(f"{store.path}: session changes need at least two sessions, got {len(sessions)}")
     rev = store.head if revision is None else int(revision)
+    placed = set(store.members(rev).tolist())  # a session appended after the revision is not in it
+    sessions = {k: kept for k, ids in sessions.items() if (kept := [f for f in ids if int(f) in placed])}
+    if len(sessions) < 2:
+        raise ConfigError(f"{store.path}: session changes need at least two sessions in revision {rev}, got "
+                          f"{len(sessions)}")
     first = store.frame(int(store.frame_ids[0]))
     voxel = cfg.voxel_size_m
     if voxel is None and first.sensor_kind is not SensorKind.LIDAR:

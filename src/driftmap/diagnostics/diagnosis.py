@@ -264,11 +264,20 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
         raise StoreError(f"{store.path}: the store has no frames")
     if config is None:
         config = DiagnoseConfig.for_store(store)
+    members = store.members(rev)  # the frames the revision places (not those stored after it)
+    if sessions is not None:
+        placed = set(members.tolist())
+        sessions = {k: [f for f in ids if int(f) in placed] for k, ids in sessions.items()}
+        sessions = {k: ids for k, ids in sessions.items() if ids}
     t = time.perf_counter()
     if cloud is None:
         cloud = DiagnosticCloud.from_store(store, config.sampling, noise,
                                            sessions=sessions if sessions is not None and len(sessions) >= 2 else None)
     sampling_s = time.perf_counter() - t
+    if not np.all(np.isin(cloud.frame_ids, members)):
+        logger.info("diagnose: revision %d places %d of the %d sampled frames (the others were stored after it, or "
+                    "left out by a rollback)", rev, int(np.isin(cloud.frame_ids, members).sum()), cloud.n_frames)
+        cloud = cloud.subset(np.flatnonzero(np.isin(cloud.frame_ids, members)))
     poses = store.poses(rev)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
     gt_rows = gt_poses = None
     if ground_truth is not None:

@@ -271,15 +271,17 @@ def _plan(store: FrameStore, path: Path, revision: Revision,
     empty store, a negative stamp, a band that selects nothing or a mesh too large for a message is refused
     here, before anything is written."""
     rev = revision.revision_id
-    frame_ids = np.asarray(store.frame_ids, dtype=np.int64)
+    placed = store.ledger.member_rows(rev)  # the frames the revision places (not those stored after it)
+    frame_ids = np.asarray(store.frame_ids, dtype=np.int64)[placed]
     if len(frame_ids) == 0:
         raise EmptyStoreExportError(f"store {store.path} has no frames in revision {rev}: nothing to export (nothing "
                                     f"written to {path})", store=store.path, revision=rev)
-    stamps = np.asarray(store.ledger.stamps_ns, dtype=np.int64)
+    stamps = np.asarray(store.ledger.stamps_ns, dtype=np.int64)[placed]
     if stamps.min() < 0:
         bad = int(frame_ids[np.argmin(stamps)])
         raise ExportError(f"{store.path}: frame {bad} has a negative stamp ({int(stamps.min())} ns); MCAP log times are unsigned")
-    plan = _Plan(revision, frame_ids, stamps, store.poses(rev), np.lexsort((frame_ids, stamps)), _regions_of(double_walls))
+    plan = _Plan(revision, frame_ids, stamps, store.poses(rev)[placed], np.lexsort((frame_ids, stamps)),
+                 _regions_of(double_walls))
     if color == "session":
         plan.frame_sessions = _frame_sessions(store, frame_ids, sessions)
     if volume is not None:  # computed before anything is written: a bad band writes nothing

@@ -164,7 +164,7 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
 
 def _top_view_band(store: FrameStore, layers: VolumeLayers) -> tuple[NDArray[np.float64], tuple[float, float]]:
     """The up direction of the layers' revision and the top view's height band around its sensors."""
-    poses = store.poses(layers.revision)
+    poses = store.poses(layers.revision)[store.ledger.member_rows(layers.revision)]
     up = sensor_up(poses, layers.sensor_kind)
     return up, sensor_band_m(poses[:, :3, 3], up)
 

@@ -73,8 +73,8 @@ from driftmap.store.frame_store import FrameStore
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
 
-__all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult", "append_sessions",
-           "interrupted_append"]
+__all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult",
+           "abandon_interrupted_append", "append_sessions", "interrupted_append"]
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +270,34 @@ def interrupted_append(merged: Path, head: int) -> str | None:
     where = (f"the head revision {head} is the map before it" if head == before else
              f"revision {before} is the map before it; the head is now revision {head}")
     return (f"an append of {stores} (session {numbers}) was interrupted: some of its frames may be stored without "
-            f"its revision ({where}); finish it by running it again: `driftmap merge {merged} {stores} --append`")
+            f"its revision ({where}); finish it by running it again: `driftmap merge {merged} {stores} --append`, "
+            f"or abandon it (its frames stay stored, outside the map): `driftmap rollback {merged} --to {before}`")
+
+
+def abandon_interrupted_append(merged: Path, store: FrameStore) -> str | None:
+    """After a rollback: when an append was interrupted and the new head places none of its frames, it is abandoned:
+    ``append_in_progress`` moves to ``abandoned_appends`` (its session numbers stay taken, since its frames stay
+    stored) and readers take the store again (hostile trial 17 B4: an interrupted append whose session store is gone
+    locked the merged store for good). Returns what was done, or None."""
+    if not (merged / MERGE_SUMMARY_FILE).is_file():
+        return None  # not a merged store
+    summary = read_summary(merged)  # a damaged summary is a StoreError naming it (the rollback itself is stored)
+    pending = summary.get(PENDING_KEY)
+    if not pending:
+        return None
+    numbers = {int(s["session"]) for s in pending["sessions"]}
+    placed = store.members()
+    if np.isin(placed // SESSION_ID_STRIDE, list(numbers)).any():
+        return None  # the head still places frames of the interrupted append: it is not abandoned
+    stored = int(np.isin(store.frame_ids // SESSION_ID_STRIDE, list(numbers)).sum())
+    summary.pop(PENDING_KEY)
+    summary["abandoned_appends"] = summary.get("abandoned_appends", []) + [
+        pending | {"abandoned_by_revision": store.head, "frames_stored": stored}]
+    write_summary(merged, summary)
+    text = (f"the interrupted append of session {', '.join(map(str, sorted(numbers)))} is abandoned: its {stored} "
+            f"stored frames are outside the map from revision {store.head} on")
+    logger.warning("%s: %s", merged, text)
+    return text
 
 
 def _refuse_if_interrupted(merged: Path, store: FrameStore, summary: dict[str, Any], paths: list[Path]) -> None:
@@ -298,6 +325,8 @@ def _numbers(merged: Path, summary: dict[str, Any], paths: list[Path], uuids: li
         return [int(s["session"]) for s in pending["sessions"]], True
     reported = [int(s["session"]) for s in summary["sessions"]]
     reported += [int(s["session"]) for a in summary.get("appends", []) for s in a.get("sessions", [])]
+    # an abandoned append's frames stay stored under its numbers
+    reported += [int(s["session"]) for a in summary.get("abandoned_appends", []) for s in a.get("sessions", [])]
     start = max(reported, default=-1) + 1
     return list(range(start, start + len(paths))), False
 
@@ -329,7 +358,8 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
     numbers, resumed = _numbers(merged, summary, paths, uuids)
     existing = sorted(int(s["session"]) for s in summary["sessions"] if s.get("connected"))
     in_store = store_sessions(store)
-    if not set(existing) <= set(in_store) or set(in_store) - set(existing) - set(numbers if resumed else []):
+    abandoned = {int(s["session"]) for a in summary.get("abandoned_appends", []) for s in a.get("sessions", [])}
+    if not set(existing) <= set(in_store) or set(in_store) - set(existing) - set(numbers if resumed else []) - abandoned:
         raise StoreError(f"{merged}: its frames hold sessions {sorted(in_store)}, its {MERGE_SUMMARY_FILE} "
                          f"{existing}; they disagree (was the summary replaced?)")
     head = store.head

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from driftmap.errors import StoreCorruptError as StoreCorruptError  # importable here as before
 from driftmap.store.revision import Revision
 from driftmap.store.segment_format import EVENT_DATA_LOST
@@ -92,7 +94,9 @@ def without_frames(rev: Revision, lost: list[int]) -> Revision:
     return Revision(rev.revision_id, rev.parent_id, rev.source, rev.created_ns,
                     f"{note}[recovery: poses of {len(gone)} lost frame(s) removed]",
                     {k: v for k, v in rev.set_directly.items() if k not in gone},
-                    {k: v for k, v in rev.propagated.items() if k not in gone}, rev.restores)
+                    {k: v for k, v in rev.propagated.items() if k not in gone}, rev.restores,
+                    {k: v for k, v in rev.covariances.items() if k not in gone},
+                    None if rev.frames is None else rev.frames[~np.isin(rev.frames, list(gone))])
 
 
 def lost_ids(event: dict[str, Any], file: Path) -> tuple[set[int], set[int]]:

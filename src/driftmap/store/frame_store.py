@@ -350,6 +350,11 @@ class FrameStore:
         """(M, 4, 4) ``T_world_sensor`` of every frame (in ``frame_ids`` order) in a revision (default head)."""
         return self.ledger.poses(self.head if revision is None else revision)
 
+    def members(self, revision: int | None = None) -> NDArray[np.int64]:
+        """Sorted ids of the frames a revision (default head) places (:meth:`PoseLedger.members
+        <driftmap.store.ledger.PoseLedger.members>`: a revision made before frames were appended does not hold them)."""
+        return self.ledger.members(self.head if revision is None else revision)
+
     def _persist(self, revision: Revision) -> Revision:
         write_revision(self.path, self._writable(f"storing revision {revision.revision_id}"), revision)
         return self.ledger.commit(revision)

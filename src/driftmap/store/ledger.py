@@ -6,6 +6,14 @@ frames it changes, split into the poses it was given (``set_directly``) and the 
 revision on ``r``'s ancestry chain (``r``, ``parent(r)``, ..., 1) that changes it, else its revision-0 pose;
 so a correction may branch from an older revision and a rollback is just another revision.
 
+Each revision is a pose estimate for a set of frames, its *members* (:meth:`PoseLedger.members`): revision 0 holds
+every frame; a later revision the frames it was made over (recorded as ``Revision.frames``): its parent's members
+plus the frames it sets. A frame stored after a revision is not one of its members, so an older revision never
+shows frames added later at poses it never gave them (a session appended by ``merge --append``, the frames of a
+``build --resume``), and a rollback to it restores its set of frames. The head alone also shows the frames stored
+after it, at their revision-0 poses, until a revision places them (a live robot appending to a store). Revisions
+stored before membership was recorded take the frames stored before them (store order), a rollback its target's.
+
 Changing the ledger is two steps: ``plan_correction`` / ``plan_rollback`` validate and return a new
 :class:`Revision` without adding it, and ``commit`` appends it. The store persists a planned revision
 (``Revision.to_json``) first and commits it in memory only once that succeeded.
@@ -59,6 +67,9 @@ class PoseLedger:
         self._base_source = as_source(base_source)
         self._created_ns = time.time_ns() if created_ns is None else as_int(created_ns, "created_ns")
         self._known: set[int] = set()
+        self._order: list[int] = []  # frame ids in the order they were added (the store order)
+        self._known_at: list[int] = []  # per committed revision: how many frames the ledger held when it was committed
+        self._recorded: list[NDArray[np.int64]] = []  # per committed revision: its member ids (sorted)
         self._frame_sources: set[PoseSource] = set()
         # frames arrive one at a time: appended to these lists and merged into the sorted arrays on demand
         self._pending_ids: list[int] = []
@@ -85,6 +96,7 @@ class PoseLedger:
         if fid in self._known:
             raise StoreError(f"frame {fid} is already in the pose ledger")
         self._known.add(fid)
+        self._order.append(fid)
         if source is not None:
             self._frame_sources.add(as_source(source))
         self._pending_ids.append(fid)
@@ -167,10 +179,29 @@ class PoseLedger:
         assert parent is not None
         return parent
 
+    def members(self, revision_id: int, *, later: bool = True) -> NDArray[np.int64]:
+        """Sorted read-only ids of the frames revision ``revision_id`` places (module docstring): every frame for
+        revision 0; for a later revision the frames it was made over, and for the head also the frames stored
+        after it (unless ``later`` is False)."""
+        rid = self._require_revision(revision_id)
+        if rid == 0:
+            return self.frame_ids
+        recorded = self._recorded[rid - 1]
+        if later and rid == self.head and self._known_at[rid - 1] < len(self._order):
+            later = np.asarray(self._order[self._known_at[rid - 1]:], dtype=np.int64)
+            recorded = readonly(np.union1d(recorded, later))
+        return recorded
+
+    def member_rows(self, revision_id: int) -> NDArray[np.intp]:
+        """Positions of :meth:`members` in :attr:`frame_ids` (rows of :meth:`poses`)."""
+        return self._index_of(self.members(revision_id))
+
     # ---- poses -----------------------------------------------------------------------------------------------
 
     def poses(self, revision_id: int) -> NDArray[np.float64]:
-        """(M, 4, 4) read-only ``T_world_sensor`` of every frame in a revision, aligned with :attr:`frame_ids`."""
+        """(M, 4, 4) read-only ``T_world_sensor`` of every frame, aligned with :attr:`frame_ids`, as revision
+        ``revision_id`` has them; a frame that is not one of its :meth:`members` has its revision-0 pose here (or
+        the pose an ancestor gave it): take :meth:`member_rows` for the revision's own frames."""
         rid = self._require_revision(revision_id)
         self._consolidate()
         cached = self._cached_poses(rid)
@@ -266,9 +297,13 @@ class PoseLedger:
         key_ids = np.array(sorted(given), dtype=np.int64)
         key_poses = np.array([given[k] for k in key_ids.tolist()])
 
+        # the new revision is made over its parent's frames and the frames it sets (module docstring); a frame the
+        # parent does not place (stored later, or left out by a rollback) is not moved by propagation
+        scope = np.union1d(self.members(parent_id), key_ids)
         propagated: dict[int, NDArray[np.float64]] = {}
-        if propagate and len(key_ids) < self.n_frames:
-            prop_ids, prop_poses = propagate_correction(self.frame_ids, self.stamps_ns, self.poses(parent_id),
+        if propagate and len(key_ids) < len(scope):
+            rows = self._index_of(scope)
+            prop_ids, prop_poses = propagate_correction(scope, self.stamps_ns[rows], self.poses(parent_id)[rows],
                                                          key_ids, key_poses)
             propagated = dict(zip(prop_ids.tolist(), prop_poses, strict=True))
         revision = Revision(
@@ -280,6 +315,7 @@ class PoseLedger:
             set_directly=given,
             propagated=propagated,
             covariances=covariances or {},
+            frames=scope,
         )
         logger.debug(
             "planned revision %d on %d (%s): %d set, %d propagated",
@@ -310,7 +346,19 @@ class PoseLedger:
             raise StoreError(
                 f"cannot commit revision {revision.revision_id}: frames {preview(unknown)} are not in the pose ledger"
             )
+        if revision.frames is not None:
+            recorded = revision.frames
+            absent = recorded[~np.isin(recorded, self.frame_ids)].tolist()
+            if absent:
+                raise StoreError(f"cannot commit revision {revision.revision_id}: its frames {preview(absent)} are "
+                                 "not in the pose ledger")
+        elif revision.restores is not None:  # written before membership was recorded: the target's frames
+            recorded = self.members(revision.restores)
+        else:  # written before membership was recorded: the frames stored before it
+            recorded = self.frame_ids
         self._committed.append(revision)
+        self._known_at.append(len(self._order))
+        self._recorded.append(readonly(np.array(recorded, dtype=np.int64, copy=True)))
         logger.info(
             "committed pose revision %d (parent %d, %s): %d set, %d propagated",
             revision.revision_id, parent, revision.source.value, len(revision.set_directly), len(revision.propagated),
@@ -346,21 +394,26 @@ class PoseLedger:
         return out
 
     def plan_rollback(self, to: int, *, note: str = "", created_ns: int | None = None) -> Revision:
-        """A new revision on head that restores revision ``to`` exactly: it sets the pose of ``to`` for every
-        frame whose pose in head differs from it in any bit."""
+        """A new revision on head that restores revision ``to`` exactly: its frames are those ``to`` was made over
+        (:meth:`members` without the frames stored after it, even when ``to`` is the head: rolling back to the head
+        drops frames stored since, e.g. an interrupted append's), and it sets the pose of ``to`` for every one of them
+        whose pose in head differs from it in any bit or that head does not place."""
         target = self._require_revision(to, "rollback target revision")
         head = self.head
-        P_to, P_head = self.poses(target), self.poses(head)
+        frames = self.members(target, later=False)
+        rows = self._index_of(frames)
+        P_to, P_head = self.poses(target)[rows], self.poses(head)[rows]
         differs = np.any(P_to.view(np.uint64) != P_head.view(np.uint64), axis=(1, 2))
-        changed = np.flatnonzero(differs)
+        changed = np.flatnonzero(differs | ~np.isin(frames, self.members(head)))
         revision = Revision(
             revision_id=head + 1,
             parent_id=head,
             source=PoseSource.ROLLBACK,
             created_ns=time.time_ns() if created_ns is None else created_ns,
             note=note,
-            set_directly=dict(zip(self.frame_ids[changed].tolist(), P_to[changed], strict=True)),
+            set_directly=dict(zip(frames[changed].tolist(), P_to[changed], strict=True)),
             restores=target,
+            frames=frames,
         )
         logger.debug(
             "planned rollback %d: head %d -> revision %d, %d frames", revision.revision_id, head, target, len(changed)
@@ -369,18 +422,23 @@ class PoseLedger:
 
     # ---- comparisons -----------------------------------------------------------------------------------------
 
-    def _difference(self, a: int, b: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        P_a, P_b = self.poses(a), self.poses(b)
+    def _difference(self, a: int, b: int) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.float64]]:
+        """The frames both revisions place, and how far each moves and turns from ``a`` to ``b``."""
+        ids = np.intersect1d(self.members(a), self.members(b))
+        rows = self._index_of(ids)
+        P_a, P_b = self.poses(a)[rows], self.poses(b)[rows]
         translation_m = np.linalg.norm(P_a[:, :3, 3] - P_b[:, :3, 3], axis=1)
-        return translation_m, geometry.relative_rotation_angle_rad(P_a, P_b)
+        return ids, translation_m, geometry.relative_rotation_angle_rad(P_a, P_b)
 
     def diff(self, a: int, b: int) -> PoseDiff:
-        """Per-frame position distance (m) and relative rotation angle (deg) between revisions ``a`` and ``b``."""
-        translation_m, rotation_rad = self._difference(a, b)
-        return PoseDiff(self.frame_ids, readonly(translation_m), readonly(np.degrees(rotation_rad)))
+        """Per-frame position distance (m) and relative rotation angle (deg) between revisions ``a`` and ``b``, over
+        the frames both place (:meth:`members`)."""
+        ids, translation_m, rotation_rad = self._difference(a, b)
+        return PoseDiff(readonly(ids), readonly(translation_m), readonly(np.degrees(rotation_rad)))
 
     def changed_frames(self, a: int, b: int, *, eps_m: float = 1e-9, eps_rad: float = 1e-9) -> NDArray[np.int64]:
-        """Ids of the frames whose pose moves more than ``eps_m`` or turns more than ``eps_rad`` from ``a`` to ``b``."""
-        translation_m, rotation_rad = self._difference(a, b)
-        return self.frame_ids[(translation_m > eps_m) | (rotation_rad > eps_rad)]
+        """Ids of the frames (placed by both) whose pose moves more than ``eps_m`` or turns more than ``eps_rad``
+        from ``a`` to ``b``."""
+        ids, translation_m, rotation_rad = self._difference(a, b)
+        return ids[(translation_m > eps_m) | (rotation_rad > eps_rad)]
 

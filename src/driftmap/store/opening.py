@@ -4,6 +4,8 @@ order, with what ``recover`` declared lost (see :mod:`driftmap.store.frame_store
 
 from __future__ import annotations
 
+import bisect
+
 import logging
 from pathlib import Path
 from typing import Any
@@ -106,9 +108,14 @@ def replay(folder: Path, ledger: PoseLedger, refs: dict[int, StoredFrameRef], sc
     """
     run = _Replay(folder, ledger, refs, scans, strict)
     for scan in scans:
-        run.add_frames(scan)
-        for rev_json in scan.revisions:
+        added = 0  # frames and revisions in store order: a revision's frames are those stored before it
+        offsets = [ref.payload_offset for ref in scan.frames]
+        for rev_json, after in zip(scan.revisions, scan.revision_after_offset, strict=True):
+            before = max(added, bisect.bisect_right(offsets, after))
+            run.add_frames(scan, added, before)
+            added = before
             run.add_revision(scan, rev_json)
+        run.add_frames(scan, added, len(scan.frames))
     lost_frames = sorted(f for f in run.named_lost | run.declared_frames if f not in ledger)
     return DataLoss(tuple(lost_frames), tuple(run.stand_ins), run.trimmed, run.orphaned), run.new_frames, run.new_revisions
 
@@ -134,8 +141,8 @@ class _Replay:
         self.trimmed: dict[int, tuple[int, ...]] = {}
         self.orphaned: dict[int, int] = {}
 
-    def add_frames(self, scan: SegmentScan) -> None:
-        for ref in scan.frames:
+    def add_frames(self, scan: SegmentScan, start: int, stop: int) -> None:
+        for ref in scan.frames[start:stop]:
             if ref.frame_id in self.refs:
                 raise StoreCorruptError(f"{scan.path}: frame {ref.frame_id} stored twice", path=scan.path,
                                         offset=ref.payload_offset)
@@ -158,8 +165,8 @@ class _Replay:
             raise StoreCorruptError(f"{scan.path}: revision {rid} is stored again after revision {head}",
                                     path=scan.path, offset=None)
         self.fill_gap(scan, rev, head)
-        changed = rev.changed_frame_ids
-        absent = changed[~np.isin(changed, self.ledger.frame_ids)].tolist()
+        named = rev.changed_frame_ids if rev.frames is None else rev.frames  # its frames hold the changed ones
+        absent = named[~np.isin(named, self.ledger.frame_ids)].tolist()
         if absent:
             undeclared = [f for f in absent if f not in self.declared_frames]
             if undeclared and self.strict:
@@ -168,7 +175,8 @@ class _Replay:
                     f"of the store holds (lost with a damaged or missing segment?){self.fix}", path=scan.path, offset=None)
             self.new_frames.update(undeclared)
             self.named_lost.update(absent)
-            self.trimmed[rid] = tuple(absent)
+            if (posed := [f for f in absent if f in rev.set_directly or f in rev.propagated]):
+                self.trimmed[rid] = tuple(posed)  # poses lost (a lost frame it only counted among its frames: no pose)
             rev = without_frames(rev, absent)
         if rev.parent_id in self.stand_ins:
             self.orphaned[rid] = int(rev.parent_id)

@@ -127,17 +127,19 @@ def warn_about_revision(store: PoseFileStore, revision: Revision, what: str, *, 
       file was most likely for other frames (``rollback`` undoes it).
     """
     diff = store.diff(revision.parent_id, revision.revision_id)
-    if diff.n_changed == 0:
+    same_frames = np.array_equal(store.ledger.members(revision.parent_id), store.ledger.members(revision.revision_id))
+    if diff.n_changed == 0 and same_frames:
         logger.warning("%s: every pose equals revision %d's within %g um / %g deg: the new revision changes no "
                        "pose", what, revision.parent_id, SAME_POSE_M * 1e6, SAME_POSE_DEG)
         return
     if not far:
         return
-    parent_poses = store.poses(revision.parent_id)
+    rows = np.searchsorted(store.ledger.frame_ids, diff.frame_ids)  # the frames both revisions place
+    parent_poses = store.poses(revision.parent_id)[rows]
     before = parent_poses[:, :3, 3]
     span = float(np.linalg.norm(before.max(axis=0) - before.min(axis=0))) if len(before) else 0.0
     if diff.max_translation_m > max(1.0, 0.5 * span):
-        if _moves_all_rigidly(parent_poses, store.poses(revision.revision_id)):
+        if _moves_all_rigidly(parent_poses, store.poses(revision.revision_id)[rows]):
             logger.warning("%s: revision %d moves every frame by one rigid transform (up to %.2f m): the map is "
                            "re-anchored, no frame moves relative to another (no correction of drift)", what,
                            revision.revision_id, diff.max_translation_m)
@@ -172,13 +174,15 @@ def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int |
     if fmt not in (TrajectoryFormat.TUM, TrajectoryFormat.KITTI):
         raise ConfigError(f"{file}: trajectories are exported as tum or kitti, not {fmt.value}")
     ledger = store.ledger
-    ids = ledger.frame_ids
-    rows = np.arange(len(ids))
+    rev = store.head if revision is None else revision
+    ledger.revision(rev)  # StoreError naming the revision and the valid range
+    ids = ledger.members(rev)  # the frames the revision places (not those stored after it)
     if frame_ids is not None:  # a subset (a merged store's session), in store order
         wanted = np.unique(np.asarray(frame_ids, dtype=np.int64))
         rows = np.searchsorted(ids, wanted)
         if len(wanted) and (rows.max() >= len(ids) or not np.array_equal(ids[np.minimum(rows, len(ids) - 1)], wanted)):
-            raise ConfigError(f"{file}: frame ids {id_sample(np.setdiff1d(wanted, ids))} are not in store {store.path}")
+            raise ConfigError(f"{file}: frame ids {id_sample(np.setdiff1d(wanted, ids))} are not in store {store.path}"
+                              f"'s revision {rev}")
         ids = ids[rows]
     if fmt is TrajectoryFormat.KITTI and not np.array_equal(ids, np.arange(len(ids))):
         # KITTI has neither stamps nor ids: the readers (correct, build --poses, diagnose --gt) take row i as
@@ -186,8 +190,7 @@ def export_trajectory(store: PoseFileStore, file: str | Path, *, revision: int |
         logger.warning("%s: KITTI export writes one row per stored frame, but the frame ids are %s (not 0..%d): "
                        "reading it back takes row i as frame_id i; export TUM (with stamps) to round-trip",
                        file, id_sample(ids), len(ids) - 1)
-    rev = store.head if revision is None else revision
-    ledger.revision(rev)  # StoreError naming the revision and the valid range
+    rows = np.searchsorted(ledger.frame_ids, ids)
     if len(ids) == 0:
         raise EmptyStoreError(f"store {store.path} has no frames in revision {rev}: no trajectory to export "
                               f"(nothing written to {file})", store=store.path, revision=rev)

@@ -286,11 +286,11 @@ def copy_scan_into(scan: SegmentScan, writer: SegmentWriter) -> list[tuple[int, 
     with open(scan.path, "rb") as fh:
         mm = mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) if scan.size else None
         try:
-            items: list[tuple[int, str, Any]] = [(r.payload_offset, "frame", r) for r in scan.frames]
-            for rev in scan.revisions:
-                items.append((-1, "revision", rev))
-            # frames keep their file order; revisions go after the frames they may refer to
-            for _, kind, item in sorted(items, key=lambda x: (x[1] == "revision", x[0])):
+            items: list[tuple[int, int, str, Any]] = [(r.payload_offset, 0, "frame", r) for r in scan.frames]
+            for k, (rev, after) in enumerate(zip(scan.revisions, scan.revision_after_offset, strict=True)):
+                items.append((after, 1 + k, "revision", rev))
+            # the store order kept: frames in file order, each revision after the frames stored before it
+            for _, _, kind, item in sorted(items, key=lambda x: (x[0], x[1])):
                 if kind == "frame":
                     frame = decode_frame(item, mm)
                     if isinstance(frame, str):

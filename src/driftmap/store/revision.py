@@ -64,8 +64,11 @@ class Revision:
     ``restores`` is the revision a rollback restores (``None`` otherwise). Revision 0 has no parent and sets the
     frames' own poses. ``covariances`` (optional) holds the uncertainty of poses set directly, as the pose graph
     that made them gives it (GTSAM marginals): ``frame_id -> 6x6`` in driftmap order ``[translation, rotation]``
-    (m^2, rad^2), in the frame's own sensor frame. Instances compare equal when every field is equal, matrices bit
-    for bit.
+    (m^2, rad^2), in the frame's own sensor frame. ``frames`` (optional) are the frames the revision is a pose
+    estimate for (its members: sorted ids, a superset of the frames it changes); frames stored later, or left out by a
+    rollback, are not in it. ``None``: not recorded (revisions written before driftmap recorded it); the ledger then
+    takes the frames stored before the revision. Instances compare equal when every field is equal, matrices bit for
+    bit.
     """
 
     revision_id: int
@@ -77,6 +80,7 @@ class Revision:
     propagated: Mapping[int, NDArray[np.float64]] = field(default_factory=dict, repr=False)
     restores: int | None = None
     covariances: Mapping[int, NDArray[np.float64]] = field(default_factory=dict, repr=False)
+    frames: NDArray[np.int64] | None = field(default=None, repr=False)
     # sorted changed ids, their poses and whether each was set directly (derived, for fast array access)
     _ids: NDArray[np.int64] = field(init=False, repr=False)
     _poses: NDArray[np.float64] = field(init=False, repr=False)
@@ -113,6 +117,7 @@ class Revision:
         setattr_(self, "propagated", MappingProxyType(dict(zip(prop_ids.tolist(), prop_poses, strict=True))))
         setattr_(self, "covariances", MappingProxyType(_covariance_table(self.covariances, direct_ids, rid)))
         setattr_(self, "_ids", readonly(ids[order]))
+        setattr_(self, "frames", _member_ids(self.frames, self._ids, rid))
         setattr_(self, "_poses", readonly(np.concatenate([direct_poses, prop_poses])[order]))
         direct = np.concatenate([np.ones(len(direct_ids), dtype=bool), np.zeros(len(prop_ids), dtype=bool)])
         setattr_(self, "_direct", readonly(direct[order]))
@@ -149,6 +154,8 @@ class Revision:
             and self._poses.tobytes() == other._poses.tobytes()
             and sorted(self.covariances) == sorted(other.covariances)
             and all(self.covariances[k].tobytes() == other.covariances[k].tobytes() for k in self.covariances)
+            and (self.frames is None) == (other.frames is None)
+            and (self.frames is None or np.array_equal(self.frames, other.frames))
         )
 
     __hash__ = None  # type: ignore[assignment]  # mutable-looking payload; compare, don't hash
@@ -177,6 +184,8 @@ class Revision:
         if self.covariances:  # absent when none: revisions without keep the layout they always had
             ids = sorted(self.covariances)
             out["covariances"] = {"frame_ids": ids, "covariance_6x6": [self.covariances[k].ravel().tolist() for k in ids]}
+        if self.frames is not None:  # absent when not recorded (as revisions written before it was)
+            out["frames"] = id_ranges(self.frames)
         return out
 
     @classmethod
@@ -224,9 +233,55 @@ class Revision:
                 set_directly=table("set_directly"),
                 propagated=table("propagated"),
                 restores=data.get("restores"),
+                frames=_frames_json(data.get("frames"), rid),
             )
         except TransformError as exc:
             raise StoreError(f"revision {rid}: damaged pose in JSON: {exc}") from exc
+
+
+def id_ranges(ids: NDArray[np.int64]) -> list[list[int]]:
+    """Sorted distinct ids as inclusive ranges ``[[first, last], ...]`` (a session's frames are one range)."""
+    if len(ids) == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(ids) != 1)
+    firsts = np.concatenate([ids[:1], ids[breaks + 1]])
+    lasts = np.concatenate([ids[breaks], ids[-1:]])
+    return [[int(a), int(b)] for a, b in zip(firsts, lasts, strict=True)]
+
+
+def _frames_json(part: Any, rid: Any) -> NDArray[np.int64] | None:
+    """The member ids of a revision's JSON ``frames`` (inclusive ranges), or ``None`` when absent."""
+    if part is None:
+        return None
+    if not isinstance(part, list) or any(
+            not isinstance(r, list) or len(r) != 2 or any(isinstance(x, bool) or not isinstance(x, int) for x in r)
+            or r[0] > r[1] for r in part):
+        raise StoreError(f"revision {rid}: frames must be a list of [first, last] integer ranges")
+    total = sum(b - a + 1 for a, b in part)
+    if total > 1 << 31:
+        raise StoreError(f"revision {rid}: frames name {total} frames, more than a store can hold")
+    if not part:
+        return _EMPTY_IDS
+    return np.concatenate([np.arange(a, b + 1, dtype=np.int64) for a, b in part])
+
+
+def _member_ids(frames: Any, changed: NDArray[np.int64], rid: int) -> NDArray[np.int64] | None:
+    """Validated sorted distinct read-only member ids holding every changed frame, or ``None``."""
+    if frames is None:
+        return None
+    try:
+        ids = np.asarray(frames)
+        if ids.size and not np.issubdtype(ids.dtype, np.integer):
+            raise TypeError(ids.dtype)
+        ids = ids.astype(np.int64).reshape(-1)
+    except (TypeError, ValueError) as exc:
+        raise StoreError(f"revision {rid}: frames must be frame ids (integers)") from exc
+    if len(ids) > 1 and not np.all(np.diff(ids) > 0):
+        ids = np.unique(ids)
+    outside = np.setdiff1d(changed, ids)
+    if outside.size:
+        raise StoreError(f"revision {rid}: changes frames {preview(outside.tolist())} that are not among its frames")
+    return readonly(np.array(ids, copy=True))
 
 
 def _covariance_table(covariances: Mapping[Any, ArrayLike], set_ids: NDArray[np.int64],

@@ -43,11 +43,17 @@ class SegmentScan:
     """The store this segment belongs to, from its ``segment_start`` event (None: that chunk was not read)."""
     data_lost: list[dict[str, Any]] = field(default_factory=list)
     """The ``data_lost`` events recovery wrote into this segment (frames and revisions the store lost)."""
+    revision_after_offset: list[int] = field(default_factory=list)
+    """Per revision, the payload offset of the last frame the segment holds before it (-1: none; a chunk's frames
+    count as before its revisions): the store order, which tells the frames a revision was made over (offsets, not
+    counts, so that it holds when recovery drops frames from :attr:`frames`)."""
 
     def add(self, chunk: ChunkContent) -> None:
         """Add what an intact chunk holds."""
         self.frames.extend(chunk.frames)
         self.revisions.extend(chunk.revisions)
+        last = self.frames[-1].payload_offset if self.frames else -1
+        self.revision_after_offset.extend([last] * len(chunk.revisions))
         self.data_lost.extend(chunk.data_lost)
         if chunk.store_uuid is not None:
             self.store_uuid = chunk.store_uuid

@@ -323,6 +323,16 @@ class VolumeLayers:
         t0 = time.perf_counter()
         store.ledger.revision(revision)
         old_rev = self.revision
+        self_ids = np.sort(self.view.frame_ids)
+        if not np.array_equal(self_ids, store.members(revision)):
+            # the revisions place different frames (one made before frames were appended, a rollback to it): the
+            # layers of revision ``revision`` are those of its frames only, built again
+            logger.info("volume: revision %d places other frames than revision %d; rebuilding the layers",
+                        revision, old_rev)
+            rebuilt = VolumeLayers.from_store(store, revision, self.config)
+            self.__dict__.update(rebuilt.__dict__)
+            return VolumeChange(old_rev, revision, np.setxor1d(self_ids, store.members(revision)), np.zeros((0, 2, 3)),
+                                np.zeros(0, np.int64), np.zeros((0, 3)), time.perf_counter() - t0, rebuilt=True)
         before = {int(f): self.view.pose(int(f)) for f in self.view.frame_ids}
         after = store.poses(revision)
         moved = [int(f) for f, T in zip(store.frame_ids, after) if int(f) in before and not np.array_equal(before[int(f)], T)]
