@@ -52,6 +52,8 @@ class CoverageConfig(SettingsModel):
     drift_check_margin_percent: float = Field(0.5, ge=0.0, description="... plus this (%/m)")
     drift_check_min_share: float = Field(0.25, ge=0.0, description="... and its disagreement is at least this share of its max_detectable_m (below, the pairs' corrections are registration noise over short travel)")
     drift_check_margin_deg_per_m: float = Field(0.2, ge=0.0, description="the same for the rotation: no verdict when the pairs turn more than drift_check_factor times the fit's deg/m plus this, and their disagreement is at least drift_check_min_share of max_detectable_deg")
+    drift_check_floor_m: float = Field(0.03, ge=0.0, description="the pairs' corrections count beyond this registration floor at the sensor (m): single depth frames on exact poses register 2.5-5.7 cm apart there (7-Scenes, 4-5 m of travel apart; a rotation of about 1 deg at a 2 m lever), which is no drift. Pairs 6 m apart then see about 1 %/m and more")
+    drift_check_floor_deg: float = Field(1.0, ge=0.0, description="... and beyond this rotation (deg; the same pairs turn 1.3-1.6 deg)")
     smeared_separations: float = Field(1.0, gt=0.0, description="an evaluated, unflagged group whose frames disagree by more than this many times double_wall.min_separation_m is smeared")
 
 
@@ -186,7 +188,7 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
     ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
     disagree with the earlier map beyond what the detector sees, no headline figure is a verdict; when their
-    corrections per metre of travel exceed ``drift_percent_per_m`` (the drift rate's fit) by more than
+    corrections beyond a registration floor (``drift_check_floor_m`` / ``_deg``) per metre of travel exceed ``drift_percent_per_m`` (the drift rate's fit) by more than
     ``drift_check_factor`` times plus ``drift_check_margin_percent``, the drift rate is not one (its residuals are
     gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift); the same for the
     rotation against ``drift_deg_per_m`` (trial 12: 0.18 deg/m fitted on 1 deg/m of injected drift)."""
@@ -221,18 +223,20 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     drift = [] if drift_frames >= cfg.min_drift_frames else [
         (f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
          f"{cfg.min_drift_frames} needed): too little of the map was seen again")]
-    checked = revisits.drift_percent_per_m if revisits is not None else None
+    beyond_floor = (revisits.drift_beyond_floor(cfg.drift_check_floor_m, cfg.drift_check_floor_deg)
+                    if revisits is not None else None)
+    checked, turned = beyond_floor if beyond_floor is not None else (None, None)
     if checked is not None and drift_percent_per_m is not None and (
             checked > cfg.drift_check_factor * drift_percent_per_m + cfg.drift_check_margin_percent) and (
             revisits.disagreement_m >= cfg.drift_check_min_share * revisits.config.max_detectable_m):
-        drift.append(f"the revisit check's frame pairs disagree by {checked:.2f} % of the travel between them, the drift "
-                     f"rate's fit says {drift_percent_per_m:.2f} %/m: drift larger than its residual gate escapes it")
-    turned = revisits.drift_deg_per_m if revisits is not None else None
+        drift.append(f"the revisit check's frame pairs disagree by {checked:.2f} % of the travel between them (beyond "
+                     f"their {100 * cfg.drift_check_floor_m:g} cm registration floor), the drift rate's fit says "
+                     f"{drift_percent_per_m:.2f} %/m: drift larger than its residual gate escapes it")
     if turned is not None and drift_deg_per_m is not None and (
             turned > cfg.drift_check_factor * abs(drift_deg_per_m) + cfg.drift_check_margin_deg_per_m) and (
             revisits.disagreement_deg >= cfg.drift_check_min_share * revisits.config.max_detectable_deg):
-        drift.append(f"the revisit check's frame pairs turn by {turned:.3f} deg per metre of travel between them, the "
-                     f"drift rate's fit says {drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
+        drift.append(f"the revisit check's frame pairs turn by {turned:.3f} deg per metre of travel between them "
+                     f"(beyond their {cfg.drift_check_floor_deg:g} deg registration floor), the drift rate's fit says {drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
     beyond = revisits.reason() if revisits is not None else None
     if beyond:  # every figure compares within gates that a larger pose error escapes
         surfaces, smear, drift = [*surfaces, beyond], [*smear, beyond], [*drift, beyond]

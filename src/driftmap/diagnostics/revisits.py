@@ -295,6 +295,20 @@ class RevisitCheck:
             return None
         return float(np.median([p.correction_deg / max(p.path_between_m, 1e-9) for p in pairs]))
 
+    def drift_beyond_floor(self, floor_m: float, floor_deg: float) -> tuple[float, float] | None:
+        """:attr:`drift_percent_per_m` and :attr:`drift_deg_per_m` of the pairs' corrections beyond a registration
+        floor (each pair's correction less ``floor_m`` / ``floor_deg``, not below 0, over its travel): what of the
+        pairs' disagreement drift must explain (hostile trial 17 B2: single 7-Scenes frames on exact poses register
+        2.5-4.2 cm / 1.3-1.6 deg apart at their sensors, 4-5 m of travel apart, which read as 0.91 %/m). None: too
+        few pairs."""
+        pairs = self._drift_pairs()
+        if pairs is None:
+            return None
+        travel = np.array([max(p.path_between_m, 1e-9) for p in pairs])
+        m = np.maximum(np.array([p.correction_m for p in pairs]) - floor_m, 0.0)
+        deg = np.maximum(np.array([p.correction_deg for p in pairs]) - floor_deg, 0.0)
+        return float(100.0 * np.median(m / travel)), float(np.median(deg / travel))
+
     @property
     def beyond_detector(self) -> bool:
         """The pairs disagree by more than the double-wall detector can see."""
