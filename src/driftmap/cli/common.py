@@ -192,6 +192,16 @@ def finite_within(lo: float, hi: float, unit: str) -> Callable[[Any], Any]:
     return check
 
 
+def finite_at_least(lo: float, unit: str) -> Callable[[Any], Any]:
+    """A callback: a finite number ``>= lo`` (``None`` passes), one usage error naming the bound and ``unit`` for NaN,
+    inf and too small alike (click's own ``min=`` ran first and said "greater than or equal to 0" of ``nan``)."""
+    def check(value: Any) -> Any:
+        if value is not None and not (math.isfinite(value) and value >= lo):
+            raise typer.BadParameter(f"must be a finite number >= {lo:g} {unit}, got {value!r}")
+        return value
+    return check
+
+
 def refuse_same_output(outputs: list[tuple[Path, str]], folders: tuple[str, ...] = ()) -> None:
     """Two output options naming one file (one would replace the other), or an output inside another that is a file
     (the flags in ``folders`` name folders, which may hold the others): a one-line error naming both, before any
