@@ -54,3 +54,30 @@ def test_t17_b2_a_ground_truth_map_is_judged_and_the_pairs_floor_is_reported(sev
     assert len(counted) >= 3 and max(p["correction_m"] for p in counted) < 0.07  # 2.5-5.7 cm when the trial ran
     beyond = sorted(100 * max(p["correction_m"] - 0.03, 0.0) / p["path_between_m"] for p in counted)
     assert beyond[len(beyond) // 2] < 0.5  # beyond the 3 cm floor, within the 0.5 %/m margin over the fit
+
+
+def test_t17_a_resume_over_a_rollback_head_carries_the_restored_revisions_source(tmp_path: Path) -> None:
+    """Weak: `build --resume` on a store whose head is a rollback recorded its carried correction with the source
+    "rollback" (nothing was rolled back); it now takes the source of the revision the rollback restores."""
+    from driftmap.store.frame_store import FrameStore
+
+    log = tmp_path / "room"
+    _ok(run_cli("synth", log, "--frames", 30, "--seed", 11))
+    store = tmp_path / "st"
+    _ok(run_cli("build", log, "--poses", log / "groundtruth.txt", "--frames", "0:20", "--no-loop-closure", "--out",
+                store))
+    _ok(run_cli("export", store, "--trajectory", tmp_path / "own.txt"))
+    rows = [line.split() for line in (tmp_path / "own.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    (tmp_path / "up.txt").write_text("".join(" ".join([r[0], r[1], r[2], repr(float(r[3]) + 0.1), *r[4:]]) + "\n"
+                                             for r in rows))
+    _ok(run_cli("correct", store, "--poses", tmp_path / "up.txt"))  # revision 1: everything 10 cm up
+    _ok(run_cli("rollback", store, "--to", 0))  # revision 2
+    _ok(run_cli("rollback", store, "--to", 1))  # revision 3 restores revision 1
+    _ok(run_cli("build", log, "--poses", log / "groundtruth.txt", "--frames", "0:30", "--no-loop-closure", "--out",
+                store, "--resume"))
+    with FrameStore.open(store) as s:
+        assert s.head == 4 and s.ledger.revision(4).source.value == "external_file"
+        assert len(s.members(3)) == 20 and len(s.members()) == 30
+        lifted = s.poses()[:, 2, 3] - s.poses(0)[:, 2, 3]
+        assert abs(lifted - 0.1).max() < 1e-6  # the new frames carry the restored correction too

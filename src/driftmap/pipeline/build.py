@@ -193,11 +193,14 @@ def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> 
     kept = np.array([int(f) in existing for f in ids])
     poses = np.array(store.poses(head))
     parent = store.ledger.revision(head)
+    made_by = parent  # the source of the carried poses: a rollback's are those of the revision it restores
+    while made_by.source is PoseSource.ROLLBACK and made_by.restores is not None:
+        made_by = store.ledger.revision(made_by.restores)
     new_ids = ids[~kept]
     # the head's world-frame correction of the neighbouring old frames, applied to the new frames' revision-0 poses
     prop_ids, prop_poses = propagate_correction(ids, store.ledger.stamps_ns, store.poses(0), ids[kept], poses[kept])
     poses[np.searchsorted(ids, prop_ids)] = prop_poses
-    revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=parent.source, parent=head,
+    revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=made_by.source, parent=head,
                                   propagate=False,
                                   note=f"resume: revision {head}'s correction carried on to the {len(new_ids)} new frames")
     logger.warning("resume: the store's head was revision %d (%s), a correction; the %d new frames (%d..%d) would have "
