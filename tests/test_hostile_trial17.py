@@ -81,3 +81,35 @@ def test_t17_a_resume_over_a_rollback_head_carries_the_restored_revisions_source
         assert len(s.members(3)) == 20 and len(s.members()) == 30
         lifted = s.poses()[:, 2, 3] - s.poses(0)[:, 2, 3]
         assert abs(lifted - 0.1).max() < 1e-6  # the new frames carry the restored correction too
+
+
+def test_t17_w2_w9_an_interrupted_build_is_named_and_a_merged_store_is_not_resumed(tmp_path: Path) -> None:
+    """W2: a build killed before it finished (no build_summary.json: loop closure never ran) read as a finished store
+    in `info`, `export`, `diagnose`; they now name it and the command that finishes it (the readers still read it).
+    W9: `build --resume` into a merged store said a frame order was wrong; it now says what the store is."""
+    import shutil
+
+    log = tmp_path / "room"
+    _ok(run_cli("synth", log, "--frames", 12, "--seed", 3))
+    store = tmp_path / "st"
+    _ok(run_cli("build", log, "--poses", log / "groundtruth.txt", "--frames", "0:10", "--out", store))
+    clean = run_cli("export", store, "--trajectory", tmp_path / "a.txt")
+    _ok(clean)
+    assert "interrupted" not in clean.stderr
+    summary = json.loads((store / "build_summary.json").read_text())
+    (store / "build_summary.json").unlink()  # what a build killed before its end leaves
+    info = " ".join(run_cli("info", store).stdout.split())
+    assert "build interrupted" in info and "no build_summary.json" in info and "--resume" in info, info
+    out = run_cli("export", store, "--trajectory", tmp_path / "b.txt")
+    _ok(out)
+    said = " ".join(out.stderr.split())
+    assert "its build was interrupted: 10 frames stored" in said and f"driftmap build {log}" in said, said
+    (store / "build_summary.json").write_text(json.dumps(summary | {"n_frames": 8}))  # a killed --resume's state
+    said = " ".join(run_cli("export", store, "--trajectory", tmp_path / "c.txt").stderr.split())
+    assert "a build --resume was interrupted: 10 frames stored, the last finished build recorded 8" in said, said
+    merged = tmp_path / "merged"
+    shutil.copytree(store, merged)
+    (merged / "merge_summary.json").write_text(json.dumps({"sessions": []}))
+    out = run_cli("build", log, "--poses", log / "groundtruth.txt", "--out", merged, "--resume")
+    assert out.returncode == 1 and "is a merged store" in " ".join(out.stderr.split()) and "--append" in out.stderr, \
+        out.stderr

@@ -58,7 +58,7 @@ from driftmap.preprocess.scene import lidar_frames, sample_positions, scene_reac
 from driftmap.registration.odometry import GicpMapOdometry, KissOdometry, OdometryConfig, make_odometry
 from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
-from driftmap.store.layout import BUILD_CONFIG_FILE, BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE, MANIFEST
+from driftmap.store.layout import BUILD_CONFIG_FILE, BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE, MANIFEST, MERGE_SUMMARY_FILE
 from driftmap.store.propagation import propagate_correction
 
 __all__ = [  # the names other modules and users take from here (several live in the sibling modules now)
@@ -170,6 +170,9 @@ def _open_store(out: Path, new_store: bool, src: FrameSource, record: dict[str, 
     if new_store:
         check_first_frame_poses(src, pose_of, poses_from_source)
         return FrameStore.create(out), None
+    if (out / MERGE_SUMMARY_FILE).exists():  # trial 17 W9: it said a frame order was wrong
+        raise ConfigError(f"{out}: is a merged store (`driftmap merge` made it): --resume continues a store `build` "
+                          f"made; add a session to it with `driftmap merge {out} OTHER_STORE --append`")
     recorded = check_recorded_source(out, record)
     store = FrameStore.open(out, "a")
     for event in store.recovery_events:

@@ -15,7 +15,7 @@ from driftmap.pipeline.source_options import DEPTH_OPTION_SETTINGS, show_source_
 from driftmap.registration.odometry import OdometryConfig
 from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
-from driftmap.store.layout import BUILD_SOURCE_FILE
+from driftmap.store.layout import BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE
 
 logger = logging.getLogger(__name__)
 
@@ -201,6 +201,33 @@ def _sha256(path: Path) -> str | None:
         return hashlib.sha256(path.read_bytes()).hexdigest()
     except OSError:
         return None
+
+
+def interrupted_build(store: FrameStore) -> str | None:
+    """What an interrupted ``build`` left, with the command that finishes it; None for a finished build or a store no
+    build made. A build writes ``build_source.json`` first and ``build_summary.json`` (with its frame count) last, after
+    loop closure: no summary, or one counting other frames than the store holds (a killed ``--resume``), is an
+    unfinished build (hostile trial 17 W2: it read as a finished store everywhere)."""
+    try:
+        record = json.loads((store.path / BUILD_SOURCE_FILE).read_text())
+    except (OSError, ValueError, RecursionError):
+        return None
+    try:
+        summary = json.loads((store.path / BUILD_SUMMARY_FILE).read_text())
+    except FileNotFoundError:
+        summary = None
+    except (OSError, ValueError, RecursionError):
+        summary = {}
+    source = record.get("path", "SOURCE") if isinstance(record, dict) else "SOURCE"
+    finish = f"finish it with `driftmap build {source} --out {store.path} --resume` (and the options it was started with)"
+    if summary is None:
+        return (f"its build was interrupted: {len(store)} frames stored, no {BUILD_SUMMARY_FILE} (loop closure and the "
+                f"given-pose check did not run); {finish}")
+    recorded = summary.get("n_frames") if isinstance(summary, dict) else None
+    if recorded != len(store):
+        return (f"a build --resume was interrupted: {len(store)} frames stored, the last finished build recorded "
+                f"{recorded} in {BUILD_SUMMARY_FILE}; {finish}")
+    return None
 
 
 def recorded_inputs(store_path: str | Path) -> list[tuple[Path, str]]:
