@@ -113,3 +113,25 @@ def test_t17_w2_w9_an_interrupted_build_is_named_and_a_merged_store_is_not_resum
     out = run_cli("build", log, "--poses", log / "groundtruth.txt", "--out", merged, "--resume")
     assert out.returncode == 1 and "is a merged store" in " ".join(out.stderr.split()) and "--append" in out.stderr, \
         out.stderr
+
+
+def test_t17_w4_a_pose_file_in_millimetres_is_named_a_unit_mistake(tmp_path: Path) -> None:
+    """W4: the ground truth's positions x1000 got "is it another sensor's pose file?" and the advice to accept a sensor
+    offset from `build` and `correct`; the file's steps are hundreds of times the frames' while they turn alike, which
+    is now named a unit mistake, on both paths; the right file is not."""
+    log = tmp_path / "room"
+    _ok(run_cli("synth", log, "--frames", 20, "--seed", 3))
+    rows = [line.split() for line in (log / "groundtruth.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    (tmp_path / "mm.txt").write_text("".join(" ".join([r[0], *(repr(1000 * float(v)) for v in r[1:4]), *r[4:]]) + "\n"
+                                             for r in rows))
+    out = run_cli("build", log, "--poses", tmp_path / "mm.txt", "--no-loop-closure", "--out", tmp_path / "mm")
+    _ok(out)
+    said = " ".join(out.stderr.split())
+    assert "are its positions in another unit (millimetres: 1000" in said and "another sensor" not in said, said
+    _ok(run_cli("build", log, "--poses", log / "groundtruth.txt", "--no-loop-closure", "--out", tmp_path / "st"))
+    out = run_cli("correct", tmp_path / "st", "--poses", tmp_path / "mm.txt")
+    said = " ".join((out.stdout + out.stderr).split())
+    assert "in another unit" in said, said
+    fine = run_cli("correct", tmp_path / "st", "--poses", log / "groundtruth.txt")
+    assert "another unit" not in fine.stdout + fine.stderr

@@ -254,6 +254,13 @@ def _lever_ambiguous(file: NDArray[np.float64], R: NDArray[np.float64],
     return None
 
 
+UNIT_FACTOR = 5.0
+"""A pose file whose steps are this many times the frames' own (or this many times smaller), turning alike, is read as
+a unit mistake (:attr:`GivenPosesCheck.unit_factor`)."""
+UNIT_MIN_STEP_M = 0.02
+"""... counted over the frame pairs that move at least this far (m), by the registration."""
+
+
 @dataclass(frozen=True)
 class GivenPosesCheck:
     """The checked pairs and the verdict (:func:`check_given_poses`)."""
@@ -269,6 +276,24 @@ class GivenPosesCheck:
     @property
     def mounting(self) -> MountingRotation | None:
         return mounting_rotation(self.pairs, self.range_m) if self.range_m > 0 else None
+
+    @property
+    def unit_factor(self) -> float | None:
+        """The file's steps over the frames' own (median over the disagreeing pairs that move at least
+        :data:`UNIT_MIN_STEP_M`), when they turn alike (within :data:`MAX_CORRECTION_DEG`) and the factor is beyond
+        :data:`UNIT_FACTOR`: a pose file in millimetres or centimetres (hostile trial 17 W4 was told "another sensor's
+        pose file", 1,190 m/s in a 4.6 m room); None otherwise."""
+        used = [p for p in self.pairs if p.disagrees and len(p.motion_file) == 6 and len(p.motion_registered) == 6
+                and np.linalg.norm(p.motion_registered[:3]) >= UNIT_MIN_STEP_M]
+        if len(used) < MIN_DISAGREEING:
+            return None
+        ratios = [np.linalg.norm(p.motion_file[:3]) / np.linalg.norm(p.motion_registered[:3]) for p in used]
+        turns = [np.degrees(np.linalg.norm(np.asarray(p.motion_file[3:]) - np.asarray(p.motion_registered[3:])))
+                 for p in used]
+        factor = float(np.median(ratios))
+        if float(np.median(turns)) > MAX_CORRECTION_DEG or 1.0 / UNIT_FACTOR < factor < UNIT_FACTOR:
+            return None
+        return factor
 
     @property
     def pairs_disagree(self) -> bool:
@@ -310,6 +335,11 @@ class GivenPosesCheck:
                     f"each pair alone stays within the registration's inlier distance, but every frame is turned about "
                     f"its own origin, so a surface seen from two places lands apart by about their distance times "
                     f"that angle. {advice}")
+        if (factor := self.unit_factor) is not None:
+            return (f"{what}: the poses do not move the way the frames do: the file's steps are {factor:.3g} times the "
+                    f"frames' own (median over the frame pairs), while they turn alike: are its positions in another "
+                    f"unit (millimetres: 1000, centimetres: 100)? driftmap reads metres. "
+                    + (then or "The frames are stored with these poses; give the file in metres"))
         bad = [p for p in self.pairs if p.disagrees]
         together = ""
         if mounting is not None and mounting.explains and mounting.residual_after_m <= (
