@@ -180,8 +180,7 @@ class MapView:
         return self._buffer_index[key]
 
     def refresh(self) -> list[int]:
-        """Add the store's frames that are not in the view yet and that the view's revision places (its
-        :meth:`~driftmap.store.frame_store.FrameStore.members`; for the head, also frames stored after it)."""
+        """Add the store's frames the view's revision places (``FrameStore.members``) that it does not hold yet."""
         if self._store is None:
             return []
         stored = self._store.members(self.revision)
@@ -386,9 +385,8 @@ class MapView:
         """Move the map to ``revision``: re-transform only the frames whose pose changed.
 
         Returns per moved frame its displacement and world boxes before and after (and, with
-        ``voxel_size_m``, the voxel keys it occupied before and after). Frames the target revision places that the
-        view does not hold are added afterwards (:meth:`refresh`, not in the returned changes); a view holding frames
-        the target does not place is a :class:`StoreError` (take a new view).
+        ``voxel_size_m``, the voxel keys it occupied before and after). Frames the target places that the view lacks
+        are added after (:meth:`refresh`; not in the changes); frames it does not place are a :class:`StoreError`.
         """
         if voxel_size_m is not None and not voxel_size_m > 0:
             raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
@@ -396,12 +394,9 @@ class MapView:
             if self._store is None:
                 raise StoreError("this map has no store; pass the target poses explicitly")
             ledger = self._store.ledger
-            outside = self.frame_ids[~np.isin(self.frame_ids, ledger.members(revision))]
-            if outside.size:
-                raise StoreError(f"{self._store.path}: revision {revision} does not place frames "
-                                 f"{outside[:5].tolist()} ({outside.size} in all) that the map of revision "
-                                 f"{self.revision} holds (stored after revision {revision}, or left out by a "
-                                 "rollback): take a new view of it (MapView.from_store)")
+            if (outside := self.frame_ids[~np.isin(self.frame_ids, ledger.members(revision))]).size:
+                raise StoreError(f"{self._store.path}: revision {revision} does not place frames {outside[:5].tolist()} "
+                                 f"({outside.size}) of the view: take a new view (MapView.from_store)")
             rows = np.searchsorted(ledger.frame_ids, self.frame_ids)
             target = ledger.poses(revision)[rows]
         else:
@@ -434,8 +429,7 @@ class MapView:
                     len(moved), len(self.frame_ids), int(self._count[moved].sum()))
         self.revision = revision
         if poses is None and (added := self.refresh()):  # frames the target places that the view did not hold
-            logger.info("map: revision %d places %d frames the view did not hold (%d..%d); added", revision,
-                        len(added), min(added), max(added))
+            logger.info("map: revision %d adds %d frames (%d..%d)", revision, len(added), min(added), max(added))
         return result
 
     def changed_since(self, revision: int) -> ChangeSet:
