@@ -271,6 +271,31 @@ def test_a_correction_updates_the_layers_to_exactly_a_rebuild_and_back(closed_st
     assert back.n_state_changed == change.n_state_changed
 
 
+def test_layers_moved_to_a_revision_that_places_other_frames_are_that_revisions_layers(gt_store: FrameStore,
+                                                                                      tmp_path: Path) -> None:
+    """Hostile trial 17 B1 in the layers: revision 1 made before frames were appended places only its own frames, so
+    layers of revision 2 (which places the appended ones too) moved to revision 1 -- and back -- equal a rebuild of it
+    (the update falls back to a rebuild: a frame leaves or joins the map)."""
+    from driftmap import PoseSource
+
+    ids = [int(f) for f in gt_store.frame_ids]
+    with FrameStore.create(tmp_path / "s") as s:
+        for f in ids[:6]:
+            s.append(gt_store.frame(f))
+        s.add_revision({ids[0]: gt_store.poses(0)[0]}, source=PoseSource.EXTERNAL_FILE, propagate=False)
+        for f in ids[6:10]:
+            s.append(gt_store.frame(f))
+        s.add_revision({f: gt_store.poses(0)[k] for k, f in enumerate(ids[6:10], 6)}, source=PoseSource.LOOP_CLOSURE,
+                       propagate=False)
+        assert s.members(1).tolist() == ids[:6] and s.members(2).tolist() == ids[:10]
+        layers = VolumeLayers.from_store(s, 2)
+        change = layers.apply(1, s)
+        assert change.rebuilt and sorted(change.frame_ids.tolist()) == ids[6:10]
+        assert layers.equals(VolumeLayers.from_store(s, 1)) and sorted(layers.view.frame_ids.tolist()) == ids[:6]
+        layers.apply(2, s)
+        assert layers.equals(VolumeLayers.from_store(s, 2))
+
+
 def _hits(layers: VolumeLayers) -> str:
     keys, means, n = layers.hit_means()
     return hashlib.sha256(keys.tobytes() + means.tobytes() + n.tobytes()).hexdigest()

@@ -188,7 +188,8 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
     ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
     disagree with the earlier map beyond what the detector sees, no headline figure is a verdict; when their
-    corrections beyond a registration floor (``drift_check_floor_m`` / ``_deg``) per metre of travel exceed ``drift_percent_per_m`` (the drift rate's fit) by more than
+    corrections beyond a registration floor (``drift_check_floor_m`` / ``_deg``) per metre of travel exceed
+    ``drift_percent_per_m`` (the drift rate's fit) by more than
     ``drift_check_factor`` times plus ``drift_check_margin_percent``, the drift rate is not one (its residuals are
     gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift); the same for the
     rotation against ``drift_deg_per_m`` (trial 12: 0.18 deg/m fitted on 1 deg/m of injected drift)."""
@@ -236,7 +237,8 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
             turned > cfg.drift_check_factor * abs(drift_deg_per_m) + cfg.drift_check_margin_deg_per_m) and (
             revisits.disagreement_deg >= cfg.drift_check_min_share * revisits.config.max_detectable_deg):
         drift.append(f"the revisit check's frame pairs turn by {turned:.3f} deg per metre of travel between them "
-                     f"(beyond their {cfg.drift_check_floor_deg:g} deg registration floor), the drift rate's fit says {drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
+                     f"(beyond their {cfg.drift_check_floor_deg:g} deg registration floor), the drift rate's fit says "
+                     f"{drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
     beyond = revisits.reason() if revisits is not None else None
     if beyond:  # every figure compares within gates that a larger pose error escapes
         surfaces, smear, drift = [*surfaces, beyond], [*smear, beyond], [*drift, beyond]

@@ -188,8 +188,8 @@ class PoseLedger:
             return self.frame_ids
         recorded = self._recorded[rid - 1]
         if later and rid == self.head and self._known_at[rid - 1] < len(self._order):
-            later = np.asarray(self._order[self._known_at[rid - 1]:], dtype=np.int64)
-            recorded = readonly(np.union1d(recorded, later))
+            stored_since = np.asarray(self._order[self._known_at[rid - 1]:], dtype=np.int64)
+            recorded = readonly(np.union1d(recorded, stored_since))
         return recorded
 
     def member_rows(self, revision_id: int) -> NDArray[np.intp]:
