@@ -135,3 +135,34 @@ def test_t17_w4_a_pose_file_in_millimetres_is_named_a_unit_mistake(tmp_path: Pat
     assert "in another unit" in said, said
     fine = run_cli("correct", tmp_path / "st", "--poses", log / "groundtruth.txt")
     assert "another unit" not in fine.stdout + fine.stderr
+
+
+def test_t17_w1_pose_rows_no_motion_explains_are_named_with_their_lines(tmp_path: Path) -> None:
+    """W1: "given poses fit the frames: yes" beside single-frame pose errors the frame pairs missed: a KITTI file with
+    one row repeated (every later frame a step late) and a TUM file with two rows 1.5 ms and 0.5 m apart (333 m/s in a
+    room). Reading the file now names both, with their lines; the file's own ground truth is not named."""
+    from driftmap.trajectory import read_tum
+
+    log = tmp_path / "room"
+    _ok(run_cli("synth", log, "--frames", 20, "--seed", 3))
+    gt = read_tum(log / "groundtruth.txt")
+    rows = [line.split() for line in (log / "groundtruth.txt").read_text().splitlines()
+            if line.strip() and not line.startswith("#")]
+    t = float(rows[10][0])
+    near = rows[:10] + [[repr(t - 0.00075), *rows[10][1:]], [repr(t + 0.00075), repr(float(rows[10][1]) + 0.5),
+                                                               *rows[10][2:]]] + rows[11:]
+    (tmp_path / "near.txt").write_text("".join(" ".join(r) + "\n" for r in near))
+    out = run_cli("build", log, "--poses", tmp_path / "near.txt", "--no-loop-closure", "--out", tmp_path / "a")
+    _ok(out)
+    said = " ".join(out.stderr.split())
+    assert "near.txt:11 and the next row are 1.5 ms but 0.5 m apart" in said and "two poses for one time" in said, said
+    kitti = [T[:3].ravel() for T in gt.poses]
+    kitti.insert(10, kitti[10])  # row 11 repeated: frames 11.. take the row before theirs
+    (tmp_path / "dup.txt").write_text("".join(" ".join(repr(float(v)) for v in r) + "\n" for r in kitti))
+    out = run_cli("build", log, "--poses", tmp_path / "dup.txt", "--no-loop-closure", "--out", tmp_path / "b")
+    _ok(out)
+    said = " ".join(out.stderr.split())
+    assert "dup.txt (row 11) and the next row hold the same pose while the trajectory moves" in said or \
+        "dup.txt:11 and the next row hold the same pose while the trajectory moves" in said, said
+    fine = run_cli("build", log, "--poses", log / "groundtruth.txt", "--no-loop-closure", "--out", tmp_path / "c")
+    assert "two poses for one time" not in fine.stderr and "same pose while" not in fine.stderr

@@ -643,8 +643,7 @@ def _warn_spikes(path: Path, trajectory: Trajectory) -> None:
         return
     k = int(rows[0])
     p, R = trajectory.positions_m, trajectory.poses[:, :3, :3]
-    line = (f"{path}:{int(trajectory.source_lines[k])}" if trajectory.source_lines is not None
-            else f"{path} (row {k + 1})")
+    line = _line_of(path, trajectory, k)
     near = k - 1 if k > 0 else k + 1
     turned = float(np.degrees(np.arccos(np.clip((np.trace(R[k].T @ R[near]) - 1.0) / 2.0, -1.0, 1.0))))
     logger.warning("%s: the pose jumps %.3g m / %.3g deg away from its neighbour and back (the file's typical step is "
@@ -653,6 +652,52 @@ def _warn_spikes(path: Path, trajectory: Trajectory) -> None:
                    float(np.percentile(np.linalg.norm(np.diff(p, axis=0), axis=1), 25)), rows.size,
                    "" if rows.size == 1 else f": rows {', '.join(str(int(r) + 1) for r in rows[:5])}"
                    + (" ..." if rows.size > 5 else ""))
+
+
+ROW_SPEED_FACTOR = 20.0
+ROW_SPEED_MIN_M_PER_S = 10.0
+ROW_SPEED_MIN_STEP_M = 0.05
+"""Two consecutive rows of a stamped pose file are **too fast** when the step between them (at least
+``ROW_SPEED_MIN_STEP_M``) over their stamps' difference exceeds ``max(ROW_SPEED_MIN_M_PER_S, ROW_SPEED_FACTOR *`` the
+file's 90th-percentile speed``)`` (hostile trial 17 W1: a row 1.5 ms and 0.5 m from the next, 333 m/s in a room)."""
+
+
+def _line_of(path: Path, trajectory: Trajectory, k: int) -> str:
+    return (f"{path}:{int(trajectory.source_lines[k])}" if trajectory.source_lines is not None
+            else f"{path} (row {k + 1})")
+
+
+def _warn_rows(path: Path, trajectory: Trajectory, stamped: bool) -> None:
+    """Rows that no motion explains, logged naming their lines (they are used as written): in a stamped file two rows
+    too fast for the file's own motion (:data:`ROW_SPEED_FACTOR`: two poses for one time?); in a file matched by row
+    index or frame id (KITTI, Redwood, an unstamped 4x4) a row repeated exactly while the rest moves, which puts every later row a frame late (hostile
+    trial 17 W1: both read "given poses fit the frames: yes")."""
+    p, n = trajectory.positions_m, len(trajectory)
+    if n < 3:
+        return
+    steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    if stamped:
+        dt_s = np.diff(trajectory.stamps_ns).astype(np.float64) * 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            speed = np.where(dt_s > 0, steps / dt_s, np.nan)
+        if not np.isfinite(speed).any():
+            return
+        limit = max(ROW_SPEED_MIN_M_PER_S, ROW_SPEED_FACTOR * float(np.nanpercentile(speed, 90)))
+        fast = np.flatnonzero((speed > limit) & (steps >= ROW_SPEED_MIN_STEP_M))
+        if fast.size:
+            k = int(fast[0])
+            logger.warning("%s and the next row are %.3g ms but %.3g m apart (%.3g m/s; the file's 90th-percentile "
+                           "speed is %.3g m/s): two poses for one time, or a corrupt stamp? (%d such pair(s); the row "
+                           "nearest a frame's stamp is used)", _line_of(path, trajectory, k), 1e3 * dt_s[k],
+                           steps[k], speed[k], float(np.nanpercentile(speed, 90)), fast.size)
+        return
+    flat = trajectory.poses.reshape(n, 16)
+    same = np.flatnonzero(np.all(flat[1:] == flat[:-1], axis=1))
+    if same.size and same.size < n - 1 and float(np.median(steps)) > 0.0:
+        k = int(same[0])
+        logger.warning("%s and the next row hold the same pose while the trajectory moves: a repeated row? Matched by "
+                       "row index, every later row would be a frame late (%d such pair(s))", _line_of(path, trajectory, k),
+                       same.size)
 
 
 def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
@@ -672,6 +717,7 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
             raise
         raise SourceError(f"{exc}; {hint}") from exc
     _warn_spikes(Path(path), trajectory)
+    _warn_rows(Path(path), trajectory, stamped=has_stamps(trajectory, format))
     return trajectory
 
 
