@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated, Optional
 
@@ -26,7 +27,6 @@ from driftmap.cli.common import (
     console,
     err_console,
     finite,
-    finite_at_least,
     finite_within,
     progress_bar,
     refuse_existing,
@@ -199,8 +199,8 @@ def synth(
     yaw_drift_deg_per_m: Annotated[Optional[float], typer.Option("--yaw-drift-deg-per-m", callback=finite_within(-360.0, 360.0, "deg per m"), help="Odometry yaw drift (default: 0.6 in the room, 0.02 on the street; within +-360).")] = None,
     scale_drift_percent: Annotated[Optional[float], typer.Option("--scale-drift-percent", callback=finite, help="Odometry scale drift (default: 1.0).")] = None,
     scene: Annotated[str, typer.Option("--scene", help="room (a furnished room, a depth camera and with --lidar a 16-beam LiDAR) | street (a city block loop, a 32-beam car LiDAR; defaults: 245 frames, 0.02 deg/m yaw drift, 1 % scale drift).")] = "room",
-    period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite_at_least(0.001, "s"), help="Time between frames/scans in seconds (default: 0.2 in the room, 0.1 on the street; 0.5-0.05 for 2-20 Hz). The speed stays the scene's unless --frames or --speed-m-per-s is given: at 2 Hz a scan moves 5 times as far as at 10 Hz.")] = None,
-    speed_m_per_s: Annotated[Optional[float], typer.Option("--speed-m-per-s", callback=finite_at_least(0.001, "m/s"), help="Speed along the path while moving (default: the scene's, 0.59 m/s in the room, 10 m/s on the street); the frame count follows from it (not with --frames): at least 20 moving scans, at most 20,000 frames.")] = None,
+    period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite_within(0.001, math.inf, "s"), help="Time between frames/scans in seconds (default: 0.2 in the room, 0.1 on the street; 0.5-0.05 for 2-20 Hz). The speed stays the scene's unless --frames or --speed-m-per-s is given: at 2 Hz a scan moves 5 times as far as at 10 Hz.")] = None,
+    speed_m_per_s: Annotated[Optional[float], typer.Option("--speed-m-per-s", callback=finite_within(0.001, math.inf, "m/s"), help="Speed along the path while moving (default: the scene's, 0.59 m/s in the room, 10 m/s on the street); the frame count follows from it (not with --frames): at least 20 moving scans, at most 20,000 frames.")] = None,
     stationary_start: Annotated[int, typer.Option("--stationary-start", min=0, metavar="N", help="The first N scans stand at the start pose (each a new noise draw); motion starts at frame N.")] = 0,
     stops: Annotated[int, typer.Option("--stops", min=0, metavar="K", help="K stops at evenly spaced places of the path (fractions j / (K + 1)); give --stop-frames.")] = 0,
     stop_frames: Annotated[int, typer.Option("--stop-frames", min=0, metavar="M", help="Scans each stop lasts.")] = 0,
@@ -424,7 +424,7 @@ def build(
     resume: Annotated[bool, typer.Option("--resume", help="Continue a build that was interrupted.")] = False,
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
-    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", callback=finite_at_least(0.0, "ms"), help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
+    max_dt_ms: Annotated[float, typer.Option("--max-dt-ms", callback=finite_within(0.0, math.inf, "ms"), help="--poses TUM file: a row is a frame's pose when it is the nearest within this (ms; 20, as TUM's associate.py; 'correct' defaults to 10).")] = 20.0,
     threads: Annotated[Optional[int], typer.Option("--threads", min=1, help="Registration threads of the odometry and the loop closure (build.num_threads; default: the config's, 2). With 1 the same input gives the same poses, every revision, to the bit; with more, the threads' partial sums arrive in varying order and builds differ by millimetres.")] = None,
 ) -> None:
     """Build a drift-corrected map: odometry, verified loop closures, GTSAM pose graph, re-transform."""

@@ -183,21 +183,14 @@ def finite(value: Any) -> Any:
 
 
 def finite_within(lo: float, hi: float, unit: str) -> Callable[[Any], Any]:
-    """A callback: :func:`finite`, then within ``lo .. hi`` (a usage error naming the bounds and ``unit``)."""
+    """A callback: :func:`finite`, then within ``lo .. hi`` (a usage error naming the bounds and ``unit``; ``hi``
+    inf: at least ``lo``). Use it, not click's ``min=``, which runs first and says "greater than or equal to 0" of
+    ``nan`` (trial 17)."""
     def check(value: Any) -> Any:
         finite(value)
         if value is not None and not lo <= value <= hi:
-            raise typer.BadParameter(f"must be within {lo:g} .. {hi:g} {unit}, got {value!r}")
-        return value
-    return check
-
-
-def finite_at_least(lo: float, unit: str) -> Callable[[Any], Any]:
-    """A callback: a finite number ``>= lo`` (``None`` passes), one usage error naming the bound and ``unit`` for NaN,
-    inf and too small alike (click's own ``min=`` ran first and said "greater than or equal to 0" of ``nan``)."""
-    def check(value: Any) -> Any:
-        if value is not None and not (math.isfinite(value) and value >= lo):
-            raise typer.BadParameter(f"must be a finite number >= {lo:g} {unit}, got {value!r}")
+            bounds = f">= {lo:g}" if math.isinf(hi) else f"within {lo:g} .. {hi:g}"
+            raise typer.BadParameter(f"must be {bounds} {unit}, got {value!r}")
         return value
     return check
 

@@ -300,6 +300,11 @@ def abandon_interrupted_append(merged: Path, store: FrameStore) -> str | None:
     return text
 
 
+def _abandoned_sessions(summary: dict[str, Any]) -> set[int]:
+    """The session numbers of the appends a rollback abandoned (:func:`abandon_interrupted_append`)."""
+    return {int(s["session"]) for a in summary.get("abandoned_appends", []) for s in a.get("sessions", [])}
+
+
 def _refuse_if_interrupted(merged: Path, store: FrameStore, summary: dict[str, Any], paths: list[Path]) -> None:
     """An interrupted append (``append_in_progress``) is finished by the same stores, in the same order, before
     any other: their frames carry its session numbers."""
@@ -325,8 +330,7 @@ def _numbers(merged: Path, summary: dict[str, Any], paths: list[Path], uuids: li
         return [int(s["session"]) for s in pending["sessions"]], True
     reported = [int(s["session"]) for s in summary["sessions"]]
     reported += [int(s["session"]) for a in summary.get("appends", []) for s in a.get("sessions", [])]
-    # an abandoned append's frames stay stored under its numbers
-    reported += [int(s["session"]) for a in summary.get("abandoned_appends", []) for s in a.get("sessions", [])]
+    reported += sorted(_abandoned_sessions(summary))  # an abandoned append's frames stay stored under its numbers
     start = max(reported, default=-1) + 1
     return list(range(start, start + len(paths))), False
 
@@ -358,7 +362,7 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
     numbers, resumed = _numbers(merged, summary, paths, uuids)
     existing = sorted(int(s["session"]) for s in summary["sessions"] if s.get("connected"))
     in_store = store_sessions(store)
-    abandoned = {int(s["session"]) for a in summary.get("abandoned_appends", []) for s in a.get("sessions", [])}
+    abandoned = _abandoned_sessions(summary)
     if not set(existing) <= set(in_store) or set(in_store) - set(existing) - set(numbers if resumed else []) - abandoned:
         raise StoreError(f"{merged}: its frames hold sessions {sorted(in_store)}, its {MERGE_SUMMARY_FILE} "
                          f"{existing}; they disagree (was the summary replaced?)")
