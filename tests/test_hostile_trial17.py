@@ -56,6 +56,32 @@ def test_t17_b2_a_ground_truth_map_is_judged_and_the_pairs_floor_is_reported(sev
     assert beyond[len(beyond) // 2] < 0.5  # beyond the 3 cm floor, within the 0.5 %/m margin over the fit
 
 
+def test_t17_b2_a_rosette_ground_truth_map_is_judged_beyond_its_measured_floor(tmp_path: Path) -> None:
+    """B2 on a rosette LiDAR: single scans of a 70 deg non-repetitive pattern on exact poses register 0-18 cm apart
+    even onto the frames just before them, so the pairs' 7-12 cm corrections read as 0.78 %/m of drift and the map
+    "cannot judge". The registration floor is now measured on the map (each pair's probe onto its own preceding
+    frames) and the pairs count beyond it: the ground-truth map is judged; the same log with 2 %/m of drift is not
+    read as a clean map (it cannot be judged)."""
+    log = tmp_path / "L"
+    _ok(run_cli("synth", log, "--lidar-pattern", "rosette", "--seed", 5))
+    verdicts = {}
+    for name, poses in (("gt", log / "groundtruth.txt"), ("drift", tmp_path / "drift.txt")):
+        if name == "drift":
+            _ok(run_cli("perturb", log / "groundtruth.txt", poses, "--drift-percent-per-m", 2, "--drift-direction", "1,1,0"))
+        _ok(run_cli("build", log, "--sensor", "lidar", "--poses", poses, "--no-loop-closure", "--out", tmp_path / name))
+        _ok(run_cli("diagnose", tmp_path / name, "--json", tmp_path / f"{name}.json"))
+        verdicts[name] = json.loads((tmp_path / f"{name}.json").read_text())
+    gt = verdicts["gt"]
+    assert gt["valid"] is True, gt["reasons"]
+    check = gt["revisit_check"]
+    floor = [p for p in check["floor_probes"] if p["counted"]]
+    assert len(floor) >= 2 and check["measured_floor_m"] > 0.03  # the rosette's floor lies above the fixed 3 cm
+    corrections = sorted(p["correction_m"] for p in floor)
+    assert abs(check["measured_floor_m"] - (corrections[(len(floor) - 1) // 2] + corrections[len(floor) // 2]) / 2) < 1e-4
+    assert check["drift_percent_per_m"] > 0.5  # the raw pairs read as drift; the measured floor explains it
+    assert verdicts["drift"]["valid"] is False, "a drifted rosette map read as a clean one"
+
+
 def test_t17_a_resume_over_a_rollback_head_carries_the_restored_revisions_source(tmp_path: Path) -> None:
     """Weak: `build --resume` on a store whose head is a rollback recorded its carried correction with the source
     "rollback" (nothing was rolled back); it now takes the source of the revision the rollback restores."""

@@ -52,7 +52,7 @@ class CoverageConfig(SettingsModel):
     drift_check_margin_percent: float = Field(0.5, ge=0.0, description="... plus this (%/m)")
     drift_check_min_share: float = Field(0.25, ge=0.0, description="... and its disagreement is at least this share of its max_detectable_m (below, the pairs' corrections are registration noise over short travel)")
     drift_check_margin_deg_per_m: float = Field(0.2, ge=0.0, description="the same for the rotation: no verdict when the pairs turn more than drift_check_factor times the fit's deg/m plus this, and their disagreement is at least drift_check_min_share of max_detectable_deg")
-    drift_check_floor_m: float = Field(0.03, ge=0.0, description="the pairs' corrections count beyond this registration floor at the sensor (m): single depth frames on exact poses register 2.5-5.7 cm apart there (7-Scenes, 4-5 m of travel apart; a rotation of about 1 deg at a 2 m lever), which is no drift. Pairs 6 m apart then see about 1 %/m and more")
+    drift_check_floor_m: float = Field(0.03, ge=0.0, description="the pairs' corrections count beyond this registration floor at the sensor (m), or beyond the floor measured on the map (each pair's probe registered onto the frames just before it; the median) when larger: single depth frames on exact poses register 2.5-5.7 cm apart there (7-Scenes, 4-5 m of travel apart; a rotation of about 1 deg at a 2 m lever), which is no drift. Pairs 6 m apart then see about 1 %/m and more")
     drift_check_floor_deg: float = Field(1.0, ge=0.0, description="... and beyond this rotation (deg; the same pairs turn 1.3-1.6 deg)")
     smeared_separations: float = Field(1.0, gt=0.0, description="an evaluated, unflagged group whose frames disagree by more than this many times double_wall.min_separation_m is smeared")
 
@@ -227,17 +227,19 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     beyond_floor = (revisits.drift_beyond_floor(cfg.drift_check_floor_m, cfg.drift_check_floor_deg)
                     if revisits is not None else None)
     checked, turned = beyond_floor if beyond_floor is not None else (None, None)
+    floor_m, floor_deg = (revisits.drift_floor(cfg.drift_check_floor_m, cfg.drift_check_floor_deg) if revisits is not None
+                          else (cfg.drift_check_floor_m, cfg.drift_check_floor_deg))
     if checked is not None and drift_percent_per_m is not None and (
             checked > cfg.drift_check_factor * drift_percent_per_m + cfg.drift_check_margin_percent) and (
             revisits.disagreement_m >= cfg.drift_check_min_share * revisits.config.max_detectable_m):
         drift.append(f"the revisit check's frame pairs disagree by {checked:.2f} % of the travel between them (beyond "
-                     f"their {100 * cfg.drift_check_floor_m:g} cm registration floor), the drift rate's fit says "
+                     f"their {100 * floor_m:.3g} cm registration floor), the drift rate's fit says "
                      f"{drift_percent_per_m:.2f} %/m: drift larger than its residual gate escapes it")
     if turned is not None and drift_deg_per_m is not None and (
             turned > cfg.drift_check_factor * abs(drift_deg_per_m) + cfg.drift_check_margin_deg_per_m) and (
             revisits.disagreement_deg >= cfg.drift_check_min_share * revisits.config.max_detectable_deg):
         drift.append(f"the revisit check's frame pairs turn by {turned:.3f} deg per metre of travel between them "
-                     f"(beyond their {cfg.drift_check_floor_deg:g} deg registration floor), the drift rate's fit says "
+                     f"(beyond their {floor_deg:.3g} deg registration floor), the drift rate's fit says "
                      f"{drift_deg_per_m:.3f} deg/m: drift larger than its residual gate escapes it")
     beyond = revisits.reason() if revisits is not None else None
     if beyond:  # every figure compares within gates that a larger pose error escapes

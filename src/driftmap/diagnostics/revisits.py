@@ -76,8 +76,10 @@ FREE_OVER_LOCAL = 0.1
 """A jump probe's free registration replaces its best local hypothesis only with this much more of the probe within
 :data:`HYPOTHESIS_WITHIN` finest voxels (a larger share, 0 .. 1)."""
 
-STRETCH, MAP, STEP = "stretch", "map", "step"
-"""The kinds of probe (:attr:`RevisitProbe.kind`, the ``target`` key of the JSON)."""
+STRETCH, MAP, STEP, FLOOR = "stretch", "map", "step", "floor"
+"""The kinds of probe (:attr:`RevisitProbe.kind`, the ``target`` key of the JSON). :data:`FLOOR` probes
+(:attr:`RevisitCheck.floor_probes`) register a pair's probe onto the frames just before it: what the registration
+moves a frame that no drift moved, the registration's floor on this sensor and scene."""
 
 MIN_SESSION_PAIRS = 2
 """A merged store's two sessions are judged against each other from this many counted frame pairs across them."""
@@ -183,6 +185,21 @@ class RevisitCheck:
     """The trajectory's jumps whose frames were registered onto the frames before them (:data:`STEP` probes)."""
     frame_sessions: dict[int, int] = field(default_factory=dict)
     """A merged store's session of each frame id (empty: one session); the reasons name them."""
+    floor_probes: tuple[RevisitProbe, ...] = ()
+    """Each counted pair's probe registered onto the frames just before it (:data:`FLOOR`): no drift lies between
+    them, so what they move a frame is the registration's own floor (:attr:`measured_floor`)."""
+
+    @property
+    def measured_floor(self) -> tuple[float, float] | None:
+        """The median correction (m, deg) of the counted :attr:`floor_probes` (None: fewer than two): how far the
+        registration moves a frame on its own neighbours. Single frames of a rosette LiDAR (70 deg field of view,
+        a pattern that differs from scan to scan) on exact poses move 0-18 cm there (hostile trial 17 B2), single
+        spinning-LiDAR scans 0 cm, so a fixed floor cannot serve both."""
+        counted = [p for p in self.floor_probes if p.counted]
+        if len(counted) < 2:
+            return None
+        return (float(np.median([p.correction_m for p in counted])),
+                float(np.median([p.correction_deg for p in counted])))
 
     @property
     def counted(self) -> list[RevisitProbe]:
@@ -295,15 +312,25 @@ class RevisitCheck:
             return None
         return float(np.median([p.correction_deg / max(p.path_between_m, 1e-9) for p in pairs]))
 
+    def drift_floor(self, floor_m: float, floor_deg: float) -> tuple[float, float]:
+        """The registration floor the pairs' corrections count beyond: the larger of the given one and
+        :attr:`measured_floor`."""
+        measured = self.measured_floor
+        if measured is None:
+            return floor_m, floor_deg
+        return max(floor_m, measured[0]), max(floor_deg, measured[1])
+
     def drift_beyond_floor(self, floor_m: float, floor_deg: float) -> tuple[float, float] | None:
         """:attr:`drift_percent_per_m` and :attr:`drift_deg_per_m` of the pairs' corrections beyond a registration
-        floor (each pair's correction less ``floor_m`` / ``floor_deg``, not below 0, over its travel): what of the
-        pairs' disagreement drift must explain (hostile trial 17 B2: single 7-Scenes frames on exact poses register
-        2.5-4.2 cm / 1.3-1.6 deg apart at their sensors, 4-5 m of travel apart, which read as 0.91 %/m). None: too
-        few pairs."""
+        floor (each pair's correction less the floor, not below 0, over its travel; the floor is ``floor_m`` /
+        ``floor_deg`` or, when larger, :attr:`measured_floor`): what of the pairs' disagreement drift must explain
+        (hostile trial 17 B2: single 7-Scenes frames on exact poses register 2.5-4.2 cm / 1.3-1.6 deg apart at their
+        sensors, 4-5 m of travel apart, which read as 0.91 %/m; single rosette scans 0-12 cm). None: too few
+        pairs."""
         pairs = self._drift_pairs()
         if pairs is None:
             return None
+        floor_m, floor_deg = self.drift_floor(floor_m, floor_deg)
         travel = np.array([max(p.path_between_m, 1e-9) for p in pairs])
         m = np.maximum(np.array([p.correction_m for p in pairs]) - floor_m, 0.0)
         deg = np.maximum(np.array([p.correction_deg for p in pairs]) - floor_deg, 0.0)
@@ -395,7 +422,10 @@ class RevisitCheck:
                 "n_candidates": self.n_candidates, "n_registered": len(self.probes), "n_counted": len(self.counted),
                 "sessions": [{"session_a": a, "session_b": b, "disagreement_m": m, "disagreement_deg": deg,
                               "n_pairs": n} for (a, b), (m, deg, n) in sorted(self.session_disagreements().items())],
-                "probes": [p.to_json() for p in self.probes]}
+                "probes": [p.to_json() for p in self.probes],
+                "floor_probes": [p.to_json() for p in self.floor_probes],
+                "measured_floor_m": None if self.measured_floor is None else self.measured_floor[0],
+                "measured_floor_deg": None if self.measured_floor is None else self.measured_floor[1]}
 
 
 def _overlap_table(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig) -> NDArray[np.float64]:
@@ -646,6 +676,19 @@ def _undo_jump(placed: PlacedCloud, rows: NDArray[np.int64], k: int) -> NDArray[
     return before @ velocity @ np.linalg.inv(placed.poses[rows[k]])
 
 
+def _floor_probes(placed: PlacedCloud, rows: NDArray[np.int64], pairs: list[tuple[int, RevisitProbe]],
+                  cfg: RevisitCheckConfig, sessions: NDArray[np.int64] | None) -> tuple[RevisitProbe, ...]:
+    """Each counted pair's probe (row, once) registered as a pair is onto the frames just before it, within its
+    session (:data:`FLOOR`)."""
+    out = []
+    for row in sorted({row for row, p in pairs if p.counted and not p.cross_session}):
+        k = int(np.searchsorted(rows, row))
+        if k == 0 or (sessions is not None and sessions[rows[k - 1]] != sessions[row]):
+            continue
+        out.append(_register(placed, int(rows[k - 1]), row, 1.0, cfg, FLOOR))
+    return tuple(out)
+
+
 def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None,
                    sessions: NDArray[np.int64] | None = None) -> RevisitCheck:
     """Register up to ``max_probes`` revisit pairs of ``placed`` (see the module docstring). ``sessions``: a merged
@@ -682,7 +725,8 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
         before, first, last = int(all_rows[k - 1]), int(all_rows[k]), int(all_rows[stop - 1])
         overlap_first = float(_overlap_table(placed, np.array([before, first]), cfg)[1, 0])
         probes.append(_register(placed, before, first, overlap_first, cfg, STEP, last, _undo_jump(placed, all_rows, k)))
-    check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps), names)
+    check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps), names,
+                         _floor_probes(placed, all_rows, [(int(b[k]), p) for k, p in zip(chosen, probes)], cfg, sessions))
     if check.reason():
         logger.warning("revisit check: %s", check.reason())
     return check
