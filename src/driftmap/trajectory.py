@@ -119,7 +119,8 @@ def _check_finite(path: Path, data: NDArray[np.float64], linenos: Sequence[int],
 
 def _check_stamp_order(path: Path, stamps_ns: Sequence[int], linenos: Sequence[int], texts: Sequence[str]) -> None:
     """A stamp earlier than the one before it raises naming both lines; a repeated stamp is logged (the rows
-    are kept). ``texts`` are the stamps as written in the file, for the messages."""
+    are read; :func:`~driftmap.store.pose_match.refuse_conflicting_rows` refuses disagreeing ones where a pose per
+    instant is needed). ``texts`` are the stamps as written in the file, for the messages."""
     if len(stamps_ns) < 2:
         return
     steps = np.diff(np.asarray(stamps_ns, dtype=np.int64))
@@ -134,7 +135,8 @@ def _check_stamp_order(path: Path, stamps_ns: Sequence[int], linenos: Sequence[i
     if repeated.size:
         k = int(repeated[0]) + 1
         logger.warning(
-            "%s:%d: duplicate stamp: %s is also on line %d; both rows kept (%d repeated stamp(s) in the file)",
+            "%s:%d: duplicate stamp: %s is also on line %d; %d repeated stamp(s) in the file; where one pose per "
+            "instant is needed (build --poses, correct, diagnose --gt) rows of one stamp that disagree are refused",
             path, linenos[k], texts[k], linenos[k - 1], repeated.size,
         )
 
