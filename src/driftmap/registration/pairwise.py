@@ -67,6 +67,11 @@ class PreparedCloud:
         return self._levels[voxel_size_m]
 
 
+MIN_ALIGN_POINTS = 11
+"""Clouds with fewer points (after downsampling) are not registered: small_gicp prints "point cloud is too small" on
+stderr at 10 or fewer (hostile trial 17) and such a fit constrains nothing; the result does not converge."""
+
+
 def register_prepared(
     target: PreparedCloud,
     source: PreparedCloud,
@@ -84,6 +89,9 @@ def register_prepared(
         num_threads = min(target.num_threads, source.num_threads)
     tgt, tree = target.level(voxel_size_m)
     src, _ = source.level(voxel_size_m)
+    if min(tgt.size(), src.size()) < MIN_ALIGN_POINTS:  # small_gicp would print a warning and fit nothing
+        return RegistrationResult(np.asarray(init_T_target_source, dtype=np.float64).copy(), False, 0.0, float("inf"),
+                                  np.zeros((6, 6)), 0, int(src.size()))
     result = small_gicp.align(tgt, src, tree, np.asarray(init_T_target_source, dtype=np.float64), registration_type="GICP",
                               max_correspondence_distance=max_correspondence_m, num_threads=num_threads,
                               max_iterations=max_iterations)
