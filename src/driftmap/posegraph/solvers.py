@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import math
+import logging
 import time
 from collections.abc import Mapping, Sequence
 
@@ -24,6 +25,8 @@ from driftmap.posegraph.measurements import Edge, EdgeKind, Prior
 from driftmap.posegraph.result import LoopResidual, OptimizationProgress, Optimizer, ProgressCallback
 from driftmap.posegraph.robust import m_estimator
 
+logger = logging.getLogger(__name__)
+
 __all__ = ["diagnose_loops", "lm_params", "run_gnc", "run_isam2", "run_lm"]
 
 
@@ -34,6 +37,12 @@ def lm_params(max_iterations: int, relative_error_tol: float, absolute_error_tol
     params.setRelativeErrorTol(float(relative_error_tol))
     params.setAbsoluteErrorTol(float(absolute_error_tol))
     return params
+
+
+def _noise_level(graph: gtsam.NonlinearFactorGraph) -> float:
+    """Half the graph's residual dimensions: the error (0.5 * the sum of whitened squared residuals) a consistent
+    graph has at its optimum, on average."""
+    return 0.5 * float(sum(graph.at(i).dim() for i in range(graph.size()) if graph.at(i) is not None))
 
 
 def run_lm(
@@ -65,7 +74,15 @@ def run_lm(
             warnings.append("the error became non-finite")
             break
         if optimizer.iterations() == before_iterations:
-            warnings.append(f"Levenberg-Marquardt could not decrease the error {error:.6g} (gave up at maximum lambda)")
+            noise = _noise_level(graph)
+            if error <= noise:
+                # a stationary point whose residuals lie within their noise models (hostile trial 17 W10: merging
+                # exact ground-truth sessions printed this as non-convergence); not so the INTEL data set's 3.35e6
+                logger.debug("Levenberg-Marquardt stopped at maximum lambda with the error %.6g within the noise "
+                             "(%.6g): converged", error, noise)
+                converged = True
+            else:
+                warnings.append(f"Levenberg-Marquardt could not decrease the error {error:.6g} (gave up at maximum lambda)")
             break
         converged = gtsam.checkConvergence(params, previous, error)
     if not converged and not warnings:
