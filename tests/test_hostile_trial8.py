@@ -5,6 +5,7 @@ selection holding frames before the last stored one; B4 Ctrl-C while the embedde
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -17,7 +18,7 @@ import numpy as np
 import pytest
 from cli_run import one_error, run_cli
 
-from driftmap.fleet.reaper import adopt_orphans, descendants, is_subreaper
+from driftmap.fleet.reaper import _alive, adopt_orphans, descendants, is_subreaper
 from driftmap.pipeline.build import build
 from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
 from driftmap.store.frame_store import FrameStore
@@ -207,3 +208,72 @@ def test_t9_a_ray_address_where_something_else_answers_is_refused(log: Path, tmp
         server.shutdown()
     assert f"--ray-address 127.0.0.1:{port}: something answers at 127.0.0.1:{port}, but not Ray" in line, line
     assert not (tmp_path / "fleet").exists()
+
+
+_DRIVER = """
+import subprocess, sys, time
+from driftmap.fleet.reaper import start_watchdog
+kept = subprocess.Popen(["sleep", "60"])
+tree = subprocess.Popen(["sh", "-c", "sleep 60 & sleep 60 & wait"])
+dog = start_watchdog(keep=[kept.pid])
+time.sleep(1.5)  # the watchdog lists the tree
+print(dog.pid, kept.pid, tree.pid, flush=True)
+time.sleep(60)
+"""
+
+
+def test_t17_w11_the_watchdog_stops_what_a_killed_process_left_running() -> None:
+    """W11: a `batch` driver killed outright (SIGKILL) left its embedded Ray running for good. The watchdog it starts
+    stops the driver's descendants (and theirs) once the driver is gone, except those it was told to keep."""
+    driver = subprocess.Popen([sys.executable, "-c", _DRIVER], stdout=subprocess.PIPE, text=True)
+    dog, kept, tree = (int(x) for x in driver.stdout.readline().split())
+    grandchildren = descendants(tree)
+    assert len(grandchildren) == 2 and all(_alive(p) for p in (dog, kept, tree, *grandchildren))
+    driver.kill()
+    driver.wait()
+    for _ in range(100):
+        if not any(_alive(p) for p in (tree, *grandchildren)):
+            break
+        time.sleep(0.1)
+    try:
+        assert not any(_alive(p) for p in (tree, *grandchildren)), [p for p in (tree, *grandchildren) if _alive(p)]
+        assert _alive(kept)  # not the watchdog's to stop
+    finally:
+        for pid in (kept, tree, *grandchildren, dog):
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGKILL)
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read()
+    except OSError:
+        return b""
+
+
+def test_t17_w11_a_batch_killed_outright_leaves_no_ray_process(log: Path, tmp_path: Path) -> None:
+    """W11 through the CLI: SIGKILL of a `driftmap batch` once its embedded Ray runs with its agents (the
+    DashboardAgent and RuntimeEnvAgent ran on for good); within seconds no process it started is left."""
+    pytest.importorskip("ray")
+    proc = subprocess.Popen([sys.executable, "-m", "driftmap.cli", "batch", str(log), "--out", str(tmp_path / "b"),
+                             "--workers", "1"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    seen: set[int] = set()
+    for _ in range(600):  # until Ray's agents run
+        seen |= set(descendants(proc.pid))
+        if sum(_cmdline(p).startswith(b"ray::") and b"Agent" in _cmdline(p) for p in seen) >= 2 or proc.poll() is not None:
+            break
+        time.sleep(0.1)
+    assert proc.poll() is None, "the batch finished before its Ray agents were seen"
+    seen |= set(descendants(proc.pid))
+    proc.kill()
+    proc.wait()
+    for _ in range(100):
+        if not [p for p in seen if _alive(p)]:
+            break
+        time.sleep(0.1)
+    left = {p: _cmdline(p)[:60] for p in seen if _alive(p)}
+    for pid in left:
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
+    assert not left, left

@@ -33,7 +33,14 @@ from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
 from driftmap.fleet.folders import clean_temp, completed_result, input_fingerprint, prepare_out_dir
 from driftmap.fleet.inputs import LogSpec
-from driftmap.fleet.reaper import adopt_orphans, descendants, interrupts_deferred, is_subreaper, stop_descendants
+from driftmap.fleet.reaper import (
+    adopt_orphans,
+    descendants,
+    interrupts_deferred,
+    is_subreaper,
+    start_watchdog,
+    stop_descendants,
+)
 from driftmap.fleet.report import write_fleet_json, write_fleet_report
 from driftmap.fleet.task import LogHook, empty_row, failed_row, run_log
 
@@ -333,6 +340,7 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     was_subreaper = is_subreaper()
     if embedded:
         adopt_orphans()  # an agent whose raylet dies first stays ours to stop (see driftmap.fleet.reaper)
+    watchdog = start_watchdog(keep=earlier) if embedded else None  # ... and if this process is killed outright
     try:
         if todo:
             try:
@@ -359,6 +367,8 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
             tick(state)
     finally:
         with interrupts_deferred():  # a second Ctrl-C does not cut the clean-up short
+            if watchdog is not None:
+                watchdog.stop()
             if started:
                 ray.shutdown()
             if embedded:  # also after Ctrl-C inside ray.init, before `started` was set
