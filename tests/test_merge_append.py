@@ -351,3 +351,21 @@ def test_a_session_of_another_place_is_not_appended(room: dict, tmp_path: Path) 
     assert "nothing was written" in str(exc.value)
     assert _hashes(store) == before
 
+
+
+def test_t18_b6_b7_latest_state_and_session_colours_of_a_revision_before_the_append(appended: dict,
+                                                                                   tmp_path: Path) -> None:
+    """Hostile trial 18 B6 / B7: on a revision made before a session was appended, `export --latest-state` failed
+    ("frame 2000000010 is not in the map") and `export --mcap --color session` said the store did not hold a frame it
+    holds: both took every stored frame of a session. They now take the sessions the revision places."""
+    store = appended["store"]
+    out = _ok(run_cli("export", store, "--revision", 1, "--grid2d", tmp_path / "g.yaml", "--latest-state"))
+    text = " ".join(out.stdout.split())
+    assert "latest state of 2 sessions" in text and "session 2" not in text, text
+    assert (tmp_path / "g.yaml").is_file()
+    out = _ok(run_cli("export", store, "--revision", 1, "--mcap", tmp_path / "s.mcap", "--color", "session",
+                      "--no-volume"))
+    text = " ".join(out.stdout.split())
+    assert f"{N} frames" in text and "session 2" not in text, text
+    out = _ok(run_cli("export", store, "--mcap", tmp_path / "h.mcap", "--color", "session", "--no-volume"))
+    assert "session 2" in " ".join(out.stdout.split())  # the head places the appended session

@@ -94,6 +94,6 @@ def latest_state_of(store: FrameStore, revision: int, voxel_size_m: float | None
         raise ConfigError(f"{store.path} holds one session (no store that driftmap merge made): its layers are its "
                           f"latest state already; leave --latest-state out")
     state = latest_state_layers(store, sessions, revision, VolumeConfig(voxel_size_m=voxel_size_m))
-    logger.info("view: latest-state layers of %d sessions, voxels decided per session %s", len(sessions),
+    logger.info("view: latest-state layers of %d sessions, voxels decided per session %s", len(state.order),
                 state.voxels_per_session())
     return state.layers

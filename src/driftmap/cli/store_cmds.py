@@ -320,7 +320,7 @@ def _volume_layers(store, revision: int, config, *, latest_state: bool = False):
         with console.status("latest-state volumetric layers (one set per session)"):
             state = latest_state_layers(store, sessions, revision, config)
         decided = ", ".join(f"session {k}: {n:,}" for k, n in state.voxels_per_session().items())
-        console.print(f"latest state of {len(sessions)} sessions (oldest first {state.order}): voxels decided by "
+        console.print(f"latest state of {len(state.order)} sessions (oldest first {state.order}): voxels decided by "
                       f"{decided}", highlight=False)
         layers = state.layers
     else:

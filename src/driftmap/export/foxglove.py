@@ -238,8 +238,10 @@ def _check_output(path: Path, overwrite: bool) -> None:
 
 def _frame_sessions(store: FrameStore, frame_ids: NDArray[np.int64],
                     sessions: Mapping[int, Sequence[int]] | None) -> NDArray[np.int64]:
-    """The session of each frame for ``color="session"``; ``sessions`` None or empty: one session 0 (a store that no
-    merge made). :class:`ConfigError` unless ``sessions`` holds every frame of the store exactly once."""
+    """The session of each of ``frame_ids`` (the frames the exported revision places) for ``color="session"``;
+    ``sessions`` None or empty: one session 0 (a store that no merge made). :class:`ConfigError` unless ``sessions``
+    holds every one of ``frame_ids`` exactly once and names only frames the store holds; the frames of a session the
+    revision does not place (appended after it, or abandoned) are left out (hostile trial 18 B7)."""
     if not sessions:
         logger.info("foxglove export: %s is one session (no sessions given): one colour", store.path)
         return np.zeros(len(frame_ids), np.int64)
@@ -248,10 +250,11 @@ def _frame_sessions(store: FrameStore, frame_ids: NDArray[np.int64],
         if int(k) < 0:
             raise ConfigError(f"sessions: session {k} is negative")
         ids = np.asarray(ids, np.int64)
-        rows = np.searchsorted(frame_ids, ids).clip(0, max(len(frame_ids) - 1, 0))
-        unknown = ids[frame_ids[rows] != ids] if len(frame_ids) else ids
+        unknown = np.setdiff1d(ids, np.asarray(store.frame_ids, np.int64))
         if len(unknown):
             raise ConfigError(f"sessions: session {k} names frame {int(unknown[0])}, which {store.path} does not hold")
+        ids = ids[np.isin(ids, frame_ids)]  # the revision's frames of the session
+        rows = np.searchsorted(frame_ids, ids)
         if np.any(out[rows] >= 0):
             raise ConfigError(f"sessions: frame {int(frame_ids[rows[out[rows] >= 0][0]])} is in two sessions")
         out[rows] = int(k)

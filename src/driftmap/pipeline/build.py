@@ -190,10 +190,12 @@ def _open_store(out: Path, new_store: bool, src: FrameSource, record: dict[str, 
 def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> None:
     """``--resume`` on a store whose head is a correction (revision ``head``, not revision 0): the frames just added
     have only revision-0 poses, which the head would place beside its corrected ones (a seam; hostile trial 16 B3). A
-    new revision keeps the head's poses of the frames it had and carries its correction on to the new frames (as
-    ``correct`` does for frames its file has no row for)."""
+    new revision keeps the head's poses of the frames it places and carries its correction on to the others (as
+    ``correct`` does for frames its file has no row for): the new frames, and stored frames a rollback left out
+    (hostile trial 18 W4), which the resumed log places again."""
     ids = store.frame_ids
-    kept = np.array([int(f) in existing for f in ids])
+    placed = set(store.ledger.members(head, later=False).tolist())
+    kept = np.array([int(f) in placed for f in ids])
     poses = np.array(store.poses(head))
     parent = store.ledger.revision(head)
     made_by = parent  # the source of the carried poses: a rollback's are those of the revision it restores
@@ -206,9 +208,12 @@ def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> 
     revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=made_by.source, parent=head,
                                   propagate=False,
                                   note=f"resume: revision {head}'s correction carried on to the {len(new_ids)} new frames")
-    logger.warning("resume: the store's head was revision %d (%s), a correction; the %d new frames (%d..%d) would have "
-                   "sat at their uncorrected poses beside it, so revision %d carries that correction on to them",
-                   head, parent.source.value, len(new_ids), int(new_ids.min()), int(new_ids.max()), revision.revision_id)
+    left_out = sorted(set(new_ids.tolist()) & existing)  # stored before this resume
+    logger.warning("resume: the store's head was revision %d (%s), a correction; the %d frames it does not place "
+                   "(%d..%d%s) would have sat at their uncorrected poses beside it, so revision %d carries that "
+                   "correction on to them", head, parent.source.value, len(new_ids), int(new_ids.min()),
+                   int(new_ids.max()), f"; {len(left_out)} of them stored before and left out by the head"
+                   if left_out else "; all new", revision.revision_id)
 
 
 STORED_POSE_TOLERANCE_M = 1e-6
@@ -320,11 +325,12 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         logger.warning("odometry: %d of %d frames degenerate (a direction of motion unconstrained by the scan, bridged "
                        "along it by the motion model): %s", len(result.tracking["degenerate"]),
                        result.tracking["frames"], ", ".join(str(f["frame_id"]) for f in result.tracking["degenerate"][:10]))
-    if n_new and head_before != 0 and not (loop_closure and len(store) >= 2):
-        _carry_head_correction(store, head_before, existing)
     if loop_closure and len(store) >= 2:
         close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)
+    if n_new and head_before != 0 and store.head == head_before:
+        # also when loop closure ran and made no revision (no loop accepted: hostile trial 18 B1, a 1.44 m seam)
+        _carry_head_correction(store, head_before, existing)
     (store.path / BUILD_CONFIG_FILE).write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / BUILD_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")
     return result

@@ -325,6 +325,22 @@ def _check_paths(paths: list[Path], out: Path) -> None:
                           f"give it first with --append instead of --out): choose another --out")
 
 
+def refuse_partial_head(path: Path, source: FrameStore, what: str) -> None:
+    """A session is merged with every frame it stores, at its head's poses: a source whose head does not place them
+    all (a rollback that left frames out, a resume or append after it) is refused, naming the way out; it gave those
+    frames the poses of a revision the head does not hold beside its own (hostile trial 18 B4: a 1.41 m seam)."""
+    placed = source.members(source.head)
+    if len(placed) == len(source):
+        return
+    out = np.setdiff1d(np.asarray(source.frame_ids, np.int64), placed)
+    full = [r.revision_id for r in source.revisions if len(source.members(r.revision_id)) == len(source)]
+    raise ConfigError(f"{path}: its head (revision {source.head}, {source.ledger.revision(source.head).source.value}) "
+                      f"places {len(placed)} of the {len(source)} frames it stores ({len(out)} left out, "
+                      f"{int(out.min())}..{int(out.max())}); {what} takes every stored frame of a session: roll it back "
+                      f"to a revision that places them all (`driftmap rollback {path} --to {full[-1]}`), or build the "
+                      f"frames the map should hold into a store of their own (`build --frames`)")
+
+
 def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
     """Every store has frames and a uuid of its own; the sensor kind and the intrinsics kind agree with session 0's.
     Returns the uuids."""
@@ -339,6 +355,7 @@ def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
         if int(s.frame_ids.max()) >= SESSION_ID_STRIDE or int(s.frame_ids.min()) < 0:
             raise ConfigError(f"{p}: frame ids {int(s.frame_ids.min())}..{int(s.frame_ids.max())} are outside "
                               f"0..{SESSION_ID_STRIDE - 1}, which a merged store keeps per session")
+        refuse_partial_head(p, s, "merge")
         uuid = str(read_manifest(p)["store_uuid"])
         if uuid in uuids:
             j = uuids.index(uuid)

@@ -63,6 +63,7 @@ from driftmap.pipeline.merge import (
     keyframe_range,
     odometry_config,
     record_graph_verdicts,
+    refuse_partial_head,
     session_keyframes,
     store_sessions,
 )
@@ -231,6 +232,7 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
         if int(s.frame_ids.max()) >= SESSION_ID_STRIDE or int(s.frame_ids.min()) < 0:
             raise ConfigError(f"{p}: frame ids {int(s.frame_ids.min())}..{int(s.frame_ids.max())} are outside "
                               f"0..{SESSION_ID_STRIDE - 1}, which a merged store keeps per session")
+        refuse_partial_head(p, s, "merge --append")
         uuid = str(read_manifest(p)["store_uuid"])
         if uuid == own:
             raise ConfigError(f"{p}: is a copy of the merged store {merged} (store uuid {uuid})")

@@ -299,13 +299,22 @@ class PoseLedger:
 
         # the new revision is made over its parent's frames and the frames it sets (module docstring); a frame the
         # parent does not place (stored later, or left out by a rollback) is not moved by propagation
-        scope = np.union1d(self.members(parent_id), key_ids)
+        placed = self.members(parent_id)
+        scope = np.union1d(placed, key_ids)
+        # only frames the parent places have a correction (new pose against the parent's) to propagate: a frame it
+        # does not place has no pose of the parent's, and its stored fallback is another world frame's (hostile
+        # trial 18 B5: rows only for frames a rollback left out moved the head's frames by 1.3-1.6 m)
+        anchors = np.isin(key_ids, placed)
         propagated: dict[int, NDArray[np.float64]] = {}
-        if propagate and len(key_ids) < len(scope):
+        if propagate and anchors.any() and len(key_ids) < len(scope):
             rows = self._index_of(scope)
             prop_ids, prop_poses = propagate_correction(scope, self.stamps_ns[rows], self.poses(parent_id)[rows],
-                                                         key_ids, key_poses)
-            propagated = dict(zip(prop_ids.tolist(), prop_poses, strict=True))
+                                                         key_ids[anchors], key_poses[anchors])
+            propagated = {f: T for f, T in zip(prop_ids.tolist(), prop_poses, strict=True) if f not in given}
+        elif propagate and len(key_ids) < len(scope):
+            logger.warning("correction of revision %d: none of its %d frames is placed by revision %d, so there is no "
+                           "correction to carry to that revision's frames: they keep its poses", self.head + 1,
+                           len(key_ids), parent_id)
         revision = Revision(
             revision_id=self.head + 1,
             parent_id=parent_id,

@@ -89,6 +89,12 @@ def latest_state_layers(store: FrameStore, sessions: dict[int, Sequence[int]], r
     from driftmap.volume.defaults import resolve_config
 
     t0 = time.perf_counter()
+    rev = store.head if revision is None else int(revision)
+    placed = store.members(rev)  # a session appended after the revision, or abandoned, is not in it (trial 18 B6)
+    sessions = {k: kept for k, ids in sessions.items()
+                if len(kept := np.intersect1d(np.asarray(ids, dtype=np.int64), placed))}
+    if order is not None:
+        order = [k for k in order if k in sessions]
     if len(sessions) < 1:
         raise ConfigError(f"{store.path}: latest-state layers need at least one session")
     if int(min_observations) < 1:
@@ -96,7 +102,6 @@ def latest_state_layers(store: FrameStore, sessions: dict[int, Sequence[int]], r
     seq = list(session_order(store, sessions) if order is None else order)
     if sorted(seq) != sorted(sessions):
         raise ConfigError(f"latest-state layers: order {seq} is not a permutation of the sessions {sorted(sessions)}")
-    rev = store.head if revision is None else int(revision)
     cfg = resolve_config(store, config or VolumeConfig())
     per = VolumeLayers.on_one_grid(store, rev, cfg, [list(sessions[s]) for s in seq])
     grid = per[0].grid

@@ -1,0 +1,102 @@
+"""Hostile trial 18's findings, each through the path the user took (docs/bad-input.md, trial 18): resumes,
+corrections, rollbacks and merges over heads that do not place every stored frame."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_run import one_error, run_cli
+
+from driftmap.trajectory import read_tum
+
+
+def _ok(out):  # noqa: ANN001, ANN202 - a CompletedProcess
+    assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-2000:])
+    return out
+
+
+def _steps(trajectory: Path) -> tuple[int, float, float]:
+    """Rows, largest and median step between consecutive positions of a TUM file."""
+    p = read_tum(trajectory).poses[:, :3, 3]
+    d = np.linalg.norm(np.diff(p, axis=0), axis=1)
+    return len(p), float(d.max()), float(np.median(d))
+
+
+@pytest.fixture(scope="module")
+def stores(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The trial's room (seed 3, 60 frames): ``s2`` built over frames 0:20 with loop closure, corrected to the ground
+    truth, resumed to 0:40 (loop closure on, no loop in reach); ``s5`` a copy resumed to 0:60 and rolled back to
+    revision 1 (it places 20 of its 60 frames)."""
+    root = tmp_path_factory.mktemp("trial18")
+    log = root / "room"
+    _ok(run_cli("synth", log, "--seed", 3, "--frames", 60))
+    s2 = root / "s2"
+    _ok(run_cli("build", log, "--out", s2, "--frames", "0:20"))
+    _ok(run_cli("correct", s2, "--poses", log / "groundtruth.txt"))
+    resumed = _ok(run_cli("build", log, "--out", s2, "--frames", "0:40", "--resume"))
+    s5 = root / "s5"
+    shutil.copytree(s2, s5)
+    _ok(run_cli("build", log, "--out", s5, "--frames", "0:60", "--resume"))
+    _ok(run_cli("rollback", s5, "--to", 1))
+    return {"root": root, "log": log, "s2": s2, "s5": s5, "resume_stderr": resumed.stderr}
+
+
+def test_t18_b1_a_resume_whose_loop_closure_accepts_no_loop_carries_the_heads_correction(stores: dict) -> None:
+    """B1: `build --resume` on a corrected store whose loop closure ran and accepted no loop wrote no revision, and the
+    head placed the 20 new frames at their uncorrected poses beside 20 ground-truth ones (a 1.44 m / 100 deg seam),
+    without a word. The head's correction is now carried on to them whenever the resume makes no revision of its own."""
+    assert "correction on to them" in " ".join(stores["resume_stderr"].split())
+    _ok(run_cli("export", stores["s2"], "--trajectory", stores["root"] / "s2.txt"))
+    rows, largest, median = _steps(stores["root"] / "s2.txt")
+    assert rows == 40 and largest < 2 * median, (largest, median)  # the seam was 1.44 m against 0.12 m steps
+
+
+def test_t18_b4_merge_refuses_a_session_whose_head_leaves_frames_out(stores: dict) -> None:
+    """B4: `merge` took every stored frame of a session at its head's poses, also those a rollback left out (at the
+    poses of a revision the head does not hold: a 1.41 m seam in the merged session). Such a source is refused,
+    naming the frames left out and the rollback that places them all."""
+    root = stores["root"]
+    other = root / "B"
+    _ok(run_cli("build", stores["log"], "--out", other, "--frames", "25:55", "--no-loop-closure"))
+    line = one_error(run_cli("merge", stores["s5"], other, "--out", root / "M"))
+    assert f"{stores['s5']}: its head (revision 4, rollback) places 20 of the 60 frames it stores" in line, line
+    assert "40 left out, 20..59" in line and f"driftmap rollback {stores['s5']} --to 3" in line, line
+    assert not (root / "M").exists()
+
+
+def test_t18_b5_a_correction_of_frames_the_head_leaves_out_does_not_move_the_heads_frames(stores: dict) -> None:
+    """B5: `correct` with rows only for frames the head does not place took their stored poses (another revision's,
+    another world frame) as the head's and propagated the difference: frames at the ground truth moved 1.25-1.58 m.
+    Only frames the head places carry a correction now; the others are set, the head's frames keep their poses."""
+    root = stores["root"]
+    s7 = root / "s7"
+    shutil.copytree(stores["s5"], s7)
+    gt_lines = [line for line in (stores["log"] / "groundtruth.txt").read_text().splitlines() if not line.startswith("#")]
+    (root / "gt_40_59.txt").write_text("\n".join(gt_lines[40:60]) + "\n")
+    _ok(run_cli("export", s7, "--trajectory", root / "s7_before.txt"))
+    out = _ok(run_cli("correct", s7, "--poses", root / "gt_40_59.txt"))
+    assert "none of its 20 frames is placed by revision 4" in " ".join(out.stderr.split()), out.stderr[-2000:]
+    _ok(run_cli("export", s7, "--trajectory", root / "s7_after.txt"))
+    before, after = read_tum(root / "s7_before.txt"), read_tum(root / "s7_after.txt")
+    assert len(before) == 20 and len(after) == 40
+    np.testing.assert_allclose(after.poses[:20], before.poses, atol=1e-9)  # the head's frames did not move
+    gt = read_tum(stores["log"] / "groundtruth.txt")
+    np.testing.assert_allclose(after.poses[20:, :3, 3], gt.poses[40:60, :3, 3], atol=1e-6)
+
+
+def test_t18_w4_a_resume_over_a_rollback_says_it_places_the_frames_left_out_again(stores: dict) -> None:
+    """W4: a resume over a rollback that left frames out placed them again without a word (the warning named only
+    the new frames). It now counts them, and carries the head's correction on to them as to the new frames."""
+    root = stores["root"]
+    s3 = root / "s3"
+    shutil.copytree(stores["s2"], s3)
+    _ok(run_cli("rollback", s3, "--to", 1))  # 20 of the 40 stored frames
+    out = _ok(run_cli("build", stores["log"], "--out", s3, "--frames", "0:60", "--resume", "--no-loop-closure"))
+    said = " ".join(out.stderr.split())
+    assert "the 40 frames it does not place (20..59; 20 of them stored before and left out by the head)" in said, said
+    _ok(run_cli("export", s3, "--trajectory", root / "s3.txt"))
+    rows, largest, median = _steps(root / "s3.txt")
+    assert rows == 60 and largest < 2 * median, (largest, median)
