@@ -7,6 +7,7 @@ misuse is refused naming the store."""
 from __future__ import annotations
 
 import hashlib
+import re
 import json
 import shutil
 import subprocess
@@ -369,3 +370,15 @@ def test_t18_b6_b7_latest_state_and_session_colours_of_a_revision_before_the_app
     assert f"{N} frames" in text and "session 2" not in text, text
     out = _ok(run_cli("export", store, "--mcap", tmp_path / "h.mcap", "--color", "session", "--no-volume"))
     assert "session 2" in " ".join(out.stdout.split())  # the head places the appended session
+
+
+def test_t18_b3_view_colours_the_appended_session_as_new_not_as_moved(appended: dict, tmp_path: Path) -> None:
+    """Hostile trial 18 B3: `view --color revision --revision 2 --reference 1` measured the appended session's frames
+    (which revision 1 does not place) from their unmerged poses: a 0 .. 4 m scale for an append that moved the
+    existing frames by centimetres. They are grey now, outside the scale."""
+    out = _ok(run_cli("view", appended["store"], "--color", "revision", "--revision", 2, "--reference", 1,
+                      "--headless", "--backend", "software", "--out", tmp_path / "v"))
+    text = " ".join(out.stdout.split())
+    found = re.search(r"displacement from revision 1 \(m\): 0 \.\. ([0-9.]+)", text)
+    assert found is not None, text
+    assert float(found[1]) < 0.5, text  # the appended session's own offset (metres) is not on the scale

@@ -345,7 +345,8 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
         label = "session"
     elif color == "frame":
         values = frame_ids.astype(np.float64)
-        value_range = (float(store.frame_ids.min()), float(store.frame_ids.max()))
+        shown = store.members(rev)  # the revision's frames, not frames stored after it (trial 18 W6)
+        value_range = (float(shown.min()), float(shown.max()))
         label = "frame id"
     elif color == "revision":
         label = f"displacement from revision {ref} (m)" if ref is not None else "displacement (m)"
@@ -354,9 +355,14 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
             values = np.full(len(points), np.nan)
         else:
             disp, moved = _displacement_m(points, rows, poses, store.poses(ref))
+            # a frame the reference does not place (appended or resumed since) has no displacement from it: grey,
+            # outside the scale (trial 18 B3: 4 m against its unmerged pose)
+            new = ~np.isin(store.frame_ids, store.members(ref))[rows]
+            moved &= ~new
             values = np.where(moved, disp, np.nan)
-            logger.info("view: %d of %d shown points moved from revision %d to %d (max %.4f m)", int(moved.sum()),
-                        len(points), ref, rev, float(disp.max(initial=0.0)))
+            logger.info("view: %d of %d shown points moved from revision %d to %d (max %.4f m)%s", int(moved.sum()),
+                        len(points), ref, rev, float(disp[moved].max(initial=0.0)),
+                        f"; {int(new.sum())} are of frames revision {ref} does not place (grey)" if new.any() else "")
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 99)), 1e-6) if finite.size else 1e-3)
     else:
