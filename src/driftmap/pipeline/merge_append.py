@@ -369,6 +369,7 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
         raise StoreError(f"{merged}: its frames hold sessions {sorted(in_store)}, its {MERGE_SUMMARY_FILE} "
                          f"{existing}; they disagree (was the summary replaced?)")
     head = store.head
+    existing = _sessions_in_head(merged, store, head, existing)
     by_session = {s["session"]: s for s in summary["sessions"]}
     lc, max_range_m = _lc_and_range(summary, store, by_session[existing[0]], config)
 
@@ -432,6 +433,33 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
     _write(merged, store, summary, result, connected_new, reports, src_of, dict(zip(numbers, paths, strict=True)),
            dict(zip(numbers, uuids, strict=True)), set_poses, covariances, note, tick)
     return result
+
+
+def _sessions_in_head(merged: Path, store: FrameStore, head: int, connected: list[int]) -> list[int]:
+    """The connected sessions the head places -- every frame of each; a session a rollback left out (an append
+    undone) is left out of the append too, with a warning: its frames are neither moved nor placed (hostile trial 18
+    B2: 26 of its 30 frames came back into the new head). A session the head places in part is refused."""
+    ids = store.frame_ids
+    placed = np.isin(ids, store.members(head))
+    kept, left_out = [], []
+    for k in connected:
+        inside = placed[ids // SESSION_ID_STRIDE == k]
+        if inside.all():
+            kept.append(k)
+        elif not inside.any():
+            left_out.append(k)
+        else:
+            raise StoreError(f"{merged}: its head (revision {head}) places {int(inside.sum())} of the "
+                             f"{len(inside)} frames of session {k}; an append builds on whole sessions: roll the "
+                             f"store back to a revision that places all or none of them first")
+    if left_out:
+        logger.warning("%s: the head (revision %d) does not place session(s) %s (an append undone by a rollback): "
+                       "the append leaves them out; they stay stored, in the revisions that place them", merged,
+                       head, ", ".join(map(str, left_out)))
+    if not kept:
+        raise StoreError(f"{merged}: its head (revision {head}) places none of its sessions; roll it back to a "
+                         f"revision that places the map first")
+    return kept
 
 
 def _place_new_sessions(store: FrameStore, head: int, existing: list[int], numbers: list[int],
