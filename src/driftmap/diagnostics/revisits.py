@@ -24,7 +24,7 @@ register the frames overlapping most what was seen ``revisit_min_path_m`` before
 overlap after a 3 m step that leaves no pair overlapping). The disagreement is the ``min_probes``-th largest
 correction of each kind, the larger of the two, so one registration that slid along a corridor does not decide it
 alone; the pairs' corrections per metre of travel between their two frames give a drift rate
-(:attr:`RevisitCheck.drift_percent_per_m`). Third, the trajectory's *jumps* (:func:`_find_jumps`: consecutive frames
+(:attr:`RevisitCheck.drift_percent_per_m`). Third, the trajectory's *jumps* (:func:`~driftmap.diagnostics.jumps.find_jumps`: consecutive frames
 whose relative motion differs from their neighbours' by a quarter of the detectable error or more) have the frames after the
 jump registered onto the frames before it, the poses as placed and the jump undone as two hypotheses (trial 12: a
 block of frames moved and moved back escaped the pairs, which ran end-on-start, and the whole-map probes, which
@@ -43,17 +43,16 @@ from __future__ import annotations
 
 import logging
 import math
-import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import scipy.sparse
 from numpy.typing import NDArray
-from pydantic import ConfigDict, Field
 
 from driftmap import geometry
-from driftmap.config import SettingsModel
+from driftmap.diagnostics.jumps import StepJump, find_jumps, undo_jump
+from driftmap.diagnostics.revisit_config import HYPOTHESIS_WITHIN, MIN_PROBE_POINTS, RevisitCheckConfig
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.registration.pairwise import PreparedCloud, downsample, nearest_distances, register_prepared
 from driftmap.registration.tracking import translation_degeneracy
@@ -61,20 +60,11 @@ from driftmap.voxels import dense_ids, keys_on_bounding_grid, voxel_coords
 
 logger = logging.getLogger(__name__)
 
-MIN_PROBE_POINTS = 50
-"""A frame with fewer diagnostic samples is not registered (GICP needs neighbourhoods to fit planes in)."""
 
 PAIRS_PER_FRAME = 2
 """A frame is the probe (or the target frame) of at most this many pairs: the pairs spread over the log, yet a pose
 error that moved only two revisiting frames still shows in more than one pair."""
 
-HYPOTHESIS_WITHIN = 0.5
-"""A jump's two hypotheses (no pose error / the jump is one) are told apart by the share of the probe within this many
-finest voxels of the target: at 1.5 a 30 cm step at frame 58 of the room fits 0.794 as placed and 0.788 undone, at 0.5
-0.631 and 0.678 (the step runs along the walls most of the view sees; only its precise fit tells)."""
-FREE_OVER_LOCAL = 0.1
-"""A jump probe's free registration replaces its best local hypothesis only with this much more of the probe within
-:data:`HYPOTHESIS_WITHIN` finest voxels (a larger share, 0 .. 1)."""
 
 STRETCH, MAP, STEP, FLOOR = "stretch", "map", "step", "floor"
 """The kinds of probe (:attr:`RevisitProbe.kind`, the ``target`` key of the JSON). :data:`FLOOR` probes
@@ -84,35 +74,9 @@ moves a frame that no drift moved, the registration's floor on this sensor and s
 MIN_SESSION_PAIRS = 2
 """A merged store's two sessions are judged against each other from this many counted frame pairs across them."""
 
-MAX_SCREENED_JUMPS = 24
-"""When more jumps exceed ``jump_min_share`` than ``max_step_checks`` allows, the largest this many are screened frame
-on frame (:func:`_screen_jump`, ~2 registrations of two frames' samples each) and the most disagreeing checked."""
 
 MAX_OVERLAP_FRAMES = 2000
 """Pairs are chosen among at most this many frames (evenly spread over a longer log): the overlap table is square."""
-
-
-class RevisitCheckConfig(SettingsModel):
-    """Which revisit pairs are registered onto each other and when their corrections leave the detector's range."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    enabled: bool = Field(True, description="register revisiting frames onto earlier ones (the check of pose errors beyond the double-wall detector's range)")
-    revisit_min_path_m: float = Field(1.0, gt=0.0, description="a pair's two frames are at least this much travel apart (m)")
-    registration_voxel_m: float = Field(0.05, gt=0.0, description="finest GICP voxel (m); the coarse levels are 2x and 4x")
-    coarse_gate_m: float = Field(0.8, gt=0.0, description="correspondence gate of the coarsest level and the overlap grid (m): pose errors up to about this are measured")
-    max_probes: int = Field(12, ge=1, le=1000, description="pairs registered at most (in turn the pair furthest apart in travel and the one overlapping most)")
-    window_m: float = Field(0.5, gt=0.0, description="a pair's target: its frame and those up to this much travel before it (m)")
-    max_window_frames: int = Field(50, ge=1, le=1000, description="... at most this many frames")
-    min_overlap: float = Field(0.5, gt=0.0, le=1.0, description="a probe has at least this share of its points in coarse voxels its target frame occupies")
-    min_fitness: float = Field(0.6, gt=0.0, le=1.0, description="a registration counts with at least this share of the probe's points on the target")
-    min_constraint: float = Field(0.03, gt=0.0, le=1.0, description="... and sqrt(lambda_min / lambda_max) of its translational information at least this (no slide along a corridor)")
-    min_probes: int = Field(3, ge=1, description="counted pairs the check needs; its disagreement is the min_probes-th largest correction")
-    max_detectable_m: float = Field(0.2, gt=0.0, description="the largest separation the double-wall detector reports (m): beyond it the figures cannot judge the map")
-    max_detectable_deg: float = Field(10.0, gt=0.0, description="the largest rotation the detector's normal grouping tolerates (deg)")
-    max_step_checks: int = Field(4, ge=0, le=100, description="consecutive frames whose relative motion jumps against their neighbours' by jump_min_share of the detectable error or more are registered onto the frames before them: at most this many such jumps, the largest first")
-    jump_min_share: float = Field(0.25, gt=0.0, le=10.0, description="... a jump is checked from this share of max_detectable_m or max_detectable_deg on (0.25: 5 cm / 2.5 deg indoors). At 0.5 a 5 deg yaw step in the room (a 6.7 deg turn between frames becoming 11.7) sat on the threshold and a 5 deg step on the street went unchecked")
-    step_probes: int = Field(3, ge=1, le=10, description="... the frames from the jump on (at most this many, within half window_m of travel, up to the next jump) registered together onto the frames before it")
-    implausible_factor: float = Field(5.0, gt=1.0, description="a jump whose frames fit nothing before it is no verdict ('cannot judge') when it exceeds this many times the log's 90th-percentile motion between consecutive frames")
 
 
 @dataclass(frozen=True)
@@ -153,24 +117,6 @@ class RevisitProbe:
                 "target_first_frame_id": self.target_first_frame_id,
                 "path_between_m": round(self.path_between_m, 4) if np.isfinite(self.path_between_m) else None,
                 "target": self.kind, "cross_session": self.cross_session}
-
-
-@dataclass(frozen=True)
-class StepJump:
-    """Consecutive frames whose relative motion differs from their neighbours' (:func:`_find_jumps`)."""
-
-    before_frame_id: int
-    frame_id: int
-    excess_m: float
-    """How far the step between the two sensor origins differs from the neighbouring steps' median (m)."""
-    excess_deg: float
-    """How far the turn between the two frames exceeds the neighbouring turns' median (deg)."""
-    implausible: bool
-    """Larger than ``implausible_factor`` times the log's 90th-percentile motion between consecutive frames."""
-
-    def to_json(self) -> dict:
-        return {"before_frame_id": self.before_frame_id, "frame_id": self.frame_id,
-                "excess_m": round(self.excess_m, 5), "excess_deg": round(self.excess_deg, 4), "implausible": self.implausible}
 
 
 @dataclass(frozen=True)
@@ -584,106 +530,16 @@ def _register(placed: PlacedCloud, target_row: int, row: int, overlap: float, cf
     return probe
 
 
-def _find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckConfig,
-                sessions: NDArray[np.int64] | None = None) -> list[tuple[int, StepJump]]:
-    """``[(k, jump)]``: up to ``max_step_checks`` consecutive frames ``rows[k - 1]``, ``rows[k]`` whose relative motion
-    differs from their neighbours' (the median over three steps either side) by at least ``jump_min_share`` of
-    ``max_detectable_m`` or ``max_detectable_deg``, the largest (relative to those) first. A step or a turn that a bad
-    correction put between two frames shows here as a jump of the trajectory; a fast but real motion does too, and
-    registering the frames after it onto those before it tells the two apart (its frames fit as placed). A merged
-    store's step from one session's last frame to the next session's first (``sessions``: each row's session) is no
-    motion: neither a jump nor a neighbour of one."""
-    n = len(rows)
-    if cfg.max_step_checks == 0 or n < 3:
-        return []
-    poses = placed.poses[rows]
-    step = np.diff(poses[:, :3, 3], axis=0)  # step[k - 1]: from rows[k - 1] to rows[k]
-    turn = np.degrees(geometry.relative_rotation_angle_rad(poses[:-1], poses[1:]))
-    half = 3
-    index = np.clip(np.arange(len(step))[:, None] + np.r_[-half:0, 1:half + 1][None, :], 0, len(step) - 1)
-    own = index == np.arange(len(step))[:, None]  # a clipped neighbour that is the step itself does not count
-    across = np.zeros(len(step), dtype=bool) if sessions is None else sessions[rows[1:]] != sessions[rows[:-1]]
-    own |= across[index]
-    nb_step = np.where(own[..., None], np.nan, step[index])
-    nb_turn = np.where(own, np.nan, turn[index])
-    with np.errstate(all="ignore"), warnings.catch_warnings():  # a step with no neighbour (a session's only one)
-        warnings.simplefilter("ignore", RuntimeWarning)              # has no median: NaN, then 0 (trial 14)
-        excess_m = np.linalg.norm(step - np.nanmedian(nb_step, axis=1), axis=1)
-        excess_deg = np.clip(turn - np.nanmedian(nb_turn, axis=1), 0.0, None)
-    excess_m, excess_deg = np.nan_to_num(excess_m), np.nan_to_num(excess_deg)
-    score = np.where(across, -np.inf, np.maximum(excess_m / cfg.max_detectable_m, excess_deg / cfg.max_detectable_deg))
-    if across.all():
-        return []
-    usual_m = float(np.percentile(np.linalg.norm(step[~across], axis=1), 90))
-    usual_deg = float(np.percentile(turn[~across], 90))
-    order = [int(i) for i in np.argsort(-score, kind="stable")[:MAX_SCREENED_JUMPS] if score[i] >= cfg.jump_min_share]
-    if len(order) > cfg.max_step_checks:  # more jumps than checks: in turn the most disagreeing frame on frame
-        screened = {i: _screen_jump(placed, rows, i + 1, cfg) for i in order}  # (trial 13) and the largest jump (a
-        by_screen = sorted(order, key=lambda i: -screened[i])                  # step two frames cannot constrain:
-        order = list(dict.fromkeys(i for pair in zip(by_screen, order) for i in pair))  # trial 12's short log)
-        logger.info("revisit check: %d jumps screened frame on frame (%s)", len(screened),
-                    ", ".join(f"{int(placed.frame_ids[rows[i + 1]])}: {screened[i]:.2f}" for i in by_screen))
-    out = []
-    for i in order[: cfg.max_step_checks]:
-        implausible = bool(excess_m[i] > cfg.implausible_factor * usual_m or excess_deg[i] > cfg.implausible_factor * usual_deg)
-        jump = StepJump(int(placed.frame_ids[rows[i]]), int(placed.frame_ids[rows[i + 1]]), float(excess_m[i]),
-                        float(excess_deg[i]), implausible)
-        out.append((int(i + 1), jump))
-    if out:
-        logger.info("revisit check: %d jumps of the trajectory checked (%s)", len(out),
-                    ", ".join(f"{j.before_frame_id}->{j.frame_id}" for _, j in out))
-    return sorted(out, key=lambda kj: kj[0])
-
-
-def _screen_jump(placed: PlacedCloud, rows: NDArray[np.int64], k: int, cfg: RevisitCheckConfig) -> float:
-    """How much frame ``rows[k]`` alone disagrees with frame ``rows[k - 1]`` where they are placed, as a share of the
-    detectable error (the larger of metres and degrees): the frame registered onto the one before it from the poses as
-    placed and from the jump undone (:func:`_undo_jump`), refined locally, the hypothesis fitting more kept. A real
-    turn fits as placed (0); a pose error fits undone (its size). Cheap (two frames' samples) where the full check
-    registers a stretch: it ranks the jumps when there are more than ``max_step_checks`` (trial 13: a street's ten
-    real turns of 3-7 deg crowded out a 3 deg pose step). A pair that does not count ranks by its jump alone (-1)."""
-    offsets = placed.samples.offsets
-    a, b = int(rows[k - 1]), int(rows[k])
-    v = cfg.registration_voxel_m
-    target = downsample(placed.points_world[offsets[a]:offsets[a + 1]], v)
-    source = downsample(placed.points_world[offsets[b]:offsets[b + 1]], v)
-    if len(target) < MIN_PROBE_POINTS or len(source) < MIN_PROBE_POINTS:
-        return -1.0
-    tgt, src = PreparedCloud(target, 1), PreparedCloud(source, 1)
-    best: tuple[float, NDArray[np.float64]] | None = None
-    for start in (np.eye(4), _undo_jump(placed, rows, k)):
-        T, result = start, None
-        for level, gate in ((2 * v, 3 * v), (v, 2.5 * v)):
-            result = register_prepared(tgt, src, T, voxel_size_m=level, max_correspondence_m=gate, num_threads=1)
-            T = result.T_target_source
-        share = float(np.mean(nearest_distances(tgt, src, T, v) <= HYPOTHESIS_WITHIN * v))
-        if result is not None and result.fitness >= cfg.min_fitness and (best is None or share > best[0]):
-            best = (share, T)
-    if best is None:
-        return -1.0
-    T = best[1]
-    origin = placed.origins_world[b]
-    moved_m = float(np.linalg.norm(T[:3, :3] @ origin + T[:3, 3] - origin))
-    return max(moved_m / cfg.max_detectable_m, float(geometry.rotation_angle_deg(np.eye(4), T)) / cfg.max_detectable_deg)
-
-
-def _undo_jump(placed: PlacedCloud, rows: NDArray[np.int64], k: int) -> NDArray[np.float64]:
-    """The world correction that would put frame ``rows[k]`` where the motion of the frames before it predicts
-    (constant velocity from ``rows[k - 2]`` to ``rows[k - 1]``; standing still after the first frame): the start of a
-    second hypothesis of a jump, that it is a pose error."""
-    before = placed.poses[rows[k - 1]]
-    velocity = np.linalg.inv(placed.poses[rows[k - 2]]) @ before if k >= 2 else np.eye(4)
-    return before @ velocity @ np.linalg.inv(placed.poses[rows[k]])
-
-
 def _floor_probes(placed: PlacedCloud, rows: NDArray[np.int64], pairs: list[tuple[int, RevisitProbe]],
                   cfg: RevisitCheckConfig, sessions: NDArray[np.int64] | None) -> tuple[RevisitProbe, ...]:
     """Each counted pair's probe (row, once) registered as a pair is onto the frames just before it, within its
-    session (:data:`FLOOR`)."""
+    session and less than ``revisit_min_path_m`` of travel away (:data:`FLOOR`)."""
     out = []
+    path = placed.path_length_m
     for row in sorted({row for row, p in pairs if p.counted and not p.cross_session}):
         k = int(np.searchsorted(rows, row))
-        if k == 0 or (sessions is not None and sessions[rows[k - 1]] != sessions[row]):
+        if k == 0 or (sessions is not None and sessions[rows[k - 1]] != sessions[row]) \
+                or path[row] - path[rows[k - 1]] >= cfg.revisit_min_path_m:
             continue
         out.append(_register(placed, int(rows[k - 1]), row, 1.0, cfg, FLOOR))
     return tuple(out)
@@ -716,7 +572,7 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
     probes += [_register(placed, end, row, ov, cfg, MAP,
                          cross_session=sessions is not None and bool(sessions[end] != sessions[row]))
                for end, row, ov in _map_pairs(placed, cfg)]
-    jumps = _find_jumps(placed, all_rows, cfg, sessions)
+    jumps = find_jumps(placed, all_rows, cfg, sessions)
     starts = [k for k, _ in jumps]
     for i, k in enumerate(starts):
         stop = min([k + cfg.step_probes, len(all_rows), *starts[i + 1:]])
@@ -724,7 +580,7 @@ def check_revisits(placed: PlacedCloud, config: RevisitCheckConfig | None = None
         stop = k + max(1, int(np.sum(path - path[0] <= cfg.window_m / 2)))  # fast motion: fewer frames overlap
         before, first, last = int(all_rows[k - 1]), int(all_rows[k]), int(all_rows[stop - 1])
         overlap_first = float(_overlap_table(placed, np.array([before, first]), cfg)[1, 0])
-        probes.append(_register(placed, before, first, overlap_first, cfg, STEP, last, _undo_jump(placed, all_rows, k)))
+        probes.append(_register(placed, before, first, overlap_first, cfg, STEP, last, undo_jump(placed, all_rows, k)))
     check = RevisitCheck(cfg, probes, int(far.sum()), tuple(j for _, j in jumps), names,
                          _floor_probes(placed, all_rows, [(int(b[k]), p) for k, p in zip(chosen, probes)], cfg, sessions))
     if check.reason():
