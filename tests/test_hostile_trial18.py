@@ -52,6 +52,11 @@ def test_t18_b1_a_resume_whose_loop_closure_accepts_no_loop_carries_the_heads_co
     _ok(run_cli("export", stores["s2"], "--trajectory", stores["root"] / "s2.txt"))
     rows, largest, median = _steps(stores["root"] / "s2.txt")
     assert rows == 40 and largest < 2 * median, (largest, median)  # the seam was 1.44 m against 0.12 m steps
+    # W1: `revisions` says which frames each revision places: the carry revision adds the 20 new ones
+    table = _ok(run_cli("revisions", stores["s2"])).stdout
+    rows_of = [[c.strip() for c in line.split("\u2502") if c.strip()] for line in table.splitlines()
+               if line.startswith("\u2502") and line.split("\u2502")[1].strip().isdigit()]
+    assert [r[-1] for r in rows_of] == ["40", "20", "40 (+20)"], table
 
 
 def test_t18_b4_merge_refuses_a_session_whose_head_leaves_frames_out(stores: dict) -> None:
@@ -94,6 +99,7 @@ def test_t18_w4_a_resume_over_a_rollback_says_it_places_the_frames_left_out_agai
     s3 = root / "s3"
     shutil.copytree(stores["s2"], s3)
     _ok(run_cli("rollback", s3, "--to", 1))  # 20 of the 40 stored frames
+    assert "20 (-20)" in _ok(run_cli("revisions", s3)).stdout  # W1: the rollback leaves 20 out
     out = _ok(run_cli("build", stores["log"], "--out", s3, "--frames", "0:60", "--resume", "--no-loop-closure"))
     said = " ".join(out.stderr.split())
     assert "the 40 frames it does not place (20..59; 20 of them stored before and left out by the head)" in said, said

@@ -74,23 +74,35 @@ def correct(
 
 @app.command()
 def revisions(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame store directory.")]) -> None:
-    """List the pose revisions: id, parent, source, frames changed, max displacement."""
+    """List the pose revisions: id, parent, source, frames changed, max displacement, the frames each places."""
     import datetime
+
+    import numpy as np
 
     with open_store(store_path) as store:
         table = Table(title=f"pose revisions of {store_path}")
-        for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)", "note"):
+        for col in ("id", "parent", "source", "created", "frames changed", "max displacement (m)", "max rotation (deg)",
+                    "note", "frames placed"):
             table.add_column(col, justify="right" if col not in ("source", "note", "created") else "left",
                              no_wrap=col != "note")
         for rev in store.revisions:
+            placed = store.ledger.members(rev.revision_id, later=False)
             if rev.parent_id is None:
-                table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-", "poses that produced the frames")
+                table.add_row(str(rev.revision_id), "-", rev.source.value, "-", str(len(store)), "-", "-",
+                              "poses that produced the frames", str(len(placed)))
                 continue
-            d = store.diff(rev.parent_id, rev.revision_id)
+            d = store.diff(rev.parent_id, rev.revision_id)  # over the frames both place
             changed = d.n_changed
             created = datetime.datetime.fromtimestamp(rev.created_ns / 1e9).isoformat(timespec="seconds")
+            before = store.ledger.members(rev.parent_id, later=False)
+            # the frames a revision places that its parent did not (a resume's, an append's), and those it leaves
+            # out (a rollback's): no displacement measures them (hostile trial 18 W1)
+            added = np.setdiff1d(placed, before).size
+            # revision 0 places every frame, also those stored after a revision made over it: not "left out" by it
+            dropped = np.setdiff1d(before, placed).size if rev.parent_id != 0 else 0
             table.add_row(str(rev.revision_id), str(rev.parent_id), rev.source.value, created, str(changed),
-                          f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note)
+                          f"{d.max_translation_m:.4f}", f"{d.max_rotation_deg:.3f}", rev.note,
+                          f"{len(placed)}" + (f" (+{added})" if added else "") + (f" (-{dropped})" if dropped else ""))
         console.print(table)
 
 
