@@ -110,6 +110,7 @@ RAY_TESTS = (
     "test_hostile_trial8.py::test_t8_b5_",
     "test_hostile_trial8.py::test_t8_b4_",
     "test_hostile_trial8.py::test_t9_a_ray_address_",
+    "test_hostile_trial8.py::test_t17_w11_a_batch_killed_outright",
 )
 
 

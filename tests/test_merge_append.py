@@ -392,6 +392,8 @@ def test_t18_b2_an_append_after_a_rollback_that_undid_one_leaves_the_undone_sess
     store = tmp_path / "undone"
     shutil.copytree(appended["store"], store)
     _ok(run_cli("rollback", store, "--to", 1))
+    line = one_error(run_cli("merge", store, room["root"] / "C", "--append"))  # W2: why C cannot come back
+    assert "which a rollback left out of the head" in line and "build its log into a new store" in line, line
     again = tmp_path / "C_again"
     build(room["log"], again, poses_file=room["root"] / "c.txt", frames=f"{2 * N}:{3 * N}", loop_closure=False)
     out = _ok(run_cli("merge", store, again, "--append", "--config", room["root"] / "fast.toml"))
@@ -399,3 +401,21 @@ def test_t18_b2_an_append_after_a_rollback_that_undid_one_leaves_the_undone_sess
     with FrameStore.open(store) as s:
         sessions = np.asarray(s.members(), np.int64) // SESSION_ID_STRIDE
         assert {k: int(np.sum(sessions == k)) for k in np.unique(sessions).tolist()} == {0: N, 1: N, 3: N}
+
+
+def test_t18_w3_the_volume_top_view_of_an_older_revision_draws_only_its_frames(appended: dict, tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch) -> None:
+    """Hostile trial 18 W3: `diagnose --revision 1 --report`'s volume top view drew the sensor path of every stored
+    frame, the appended session at its unmerged poses among them. It draws revision 1's frames now."""
+    from driftmap.pipeline import diagnose as diagnose_pipeline
+    from driftmap.volume import VolumeLayers
+
+    drawn = {}
+    monkeypatch.setattr(diagnose_pipeline, "plot_state_top_view",
+                        lambda path, *a, sensor_origins_m, **k: drawn.setdefault("origins", sensor_origins_m))
+    with FrameStore.open(appended["store"]) as store:
+        layers = VolumeLayers.from_store(store, 1)
+        diagnose_pipeline.write_volume_top_view(tmp_path, store, layers)
+        expected = store.poses(1)[store.ledger.member_rows(1)][:, :3, 3]
+    assert len(drawn["origins"]) == 2 * N
+    np.testing.assert_array_equal(drawn["origins"], expected)

@@ -195,7 +195,7 @@ def write_volume_top_view(report_dir: str | Path, store: FrameStore, layers: Vol
     """Free / occupied / unknown space of ``layers`` from above with the sensor path:
     ``volume_top_view_rev<N>.png`` in ``report_dir``."""
     up, band = _top_view_band(store, layers)
-    poses = store.poses(layers.revision)
+    poses = store.poses(layers.revision)[store.ledger.member_rows(layers.revision)]  # its frames (trial 18 W3)
     return plot_state_top_view(Path(report_dir) / f"volume_top_view_rev{layers.revision}.png", layers.state_grid(),
                                layers.grid, band_m=band, up=up, sensor_origins_m=poses[:, :3, 3],
                                title=f"revision {layers.revision}: free / occupied / unknown from above (heights "

@@ -238,6 +238,14 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
             raise ConfigError(f"{p}: is a copy of the merged store {merged} (store uuid {uuid})")
         if uuid in existing:
             row = existing[uuid]
+            k = int(row["session"])
+            ids = np.asarray(store.frame_ids, np.int64)
+            if not np.isin(ids[ids // SESSION_ID_STRIDE == k], store.members()).any():  # undone by a rollback
+                raise ConfigError(f"{p}: was session {k} of {merged} (store uuid {uuid}), which a rollback left out of "
+                                  f"the head (revision {store.head}); its frames stay stored in the revisions that "
+                                  f"place them (`driftmap rollback {merged} --to R` brings one back), and a store is "
+                                  f"appended once: to append the session anew, build its log into a new store and "
+                                  f"append that")
             raise ConfigError(f"{p}: is already session {row['session']} of {merged} (store uuid {uuid}, merged from "
                               f"{row['store']}); a session is appended once")
         if uuid in uuids:
