@@ -52,7 +52,7 @@ from numpy.typing import NDArray
 
 from driftmap import geometry
 from driftmap.diagnostics.jumps import StepJump, find_jumps, undo_jump
-from driftmap.diagnostics.revisit_config import HYPOTHESIS_WITHIN, MIN_PROBE_POINTS, RevisitCheckConfig
+from driftmap.diagnostics.revisit_config import FREE_OVER_LOCAL, HYPOTHESIS_WITHIN, MIN_PROBE_POINTS, RevisitCheckConfig
 from driftmap.diagnostics.samples import PlacedCloud
 from driftmap.registration.pairwise import PreparedCloud, downsample, nearest_distances, register_prepared
 from driftmap.registration.tracking import translation_degeneracy
