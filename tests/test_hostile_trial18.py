@@ -106,3 +106,20 @@ def test_t18_w4_a_resume_over_a_rollback_says_it_places_the_frames_left_out_agai
     _ok(run_cli("export", s3, "--trajectory", root / "s3.txt"))
     rows, largest, median = _steps(root / "s3.txt")
     assert rows == 60 and largest < 2 * median, (largest, median)
+
+
+def test_t18_w5_decide_against_warns_when_the_decided_revisions_place_other_frames(stores: dict) -> None:
+    """W5: `decide --revision 1 --against OTHER` compared the stores' frames (the same 40) and did not say that
+    revision 1 places 20 of them: "2 of 3 decisions flipped" read as a pose change. It warns now, as it does for stores
+    that hold other frames."""
+    root = stores["root"]
+    other = root / "s2_copy"
+    shutil.copytree(stores["s2"], other)
+    queries = root / "q.json"
+    queries.write_text('{"queries": [{"id": "c", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]], "radius_m": 0.1}]}')
+    out = _ok(run_cli("decide", stores["s2"], "--queries", queries, "--revision", 1, "--json", root / "d.json",
+                      "--against", other))
+    said = " ".join(out.stderr.split())
+    assert "the revisions decided place different frames (20 in both; revision 1 of" in said, said
+    out = _ok(run_cli("decide", stores["s2"], "--queries", queries, "--json", root / "d2.json", "--against", other))
+    assert "place different frames" not in " ".join(out.stderr.split())  # both heads place the 40

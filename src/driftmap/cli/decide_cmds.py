@@ -221,7 +221,8 @@ def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> N
                 raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
 
 
-def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> None:
+def _check_same_log(store, other, other_path: Path, same_log: bool = False, rev: int | None = None,
+                    other_rev: int | None = None) -> None:
     """--against: the two stores must hold the same log -- frames in common (by id), each with the same stamp in
     both ledgers and, unless ``same_log``, read from the same file (the provenance both stores record; logs whose
     stamps start alike, as every default synthetic log does, differ there). Else a one-line error naming the first
@@ -247,13 +248,25 @@ def _check_same_log(store, other, other_path: Path, same_log: bool = False) -> N
                           f"{len(differ)} of {len(shared)} shared frames differ)")
     if not same_log:
         _check_same_files(store, other, other_path, shared)
-    if len(shared) < max(len(ids_a), len(ids_b)):
-        import logging
+    import logging
 
+    if len(shared) < max(len(ids_a), len(ids_b)):
         logging.getLogger(__name__).warning(
             "--against %s: the stores share %d frames, but %s holds %d and %s %d: decisions may differ because frames "
             "are missing, not only because poses moved", other_path, len(shared), store.path, len(ids_a), other_path,
             len(ids_b))
+        return
+    # the same frames stored, but the decided revisions may place fewer of them (a revision older than a resume or an
+    # append, a rollback that left frames out: hostile trial 18 W5)
+    placed_a = store.members(rev)
+    placed_b = other.members(other_rev)
+    both = np.intersect1d(placed_a, placed_b)
+    if len(both) < max(len(placed_a), len(placed_b)):
+        logging.getLogger(__name__).warning(
+            "--against %s: the revisions decided place different frames (%d in both; revision %d of %s places %d, "
+            "revision %d of %s %d): decisions may differ because frames are missing, not only because poses moved",
+            other_path, len(both), store.head if rev is None else rev, store.path, len(placed_a),
+            other.head if other_rev is None else other_rev, other_path, len(placed_b))
 
 
 def _check_same_files(store, other, other_path: Path, shared) -> None:
@@ -302,7 +315,7 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                 raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
-            _check_same_log(store, other, against, same_log)
+            _check_same_log(store, other, against, same_log, rev, other_rev)
             a = decide(store, query_set, rev, volume, decide_config=decide_config, double_walls=walls(store, rev),
                        progress=tick)
             layers = VolumeLayers.from_store(other, other_rev, volume, progress=tick)
