@@ -69,14 +69,8 @@ def _parents() -> dict[int, int]:
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
             continue
-        try:
-            with open(f"/proc/{entry}/stat", "rb") as f:
-                stat = f.read()
-        except OSError:  # gone meanwhile
-            continue
-        # the name (field 2) is in parentheses and may hold spaces or ')': the fields after its last ')'
-        fields = stat[stat.rfind(b")") + 2:].split()
-        if len(fields) > 1:
+        fields = _stat_fields(int(entry))
+        if fields is not None and len(fields) > 1:  # None: gone meanwhile
             parents[int(entry)] = int(fields[1])
     return parents
 
@@ -144,14 +138,20 @@ def stop_descendants(keep: frozenset[int] | set[int] = frozenset(), grace_s: flo
     return len(left)
 
 
-def _alive(pid: int) -> bool:
-    """True unless ``pid`` has ended (a zombie has ended: it only waits to be reaped)."""
+def _stat_fields(pid: int) -> list[bytes] | None:
+    """The fields of ``/proc/PID/stat`` after the name (field 3 on: the state first), None when gone. The name
+    (field 2) is in parentheses and may hold spaces or ')': the fields after its last ')'."""
     try:
         with open(f"/proc/{pid}/stat", "rb") as f:
             stat = f.read()
     except OSError:
-        return False
-    fields = stat[stat.rfind(b")") + 2:].split()
+        return None
+    return stat[stat.rfind(b")") + 2:].split()
+
+
+def _alive(pid: int) -> bool:
+    """True unless ``pid`` has ended (a zombie has ended: it only waits to be reaped)."""
+    fields = _stat_fields(pid)
     return bool(fields) and fields[0] != b"Z"
 
 
@@ -175,13 +175,8 @@ def interrupts_deferred() -> Iterator[None]:
 def _start_time(pid: int) -> int | None:
     """A process's start time (clock ticks after boot, /proc field 22): a pid and it name one process, even after
     the pid is reused. None: gone."""
-    try:
-        with open(f"/proc/{pid}/stat", "rb") as f:
-            stat = f.read()
-    except OSError:
-        return None
-    fields = stat[stat.rfind(b")") + 2:].split()
-    return int(fields[19]) if len(fields) > 19 else None
+    fields = _stat_fields(pid)
+    return int(fields[19]) if fields is not None and len(fields) > 19 else None
 
 
 def _stop(pids: Iterable[tuple[int, int | None]], grace_s: float = GRACE_S) -> int:
