@@ -123,3 +123,62 @@ def test_t18_w5_decide_against_warns_when_the_decided_revisions_place_other_fram
     assert "the revisions decided place different frames (20 in both; revision 1 of" in said, said
     out = _ok(run_cli("decide", stores["s2"], "--queries", queries, "--json", root / "d2.json", "--against", other))
     assert "place different frames" not in " ".join(out.stderr.split())  # both heads place the 40
+
+
+def _cut_segment_at(store: Path, frame_id: int) -> Path:
+    """Truncate the segment holding ``frame_id`` in the middle of that frame's points (what follows -- later frames,
+    a revision record, the segment's summary -- is cut off); returns the segment."""
+    from driftmap.store.frame_store import FrameStore
+
+    with FrameStore.open(store) as s:
+        ref = s._refs[frame_id]
+        segment, offset = ref.segment, ref.payload_offset
+    with open(segment, "r+b") as fh:
+        fh.truncate(offset + 100)
+    return segment
+
+
+def test_t18_b8_a_resumes_revision_cut_off_its_segment_is_named_lost_and_the_head_shows_no_seam(stores: dict) -> None:
+    """B8: damage that cut the resume's carry revision (the last record of its segment) off went unnoticed: `recover`
+    kept the frames before the cut, said nothing of revision 2, and the head (revision 1) showed the resumed frames at
+    their uncorrected poses (the 1.44 m seam of B1). The manifest records what each closed segment holds, so `recover`
+    names what was cut off, and the stand-in for revision 2 places the frames revision 1 places (W7)."""
+    root = stores["root"]
+    store = root / "b8"
+    shutil.copytree(stores["s2"], store)
+    _cut_segment_at(store, 35)
+    out = _ok(run_cli("recover", store))
+    text = " ".join(out.stdout.split())
+    assert "frames [35" in text and "revisions [2] are lost" in text, text
+    exported = _ok(run_cli("export", store, "--trajectory", root / "b8.txt"))
+    assert "revisions [2] are lost" in " ".join(exported.stderr.split()), exported.stderr[-2000:]
+    rows, largest, median = _steps(root / "b8.txt")
+    # the head is the stand-in for revision 2: revision 1's 20 frames at their corrected poses, no resumed frame at
+    # an uncorrected one
+    assert rows == 20 and largest < 2 * median, (rows, largest, median)
+    from driftmap.store.frame_store import FrameStore
+
+    with FrameStore.open(store) as s:
+        assert s.head == 2 and s.loss.revision_ids == (2,) and 35 in s.loss.frame_ids
+
+
+def test_t18_w7_the_stand_in_for_a_lost_revision_places_its_predecessors_frames(stores: dict) -> None:
+    """W7: a stand-in placed every frame stored before it, so `export --revision` of a lost carry revision showed
+    frames 20..29 at odometry poses beside ground-truth ones (a 1.44 m seam). It places its predecessor's frames now."""
+    root = stores["root"]
+    store = root / "w7"
+    shutil.copytree(stores["s2"], store)
+    _ok(run_cli("build", stores["log"], "--out", store, "--frames", "0:60", "--resume"))  # revision 3 after it
+    _cut_segment_at(store, 30)  # frames 30..39 and revision 2's record lost; revision 3 survives
+    text = " ".join(_ok(run_cli("recover", store)).stdout.split())
+    assert "revisions [2] are lost" in text, text
+    _ok(run_cli("export", store, "--revision", 2, "--trajectory", root / "w7_2.txt"))
+    rows, largest, median = _steps(root / "w7_2.txt")
+    assert rows == 20 and largest < 2 * median, (rows, largest, median)
+
+
+def test_t18_b8_build_resume_on_a_missing_folder_says_it_builds_a_new_store(stores: dict) -> None:
+    """`build --resume` on a folder that does not exist built from scratch without a word (a mistyped --out)."""
+    out = _ok(run_cli("build", stores["log"], "--out", stores["root"] / "typo", "--frames", "0:6", "--resume",
+                      "--no-loop-closure"))
+    assert "nothing to resume" in " ".join(out.stderr.split()), out.stderr[-2000:]

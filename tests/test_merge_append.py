@@ -419,3 +419,25 @@ def test_t18_w3_the_volume_top_view_of_an_older_revision_draws_only_its_frames(a
         expected = store.poses(1)[store.ledger.member_rows(1)][:, :3, 3]
     assert len(drawn["origins"]) == 2 * N
     np.testing.assert_array_equal(drawn["origins"], expected)
+
+
+def test_t18_b8_an_appends_revision_cut_off_its_segment_is_named_lost_and_its_session_is_not_shown_unmerged(
+        appended: dict, tmp_path: Path) -> None:
+    """Hostile trial 18 B8: damage that cut the append's revision record (the last of its segment) off went unnoticed:
+    `recover` kept the appended frames before the cut, did not name the lost revision, and the head showed session 2
+    at its unmerged poses (0.9-1.2 m off). `recover` now names the revision and the frames cut off (the manifest
+    records what each closed segment holds), and the head -- a stand-in placing revision 1's frames -- leaves the
+    session out instead of showing it where its own frame put it."""
+    store = tmp_path / "cut"
+    shutil.copytree(appended["store"], store)
+    with FrameStore.open(store) as s:
+        ref = s._refs[sorted(f for f in s._refs if f // SESSION_ID_STRIDE == 2)[N // 2]]  # mid appended session
+        head = s.head
+    with open(ref.segment, "r+b") as fh:
+        fh.truncate(ref.payload_offset + 100)
+    text = " ".join(_ok(run_cli("recover", store)).stdout.split())
+    assert f"revisions [{head}] are lost" in text, text
+    with FrameStore.open(store) as s:
+        assert s.head == head and s.loss.revision_ids == (head,)
+        sessions = np.asarray(s.members(), np.int64) // SESSION_ID_STRIDE
+        assert {k: int(np.sum(sessions == k)) for k in np.unique(sessions).tolist()} == {0: N, 1: N}

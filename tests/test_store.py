@@ -266,13 +266,46 @@ def test_truncated_closed_segment_is_a_typed_error_and_recoverable(tmp_path: Pat
     assert err.value.path == seg and err.value.offset is not None and str(seg) in str(err.value)
     assert "driftmap recover" in str(err.value)
     events = FrameStore.recover(path)
-    assert len(events) == 1 and events[0].frames_kept == 4
+    assert len(events) == 2 and events[0].frames_kept == 4
+    # the manifest recorded the frames the closed segment held: the ones cut off its end are declared lost
+    assert events[1].loss is not None and events[1].loss.frame_ids == (4, 5), events
     assert (path / "segment-000000.mcap.damaged").exists()
     with FrameStore.open(path) as store:
         assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3]
+        assert store.loss.frame_ids == (4, 5)
         for f in synthetic_frames[:4]:
             assert_frames_identical(store.frame(f.frame_id), f)
     assert FrameStore.recover(path) == []  # healthy now
+
+
+def test_a_recovery_stopped_before_it_declared_a_loss_is_refused_until_run_again(
+        tmp_path: Path, synthetic_frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
+    """A recovery that rewrote a truncated segment but stopped before its ``data_lost`` record (disk full) leaves a
+    closed, intact segment that no longer holds frames its manifest entry records: opening refuses it (naming
+    `driftmap recover`), and the next recovery declares them."""
+    from driftmap.store import recovery
+
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        cut_at = store._refs[4].payload_offset + 1000
+    os.truncate(path / "segment-000000.mcap", cut_at)
+
+    def full(self: object, *args: object) -> None:
+        raise OSError(28, "No space left on device", str(path / "segment-000001.mcap"))
+
+    monkeypatch.setattr(recovery._Recovery, "write_loss", full)
+    with pytest.raises(StoreError, match="(?i)no space left"):
+        FrameStore.recover(path)
+    monkeypatch.undo()
+    with pytest.raises(StoreCorruptError, match=r"records frames \[4, 5\] in it.*driftmap recover"):
+        FrameStore.open(path)
+    events = FrameStore.recover(path)
+    assert [e.loss.frame_ids for e in events if e.loss] == [(4, 5)], events
+    with FrameStore.open(path) as store:
+        assert store.loss.frame_ids == (4, 5) and [int(i) for i in store.frame_ids] == [0, 1, 2, 3]
+    assert FrameStore.recover(path) == []
 
 
 def test_recover_rebuilds_an_unreadable_or_missing_manifest_from_the_segments(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
@@ -610,7 +643,7 @@ def test_an_interrupted_recovery_is_finished_by_the_next_one(tmp_path: Path, syn
     with pytest.raises(OSError, match="power cut"):
         FrameStore.recover(path)
     monkeypatch.undo()
-    with pytest.raises(StoreCorruptError, match=r"revision 1 holds poses of frames \[4, 5\].*driftmap recover"):
+    with pytest.raises(StoreCorruptError, match=r"records frames \[4, 5\] in it.*driftmap recover"):
         FrameStore.open(path)  # segment 0 is clean now, but the loss is not recorded yet: not silently read
 
     events = FrameStore.recover(path)

@@ -592,7 +592,8 @@ def test_disk_full_during_recovery_is_resumed_by_the_next_recovery(tmp_path: Pat
     assert f"run `driftmap recover {path}` again" in str(err.value)
     monkeypatch.undo()
     events = FrameStore.recover(path)
-    assert [e.frames_kept for e in events] == [3]
+    # frame 3, cut short, is declared lost (the manifest recorded that the segment held it)
+    assert events[0].frames_kept == 3 and events[-1].loss is not None and events[-1].loss.frame_ids == (3,), events
     assert_store_holds(path, frames[:3])
 
 
@@ -614,8 +615,9 @@ def test_recover_drops_a_frame_whose_points_disagree_with_their_recorded_crc(sto
         store.append(make_frame(3))
         monkeypatch.undo()
     events = FrameStore.recover(path)
-    assert len(events) == 1 and "frame 3: the point payload's CRC32 is not the one its metadata recorded" in events[0].detail
+    assert len(events) == 2 and "frame 3: the point payload's CRC32 is not the one its metadata recorded" in events[0].detail
     assert events[0].frames_kept == 0
+    assert events[1].loss is not None and events[1].loss.frame_ids == (3,)  # declared lost, not silently dropped
     assert_store_holds(path, frames)
 
 

@@ -130,6 +130,9 @@ def build(
     if poses_from_source and (ground_truth := log_ground_truth_lookup(src, Path(source), format)) is not None:
         pose_of, pose_of_source = ground_truth, PoseSource.GROUND_TRUTH
     new_store = not (resume and store_exists)
+    if resume and new_store:  # a mistyped --out must not pass for a resume (hostile trial 18)
+        logger.warning("--resume: %s %s, so there is nothing to resume: building a new store there", out,
+                       "holds no store" if out.exists() else "does not exist")
     out_existed, new_dirs = out.exists(), [p for p in (out, *out.parents) if not p.exists()]  # what create() makes
     store, recorded = _open_store(out, new_store, src, record, pose_of, poses_from_source)
     try:

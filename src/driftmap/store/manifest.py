@@ -8,15 +8,19 @@ import mmap
 import os
 import time
 import uuid
+from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from driftmap import __version__
 from driftmap.errors import StoreError
 from driftmap.store.damage import StoreCorruptError
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.layout import FORMAT_NAME, MANIFEST, SEGMENT_FILE, SEGMENT_GLOB, TMP_SUFFIX, segment_index
+from driftmap.store.revision import id_ranges
 from driftmap.store.segment_scan import SegmentScan, scan_segment
 
 FORMAT_VERSION = 1
@@ -24,19 +28,58 @@ FORMAT_VERSION = 1
 
 @dataclass
 class SegmentEntry:
-    """A segment the manifest lists (its name, ``open`` / ``closed`` and its size when closed), with what this
-    process holds of it: its scan and its memory map."""
+    """A segment the manifest lists (its name, ``open`` / ``closed`` and its size when closed), what it held when it
+    was closed (``frames``: inclusive frame-id ranges, ``revisions``: revision ids; None for segments closed before
+    this was recorded, or by a rebuilt manifest), and what this process holds of it: its scan and its memory map.
+
+    The record is what lets ``recover`` name frames and revisions that damage cut off a segment's end: no later
+    revision refers to the last ones, so nothing else shows that they were ever stored (hostile trial 18 B8)."""
 
     name: str
     state: str
     bytes: int | None
+    frames: list[list[int]] | None = None
+    revisions: list[int] | None = None
     scan: SegmentScan | None = None
     mm: mmap.mmap | None = None
+
+    def record_contents(self, frame_ids: Iterable[int], revision_ids: Iterable[int]) -> None:
+        """Record what the (closed) segment holds."""
+        self.frames = id_ranges(np.unique(np.fromiter(frame_ids, dtype=np.int64)))
+        self.revisions = sorted(int(r) for r in revision_ids)
+
+    def recorded_ids(self) -> tuple[set[int], set[int]] | None:
+        """The frame ids and revision ids recorded as held (None: not recorded)."""
+        if self.frames is None or self.revisions is None:
+            return None
+        return {f for a, b in self.frames for f in range(a, b + 1)}, set(self.revisions)
 
 
 def entries_of(manifest: dict[str, Any]) -> list[SegmentEntry]:
     """The segments a (validated) manifest lists, in its order."""
-    return [SegmentEntry(s["name"], s["state"], s.get("bytes")) for s in manifest["segments"]]
+    return [SegmentEntry(s["name"], s["state"], s.get("bytes"), s.get("frames"), s.get("revisions"))
+            for s in manifest["segments"]]
+
+
+def _contents_ok(seg: dict[str, Any]) -> bool:
+    """A segment entry's optional content record is well formed: ``frames`` sorted disjoint inclusive integer
+    ranges naming no more frames than the segment has bytes, ``revisions`` distinct sorted integers."""
+    frames, revisions = seg.get("frames"), seg.get("revisions")
+    if frames is None and revisions is None:
+        return True
+    if not (isinstance(frames, list) and isinstance(revisions, list)):
+        return False
+    if any(not isinstance(r, list) or len(r) != 2 or any(isinstance(x, bool) or not isinstance(x, int) for x in r)
+           or r[0] > r[1] for r in frames):
+        return False
+    if any(a[1] >= b[0] for a, b in zip(frames, frames[1:])):
+        return False
+    total = sum(b - a + 1 for a, b in frames)
+    size = seg.get("bytes")
+    if size is None or total > size:  # every frame takes far more than a byte: a record the data cannot hold
+        return False
+    ints = all(not isinstance(r, bool) and isinstance(r, int) and r >= 0 for r in revisions)
+    return ints and revisions == sorted(set(revisions))
 
 
 def lost_segments(manifest: dict[str, Any]) -> list[str]:
@@ -106,6 +149,9 @@ def read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
                 or isinstance(size, bool) or (size is not None and size < 0)):
             raise StoreCorruptError(f"{file}: unreadable manifest (segment entry {seg!r} is malformed){fix}",
                                     path=file, offset=None)
+        if not _contents_ok(seg):
+            raise StoreCorruptError(f"{file}: unreadable manifest (segment {seg['name']}: its record of the frames "
+                                    f"and revisions it holds is malformed){fix}", path=file, offset=None)
     if len(set(names)) != len(names):
         raise StoreCorruptError(f"{file}: unreadable manifest (a segment is listed twice){fix}", path=file, offset=None)
     indexes = [segment_index(n) for n in names]
@@ -153,7 +199,10 @@ def manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None
 def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[SegmentEntry]) -> None:
     """Record ``segments`` in ``manifest`` and write it to ``folder`` (atomically: an ``OSError`` leaves the manifest
     on disk as it was)."""
-    manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes} for s in segments]
+    manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes,
+                             **({"frames": s.frames, "revisions": s.revisions}
+                                if s.frames is not None and s.revisions is not None and s.state == "closed" else {})}
+                            for s in segments]
     _atomic_write_json(folder / MANIFEST, manifest)
 
 

@@ -21,6 +21,7 @@ from driftmap.store.layout import MANIFEST
 from driftmap.store.ledger import PoseLedger
 from driftmap.store.manifest import SegmentEntry, unlisted_segments
 from driftmap.store.revision import Revision
+from driftmap.store.segment_format import EVENT_DATA_LOST
 from driftmap.store.segment_scan import SegmentScan, scan_segment
 from driftmap.store.values import preview
 
@@ -60,10 +61,36 @@ def load_segments(folder: Path, store_uuid: str, segments: list[SegmentEntry], l
             events.append(event)
         seg.scan = scan
         scans.append(scan)
+    _check_records(folder, [s for s in segments if s.scan is not None])
     loss = replay(folder, ledger, refs, scans, strict=True)[0]
     if loss:
         logger.info("%s: recorded losses: %s", folder, loss)
     return loss, events
+
+
+def _check_records(folder: Path, segments: list[SegmentEntry]) -> None:
+    """Refuse a closed segment that no longer holds frames or revisions its manifest entry records, unless a
+    ``data_lost`` event declares them (a recovery stopped before it declared them: it is run again)."""
+    declared: tuple[set[int], set[int]] = (set(), set())
+    for seg in segments:
+        assert seg.scan is not None
+        for event in seg.scan.data_lost:
+            frames, revisions = lost_ids(event, seg.scan.path)
+            declared[0].update(frames)
+            declared[1].update(revisions)
+    for seg in segments:
+        recorded = seg.recorded_ids() if seg.state == "closed" else None
+        if recorded is None:
+            continue
+        assert seg.scan is not None
+        frames = recorded[0] - {r.frame_id for r in seg.scan.frames} - declared[0]
+        revisions = recorded[1] - {r.get("revision_id") for r in seg.scan.revisions} - declared[1]
+        if frames or revisions:
+            what = " and ".join(f"{kind} {preview(sorted(ids))}" for kind, ids in (("frames", frames),
+                                                                                  ("revisions", revisions)) if ids)
+            raise StoreCorruptError(f"{folder / seg.name}: the manifest records {what} in it, which it does not hold "
+                                    f"and no recovery declared lost; run `driftmap recover {folder}`",
+                                    path=folder / seg.name, offset=None)
 
 
 def _check_scan(folder: Path, store_uuid: str, seg: SegmentEntry, scan: SegmentScan, *, last: bool,
@@ -108,6 +135,7 @@ def replay(folder: Path, ledger: PoseLedger, refs: dict[int, StoredFrameRef], sc
     """
     run = _Replay(folder, ledger, refs, scans, strict)
     for scan in scans:
+        run.fill_tail(scan)
         added = 0  # frames and revisions in store order: a revision's frames are those stored before it
         offsets = [ref.payload_offset for ref in scan.frames]
         for rev_json, after in zip(scan.revisions, scan.revision_after_offset, strict=True):
@@ -187,16 +215,36 @@ class _Replay:
 
     def fill_gap(self, scan: SegmentScan, rev: Revision, head: int) -> None:
         """Put stand-ins in the place of the revisions between ``head`` and ``rev`` (their records are lost)."""
-        rid = rev.revision_id
-        gap = list(range(head + 1, rid))
+        self._stand_ins(scan, range(head + 1, rev.revision_id), rev.created_ns,
+                        f"revision {rev.revision_id} follows revision {head}")
+
+    def fill_tail(self, scan: SegmentScan) -> None:
+        """Put stand-ins in the place of the revisions that ``scan``'s ``data_lost`` events declare lost after the
+        last revision read (records cut off the end of a segment, which no later revision shows were there:
+        hostile trial 18 B8), in store order: where recovery declared them."""
+        for event in scan.data_lost:
+            revisions = lost_ids(event, scan.path)[1]
+            last = max(revisions, default=-1)
+            if last > self.ledger.head:
+                made = event.get("recovered_ns")
+                made = made if isinstance(made, int) and not isinstance(made, bool) and made >= 0 else 0
+                self._stand_ins(scan, range(self.ledger.head + 1, last + 1), made,
+                                f"its {EVENT_DATA_LOST} record declares revision {last} lost after revision "
+                                f"{self.ledger.head}")
+
+    def _stand_ins(self, scan: SegmentScan, gap: range, created_ns: int, where: str) -> None:
+        """Stand-ins for the revisions ``gap`` (their records are lost), each placing the frames its predecessor
+        places (hostile trial 18 W7: not every frame stored before it, which showed frames its predecessor leaves
+        out at poses no revision gave them)."""
         undeclared = [r for r in gap if r not in self.declared_revisions]
         if undeclared and self.strict:
             raise StoreCorruptError(
-                f"{scan.path}: revision {rid} follows revision {head}: no segment holds revisions "
-                f"{preview(undeclared)} (lost with a damaged or missing segment?){self.fix}", path=scan.path, offset=None)
+                f"{scan.path}: {where}: no segment holds revisions {preview(undeclared)} (lost with a damaged or "
+                f"missing segment?){self.fix}", path=scan.path, offset=None)
         self.new_revisions.update(undeclared)
         for r in gap:
-            # created_ns: that of the revision after the gap (the lost one was made no later)
-            self.ledger.commit(Revision(r, r - 1, PoseSource.NONE, rev.created_ns,
-                                        f"[recovery: stand-in for lost revision {r}, with the poses of revision {r - 1}]"))
+            # created_ns: that of the revision after the gap, or of the recovery (the lost one was made no later)
+            self.ledger.commit(Revision(r, r - 1, PoseSource.NONE, created_ns,
+                                        f"[recovery: stand-in for lost revision {r}, with the poses of revision {r - 1}]",
+                                        frames=self.ledger.members(r - 1, later=False)))
             self.stand_ins.append(r)

@@ -22,7 +22,7 @@ import numpy as np
 
 from driftmap.errors import DriftmapError, StoreError
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import RecoveryEvent, StoreCorruptError
+from driftmap.store.damage import RecoveryEvent, StoreCorruptError, lost_ids
 from driftmap.store.frame_codec import frame_from_info, unpack_attributes
 from driftmap.store.guards import RECOVER_HINT, store_io_error
 from driftmap.store.layout import (
@@ -126,6 +126,9 @@ class _Recovery:
         self.damage: list[str] = []
         self.scans: list[SegmentScan] = []
         self.known_frames: set[int] = set()
+        self.cut_frames: set[int] = set()  # recorded in a segment's manifest entry, gone from the segment
+        self.cut_revisions: set[int] = set()
+        self.held: list[tuple[SegmentEntry, set[int], set[int]]] = []  # what each checked segment holds
         self.current = path / MANIFEST
         self.kept_manifest = ""
 
@@ -149,6 +152,7 @@ class _Recovery:
                                              "file not found: its frames and revisions are lost"))
             self.damage.append(f"{seg.name} missing")
             seg.state = "missing"
+            self.note_cut(seg, set(), set())
             return
         scan = scan_segment(file, verify=True, stop_on_error=False)
         twice = [r.frame_id for r in scan.frames if r.frame_id in self.known_frames]
@@ -157,8 +161,26 @@ class _Recovery:
                    and scan.size == seg.bytes and not twice and not unreadable)
         if not healthy:
             scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
-        self.known_frames.update(r.frame_id for r in scan.frames)
+        held = {r.frame_id for r in scan.frames}
+        # compared on every segment, and the records updated only once the loss is declared: a recovery stopped in
+        # between (disk full) leaves the old records, so the next one still finds what was cut off
+        self.note_cut(seg, held | set(twice), revision_ids(scan))
+        self.held.append((seg, held, revision_ids(scan)))
+        self.known_frames.update(held)
         self.scans.append(scan)
+
+    def note_cut(self, seg: SegmentEntry, frames: set[int], revisions: set[int]) -> None:
+        """Note the frames and revisions the manifest recorded in ``seg`` that it no longer holds (``frames``,
+        ``revisions``: what it holds now; a frame stored in an earlier segment too is not lost)."""
+        recorded = seg.recorded_ids()
+        if recorded is None:
+            return
+        cut_frames, cut_revisions = recorded[0] - frames - self.known_frames, recorded[1] - revisions
+        if cut_frames or cut_revisions:
+            logger.warning("%s: its manifest entry records frames %s and revisions %s that it no longer holds",
+                           self.path / seg.name, preview(sorted(cut_frames)) or "-", preview(sorted(cut_revisions)) or "-")
+        self.cut_frames |= cut_frames
+        self.cut_revisions |= cut_revisions
 
     def rewrite_segment(self, index: int, seg: SegmentEntry, scan: SegmentScan, twice: list[int],
                         unreadable: list[tuple[int, str]]) -> SegmentScan:
@@ -206,10 +228,31 @@ class _Recovery:
     def declare_loss(self) -> None:
         """What the damage took from the revisions that survived: declared in a ``data_lost`` event of its own, in a
         new segment."""
-        ledger = PoseLedger()
-        loss, new_frames, new_revisions = replay(self.path, ledger, {}, self.scans, strict=False)
-        if not (new_frames or new_revisions):
-            return
+        new_frames, new_revisions = replay(self.path, PoseLedger(), {}, self.scans, strict=False)[1:]
+        declared: tuple[set[int], set[int]] = (set(), set())  # by an earlier recovery
+        for scan in self.scans:
+            for event in scan.data_lost:
+                frames, revisions = lost_ids(event, scan.path)
+                declared[0].update(frames)
+                declared[1].update(revisions)
+        new_frames |= self.cut_frames - declared[0]
+        new_revisions |= self.cut_revisions - declared[1]
+        if new_frames or new_revisions:
+            self.write_loss(new_frames, new_revisions)
+        self.record_held()
+
+    def record_held(self) -> None:
+        """Record in the manifest what each checked segment holds now (after the loss it shows is declared)."""
+        changed = False
+        for seg, frames, revisions in self.held:
+            if seg.recorded_ids() != (frames, revisions):
+                seg.record_contents(frames, revisions)
+                changed = True
+        if changed:
+            self.write_manifest()
+
+    def write_loss(self, new_frames: set[int], new_revisions: set[int]) -> None:
+        """Declare the frames and revisions lost in a ``data_lost`` event, in a new segment of its own."""
         because = "; ".join(self.damage) or "stored revisions name frames or follow revisions that no segment holds"
         now = time.time_ns()
         self.current = self.path / segment_name(next_segment_index(self.path, self.manifest, self.segments))
@@ -221,7 +264,10 @@ class _Recovery:
             writer.abandon()
             raise
         self.segments[-1].state, self.segments[-1].bytes = "closed", writer.close()
+        self.segments[-1].record_contents((), ())
         self.write_manifest()
+        ledger = PoseLedger()  # the store as it reads now: stand-ins for the revisions declared lost
+        loss = replay(self.path, ledger, {}, [*self.scans, scan_segment(self.current, verify=False)], strict=False)[0]
         self.events.append(RecoveryEvent(self.segments[-1].name, f"recorded the loss in a {EVENT_DATA_LOST} event",
                                          ledger.n_frames, len(ledger.revisions), 0, because,
                                          loss.only(new_frames, new_revisions)))
@@ -271,12 +317,18 @@ def recover_open_segments(path: Path, manifest: dict[str, Any], segments: list[S
         os.replace(tmp, file)
         seg.state, seg.bytes = "closed", size
         seg.scan = scan_segment(file, verify=False)
+        seg.record_contents((r.frame_id for r in seg.scan.frames), revision_ids(seg.scan))
         refs.update({ref.frame_id: ref for ref in seg.scan.frames})
         write_manifest(path, manifest, segments)
         logger.info("%s: recovered %d frames and %d revisions into a closed segment", file, len(scan.frames), len(scan.revisions))
         events.append(RecoveryEvent(seg.name, "rewritten as a closed segment", len(scan.frames), len(scan.revisions),
                                     scan.size - scan.valid_bytes, scan.problem or "writer did not close the segment"))
     return events
+
+
+def revision_ids(scan: SegmentScan) -> set[int]:
+    """The ids of the revision records a scanned segment holds."""
+    return {rid for r in scan.revisions if isinstance(rid := r.get("revision_id"), int) and not isinstance(rid, bool)}
 
 
 def copy_scan_into(scan: SegmentScan, writer: SegmentWriter) -> list[tuple[int, str]]:

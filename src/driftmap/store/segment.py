@@ -113,6 +113,10 @@ class SegmentWriter:
     """Bytes of the file up to the end of the last complete chunk."""
     broken: BaseException | None = field(init=False, default=None)
     """The error that broke this writer (None: healthy)."""
+    frame_ids: list[int] = field(init=False, default_factory=list)
+    """The frames written to the segment (complete chunks), in order."""
+    revision_ids: list[int] = field(init=False, default_factory=list)
+    """The revisions written to the segment (complete chunks), in order."""
 
     def __post_init__(self) -> None:
         if self.path.exists():
@@ -236,6 +240,7 @@ class SegmentWriter:
             self._writer.add_message(self._channels[topic], t, cloud_bytes, t)
             self._writer.add_message(self._channels[TOPIC_TF], t, tf_bytes, t)
             self._commit()
+        self.frame_ids.append(int(frame.frame_id))
         return payload_offset, info_dict
 
     def append_revision(self, revision_json: dict[str, Any], log_time_ns: int) -> None:
@@ -249,6 +254,8 @@ class SegmentWriter:
         with self._writing(f"revision {revision_json.get('revision_id')}"):
             self._writer.add_message(self._channels[TOPIC_REVISIONS], t, data, t)
             self._commit()
+        if isinstance(rid := revision_json.get("revision_id"), int):
+            self.revision_ids.append(rid)
 
     def close(self) -> int:
         """Write the summary and footer; returns the final size in bytes."""

@@ -127,6 +127,7 @@ def finish_segment(folder: Path, manifest: dict[str, Any], segments: list[Segmen
         raise store_io_error(exc, writer.path, "finishing the segment (summary and footer)", folder) from exc
     seg = next(s for s in segments if s.name == writer.path.name)
     seg.state, seg.bytes = "closed", size
+    seg.record_contents(writer.frame_ids, writer.revision_ids)
     try:
         write_manifest(folder, manifest, segments)
     except OSError as exc:
