@@ -25,7 +25,7 @@ from driftmap.errors import ConfigError, StoreError
 from driftmap.frame import Frame, PoseEstimate, SensorKind
 from driftmap.sources.synthetic import SyntheticLog
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+from driftmap.trajectory import Trajectory, read_euroc, read_kitti, read_tum, write_euroc, write_kitti, write_tum
 
 STEP_FRAME_ID = 500  # after the first loop segment (frames ~216-260 are revisited at ~928-966)
 GT_JUMP_FRAME_ID = 125  # the KinectFusion poses jump between frames 121 and 122 (ICP: 45 mm, 1.65 deg)
@@ -94,24 +94,25 @@ def test_sensor_perturbations_scale_points() -> None:
         perturb.scale_depth(p, 0.0)
 
 
-@pytest.mark.parametrize("fmt", ["tum", "kitti"])
+@pytest.mark.parametrize("fmt", ["tum", "kitti", "euroc"])  # euroc: hostile trial 16
 def test_cli_perturb_matches_the_library(tmp_path: Path, fmt: str) -> None:
     rng = np.random.default_rng(1)
     T = np.tile(np.eye(4), (40, 1, 1))
     T[:, :3, 3] = np.cumsum(rng.normal(scale=0.05, size=(40, 3)), axis=0)
     stamps = (np.arange(40) * 33_333_333 + 1_000_000_000).astype(np.int64)
     src, out = tmp_path / f"in.{fmt}", tmp_path / f"out.{fmt}"
-    (write_tum if fmt == "tum" else write_kitti)(src, Trajectory(stamps, T))
-    T = (read_tum if fmt == "tum" else read_kitti)(src).poses  # as written (9 decimals)
+    read, write = {"tum": (read_tum, write_tum), "kitti": (read_kitti, write_kitti), "euroc": (read_euroc, write_euroc)}[fmt]
+    write(src, Trajectory(stamps, T))
+    T = read(src).poses  # as written (9 decimals)
     runner = CliRunner()
     result = runner.invoke(app, ["perturb", str(src), str(out), "--format", fmt, "--step-frame", "12", "--step-m", "0.02,0,-0.01",
                                  "--step-deg", "0,1,0", "--drift-percent-per-m", "0.5", "--drift-direction", "0,1,0"])
     assert result.exit_code == 0, result.output
     expected = perturb.PosePerturbation(step_index=12, step_m=(0.02, 0, -0.01), step_deg=(0, 1, 0), drift_percent_per_m=0.5,
                                         drift_direction=(0, 1, 0)).apply(T)
-    got = (read_tum if fmt == "tum" else read_kitti)(out)
+    got = read(out)
     np.testing.assert_allclose(got.poses, expected, atol=2e-8)
-    if fmt == "tum":
+    if fmt != "kitti":
         np.testing.assert_array_equal(got.stamps_ns, stamps)
     bad = runner.invoke(app, ["perturb", str(src), str(out), "--step-m", "0.02,0,0", "--overwrite"])
     assert bad.exit_code != 0 and "--step-frame" in str(bad.exception)
@@ -121,9 +122,9 @@ def test_cli_perturb_matches_the_library(tmp_path: Path, fmt: str) -> None:
     again = ["perturb", str(src), str(out), "--format", fmt, "--drift-percent-per-m", "1"]
     refused = runner.invoke(app, again)
     assert refused.exit_code != 0 and "already exists (POSES_OUT)" in str(refused.exception)
-    assert np.allclose((read_tum if fmt == "tum" else read_kitti)(out).poses, got.poses)
+    assert np.allclose(read(out).poses, got.poses)
     assert runner.invoke(app, [*again, "--overwrite"]).exit_code == 0
-    assert not np.allclose((read_tum if fmt == "tum" else read_kitti)(out).poses, got.poses)
+    assert not np.allclose(read(out).poses, got.poses)
 
 
 # ---------------------------------------------------------------------------------------------- MME / MPV

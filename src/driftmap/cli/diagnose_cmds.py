@@ -285,7 +285,7 @@ MIN_DIRECTION_NORM = 1e-9
 def perturb(
     poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
     poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format).")],
-    format: Annotated[str, typer.Option("--format", help="tum | kitti")] = "tum",
+    format: Annotated[str, typer.Option("--format", help="tum | kitti | euroc")] = "tum",
     step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
     step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
     step_deg: Annotated[Optional[str], typer.Option("--step-deg", help="Rotation step 'rx,ry,rz' (deg, world-frame rotation vector about the step frame's sensor origin; at most 360 deg long).")] = None,
@@ -334,5 +334,5 @@ def perturb(
         drift_percent_per_m=drift_percent_per_m, drift_direction=parse_vector(drift_direction, "--drift-direction"),
         drift_deg_per_m=drift_deg_per_m, drift_axis=parse_vector(drift_axis, "--drift-axis"),
     )
-    result = perturb_pose_file(poses_in, poses_out, perturbation, format=choice(format, ("tum", "kitti"), "--format"))
+    result = perturb_pose_file(poses_in, poses_out, perturbation, format=choice(format, ("tum", "kitti", "euroc"), "--format"))
     console.print(f"wrote {len(result)} perturbed poses to {poses_out}")

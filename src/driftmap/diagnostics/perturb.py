@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from driftmap.errors import ConfigError, GeometryError, parse_enum
 from driftmap.frame import Frame, PointAttributes
 from driftmap.store.guards import refuse_inside_store
-from driftmap.trajectory import Trajectory, read_kitti, read_tum, write_kitti, write_tum
+from driftmap.trajectory import Trajectory, read_euroc, read_kitti, read_tum, write_euroc, write_kitti, write_tum
 from driftmap.voxels import dense_ids
 
 if TYPE_CHECKING:
@@ -49,6 +49,7 @@ if TYPE_CHECKING:
 class PoseFileFormat(enum.Enum):
     TUM = "tum"
     KITTI = "kitti"
+    EUROC = "euroc"
 
 
 def _poses(poses: ArrayLike) -> NDArray[np.float64]:
@@ -176,14 +177,16 @@ class PosePerturbation:
 
 def perturb_pose_file(path_in: str | Path, path_out: str | Path, perturbation: PosePerturbation, *,
                       format: PoseFileFormat | str = PoseFileFormat.TUM, step_frame: int | None = None) -> Trajectory:
-    """Read a TUM or KITTI file, perturb it, write it in the same format.
+    """Read a TUM, KITTI or EuRoC file, perturb it, write it in the same format.
 
     ``step_frame`` (if given) is the frame at which the step happens: for KITTI the row index (row i is
     frame_id i), for TUM the row index too (rows in file order; the rows are sorted by stamp first).
     """
     fmt = parse_enum(PoseFileFormat, format, f"{path_in}: format")
     refuse_inside_store(path_out, "perturbed pose file")
-    traj = read_tum(path_in) if fmt is PoseFileFormat.TUM else read_kitti(path_in)
+    reader, writer = {PoseFileFormat.TUM: (read_tum, write_tum), PoseFileFormat.KITTI: (read_kitti, write_kitti),
+                      PoseFileFormat.EUROC: (read_euroc, write_euroc)}[fmt]
+    traj = reader(path_in)
     order = np.argsort(traj.stamps_ns, kind="stable")
     if step_frame is not None:
         perturbation = PosePerturbation(**{**perturbation.__dict__, "step_index": int(step_frame)})
@@ -195,7 +198,7 @@ def perturb_pose_file(path_in: str | Path, path_out: str | Path, perturbation: P
     out[order] = poses
     result = Trajectory(traj.stamps_ns.copy(), out, None if traj.frame_ids is None else traj.frame_ids.copy())
     Path(path_out).parent.mkdir(parents=True, exist_ok=True)
-    (write_tum if fmt is PoseFileFormat.TUM else write_kitti)(path_out, result)
+    writer(path_out, result)
     return result
 
 

@@ -39,7 +39,7 @@ from scipy.spatial.transform import Rotation
 from driftmap import geometry
 from driftmap.registration.pairwise import PreparedCloud, nearest_distances, register_prepared
 from driftmap.store.frame_store import FrameStore
-from driftmap.trajectory import spike_rows
+from driftmap.trajectory_rows import spike_rows
 
 logger = logging.getLogger(__name__)
 
