@@ -616,8 +616,9 @@ def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
         if hint is None:
             raise
         raise SourceError(f"{exc}; {hint}") from exc
-    warn_spikes(Path(path), trajectory)
-    warn_rows(Path(path), trajectory, stamped=has_stamps(trajectory, format))
+    warn_spikes(Path(path), trajectory.poses, trajectory.source_lines)
+    warn_rows(Path(path), trajectory.poses, trajectory.stamps_ns, trajectory.source_lines,
+              stamped=has_stamps(trajectory, format))
     return trajectory
 
 

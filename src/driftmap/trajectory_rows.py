@@ -6,13 +6,8 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import TYPE_CHECKING
-
 import numpy as np
 from numpy.typing import NDArray
-
-if TYPE_CHECKING:
-    from driftmap.trajectory import Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -68,13 +63,15 @@ def spike_rows(positions_m: NDArray[np.floating],
     return np.flatnonzero(flagged).astype(np.int64)
 
 
-def warn_spikes(path: Path, trajectory: Trajectory) -> None:
-    rows = spike_rows(trajectory.positions_m, trajectory.poses[:, :3, :3])
+def warn_spikes(path: Path, poses: NDArray[np.float64], source_lines: NDArray[np.int64] | None) -> None:
+    """Log the rows of a pose file (``poses``: its ``(N, 4, 4)`` rows; ``source_lines``: their 1-based lines) that
+    jump away from their neighbours and back (:func:`spike_rows`)."""
+    p, R = poses[:, :3, 3], poses[:, :3, :3]
+    rows = spike_rows(p, R)
     if not rows.size:
         return
     k = int(rows[0])
-    p, R = trajectory.positions_m, trajectory.poses[:, :3, :3]
-    line = _line_of(path, trajectory, k)
+    line = _line_of(path, source_lines, k)
     near = k - 1 if k > 0 else k + 1
     turned = float(np.degrees(np.arccos(np.clip((np.trace(R[k].T @ R[near]) - 1.0) / 2.0, -1.0, 1.0))))
     logger.warning("%s: the pose jumps %.3g m / %.3g deg away from its neighbour and back (the file's typical step is "
@@ -93,22 +90,22 @@ ROW_SPEED_MIN_STEP_M = 0.05
 file's 90th-percentile speed``)`` (hostile trial 17 W1: a row 1.5 ms and 0.5 m from the next, 333 m/s in a room)."""
 
 
-def _line_of(path: Path, trajectory: Trajectory, k: int) -> str:
-    return (f"{path}:{int(trajectory.source_lines[k])}" if trajectory.source_lines is not None
-            else f"{path} (row {k + 1})")
+def _line_of(path: Path, source_lines: NDArray[np.int64] | None, k: int) -> str:
+    return f"{path}:{int(source_lines[k])}" if source_lines is not None else f"{path} (row {k + 1})"
 
 
-def warn_rows(path: Path, trajectory: Trajectory, stamped: bool) -> None:
+def warn_rows(path: Path, poses: NDArray[np.float64], stamps_ns: NDArray[np.int64],
+              source_lines: NDArray[np.int64] | None, stamped: bool) -> None:
     """Rows that no motion explains, logged naming their lines (they are used as written): in a stamped file two rows
     too fast for the file's own motion (:data:`ROW_SPEED_FACTOR`: two poses for one time?); in a file matched by row
     index or frame id (KITTI, Redwood, an unstamped 4x4) a row repeated exactly while the rest moves, which puts every later row a frame late (hostile
     trial 17 W1: both read "given poses fit the frames: yes")."""
-    p, n = trajectory.positions_m, len(trajectory)
+    p, n = poses[:, :3, 3], len(poses)
     if n < 3:
         return
     steps = np.linalg.norm(np.diff(p, axis=0), axis=1)
     if stamped:
-        dt_s = np.diff(trajectory.stamps_ns).astype(np.float64) * 1e-9
+        dt_s = np.diff(stamps_ns).astype(np.float64) * 1e-9
         with np.errstate(divide="ignore", invalid="ignore"):
             speed = np.where(dt_s > 0, steps / dt_s, np.nan)
         if not np.isfinite(speed).any():
@@ -119,13 +116,13 @@ def warn_rows(path: Path, trajectory: Trajectory, stamped: bool) -> None:
             k = int(fast[0])
             logger.warning("%s and the next row are %.3g ms but %.3g m apart (%.3g m/s; the file's 90th-percentile "
                            "speed is %.3g m/s): two poses for one time, or a corrupt stamp? (%d such pair(s); the row "
-                           "nearest a frame's stamp is used)", _line_of(path, trajectory, k), 1e3 * dt_s[k],
+                           "nearest a frame's stamp is used)", _line_of(path, source_lines, k), 1e3 * dt_s[k],
                            steps[k], speed[k], float(np.nanpercentile(speed, 90)), fast.size)
         return
-    flat = trajectory.poses.reshape(n, 16)
+    flat = poses.reshape(n, 16)
     same = np.flatnonzero(np.all(flat[1:] == flat[:-1], axis=1))
     if same.size and same.size < n - 1 and float(np.median(steps)) > 0.0:
         k = int(same[0])
         logger.warning("%s and the next row hold the same pose while the trajectory moves: a repeated row? Matched by "
-                       "row index, every later row would be a frame late (%d such pair(s))", _line_of(path, trajectory, k),
+                       "row index, every later row would be a frame late (%d such pair(s))", _line_of(path, source_lines, k),
                        same.size)
