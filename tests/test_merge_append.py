@@ -441,3 +441,6 @@ def test_t18_b8_an_appends_revision_cut_off_its_segment_is_named_lost_and_its_se
         assert s.head == head and s.loss.revision_ids == (head,)
         sessions = np.asarray(s.members(), np.int64) // SESSION_ID_STRIDE
         assert {k: int(np.sum(sessions == k)) for k in np.unique(sessions).tolist()} == {0: N, 1: N}
+    # appending C again is refused, naming the loss rather than a rollback that never happened
+    line = one_error(run_cli("merge", store, appended["store"].parent / "C", "--append"))
+    assert f"the loss of revisions [{head}] to damage" in line, line

@@ -73,6 +73,7 @@ from driftmap.registration.place import scan_context_distance, yaw_guess
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
+from driftmap.store.values import preview
 
 __all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult",
            "abandon_interrupted_append", "append_sessions", "interrupted_append"]
@@ -241,7 +242,9 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
             k = int(row["session"])
             ids = np.asarray(store.frame_ids, np.int64)
             if not np.isin(ids[ids // SESSION_ID_STRIDE == k], store.members()).any():  # undone by a rollback
-                raise ConfigError(f"{p}: was session {k} of {merged} (store uuid {uuid}), which a rollback left out of "
+                why = (f"a rollback or the loss of revisions {preview(store.loss.revision_ids)} to damage "
+                       f"(`driftmap recover`)" if store.loss.revision_ids else "a rollback")
+                raise ConfigError(f"{p}: was session {k} of {merged} (store uuid {uuid}), which {why} left out of "
                                   f"the head (revision {store.head}); its frames stay stored in the revisions that "
                                   f"place them (`driftmap rollback {merged} --to R` brings one back), and a store is "
                                   f"appended once: to append the session anew, build its log into a new store and "
@@ -461,9 +464,11 @@ def _sessions_in_head(merged: Path, store: FrameStore, head: int, connected: lis
                              f"{len(inside)} frames of session {k}; an append builds on whole sessions: roll the "
                              f"store back to a revision that places all or none of them first")
     if left_out:
-        logger.warning("%s: the head (revision %d) does not place session(s) %s (an append undone by a rollback): "
-                       "the append leaves them out; they stay stored, in the revisions that place them", merged,
-                       head, ", ".join(map(str, left_out)))
+        why = "an append undone by a rollback" + (
+            f", or whose revision was lost to damage (revisions {preview(store.loss.revision_ids)})"
+            if store.loss.revision_ids else "")
+        logger.warning("%s: the head (revision %d) does not place session(s) %s (%s): the append leaves them out; they "
+                       "stay stored, in the revisions that place them", merged, head, ", ".join(map(str, left_out)), why)
     if not kept:
         raise StoreError(f"{merged}: its head (revision {head}) places none of its sessions; roll it back to a "
                          f"revision that places the map first")
