@@ -308,6 +308,74 @@ def test_a_recovery_stopped_before_it_declared_a_loss_is_refused_until_run_again
     assert FrameStore.recover(path) == []
 
 
+def _store_with_a_lost_tail_revision(path: Path, frames: list[Frame]) -> int:
+    """Frames 0..5 (segment 0), revision 1 (segment 1); the segment-1 record cut off and recovered: revision 1 is
+    declared lost. Returns the head (the stand-in's id)."""
+    with FrameStore.create(path) as store:
+        for f in frames[:6]:
+            store.append(f)
+    with FrameStore.open(path, "a") as store:
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02)}, source="loop_closure")
+    seg = path / "segment-000001.mcap"
+    os.truncate(seg, seg.read_bytes().find(b'"revision_id"'))  # in the revision record
+    FrameStore.recover(path)
+    with FrameStore.open(path) as store:
+        assert store.loss.revision_ids == (1,)
+        return int(store.head)
+
+
+def test_a_damaged_loss_record_is_declared_again_and_no_revision_id_is_reused(
+        tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 19 B1: damaging (or deleting) the segment that holds recover's data_lost record erased the loss,
+    and the next revision took the lost one's id. The record's manifest entry accounts for the loss it declares, so
+    the next recovery declares it again."""
+    for how in ("flip", "delete"):
+        path = tmp_path / how
+        assert _store_with_a_lost_tail_revision(path, synthetic_frames) == 1
+        loss_segment = sorted(path.glob("segment-*.mcap"))[-1]
+        if how == "delete":
+            loss_segment.unlink()
+        else:
+            data = bytearray(loss_segment.read_bytes())
+            data[data.find(b"data_lost") + 30] ^= 1
+            loss_segment.write_bytes(bytes(data))
+        with pytest.raises(StoreCorruptError, match="recover"):
+            FrameStore.open(path)
+        FrameStore.recover(path)
+        with FrameStore.open(path, "a") as store:
+            assert store.loss.revision_ids == (1,) and store.head == 1
+            rev = store.rollback(0)
+            assert rev.revision_id == 2  # not 1 again
+
+
+def test_manifest_records_that_lie_are_refused_or_not_used(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 19 B2-B4, W5: a record naming a revision far past the store's last (1e9: a billion stand-ins), a
+    revision another segment holds, millions of frames, or negative frame ids. Opening refuses them (a typed error
+    naming recover); recovery does not declare anything lost on their word, and rewrites them."""
+    base = tmp_path / "base"
+    with FrameStore.create(base) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+    with FrameStore.open(base, "a") as store:
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02)}, source="loop_closure")
+    lies = {"far_revision": (0, "revisions", [1, 1_000_000_000]), "other_segments_revision": (0, "revisions", [1]),
+            "millions_of_frames": (0, "frames", [[0, 22_000_000]]), "negative_frames": (0, "frames", [[-1000, 5]])}
+    for name, (index, key, value) in lies.items():
+        path = tmp_path / name
+        shutil.copytree(base, path)
+        manifest = json.loads((path / "store.json").read_text())
+        manifest["segments"][index][key] = value
+        (path / "store.json").write_text(json.dumps(manifest))
+        if name == "other_segments_revision":  # held by segment 1: nothing is missing, nothing to refuse
+            FrameStore.open(path).close()
+        else:
+            with pytest.raises(StoreCorruptError, match="recover"):
+                FrameStore.open(path)
+        FrameStore.recover(path)
+        with FrameStore.open(path) as store:
+            assert not store.loss and store.head == 1 and len(store) == 6, name
+
+
 def test_recover_rebuilds_an_unreadable_or_missing_manifest_from_the_segments(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
     """store.json garbled (or deleted): opening is a typed error; `recover` rebuilds it from the segments, which
     name their store, and every frame and revision comes back. Segments of two stores are refused."""

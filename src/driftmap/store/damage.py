@@ -14,6 +14,7 @@ import numpy as np
 from driftmap.errors import StoreCorruptError as StoreCorruptError  # importable here as before
 from driftmap.store.revision import Revision
 from driftmap.store.segment_format import EVENT_DATA_LOST
+from driftmap.store.segment_scan import SegmentScan
 from driftmap.store.values import preview
 
 
@@ -97,6 +98,19 @@ def without_frames(rev: Revision, lost: list[int]) -> Revision:
                     {k: v for k, v in rev.propagated.items() if k not in gone}, rev.restores,
                     {k: v for k, v in rev.covariances.items() if k not in gone},
                     None if rev.frames is None else rev.frames[~np.isin(rev.frames, list(gone))])
+
+
+def held_ids(scan: SegmentScan) -> tuple[set[int], set[int]]:
+    """The frame and revision ids a scanned segment accounts for: those it stores, and those its ``data_lost``
+    events declare lost (a loss record's segment "holds" the loss: if it is damaged, the loss is declared again,
+    hostile trial 19 B1)."""
+    frames = {r.frame_id for r in scan.frames}
+    revisions = {rid for r in scan.revisions if isinstance(rid := r.get("revision_id"), int) and not isinstance(rid, bool)}
+    for event in scan.data_lost:
+        lost_frames, lost_revisions = lost_ids(event, scan.path)
+        frames |= lost_frames
+        revisions |= lost_revisions
+    return frames, revisions
 
 
 def lost_ids(event: dict[str, Any], file: Path) -> tuple[set[int], set[int]]:

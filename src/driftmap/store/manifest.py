@@ -40,6 +40,8 @@ class SegmentEntry:
     bytes: int | None
     frames: list[list[int]] | None = None
     revisions: list[int] | None = None
+    declares_loss: bool = False
+    """a segment ``recover`` wrote for a ``data_lost`` event: its record is the loss it declares"""
     scan: SegmentScan | None = None
     mm: mmap.mmap | None = None
 
@@ -57,8 +59,15 @@ class SegmentEntry:
 
 def entries_of(manifest: dict[str, Any]) -> list[SegmentEntry]:
     """The segments a (validated) manifest lists, in its order."""
-    return [SegmentEntry(s["name"], s["state"], s.get("bytes"), s.get("frames"), s.get("revisions"))
-            for s in manifest["segments"]]
+    return [SegmentEntry(s["name"], s["state"], s.get("bytes"), s.get("frames"), s.get("revisions"),
+                         s.get("declares_loss") is True) for s in manifest["segments"]]
+
+
+MIN_FRAME_RECORD_BYTES = 512
+"""Fewer bytes than any stored frame takes (its metadata alone is over 600): a segment entry may record at most its
+size over this many frames."""
+MIN_REVISION_RECORD_BYTES = 64
+"""Fewer bytes than any stored revision record takes."""
 
 
 def _contents_ok(seg: dict[str, Any]) -> bool:
@@ -72,13 +81,17 @@ def _contents_ok(seg: dict[str, Any]) -> bool:
     if any(not isinstance(r, list) or len(r) != 2 or any(isinstance(x, bool) or not isinstance(x, int) for x in r)
            or r[0] > r[1] for r in frames):
         return False
-    if any(a[1] >= b[0] for a, b in zip(frames, frames[1:])):
+    if any(a[1] >= b[0] for a, b in zip(frames, frames[1:])) or (frames and frames[0][0] < 0):
         return False
     total = sum(b - a + 1 for a, b in frames)
     size = seg.get("bytes")
-    if size is None or total > size:  # every frame takes far more than a byte: a record the data cannot hold
+    # a record the segment's bytes cannot hold (hostile trial 19 B2, B4, W5: ranges of millions of frames)
+    # (a data_lost segment lists each id it declares in its event: at least 2 bytes each)
+    per_frame, per_revision = (2, 2) if seg.get("declares_loss") is True else (MIN_FRAME_RECORD_BYTES,
+                                                                                MIN_REVISION_RECORD_BYTES)
+    if size is None or total > size // per_frame or len(revisions) > size // per_revision:
         return False
-    ints = all(not isinstance(r, bool) and isinstance(r, int) and r >= 0 for r in revisions)
+    ints = all(not isinstance(r, bool) and isinstance(r, int) and 0 < r < 1 << 31 for r in revisions)
     return ints and revisions == sorted(set(revisions))
 
 
@@ -201,7 +214,8 @@ def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[Segmen
     on disk as it was)."""
     manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes,
                              **({"frames": s.frames, "revisions": s.revisions}
-                                if s.frames is not None and s.revisions is not None and s.state == "closed" else {})}
+                                if s.frames is not None and s.revisions is not None and s.state == "closed" else {}),
+                             **({"declares_loss": True} if s.declares_loss else {})}
                             for s in segments]
     _atomic_write_json(folder / MANIFEST, manifest)
 

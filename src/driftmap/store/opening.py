@@ -15,7 +15,7 @@ import numpy as np
 from driftmap.errors import GeometryError, StoreCorruptError, StoreError
 from driftmap.frame import PoseSource
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import DataLoss, RecoveryEvent, lost_ids, without_frames
+from driftmap.store.damage import DataLoss, RecoveryEvent, held_ids, lost_ids, without_frames
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.layout import MANIFEST
 from driftmap.store.ledger import PoseLedger
@@ -69,26 +69,21 @@ def load_segments(folder: Path, store_uuid: str, segments: list[SegmentEntry], l
 
 
 def _check_records(folder: Path, segments: list[SegmentEntry]) -> None:
-    """Refuse a closed segment that no longer holds frames or revisions its manifest entry records, unless a
-    ``data_lost`` event declares them (a recovery stopped before it declared them: it is run again)."""
-    declared: tuple[set[int], set[int]] = (set(), set())
-    for seg in segments:
-        assert seg.scan is not None
-        for event in seg.scan.data_lost:
-            frames, revisions = lost_ids(event, seg.scan.path)
-            declared[0].update(frames)
-            declared[1].update(revisions)
-    for seg in segments:
+    """Refuse a store whose closed segments no longer account for frames or revisions their manifest entries record
+    (stored, or declared lost by a ``data_lost`` event anywhere): a recovery stopped before it declared them, or the
+    segment of a loss record damaged (hostile trial 19 B1). ``driftmap recover`` declares them."""
+    held = [(seg, *held_ids(seg.scan)) for seg in segments if seg.scan is not None]
+    all_frames = set().union(*(f for _, f, _ in held))
+    all_revisions = set().union(*(r for _, _, r in held))
+    for seg, _, _ in held:
         recorded = seg.recorded_ids() if seg.state == "closed" else None
         if recorded is None:
             continue
-        assert seg.scan is not None
-        frames = recorded[0] - {r.frame_id for r in seg.scan.frames} - declared[0]
-        revisions = recorded[1] - {r.get("revision_id") for r in seg.scan.revisions} - declared[1]
+        frames, revisions = recorded[0] - all_frames, recorded[1] - all_revisions
         if frames or revisions:
             what = " and ".join(f"{kind} {preview(sorted(ids))}" for kind, ids in (("frames", frames),
                                                                                   ("revisions", revisions)) if ids)
-            raise StoreCorruptError(f"{folder / seg.name}: the manifest records {what} in it, which it does not hold "
+            raise StoreCorruptError(f"{folder / seg.name}: the manifest records {what} in it, which no segment holds "
                                     f"and no recovery declared lost; run `driftmap recover {folder}`",
                                     path=folder / seg.name, offset=None)
 

@@ -22,7 +22,7 @@ import numpy as np
 
 from driftmap.errors import DriftmapError, StoreError
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import RecoveryEvent, StoreCorruptError, lost_ids
+from driftmap.store.damage import RecoveryEvent, StoreCorruptError, held_ids, lost_ids
 from driftmap.store.frame_codec import frame_from_info, unpack_attributes
 from driftmap.store.guards import RECOVER_HINT, store_io_error
 from driftmap.store.layout import (
@@ -128,7 +128,8 @@ class _Recovery:
         self.known_frames: set[int] = set()
         self.cut_frames: set[int] = set()  # recorded in a segment's manifest entry, gone from the segment
         self.cut_revisions: set[int] = set()
-        self.held: list[tuple[SegmentEntry, set[int], set[int]]] = []  # what each checked segment holds
+        # what each checked segment holds (frames, revisions, whether it holds a data_lost event)
+        self.held: list[tuple[SegmentEntry, set[int], set[int], bool]] = []
         self.current = path / MANIFEST
         self.kept_manifest = ""
 
@@ -152,7 +153,7 @@ class _Recovery:
                                              "file not found: its frames and revisions are lost"))
             self.damage.append(f"{seg.name} missing")
             seg.state = "missing"
-            self.note_cut(seg, set(), set())
+            self.held.append((seg, set(), set(), False))
             return
         scan = scan_segment(file, verify=True, stop_on_error=False)
         twice = [r.frame_id for r in scan.frames if r.frame_id in self.known_frames]
@@ -161,26 +162,44 @@ class _Recovery:
                    and scan.size == seg.bytes and not twice and not unreadable)
         if not healthy:
             scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
-        held = {r.frame_id for r in scan.frames}
-        # compared on every segment, and the records updated only once the loss is declared: a recovery stopped in
-        # between (disk full) leaves the old records, so the next one still finds what was cut off
-        self.note_cut(seg, held | set(twice), revision_ids(scan))
-        self.held.append((seg, held, revision_ids(scan)))
-        self.known_frames.update(held)
+        # compared with the records once every segment is checked, and the records updated only once the loss is
+        # declared: a recovery stopped in between (disk full) leaves the old records, so the next one still finds
+        # what was cut off
+        self.held.append((seg, *held_ids(scan), bool(scan.data_lost)))
+        self.known_frames.update(r.frame_id for r in scan.frames)
         self.scans.append(scan)
 
-    def note_cut(self, seg: SegmentEntry, frames: set[int], revisions: set[int]) -> None:
-        """Note the frames and revisions the manifest recorded in ``seg`` that it no longer holds (``frames``,
-        ``revisions``: what it holds now; a frame stored in an earlier segment too is not lost)."""
-        recorded = seg.recorded_ids()
-        if recorded is None:
-            return
-        cut_frames, cut_revisions = recorded[0] - frames - self.known_frames, recorded[1] - revisions
-        if cut_frames or cut_revisions:
-            logger.warning("%s: its manifest entry records frames %s and revisions %s that it no longer holds",
-                           self.path / seg.name, preview(sorted(cut_frames)) or "-", preview(sorted(cut_revisions)) or "-")
-        self.cut_frames |= cut_frames
-        self.cut_revisions |= cut_revisions
+    def note_cuts(self) -> None:
+        """Note the frames and revisions the manifest records in a segment that no segment holds or declared lost
+        any more. A record that does not fit the store is not used (warned about): more frames than the store's
+        median frame size fits in the segment's recorded size, or revision ids past the store's last revision by
+        more than the records name (hostile trial 19 B3, B4)."""
+        all_frames = set().union(*(f for _, f, _, _ in self.held))
+        all_revisions = set().union(*(r for _, _, r, _ in self.held))
+        last = max(all_revisions, default=0)
+        beyond = {r for seg, *_ in self.held if seg.revisions is not None for r in seg.revisions if r > last}
+        sizes = [ref.n_points * ref.point_stride for scan in self.scans for ref in scan.frames]
+        frame_bytes = float(np.median(sizes)) if sizes else 0.0
+        for seg, *_ in self.held:
+            if seg.frames is None or seg.revisions is None:
+                continue
+            n_recorded = sum(b - a + 1 for a, b in seg.frames)
+            implausible = [r for r in seg.revisions if r > last + len(beyond)]
+            if implausible or (not seg.declares_loss and n_recorded * frame_bytes > 4 * (seg.bytes or 0)):
+                logger.warning("%s: its manifest entry's record of what it holds does not fit the store (%s); it is "
+                               "not used", self.path / seg.name,
+                               f"revisions {preview(implausible)} past the last one, {last}" if implausible else
+                               f"{n_recorded} frames of about {frame_bytes:.0f} bytes in {seg.bytes} bytes")
+                continue
+            recorded = seg.recorded_ids()
+            assert recorded is not None
+            cut_frames, cut_revisions = recorded[0] - all_frames, recorded[1] - all_revisions
+            if cut_frames or cut_revisions:
+                logger.warning("%s: its manifest entry records frames %s and revisions %s that no segment holds now",
+                               self.path / seg.name, preview(sorted(cut_frames)) or "-",
+                               preview(sorted(cut_revisions)) or "-")
+            self.cut_frames |= cut_frames
+            self.cut_revisions |= cut_revisions
 
     def rewrite_segment(self, index: int, seg: SegmentEntry, scan: SegmentScan, twice: list[int],
                         unreadable: list[tuple[int, str]]) -> SegmentScan:
@@ -228,6 +247,7 @@ class _Recovery:
     def declare_loss(self) -> None:
         """What the damage took from the revisions that survived: declared in a ``data_lost`` event of its own, in a
         new segment."""
+        self.note_cuts()
         new_frames, new_revisions = replay(self.path, PoseLedger(), {}, self.scans, strict=False)[1:]
         declared: tuple[set[int], set[int]] = (set(), set())  # by an earlier recovery
         for scan in self.scans:
@@ -244,9 +264,10 @@ class _Recovery:
     def record_held(self) -> None:
         """Record in the manifest what each checked segment holds now (after the loss it shows is declared)."""
         changed = False
-        for seg, frames, revisions in self.held:
-            if seg.recorded_ids() != (frames, revisions):
+        for seg, frames, revisions, declares in self.held:
+            if seg.recorded_ids() != (frames, revisions) or seg.declares_loss != declares:
                 seg.record_contents(frames, revisions)
+                seg.declares_loss = declares
                 changed = True
         if changed:
             self.write_manifest()
@@ -264,7 +285,8 @@ class _Recovery:
             writer.abandon()
             raise
         self.segments[-1].state, self.segments[-1].bytes = "closed", writer.close()
-        self.segments[-1].record_contents((), ())
+        self.segments[-1].record_contents(new_frames, new_revisions)  # it accounts for the loss it declares
+        self.segments[-1].declares_loss = True
         self.write_manifest()
         ledger = PoseLedger()  # the store as it reads now: stand-ins for the revisions declared lost
         loss = replay(self.path, ledger, {}, [*self.scans, scan_segment(self.current, verify=False)], strict=False)[0]
@@ -317,18 +339,14 @@ def recover_open_segments(path: Path, manifest: dict[str, Any], segments: list[S
         os.replace(tmp, file)
         seg.state, seg.bytes = "closed", size
         seg.scan = scan_segment(file, verify=False)
-        seg.record_contents((r.frame_id for r in seg.scan.frames), revision_ids(seg.scan))
+        seg.record_contents(*held_ids(seg.scan))
+        seg.declares_loss = bool(seg.scan.data_lost)
         refs.update({ref.frame_id: ref for ref in seg.scan.frames})
         write_manifest(path, manifest, segments)
         logger.info("%s: recovered %d frames and %d revisions into a closed segment", file, len(scan.frames), len(scan.revisions))
         events.append(RecoveryEvent(seg.name, "rewritten as a closed segment", len(scan.frames), len(scan.revisions),
                                     scan.size - scan.valid_bytes, scan.problem or "writer did not close the segment"))
     return events
-
-
-def revision_ids(scan: SegmentScan) -> set[int]:
-    """The ids of the revision records a scanned segment holds."""
-    return {rid for r in scan.revisions if isinstance(rid := r.get("revision_id"), int) and not isinstance(rid, bool)}
 
 
 def copy_scan_into(scan: SegmentScan, writer: SegmentWriter) -> list[tuple[int, str]]:
