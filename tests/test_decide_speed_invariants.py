@@ -13,10 +13,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from driftmap.decisions import DecideConfig, decide, load_queries
-from driftmap.decisions.evidence import DecisionContext, group_medians
+from driftmap.decisions.evidence import DecisionContext, group_medians, id_ranks
 from driftmap.decisions.point_index import PointIndex, in_range_mask
 from driftmap.decisions.query_file import QuerySet
-from driftmap.decisions.surface import voxel_means
+from driftmap.decisions.surface import _sum_along_negative, voxel_means
 from driftmap.map.view import MapView
 from driftmap.pipeline.build import build
 from driftmap.preprocess.cloud import estimate_normals
@@ -148,6 +148,25 @@ def test_group_medians_are_np_median() -> None:
     want = [np.median(values[groups == g]) for g, c in zip(uniq, counts) if c >= 5]
     np.testing.assert_array_equal(got, want)
     assert len(group_medians(values[:0], groups[:0], 5)) == 0
+
+
+def test_id_ranks_are_searchsorted() -> None:
+    rng = np.random.default_rng(6)
+    for ids in (rng.integers(0, 50, 2000) * 7 + 3, rng.integers(0, 10**9, 300), np.array([5, 5, 5]), np.zeros(0, int)):
+        uniq = np.unique(ids)
+        np.testing.assert_array_equal(id_ranks(ids, uniq), np.searchsorted(uniq, ids))
+
+
+def test_sum_along_negative_is_the_column_sums_sign() -> None:
+    rng = np.random.default_rng(7)
+    for n in (1, 2, 7, 500, 20000):
+        normals = rng.normal(size=(n, 3))
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        for e in (rng.normal(size=3), normals.sum(axis=0), -normals.sum(axis=0)):
+            e = e / np.linalg.norm(e)
+            assert _sum_along_negative(normals, e) == (float(normals.sum(axis=0) @ e) < 0)
+    pair = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])  # a sum of exactly 0: the exact expression decides
+    assert not _sum_along_negative(pair, np.array([1.0, 0.0, 0.0]))
 
 
 # ------------------------------------------------------------------------------------------------ decisions

@@ -125,9 +125,11 @@ class PointIndex:
 
     def _members(self, members: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The points of the view indices ``members`` (any order), in map order, as float64, and their frames."""
-        g = np.sort(members)
+        # the members are runs in map order (one per cell): a merge sort (timsort) takes them as runs, several times
+        # faster than a quicksort; ``take`` gathers rows faster than fancy indexing (the same values)
+        g = np.sort(members, kind="stable")
         per_frame = np.diff(np.searchsorted(g, self.starts))
-        return self.world[g].astype(np.float64), np.repeat(self.frame_ids, per_frame)
+        return self.world.take(g, axis=0).astype(np.float64), np.repeat(self.frame_ids, per_frame)
 
     # ------------------------------------------------------------------------------------------- queries
     def box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:

@@ -80,9 +80,28 @@ def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: 
 
 
 def unknown_in_balls(layers: VolumeLayers, points: NDArray[np.float64], radius_m: float) -> int:
-    """:func:`unknown_in_ball` summed over ``points`` (one summed-volume lookup for all their columns)."""
-    cols = [_ball_columns(layers, p, radius_m) for p in points]
-    return unknown_in_columns(layers, *(np.concatenate([c[k] for c in cols]) for k in range(4)))
+    """:func:`unknown_in_ball` summed over ``points`` (one summed-volume lookup for all their columns, found for all
+    the points at once: the same columns and z ranges as :func:`_ball_columns` per point)."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return 0
+    vs = layers.grid.voxel_size_m
+    lo = np.floor((pts - radius_m) / vs).astype(np.int64)
+    hi = np.floor((pts + radius_m) / vs).astype(np.int64)
+    ny = hi[:, 1] - lo[:, 1] + 1
+    counts = (hi[:, 0] - lo[:, 0] + 1) * ny
+    which = np.repeat(np.arange(len(pts)), counts)  # per column, its point
+    local = np.arange(int(counts.sum())) - np.repeat(np.cumsum(counts) - counts, counts)
+    n_y = ny[which]
+    gx, gy = lo[which, 0] + local // n_y, lo[which, 1] + local % n_y
+    px, py, pz = pts[which, 0], pts[which, 1], pts[which, 2]
+    rho2 = _gap(gx, px, vs) ** 2 + _gap(gy, py, vs) ** 2  # to each column's square
+    keep = rho2 <= radius_m * radius_m
+    gx, gy, pz = gx[keep], gy[keep], pz[keep]
+    dz = np.sqrt(np.maximum(radius_m * radius_m - rho2[keep], 0.0))
+    z0 = np.floor((pz - dz) / vs).astype(np.int64)
+    z1 = np.floor((pz + dz) / vs).astype(np.int64)
+    return unknown_in_columns(layers, gx, gy, z0, z1)
 
 
 def _ball_columns(layers: VolumeLayers, point: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.int64], ...]:
