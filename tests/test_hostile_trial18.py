@@ -160,6 +160,9 @@ def test_t18_b8_a_resumes_revision_cut_off_its_segment_is_named_lost_and_the_hea
 
     with FrameStore.open(store) as s:
         assert s.head == 2 and s.loss.revision_ids == (2,) and 35 in s.loss.frame_ids
+    # trial 19 W1, W4: `info` says why the head leaves frames out, and lost frames do not read as an interrupted build
+    info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
+    assert "stands in for revision 2" in info and "build interrupted" not in info, info
 
 
 def test_t18_w7_the_stand_in_for_a_lost_revision_places_its_predecessors_frames(stores: dict) -> None:
@@ -182,3 +185,15 @@ def test_t18_b8_build_resume_on_a_missing_folder_says_it_builds_a_new_store(stor
     out = _ok(run_cli("build", stores["log"], "--out", stores["root"] / "typo", "--frames", "0:6", "--resume",
                       "--no-loop-closure"))
     assert "nothing to resume" in " ".join(out.stderr.split()), out.stderr[-2000:]
+
+
+def test_t19_w3_a_resume_with_no_new_frames_places_the_frames_the_head_leaves_out(stores: dict) -> None:
+    """Hostile trial 19 W3: `build --resume` over a rollback that left 40 of 60 frames out placed them again when the
+    resume added a frame, but not when it added none (0 / 60 new: no revision, the head still placed 20)."""
+    root = stores["root"]
+    store = root / "w3"
+    shutil.copytree(stores["s5"], store)
+    _ok(run_cli("build", stores["log"], "--out", store, "--frames", "0:60", "--resume"))
+    _ok(run_cli("export", store, "--trajectory", root / "w3.txt"))
+    rows, largest, median = _steps(root / "w3.txt")
+    assert rows == 60 and largest < 2 * median, (rows, largest, median)

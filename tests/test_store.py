@@ -348,6 +348,28 @@ def test_a_damaged_loss_record_is_declared_again_and_no_revision_id_is_reused(
             assert rev.revision_id == 2  # not 1 again
 
 
+def test_a_frame_lost_stored_again_and_lost_again_is_a_new_loss(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 19 B5: frames declared lost, stored again (a resume stores lost ids again) and lost again were not
+    reported: the first declaration covered their ids. A declaration covers only the copies stored before it."""
+    path = tmp_path / "s"
+    with FrameStore.create(path) as store:
+        for f in synthetic_frames[:6]:
+            store.append(f)
+        cut_at = store._refs[4].payload_offset + 1000
+    os.truncate(path / "segment-000000.mcap", cut_at)
+    FrameStore.recover(path)
+    with FrameStore.open(path, "a") as store:
+        assert store.loss.frame_ids == (4, 5)
+        for f in synthetic_frames[4:8]:  # 4 and 5 again, 6 and 7 new
+            store.append(f)
+        again = store._refs[5]
+    os.truncate(again.segment, again.payload_offset + 1000)  # frames 5, 6, 7 of the new segment
+    events = FrameStore.recover(path)
+    assert [e.loss.frame_ids for e in events if e.loss] == [(5, 6, 7)], events
+    with FrameStore.open(path) as store:
+        assert [int(i) for i in store.frame_ids] == [0, 1, 2, 3, 4] and store.loss.frame_ids == (5, 6, 7)
+
+
 def test_manifest_records_that_lie_are_refused_or_not_used(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
     """Hostile trial 19 B2-B4, W5: a record naming a revision far past the store's last (1e9: a billion stand-ins), a
     revision another segment holds, millions of frames, or negative frame ids. Opening refuses them (a typed error

@@ -407,8 +407,11 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         table.add_row("points (sensor frames)", f"{n_points:,}")
         table.add_row("revisions", f"{len(store.revisions)} (head {store.head}: {store.revisions[store.head].source.value})")
         if (placed := len(store.members())) != len(store):  # e.g. a rollback to the map before an append
-            table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: stored after "
-                          "the revision it restores, or by an abandoned append)")
+            why = ("stored after the revision it restores, or by an abandoned append" if store.head not in
+                   store.loss.revision_ids else
+                   f"the head stands in for revision {store.head}, whose record was lost to damage, with the frames "
+                   f"of the revision before it; a `build --resume` or a correction places them again")
+            table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: {why})")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))
         table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")

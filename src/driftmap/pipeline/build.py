@@ -331,8 +331,11 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     if loop_closure and len(store) >= 2:
         close_loops(store, config, result, tick, stages, inject_wrong_loop,
                      own_odometry=pose_of is None and not poses_from_source)
-    if n_new and head_before != 0 and store.head == head_before:
-        # also when loop closure ran and made no revision (no loop accepted: hostile trial 18 B1, a 1.44 m seam)
+    left_out = head_before != 0 and len(store.ledger.members(head_before, later=False)) < len(store)
+    if (n_new or left_out) and head_before != 0 and store.head == head_before:
+        # also when loop closure ran and made no revision (no loop accepted: hostile trial 18 B1, a 1.44 m seam), and
+        # when the resume adds no frame but the head leaves stored ones out (a rollback, a revision lost to damage:
+        # hostile trial 19 W3), which the resumed log places again
         _carry_head_correction(store, head_before, existing)
     (store.path / BUILD_CONFIG_FILE).write_text(config.model_dump_json(indent=2) + "\n")
     (store.path / BUILD_SUMMARY_FILE).write_text(json.dumps(result.to_json(), indent=2, default=str) + "\n")

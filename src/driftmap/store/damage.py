@@ -104,13 +104,45 @@ def held_ids(scan: SegmentScan) -> tuple[set[int], set[int]]:
     """The frame and revision ids a scanned segment accounts for: those it stores, and those its ``data_lost``
     events declare lost (a loss record's segment "holds" the loss: if it is damaged, the loss is declared again,
     hostile trial 19 B1)."""
-    frames = {r.frame_id for r in scan.frames}
-    revisions = {rid for r in scan.revisions if isinstance(rid := r.get("revision_id"), int) and not isinstance(rid, bool)}
+    frames, revisions = stored_ids(scan)
+    lost_frames, lost_revisions = declared_ids(scan)
+    return frames | lost_frames, revisions | lost_revisions
+
+
+def stored_ids(scan: SegmentScan) -> tuple[set[int], set[int]]:
+    """The frame and revision ids a scanned segment stores."""
+    return ({r.frame_id for r in scan.frames},
+            {rid for r in scan.revisions if isinstance(rid := r.get("revision_id"), int) and not isinstance(rid, bool)})
+
+
+def declared_ids(scan: SegmentScan) -> tuple[set[int], set[int]]:
+    """The frame and revision ids a scanned segment's ``data_lost`` events declare lost."""
+    frames: set[int] = set()
+    revisions: set[int] = set()
     for event in scan.data_lost:
         lost_frames, lost_revisions = lost_ids(event, scan.path)
         frames |= lost_frames
         revisions |= lost_revisions
     return frames, revisions
+
+
+def unaccounted(recorded: list[tuple[set[int], set[int]] | None],
+                scans: list[SegmentScan | None]) -> list[tuple[set[int], set[int]]]:
+    """Per segment (in store order; ``recorded``: the ids its manifest entry records, ``scans``: what it holds now,
+    None when missing), the recorded frame and revision ids that no segment stores and no ``data_lost`` event
+    written with or after it declares lost: a declaration covers only the copies stored before it, so a frame lost, stored
+    again and lost again is a new loss (hostile trial 19 B5)."""
+    stored = [stored_ids(s) if s is not None else (set(), set()) for s in scans]
+    declared = [declared_ids(s) if s is not None else (set(), set()) for s in scans]
+    all_frames = set().union(*(f for f, _ in stored))
+    all_revisions = set().union(*(r for _, r in stored))
+    out = []
+    later: tuple[set[int], set[int]] = (set(), set())  # declared in the segments after this one
+    for k in range(len(scans) - 1, -1, -1):
+        later = (later[0] | declared[k][0], later[1] | declared[k][1])  # a loss record accounts for its own ids
+        rec = recorded[k]
+        out.append((set(), set()) if rec is None else (rec[0] - all_frames - later[0], rec[1] - all_revisions - later[1]))
+    return out[::-1]
 
 
 def lost_ids(event: dict[str, Any], file: Path) -> tuple[set[int], set[int]]:

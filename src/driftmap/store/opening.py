@@ -15,7 +15,7 @@ import numpy as np
 from driftmap.errors import GeometryError, StoreCorruptError, StoreError
 from driftmap.frame import PoseSource
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import DataLoss, RecoveryEvent, held_ids, lost_ids, without_frames
+from driftmap.store.damage import DataLoss, RecoveryEvent, lost_ids, unaccounted, without_frames
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.layout import MANIFEST
 from driftmap.store.ledger import PoseLedger
@@ -72,14 +72,8 @@ def _check_records(folder: Path, segments: list[SegmentEntry]) -> None:
     """Refuse a store whose closed segments no longer account for frames or revisions their manifest entries record
     (stored, or declared lost by a ``data_lost`` event anywhere): a recovery stopped before it declared them, or the
     segment of a loss record damaged (hostile trial 19 B1). ``driftmap recover`` declares them."""
-    held = [(seg, *held_ids(seg.scan)) for seg in segments if seg.scan is not None]
-    all_frames = set().union(*(f for _, f, _ in held))
-    all_revisions = set().union(*(r for _, _, r in held))
-    for seg, _, _ in held:
-        recorded = seg.recorded_ids() if seg.state == "closed" else None
-        if recorded is None:
-            continue
-        frames, revisions = recorded[0] - all_frames, recorded[1] - all_revisions
+    recorded = [seg.recorded_ids() if seg.state == "closed" else None for seg in segments]
+    for seg, (frames, revisions) in zip(segments, unaccounted(recorded, [seg.scan for seg in segments]), strict=True):
         if frames or revisions:
             what = " and ".join(f"{kind} {preview(sorted(ids))}" for kind, ids in (("frames", frames),
                                                                                   ("revisions", revisions)) if ids)

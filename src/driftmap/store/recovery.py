@@ -22,7 +22,7 @@ import numpy as np
 
 from driftmap.errors import DriftmapError, StoreError
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import RecoveryEvent, StoreCorruptError, held_ids, lost_ids
+from driftmap.store.damage import RecoveryEvent, StoreCorruptError, held_ids, unaccounted
 from driftmap.store.frame_codec import frame_from_info, unpack_attributes
 from driftmap.store.guards import RECOVER_HINT, store_io_error
 from driftmap.store.layout import (
@@ -128,8 +128,7 @@ class _Recovery:
         self.known_frames: set[int] = set()
         self.cut_frames: set[int] = set()  # recorded in a segment's manifest entry, gone from the segment
         self.cut_revisions: set[int] = set()
-        # what each checked segment holds (frames, revisions, whether it holds a data_lost event)
-        self.held: list[tuple[SegmentEntry, set[int], set[int], bool]] = []
+        self.held: list[tuple[SegmentEntry, SegmentScan | None]] = []  # each checked segment, as it is now
         self.current = path / MANIFEST
         self.kept_manifest = ""
 
@@ -153,7 +152,7 @@ class _Recovery:
                                              "file not found: its frames and revisions are lost"))
             self.damage.append(f"{seg.name} missing")
             seg.state = "missing"
-            self.held.append((seg, set(), set(), False))
+            self.held.append((seg, None))
             return
         scan = scan_segment(file, verify=True, stop_on_error=False)
         twice = [r.frame_id for r in scan.frames if r.frame_id in self.known_frames]
@@ -165,7 +164,7 @@ class _Recovery:
         # compared with the records once every segment is checked, and the records updated only once the loss is
         # declared: a recovery stopped in between (disk full) leaves the old records, so the next one still finds
         # what was cut off
-        self.held.append((seg, *held_ids(scan), bool(scan.data_lost)))
+        self.held.append((seg, scan))
         self.known_frames.update(r.frame_id for r in scan.frames)
         self.scans.append(scan)
 
@@ -174,14 +173,16 @@ class _Recovery:
         any more. A record that does not fit the store is not used (warned about): more frames than the store's
         median frame size fits in the segment's recorded size, or revision ids past the store's last revision by
         more than the records name (hostile trial 19 B3, B4)."""
-        all_frames = set().union(*(f for _, f, _, _ in self.held))
-        all_revisions = set().union(*(r for _, _, r, _ in self.held))
-        last = max(all_revisions, default=0)
-        beyond = {r for seg, *_ in self.held if seg.revisions is not None for r in seg.revisions if r > last}
+        scans = [scan for _, scan in self.held]
+        every = [held_ids(scan) for scan in scans if scan is not None]
+        last = max(set().union(*(r for _, r in every)), default=0)
+        beyond = {r for seg, _ in self.held if seg.revisions is not None for r in seg.revisions if r > last}
         sizes = [ref.n_points * ref.point_stride for scan in self.scans for ref in scan.frames]
         frame_bytes = float(np.median(sizes)) if sizes else 0.0
-        for seg, *_ in self.held:
+        recorded: list[tuple[set[int], set[int]] | None] = []
+        for seg, _ in self.held:
             if seg.frames is None or seg.revisions is None:
+                recorded.append(None)
                 continue
             n_recorded = sum(b - a + 1 for a, b in seg.frames)
             implausible = [r for r in seg.revisions if r > last + len(beyond)]
@@ -190,10 +191,10 @@ class _Recovery:
                                "not used", self.path / seg.name,
                                f"revisions {preview(implausible)} past the last one, {last}" if implausible else
                                f"{n_recorded} frames of about {frame_bytes:.0f} bytes in {seg.bytes} bytes")
+                recorded.append(None)
                 continue
-            recorded = seg.recorded_ids()
-            assert recorded is not None
-            cut_frames, cut_revisions = recorded[0] - all_frames, recorded[1] - all_revisions
+            recorded.append(seg.recorded_ids())
+        for (seg, _), (cut_frames, cut_revisions) in zip(self.held, unaccounted(recorded, scans), strict=True):
             if cut_frames or cut_revisions:
                 logger.warning("%s: its manifest entry records frames %s and revisions %s that no segment holds now",
                                self.path / seg.name, preview(sorted(cut_frames)) or "-",
@@ -249,14 +250,8 @@ class _Recovery:
         new segment."""
         self.note_cuts()
         new_frames, new_revisions = replay(self.path, PoseLedger(), {}, self.scans, strict=False)[1:]
-        declared: tuple[set[int], set[int]] = (set(), set())  # by an earlier recovery
-        for scan in self.scans:
-            for event in scan.data_lost:
-                frames, revisions = lost_ids(event, scan.path)
-                declared[0].update(frames)
-                declared[1].update(revisions)
-        new_frames |= self.cut_frames - declared[0]
-        new_revisions |= self.cut_revisions - declared[1]
+        new_frames |= self.cut_frames  # (not declared by a loss record written after the copy that was lost)
+        new_revisions |= self.cut_revisions
         if new_frames or new_revisions:
             self.write_loss(new_frames, new_revisions)
         self.record_held()
@@ -264,7 +259,9 @@ class _Recovery:
     def record_held(self) -> None:
         """Record in the manifest what each checked segment holds now (after the loss it shows is declared)."""
         changed = False
-        for seg, frames, revisions, declares in self.held:
+        for seg, scan in self.held:
+            frames, revisions = held_ids(scan) if scan is not None else (set(), set())
+            declares = scan is not None and bool(scan.data_lost)
             if seg.recorded_ids() != (frames, revisions) or seg.declares_loss != declares:
                 seg.record_contents(frames, revisions)
                 seg.declares_loss = declares
