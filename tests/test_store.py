@@ -278,6 +278,16 @@ def test_truncated_closed_segment_is_a_typed_error_and_recoverable(tmp_path: Pat
     assert FrameStore.recover(path) == []  # healthy now
 
 
+def _six_frames_cut_in_frame_4(path: Path, frames: list[Frame]) -> Path:
+    """A store of frames 0..5 in one closed segment, truncated in the middle of frame 4's points."""
+    with FrameStore.create(path) as store:
+        for f in frames[:6]:
+            store.append(f)
+        cut_at = store._refs[4].payload_offset + 1000
+    os.truncate(path / "segment-000000.mcap", cut_at)
+    return path
+
+
 def test_a_recovery_stopped_before_it_declared_a_loss_is_refused_until_run_again(
         tmp_path: Path, synthetic_frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
     """A recovery that rewrote a truncated segment but stopped before its ``data_lost`` record (disk full) leaves a
@@ -285,12 +295,7 @@ def test_a_recovery_stopped_before_it_declared_a_loss_is_refused_until_run_again
     `driftmap recover`), and the next recovery declares them."""
     from driftmap.store import recovery
 
-    path = tmp_path / "s"
-    with FrameStore.create(path) as store:
-        for f in synthetic_frames[:6]:
-            store.append(f)
-        cut_at = store._refs[4].payload_offset + 1000
-    os.truncate(path / "segment-000000.mcap", cut_at)
+    path = _six_frames_cut_in_frame_4(tmp_path / "s", synthetic_frames)
 
     def full(self: object, *args: object) -> None:
         raise OSError(28, "No space left on device", str(path / "segment-000001.mcap"))
@@ -351,12 +356,7 @@ def test_a_damaged_loss_record_is_declared_again_and_no_revision_id_is_reused(
 def test_a_frame_lost_stored_again_and_lost_again_is_a_new_loss(tmp_path: Path, synthetic_frames: list[Frame]) -> None:
     """Hostile trial 19 B5: frames declared lost, stored again (a resume stores lost ids again) and lost again were not
     reported: the first declaration covered their ids. A declaration covers only the copies stored before it."""
-    path = tmp_path / "s"
-    with FrameStore.create(path) as store:
-        for f in synthetic_frames[:6]:
-            store.append(f)
-        cut_at = store._refs[4].payload_offset + 1000
-    os.truncate(path / "segment-000000.mcap", cut_at)
+    path = _six_frames_cut_in_frame_4(tmp_path / "s", synthetic_frames)
     FrameStore.recover(path)
     with FrameStore.open(path, "a") as store:
         assert store.loss.frame_ids == (4, 5)

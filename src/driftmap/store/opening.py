@@ -15,7 +15,7 @@ import numpy as np
 from driftmap.errors import GeometryError, StoreCorruptError, StoreError
 from driftmap.frame import PoseSource
 from driftmap.store.chunk_scan import StoredFrameRef
-from driftmap.store.damage import DataLoss, RecoveryEvent, lost_ids, unaccounted, without_frames
+from driftmap.store.damage import DataLoss, RecoveryEvent, declared_ids, lost_ids, unaccounted, without_frames
 from driftmap.store.guards import READ_HINT, store_io_error
 from driftmap.store.layout import MANIFEST
 from driftmap.store.ledger import PoseLedger
@@ -147,10 +147,9 @@ class _Replay:
         self.declared_frames: set[int] = set()
         self.declared_revisions: set[int] = set()
         for scan in scans:
-            for event in scan.data_lost:
-                frames, revisions = lost_ids(event, scan.path)
-                self.declared_frames |= frames
-                self.declared_revisions |= revisions
+            frames, revisions = declared_ids(scan)
+            self.declared_frames |= frames
+            self.declared_revisions |= revisions
         self.new_frames: set[int] = set()
         self.new_revisions: set[int] = set()
         self.named_lost: set[int] = set()
