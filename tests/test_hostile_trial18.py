@@ -102,7 +102,7 @@ def test_t18_w4_a_resume_over_a_rollback_says_it_places_the_frames_left_out_agai
     assert "20 (-20)" in _ok(run_cli("revisions", s3)).stdout  # W1: the rollback leaves 20 out
     out = _ok(run_cli("build", stores["log"], "--out", s3, "--frames", "0:60", "--resume", "--no-loop-closure"))
     said = " ".join(out.stderr.split())
-    assert "the 40 frames it does not place (20..59; 20 of them stored before and left out by the head)" in said, said
+    assert "the 40 frames it does not place (20..59: 20 new frames, 20 stored frames it leaves out)" in said, said
     _ok(run_cli("export", s3, "--trajectory", root / "s3.txt"))
     rows, largest, median = _steps(root / "s3.txt")
     assert rows == 60 and largest < 2 * median, (largest, median)
@@ -163,6 +163,12 @@ def test_t18_b8_a_resumes_revision_cut_off_its_segment_is_named_lost_and_the_hea
     # trial 19 W1, W4: `info` says why the head leaves frames out, and lost frames do not read as an interrupted build
     info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
     assert "stands in for revision 2" in info and "build interrupted" not in info, info
+    # trial 19 W4: a resume after the recovery stores the lost frames 35..39 again, and its note says so (it called
+    # all 20 frames the stand-in leaves out "new"); the head is named as the stand-in it is
+    resumed = _ok(run_cli("build", stores["log"], "--out", store, "--frames", "0:40", "--resume"))
+    said = " ".join(resumed.stderr.split())
+    assert ("head was revision 2 (the stand-in for a lost revision); the 20 frames it does not place (20..39: 0 new "
+            "frames, 5 frames stored again after a loss, 15 stored frames it leaves out)") in said, said[-2000:]
 
 
 def test_t18_w7_the_stand_in_for_a_lost_revision_places_its_predecessors_frames(stores: dict) -> None:

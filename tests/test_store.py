@@ -308,6 +308,11 @@ def test_a_recovery_stopped_before_it_declared_a_loss_is_refused_until_run_again
         FrameStore.open(path)
     events = FrameStore.recover(path)
     assert [e.loss.frame_ids for e in events if e.loss] == [(4, 5)], events
+    # hostile trial 19 W4: the reason names the segment whose record shows the cut (and the damaged copy kept), not
+    # "stored revisions name frames ... that no segment holds"
+    (because,) = [e.detail for e in events if e.loss]
+    assert because.startswith("segment-000000.mcap: its manifest entry records frames [4, 5]"), because
+    assert "segment-000000.mcap.damaged" in because, because
     with FrameStore.open(path) as store:
         assert store.loss.frame_ids == (4, 5) and [int(i) for i in store.frame_ids] == [0, 1, 2, 3]
     assert FrameStore.recover(path) == []

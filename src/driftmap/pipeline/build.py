@@ -208,15 +208,23 @@ def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> 
     # the head's world-frame correction of the neighbouring old frames, applied to the new frames' revision-0 poses
     prop_ids, prop_poses = propagate_correction(ids, store.ledger.stamps_ns, store.poses(0), ids[kept], poses[kept])
     poses[np.searchsorted(ids, prop_ids)] = prop_poses
+    left_out = sorted(set(new_ids.tolist()) & existing)  # stored before this resume
+    # (trial 19 W4: the note called every frame the head leaves out "new", also those stored before this resume)
+    lost = set(store.loss.frame_ids)
+    again = [f for f in new_ids.tolist() if f in lost and f not in existing]  # lost to damage, stored again now
+    parts = [f"{len(new_ids) - len(left_out) - len(again)} new frames",
+             f"{len(again)} frames stored again after a loss" if again else "",
+             f"{len(left_out)} stored frames it leaves out" if left_out else ""]
+    carried_to = ", ".join(p for p in parts if p)
     revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=made_by.source, parent=head,
                                   propagate=False,
-                                  note=f"resume: revision {head}'s correction carried on to the {len(new_ids)} new frames")
-    left_out = sorted(set(new_ids.tolist()) & existing)  # stored before this resume
-    logger.warning("resume: the store's head was revision %d (%s), a correction; the %d frames it does not place "
-                   "(%d..%d%s) would have sat at their uncorrected poses beside it, so revision %d carries that "
-                   "correction on to them", head, parent.source.value, len(new_ids), int(new_ids.min()),
-                   int(new_ids.max()), f"; {len(left_out)} of them stored before and left out by the head"
-                   if left_out else "; all new", revision.revision_id)
+                                  note=f"resume: revision {head}'s correction carried on to the {carried_to}")
+    what = ("the stand-in for a lost revision" if head in store.loss.revision_ids else
+            f"{parent.source.value}, a correction")
+    logger.warning("resume: the store's head was revision %d (%s); the %d frames it does not place "
+                   "(%d..%d: %s) would have sat at their uncorrected poses beside it, so revision %d carries that "
+                   "correction on to them", head, what, len(new_ids), int(new_ids.min()),
+                   int(new_ids.max()), carried_to, revision.revision_id)
 
 
 STORED_POSE_TOLERANCE_M = 1e-6

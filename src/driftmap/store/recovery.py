@@ -128,6 +128,10 @@ class _Recovery:
         self.known_frames: set[int] = set()
         self.cut_frames: set[int] = set()  # recorded in a segment's manifest entry, gone from the segment
         self.cut_revisions: set[int] = set()
+        # segment -> what its record names that it no longer holds: the cause a loss record gives when the segment
+        # itself reads healthy (a recovery stopped after rewriting it; trial 19 W4)
+        self.cut_causes: dict[str, str] = {}
+        self.damaged_segments: set[str] = set()  # found damaged by this recovery (their cause is in ``damage``)
         self.held: list[tuple[SegmentEntry, SegmentScan | None]] = []  # each checked segment, as it is now
         self.current = path / MANIFEST
         self.kept_manifest = ""
@@ -151,6 +155,7 @@ class _Recovery:
             self.events.append(RecoveryEvent(seg.name, "missing segment removed from the manifest", 0, 0, 0,
                                              "file not found: its frames and revisions are lost"))
             self.damage.append(f"{seg.name} missing")
+            self.damaged_segments.add(seg.name)
             seg.state = "missing"
             self.held.append((seg, None))
             return
@@ -199,6 +204,7 @@ class _Recovery:
                 logger.warning("%s: its manifest entry records frames %s and revisions %s that no segment holds now",
                                self.path / seg.name, preview(sorted(cut_frames)) or "-",
                                preview(sorted(cut_revisions)) or "-")
+                self.cut_causes[seg.name] = _cut_cause(self.path / seg.name, cut_frames, cut_revisions)
             self.cut_frames |= cut_frames
             self.cut_revisions |= cut_revisions
 
@@ -232,6 +238,7 @@ class _Recovery:
         self.write_manifest()
         detail = _damage_detail(scan, twice, skipped, was_open)
         self.damage.append(f"{seg.name}: {detail}")
+        self.damaged_segments.add(seg.name)
         tail = 0 if scan.complete else scan.size - scan.valid_bytes
         self.events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
                                          len(scan.frames), len(scan.revisions), tail + scan.damaged_bytes, detail))
@@ -271,7 +278,8 @@ class _Recovery:
 
     def write_loss(self, new_frames: set[int], new_revisions: set[int]) -> None:
         """Declare the frames and revisions lost in a ``data_lost`` event, in a new segment of its own."""
-        because = "; ".join(self.damage) or "stored revisions name frames or follow revisions that no segment holds"
+        causes = self.damage + [cause for name, cause in self.cut_causes.items() if name not in self.damaged_segments]
+        because = "; ".join(causes) or "stored revisions name frames or follow revisions that no segment holds"
         now = time.time_ns()
         self.current = self.path / segment_name(next_segment_index(self.path, self.manifest, self.segments))
         writer = start_segment(self.path, self.manifest, self.segments, fsync=True, what="appending")
@@ -290,6 +298,16 @@ class _Recovery:
         self.events.append(RecoveryEvent(self.segments[-1].name, f"recorded the loss in a {EVENT_DATA_LOST} event",
                                          ledger.n_frames, len(ledger.revisions), 0, because,
                                          loss.only(new_frames, new_revisions)))
+
+
+def _cut_cause(file: Path, cut_frames: set[int], cut_revisions: set[int]) -> str:
+    """Why frames and revisions are lost when ``file`` reads healthy but its manifest record names them."""
+    named = [f"frames {preview(sorted(cut_frames))}" if cut_frames else "",
+             f"revisions {preview(sorted(cut_revisions))}" if cut_revisions else ""]
+    copies = sorted(file.parent.glob(file.name + DAMAGED_SUFFIX + "*"), key=lambda p: p.stat().st_mtime)
+    kept = f"; the damaged file an earlier recovery rewrote is kept as {copies[-1].name}" if copies else ""
+    return (f"{file.name}: its manifest entry records {' and '.join(n for n in named if n)}, which it no longer holds "
+            f"(cut off its end or damaged{kept})")
 
 
 def _damage_detail(scan: SegmentScan, twice: list[int], skipped: list[tuple[int, str]], was_open: bool) -> str:
