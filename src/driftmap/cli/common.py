@@ -302,6 +302,11 @@ def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
 
         if (unfinished := interrupted_build(store)) is not None:  # readable as it is, but not what a build finishes
             err_console.print(Text.assemble(("warning:", "yellow"), f" {path}: {unfinished}"), highlight=False)
+        if store.loss.revision_ids:
+            from driftmap.pipeline.merge import sessions_left_unmerged
+
+            if (unmerged := sessions_left_unmerged(store)) is not None:
+                err_console.print(Text.assemble(("warning:", "yellow"), f" {path}: {unmerged}"), highlight=False)
     for event in store.recovery_events:
         err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
     if store.loss:

@@ -414,6 +414,10 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: {why})")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))
+            from driftmap.pipeline.merge import sessions_left_unmerged
+
+            if (unmerged := sessions_left_unmerged(store)) is not None:
+                table.add_row("sessions not merged", unmerged)
         table.add_row("size on disk", f"{store.size_bytes() / 2**20:.1f} MiB")
         if invalid:
             table.add_row("invalid-pixel fraction (mean / max)", f"{np.mean(invalid):.3f} / {np.max(invalid):.3f}")
