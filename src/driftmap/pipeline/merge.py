@@ -159,8 +159,9 @@ def sessions_left_unmerged(store: FrameStore) -> str | None:
     return (f"revision {', '.join(map(str, lost_merges))}, the merge that placed the sessions in one world frame, was lost to "
             f"damage: the head (revision {store.head}) shows session {', '.join(map(str, unmerged))} at "
             f"{'its' if len(unmerged) == 1 else 'their'} own poses (revision 0, each session in its own world frame), "
-            f"not aligned with session 0, so the map lays them over each other misaligned. Read one session at a "
-            f"time (--session), or merge the session stores again into a new store ({MERGE_SUMMARY_FILE} names them)")
+            f"not aligned with session 0, so the map lays them over each other misaligned. Export one session at a "
+            f"time (export --trajectory --session K), or merge the session stores again into a new store "
+            f"({MERGE_SUMMARY_FILE} names them)")
 
 
 def session_frame_ids(store: FrameStore, session: int) -> list[int]:
