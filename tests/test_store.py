@@ -829,3 +829,59 @@ def test_revisions_place_the_frames_stored_before_them_also_after_reopening_and_
         assert {r: store.members(r).tolist() for r in range(5)} == expected
     with FrameStore.open(path) as store:
         assert {r: store.members(r).tolist() for r in range(5)} == expected
+
+
+def _resumed_store(path: Path, frames: list[Frame]) -> Path:
+    """Frames 0..5 in segment 0; frames 6..11 and revision 1 appended in segment 1 (as a resume writes them)."""
+    with FrameStore.create(path) as store:
+        for f in frames[:6]:
+            store.append(f)
+    with FrameStore.open(path, "a") as store:
+        for f in frames[6:12]:
+            store.append(f)
+        store.add_revision({0: _moved(store.poses(0)[0], 0.02)}, source="loop_closure")
+    return path
+
+
+def test_a_segment_cut_to_a_fraction_of_its_size_declares_what_its_record_names(
+        tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 20 B1: the record was checked against the size of the rewritten segment, so a cut that kept less
+    than a quarter of it (or emptied it) made the record look implausible: the frames and the revision went unreported
+    and the next revision reused the lost id. It is checked against the size before the damage now."""
+    for keep in ("fifth", "empty", "zeros"):
+        path = _resumed_store(tmp_path / keep, synthetic_frames)
+        seg = path / "segment-000001.mcap"
+        size = seg.stat().st_size
+        if keep == "fifth":
+            os.truncate(seg, size // 5)
+        elif keep == "empty":
+            os.truncate(seg, 0)
+        else:
+            seg.write_bytes(bytes(size))
+        events = FrameStore.recover(path)
+        (loss,) = [e.loss for e in events if e.loss]
+        with FrameStore.open(path) as store:
+            kept = {int(i) for i in store.frame_ids}
+            assert set(loss.frame_ids) == set(range(6, 12)) - kept and len(loss.frame_ids) >= 4, (keep, loss)
+            assert loss.revision_ids == (1,) and store.loss.revision_ids == (1,), (keep, loss)
+        with FrameStore.open(path, "a") as store:  # the lost id is not used again
+            assert store.add_revision({0: _moved(store.poses(0)[0], 0.01)}, source="loop_closure").revision_id == 2
+
+
+def test_a_damaged_record_of_an_intact_segment_is_corrected_and_declares_nothing(
+        tmp_path: Path, synthetic_frames: list[Frame]) -> None:
+    """Hostile trial 20 B2: one flipped digit in store.json's record of an intact segment (frames 6..11 -> 6..19,
+    revisions [1] -> [1, 2]) made `recover` declare, for good, frames and a revision that never existed (a stand-in
+    head). An intact segment holds what it held: the record is the damaged part, and recovery corrects it."""
+    for field, value in (("frames", [[6, 19]]), ("revisions", [1, 2])):
+        path = _resumed_store(tmp_path / field, synthetic_frames)
+        manifest = json.loads((path / "store.json").read_text())
+        manifest["segments"][1][field] = value
+        (path / "store.json").write_text(json.dumps(manifest))
+        with pytest.raises(StoreCorruptError, match="driftmap recover"):
+            FrameStore.open(path)
+        events = FrameStore.recover(path)
+        assert not [e for e in events if e.loss], events
+        with FrameStore.open(path) as store:
+            assert not store.loss and len(store) == 12 and store.head == 1, field
+        assert json.loads((path / "store.json").read_text())["segments"][1]["frames"] == [[6, 11]]

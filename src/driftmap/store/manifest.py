@@ -42,6 +42,12 @@ class SegmentEntry:
     revisions: list[int] | None = None
     declares_loss: bool = False
     """a segment ``recover`` wrote for a ``data_lost`` event: its record is the loss it declares"""
+    rewritten_from: int | None = None
+    """The size the segment had when a recovery found it damaged and rewrote it, until that recovery declared what
+    the damage took (None: not rewritten since). Only a damaged segment's record is evidence of a loss (an intact
+    segment whose record names more is a damaged record: hostile trial 20 B2), and the record is checked against this
+    size, not against what survived (trial 20 B1: a cut to a quarter made the record look implausible). Recorded in
+    the manifest, so that a recovery stopped before its declaration leaves the evidence for the next one."""
     scan: SegmentScan | None = None
     mm: mmap.mmap | None = None
 
@@ -60,7 +66,12 @@ class SegmentEntry:
 def entries_of(manifest: dict[str, Any]) -> list[SegmentEntry]:
     """The segments a (validated) manifest lists, in its order."""
     return [SegmentEntry(s["name"], s["state"], s.get("bytes"), s.get("frames"), s.get("revisions"),
-                         s.get("declares_loss") is True) for s in manifest["segments"]]
+                         s.get("declares_loss") is True, _size_or_none(s.get("rewritten_from_bytes")))
+            for s in manifest["segments"]]
+
+
+def _size_or_none(value: Any) -> int | None:
+    return value if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1 << 62 else None
 
 
 MIN_FRAME_RECORD_BYTES = 512
@@ -215,7 +226,8 @@ def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[Segmen
     manifest["segments"] = [{"name": s.name, "state": s.state, "bytes": s.bytes,
                              **({"frames": s.frames, "revisions": s.revisions}
                                 if s.frames is not None and s.revisions is not None and s.state == "closed" else {}),
-                             **({"declares_loss": True} if s.declares_loss else {})}
+                             **({"declares_loss": True} if s.declares_loss else {}),
+                             **({"rewritten_from_bytes": s.rewritten_from} if s.rewritten_from is not None else {})}
                             for s in segments]
     _atomic_write_json(folder / MANIFEST, manifest)
 

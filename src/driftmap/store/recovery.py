@@ -157,6 +157,8 @@ class _Recovery:
             self.damage.append(f"{seg.name} missing")
             self.damaged_segments.add(seg.name)
             seg.state = "missing"
+            if seg.rewritten_from is None:
+                seg.rewritten_from = seg.bytes
             self.held.append((seg, None))
             return
         scan = scan_segment(file, verify=True, stop_on_error=False)
@@ -165,6 +167,8 @@ class _Recovery:
         healthy = (seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
                    and scan.size == seg.bytes and not twice and not unreadable)
         if not healthy:
+            if seg.rewritten_from is None:  # (an unfinished recovery's, kept: the size before the damage it found)
+                seg.rewritten_from = seg.bytes if seg.bytes is not None else scan.size
             scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
         # compared with the records once every segment is checked, and the records updated only once the loss is
         # declared: a recovery stopped in between (disk full) leaves the old records, so the next one still finds
@@ -185,17 +189,27 @@ class _Recovery:
         sizes = [ref.n_points * ref.point_stride for scan in self.scans for ref in scan.frames]
         frame_bytes = float(np.median(sizes)) if sizes else 0.0
         recorded: list[tuple[set[int], set[int]] | None] = []
-        for seg, _ in self.held:
+        for seg, scan in self.held:
             if seg.frames is None or seg.revisions is None:
+                recorded.append(None)
+                continue
+            if seg.rewritten_from is None and scan is not None:
+                # an intact segment (never found damaged): what it holds is what it held, and a record naming more is
+                # itself damaged (a bit flip in store.json: trial 20 B2); record_held writes the true one
+                if seg.recorded_ids() != held_ids(scan):
+                    logger.warning("%s: its manifest entry's record of what it holds does not match the intact "
+                                   "segment (the manifest was damaged or edited); it is corrected, nothing is lost",
+                                   self.path / seg.name)
                 recorded.append(None)
                 continue
             n_recorded = sum(b - a + 1 for a, b in seg.frames)
             implausible = [r for r in seg.revisions if r > last + len(beyond)]
-            if implausible or (not seg.declares_loss and n_recorded * frame_bytes > 4 * (seg.bytes or 0)):
+            size = seg.rewritten_from or 0  # what the segment was before the damage, not what survived (trial 20 B1)
+            if implausible or (not seg.declares_loss and n_recorded * frame_bytes > 4 * size):
                 logger.warning("%s: its manifest entry's record of what it holds does not fit the store (%s); it is "
                                "not used", self.path / seg.name,
                                f"revisions {preview(implausible)} past the last one, {last}" if implausible else
-                               f"{n_recorded} frames of about {frame_bytes:.0f} bytes in {seg.bytes} bytes")
+                               f"{n_recorded} frames of about {frame_bytes:.0f} bytes in {size} bytes")
                 recorded.append(None)
                 continue
             recorded.append(seg.recorded_ids())
@@ -269,9 +283,11 @@ class _Recovery:
         for seg, scan in self.held:
             frames, revisions = held_ids(scan) if scan is not None else (set(), set())
             declares = scan is not None and bool(scan.data_lost)
-            if seg.recorded_ids() != (frames, revisions) or seg.declares_loss != declares:
+            if (seg.recorded_ids() != (frames, revisions) or seg.declares_loss != declares
+                    or seg.rewritten_from is not None):
                 seg.record_contents(frames, revisions)
                 seg.declares_loss = declares
+                seg.rewritten_from = None  # what the damage took is declared now
                 changed = True
         if changed:
             self.write_manifest()
