@@ -357,3 +357,26 @@ def test_t14_real_kinect_frames_given_poses_of_a_camera_turned_10_deg(sevenscene
     assert mounting["lever_ambiguous_axis"] is None, mounting  # a hand-held path, no circle: a turn is a turn
     own = _given_check(true_store)
     assert own["consistent"] is True and own["mounting_rotation"]["explains"] is False, own
+
+
+def test_t16_real_kinect_frames_with_a_1_5x_depth_scale_do_not_fit_their_true_poses(sevenscenes_dir: Path,
+                                                                                   tmp_path: Path) -> None:
+    """Trial 16 (weak): 7-Scenes built with its true poses and a depth scale off by 1.5x (`--depth-scale 666.67` for
+    millimetres) read "given poses fit: yes": each pair's error (half its 10-20 cm step) stays within the inlier
+    distance. Across the pairs the frames' steps are 1.5 times the file's: NO, naming the factor and the depth scale.
+    The data set's own scale: a factor within 10 % of 1, not reported (the gate is 20 %)."""
+    for name, scale in (("scaled", "666.67"), ("true", "1000")):
+        run = run_cli("build", sevenscenes_dir, "--frames", "0:300:6", "--poses-from-source", "--no-loop-closure",
+                      "--depth-scale", scale, "--out", tmp_path / name)
+        assert run.returncode == 0, run.stderr[-2000:]
+        if name == "scaled":
+            said = " ".join(run.stderr.split())
+            assert "steps are 1.4" in said or "steps are 1.5" in said, said[-3000:]
+            assert "--depth-scale" in said, said[-3000:]
+            row = " ".join(run.stdout.replace("\u2502", " ").split())
+            assert re.search(r"given poses fit the frames NO: the \d+ frame pairs' steps are 1\.[45]\d times", row), row
+    scaled, true = _given_check(tmp_path / "scaled"), _given_check(tmp_path / "true")
+    assert scaled["consistent"] is False and scaled["step_scale"]["explains"] is True, scaled
+    assert abs(scaled["step_scale"]["factor"] - 1.5) < 0.1, scaled["step_scale"]
+    assert true["consistent"] is True and true["step_scale"]["explains"] is False, true
+    assert abs(true["step_scale"]["factor"] - 1.0) < 0.1, true["step_scale"]
