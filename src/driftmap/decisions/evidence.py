@@ -32,6 +32,7 @@ from numpy.typing import NDArray
 from driftmap.decisions.point_index import PointIndex, point_index
 from driftmap.decisions.settings import DecideConfig
 from driftmap.decisions.walls import DoubleWall, walls_in_reach
+from driftmap.kernels.queries import group_medians as _group_medians
 
 if TYPE_CHECKING:
     from driftmap.map.view import MapView
@@ -222,8 +223,15 @@ def id_ranks(ids: NDArray[np.int64], uniq: NDArray[np.int64]) -> NDArray[np.int6
 
 def group_medians(values: NDArray[np.float64], groups: NDArray[np.int64], min_count: int) -> NDArray[np.float64]:
     """The median of ``values`` per group (``np.median``'s value: the middle one, or the mean of the two middle
-    ones) of the groups with at least ``min_count`` members, in ascending group order: the values sorted, then
-    stably by group (a radix sort of the groups' ranks when they fit 16 bits), as ``np.lexsort((values, groups))``."""
+    ones) of the groups with at least ``min_count`` members, in ascending group order. Ids spanning a small range:
+    a compiled counting sort by group, each group's values sorted (:func:`driftmap.kernels.queries.group_medians`);
+    else the values sorted, then stably by group (a radix sort of the groups' ranks when they fit 16 bits), as
+    ``np.lexsort((values, groups))``."""
+    groups = np.asarray(groups, dtype=np.int64)
+    if len(groups) and int(groups.max()) - int(groups.min()) <= 4 * len(groups) + 4096:  # a count table (compiled)
+        first = int(groups.min())
+        return _group_medians(np.ascontiguousarray(values, dtype=np.float64), groups, first,
+                              int(groups.max()) - first + 1, int(min_count))
     uniq = unique_ids(groups)
     if len(uniq) <= 1 << 16:
         by_value = np.argsort(values)

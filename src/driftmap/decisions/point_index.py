@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
-from driftmap.kernels.queries import ball_members, box_members, column_runs, frames_in_box
+from driftmap.kernels.queries import ball_positions, box_positions, column_runs, frames_in_box, gather_in_map_order
 from driftmap.voxels import ABSOLUTE_GRID
 
 if TYPE_CHECKING:
@@ -123,13 +123,10 @@ class PointIndex:
         """:meth:`_runs` of the cells ``a .. b``, one per (x, y) column (compiled)."""
         return column_runs(self.keys, a, b, _CELL_LO, _CELL_HI, ABSOLUTE_GRID.lo, ABSOLUTE_GRID.span)
 
-    def _members(self, members: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-        """The points of the view indices ``members`` (any order), in map order, as float64, and their frames."""
-        # the members are runs in map order (one per cell): a merge sort (timsort) takes them as runs, several times
-        # faster than a quicksort; ``take`` gathers rows faster than fancy indexing (the same values)
-        g = np.sort(members, kind="stable")
-        per_frame = np.diff(np.searchsorted(g, self.starts))
-        return self.world.take(g, axis=0).astype(np.float64), np.repeat(self.frame_ids, per_frame)
+    def _gather(self, positions: NDArray[np.int64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+        """The points at ``positions`` of the cell-sorted arrays (any order), in map order, as float64, and their frames
+        (compiled: a radix sort of their map indices, the rows read from the sorted arrays)."""
+        return gather_in_map_order(self.points, self.order, self.rows, self.frame_ids, positions)
 
     # ------------------------------------------------------------------------------------------- queries
     def box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -137,13 +134,13 @@ class PointIndex:
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         if np.any(hi < lo):
             return np.zeros((0, 3)), np.zeros(0, np.int64)
-        return self._members(box_members(self.points, self.order, *self._column_runs(*self._cell_range(lo, hi)), lo, hi))
+        return self._gather(box_positions(self.points, *self._column_runs(*self._cell_range(lo, hi)), lo, hi))
 
     def ball(self, centre: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The points with ``dx*dx + dy*dy + dz*dz <= radius_m**2`` (float64) and their frames, in map order."""
         c = np.asarray(centre, dtype=np.float64)
         runs = self._column_runs(*self._cell_range(c - radius_m, c + radius_m))
-        return self._members(ball_members(self.points, self.order, *runs, c, float(radius_m) ** 2))
+        return self._gather(ball_positions(self.points, *runs, c, float(radius_m) ** 2))
 
     def frames_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.int64]:
         """The frames (sorted) with a point in the box ``lo .. hi``: every frame of a cell lying wholly inside it

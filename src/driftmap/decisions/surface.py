@@ -25,7 +25,13 @@ from numpy.typing import NDArray
 
 from driftmap.decisions.evidence import id_ranks, unique_ids
 from driftmap.decisions.query_file import FootholdQuery, GraspQuery
-from driftmap.decisions.voxel_normals import DENSE_PER_POINT, voxel_cells, voxel_normals  # noqa: F401 - re-export
+from driftmap.decisions.voxel_normals import (  # noqa: F401 - re-export
+    DENSE_PER_POINT,
+    fit_normals,
+    voxel_cells,
+    voxel_normals,
+)
+from driftmap.kernels.queries import oriented_point_normals
 from driftmap.preprocess.cloud import estimate_normals
 
 if TYPE_CHECKING:
@@ -47,35 +53,31 @@ def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], which: NDA
     origin of its frame (``f_in``; ``frames``: their sorted set): fitted on the voxel means of all of ``pts``
     (``normal_voxel_m``; None: on every point), the points in the world box ``box``. A voxel whose whole
     neighbourhood lies inside the box takes the map's normal of that voxel (:mod:`driftmap.decisions.voxel_normals`:
-    the same value); the others are fitted here."""
+    the same value); the others are fitted here (:func:`~driftmap.decisions.voxel_normals.fit_normals`). Each point
+    then takes its voxel's normal, turned towards its sensor (compiled:
+    :func:`driftmap.kernels.queries.oriented_point_normals`)."""
     c = ctx.config
+    origins = np.stack([ctx.origin(int(x)) for x in frames])
+    sensor_of = id_ranks(f_in, frames)
     if c.normal_voxel_m is None:  # every point's own normal (Open3D over the whole region)
         normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals[which]
-        ok = np.all(np.isfinite(normals), axis=1)
-    else:
-        fit, inv, cells = voxel_cells(pts, c.normal_voxel_m)
-        inv_in = np.compress(which, inv)
-        held = np.bincount(inv_in, minlength=len(fit)) > 0  # only the voxels holding a point inside
-        at = np.flatnonzero(held)
-        normals = np.empty((len(at), 3), np.float32)
-        shared = voxel_normals(ctx.layers, c, build=False)  # as prepared for the run (decide.prepare)
-        rows = np.full(len(at), -1, np.int64)
-        if shared is not None and len(fit) >= c.normal_max_neighbors:  # fewer: the fit sums fewer columns
-            inner = shared.interior(fit[at], *box)
-            rows[inner] = shared.lookup(cells[at[inner]])
-            normals[rows >= 0] = shared.normals[rows[rows >= 0]]
-        own = rows < 0
-        if own.any():
-            normals[own] = estimate_normals(fit, k=c.normal_max_neighbors, radius_m=c.normal_radius_m,
-                                            at=at[own]).normals
-        rank = (np.cumsum(held) - 1).take(inv_in)  # each inside point: its voxel's rank in ``at``
-        ok = np.all(np.isfinite(normals), axis=1).take(rank)  # per voxel, then per point
-        normals = normals.take(rank, axis=0)
-    normals = normals.astype(np.float64)
-    origins = np.stack([ctx.origin(int(x)) for x in frames])
-    flip = np.einsum("ij,ij->i", normals, origins.take(id_ranks(f_in, frames), axis=0) - p_in) < 0
-    normals[flip] *= -1.0
-    return normals, ok
+        return oriented_point_normals(normals, np.arange(len(normals)), p_in, origins, sensor_of)
+    fit, inv, cells = voxel_cells(pts, c.normal_voxel_m)
+    inv_in = np.compress(which, inv)
+    held = np.bincount(inv_in, minlength=len(fit)) > 0  # only the voxels holding a point inside
+    at = np.flatnonzero(held)
+    normals = np.empty((len(at), 3), np.float32)
+    shared = voxel_normals(ctx.layers, c, build=False)  # as prepared for the run (decide.prepare)
+    rows = np.full(len(at), -1, np.int64)
+    if shared is not None and len(fit) >= c.normal_max_neighbors:  # fewer: the fit sums fewer columns
+        inner = shared.interior(fit[at], *box)
+        rows[inner] = shared.lookup(cells[at[inner]])
+        normals[rows >= 0] = shared.normals[rows[rows >= 0]]
+    own = rows < 0
+    if own.any():
+        normals[own] = fit_normals(fit, at[own], c.normal_max_neighbors, c.normal_radius_m)
+    rank = (np.cumsum(held) - 1).take(inv_in)  # each inside point: its voxel's rank in ``at``
+    return oriented_point_normals(normals, rank, p_in, origins, sensor_of)
 
 
 def _finite_rows(normals: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:

@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.decisions.point_index import point_index
+from driftmap.kernels.queries import knn_covariances
 from driftmap.kernels.queries import voxel_cells as _voxel_cells
 from driftmap.preprocess.cloud import estimate_normals
 
@@ -41,6 +42,27 @@ CHUNK_VOXELS = 1 << 16
 """the map's normals are fitted this many voxels at a time (bounds the (chunk, k, 3) neighbour offsets)"""
 EPS_M = 1e-6
 """interior: the neighbourhood must stay this far inside the grown box's whole voxels (float slack of ``floor``)"""
+MIN_NEIGHBORS = 5
+"""a normal fitted on fewer neighbours within the radius is NaN (``estimate_normals``' ``min_neighbors``)"""
+
+
+def fit_normals(means: NDArray[np.float64], at: NDArray[np.int64], k: int, radius_m: float) -> NDArray[np.float32]:
+    """``estimate_normals(means, k=k, radius_m=radius_m, at=at).normals`` (the same floats): the covariance of each
+    ``means[at]``'s ``k`` nearest means within ``radius_m`` from the compiled search
+    (:func:`driftmap.kernels.queries.knn_covariances`, the same neighbours and sums as the ``cKDTree`` one), its
+    eigenvector of the smallest eigenvalue (numpy's batched ``eigh``) oriented towards the origin; NaN with fewer
+    than :data:`MIN_NEIGHBORS` neighbours."""
+    at = np.asarray(at, dtype=np.int64)
+    if len(at) == 0 or not 3 <= k <= 1000 or k < MIN_NEIGHBORS:  # estimate_normals' own checks and count search
+        return estimate_normals(means, k=k, radius_m=radius_m, at=at).normals
+    pts = np.ascontiguousarray(means, dtype=np.float64)
+    bound_m = float(np.nextafter(radius_m, np.inf))  # cKDTree's distance_upper_bound, squared as it squares it
+    cov, counts = knn_covariances(pts, at, int(k), float(radius_m), bound_m * bound_m)
+    normals = np.linalg.eigh(cov)[1][:, :, 0]
+    flip = np.einsum("ij,ij->i", normals, np.zeros(3) - pts[at]) < 0
+    normals[flip] *= -1.0
+    normals[counts < MIN_NEIGHBORS] = np.nan
+    return normals.astype(np.float32)
 
 
 def voxel_cells(pts: NDArray[np.float64], voxel_m: float

@@ -1,11 +1,16 @@
 """Compiled hot loops of the decisions' per-query work (numba): the points of a box or a ball and the frames of a box
 read from a point index sorted by cell (:mod:`driftmap.decisions.point_index`), the footprint sweep's smallest signed
 distances (:mod:`driftmap.decisions.space`), the unknown voxels of boxes and of a cylinder's columns from a
-summed-volume table, and a region's voxel means (:mod:`driftmap.decisions.voxel_normals`).
+summed-volume table, a region's voxel means and the neighbourhood covariances of its border voxels' normals
+(:mod:`driftmap.decisions.voxel_normals`), the points gathered back into map order, each point's normal turned
+towards its sensor (:mod:`driftmap.decisions.surface`) and the per-frame medians of the frame spread
+(:mod:`driftmap.decisions.evidence`).
 
-Each kernel does what the numpy expressions it replaces do, in the same float64 arithmetic (float32 coordinates
-promoted, no fused multiply-add: numba compiles without fast-math), so the points it selects are the same ones;
-tests/test_kernels_queries.py checks them against the numpy expressions.
+Each kernel does what the numpy (or SciPy) expressions it replaces do, in the same float64 arithmetic (float32
+coordinates promoted, no fused multiply-add: numba compiles without fast-math; sums in numpy's order, see
+:func:`pairwise_sum`), so the points it selects and the values it computes are the same floats;
+tests/test_kernels_queries.py checks them against the numpy expressions. Matrix products (BLAS) and eigen
+decompositions (LAPACK) stay in numpy: their rounding is the library's.
 """
 
 from __future__ import annotations
@@ -36,10 +41,10 @@ def _column_runs(keys, i0, i1, j0, j1, za, zb, cell_lo, cell_hi, l0, l1, l2, s1,
 
 
 @numba.njit(cache=True, nogil=True)
-def _members(points, order, starts, stops, a, b, radius2, ball):  # pragma: no cover - compiled
-    """``order[at]`` of the sorted positions ``at`` in the runs ``starts .. stops`` whose point passes the test: with
-    ``ball``, ``dx*dx + dy*dy + dz*dz <= radius2`` about the centre ``a`` (float64, summed left to right); else
-    ``a <= p <= b`` on every axis (float64)."""
+def _positions(points, starts, stops, a, b, radius2, ball):  # pragma: no cover - compiled
+    """The sorted positions ``at`` in the runs ``starts .. stops`` whose point passes the test: with ``ball``,
+    ``dx*dx + dy*dy + dz*dz <= radius2`` about the centre ``a`` (float64, summed left to right); else ``a <= p <= b``
+    on every axis (float64)."""
     total = 0
     for c in range(len(starts)):
         total += max(stops[c] - starts[c], 0)
@@ -54,9 +59,19 @@ def _members(points, order, starts, stops, a, b, radius2, ball):  # pragma: no c
             else:
                 keep = x >= a[0] and x <= b[0] and y >= a[1] and y <= b[1] and z >= a[2] and z <= b[2]
             if keep:
-                out[n] = order[at]
+                out[n] = at
                 n += 1
     return out[:n]
+
+
+@numba.njit(cache=True, nogil=True)
+def _members(points, order, starts, stops, a, b, radius2, ball):  # pragma: no cover - compiled
+    """``order[at]`` of the positions :func:`_positions` selects."""
+    at = _positions(points, starts, stops, a, b, radius2, ball)
+    out = np.empty(len(at), np.int64)
+    for i in range(len(at)):
+        out[i] = order[at[i]]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -69,6 +84,18 @@ def box_members(points, order, starts, stops, lo, hi):  # pragma: no cover - com
 def ball_members(points, order, starts, stops, centre, radius2):  # pragma: no cover - compiled
     """``order[at]`` of the positions in the runs whose point has ``dx*dx + dy*dy + dz*dz <= radius2``."""
     return _members(points, order, starts, stops, centre, centre, radius2, True)
+
+
+@numba.njit(cache=True, nogil=True)
+def box_positions(points, starts, stops, lo, hi):  # pragma: no cover - compiled
+    """The positions in the runs whose point has ``lo <= p <= hi`` on every axis (float64)."""
+    return _positions(points, starts, stops, lo, hi, 0.0, False)
+
+
+@numba.njit(cache=True, nogil=True)
+def ball_positions(points, starts, stops, centre, radius2):  # pragma: no cover - compiled
+    """The positions in the runs whose point has ``dx*dx + dy*dy + dz*dz <= radius2``."""
+    return _positions(points, starts, stops, centre, centre, radius2, True)
 
 
 def column_runs(keys: np.ndarray, a: np.ndarray, b: np.ndarray, cell_lo: int, cell_hi: int,
@@ -354,3 +381,305 @@ def voxel_cells(pts, voxel_m, dense_per_point):  # pragma: no cover - compiled
         lattice[v, 1] = (c // dims[2]) % dims[1] + base[1]
         lattice[v, 0] = c // (dims[1] * dims[2]) + base[0]
     return sums, inv, lattice
+
+
+# ------------------------------------------------------------------------------------------------ voxel normals
+@numba.njit(cache=True, nogil=True)
+def pairwise_sum(values, n):  # pragma: no cover - compiled
+    """``np.add.reduce`` of ``values[:n]`` as numpy sums a contiguous float64 row: pairwise, with 8 running sums in
+    blocks of up to 128 (numpy's ``pairwise_sum``), so that the result is the same float."""
+    if n < 8:
+        res = 0.0
+        for i in range(n):
+            res += values[i]
+        return res
+    if n <= 128:
+        r0, r1, r2, r3 = values[0], values[1], values[2], values[3]
+        r4, r5, r6, r7 = values[4], values[5], values[6], values[7]
+        i = 8
+        while i < n - n % 8:
+            r0 += values[i]
+            r1 += values[i + 1]
+            r2 += values[i + 2]
+            r3 += values[i + 3]
+            r4 += values[i + 4]
+            r5 += values[i + 5]
+            r6 += values[i + 6]
+            r7 += values[i + 7]
+            i += 8
+        res = ((r0 + r1) + (r2 + r3)) + ((r4 + r5) + (r6 + r7))
+        while i < n:
+            res += values[i]
+            i += 1
+        return res
+    half = n // 2
+    half -= half % 8
+    return pairwise_sum(values, half) + pairwise_sum(values[half:], n - half)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cell_table(points, cell_m):  # pragma: no cover - compiled
+    """The points binned into cubes of ``cell_m`` (a dense table over their bounding box): per cell (packed x
+    slowest), where its points start in ``order`` (and the end, last); the smallest cell and the table's dims."""
+    n = len(points)
+    base = np.empty(3, np.int64)
+    dims = np.empty(3, np.int64)
+    cells = np.empty((n, 3), np.int64)
+    for i in range(n):
+        for k in range(3):
+            cells[i, k] = np.int64(np.floor(points[i, k] / cell_m))
+    for k in range(3):
+        lo, hi = cells[0, k], cells[0, k]
+        for i in range(1, n):
+            lo = min(lo, cells[i, k])
+            hi = max(hi, cells[i, k])
+        base[k], dims[k] = lo, hi - lo + 1
+    starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
+    packed = np.empty(n, np.int64)
+    for i in range(n):
+        packed[i] = ((cells[i, 0] - base[0]) * dims[1] + cells[i, 1] - base[1]) * dims[2] + cells[i, 2] - base[2]
+        starts[packed[i] + 1] += 1
+    for c in range(1, len(starts)):
+        starts[c] += starts[c - 1]
+    fill = starts[:-1].copy()
+    order = np.empty(n, np.int64)
+    for i in range(n):
+        order[fill[packed[i]]] = i
+        fill[packed[i]] += 1
+    return order, starts, base, dims
+
+
+@numba.njit(cache=True, nogil=True)
+def _sorted_by_distance(d2, idx, n):  # pragma: no cover - compiled
+    """Sort the first ``n`` candidates by squared distance ``d2`` (ties by index), in place: an insertion sort (a
+    neighbourhood holds tens of them)."""
+    for i in range(1, n):
+        dv, iv = d2[i], idx[i]
+        j = i - 1
+        while j >= 0 and (d2[j] > dv or (d2[j] == dv and idx[j] > iv)):
+            d2[j + 1], idx[j + 1] = d2[j], idx[j]
+            j -= 1
+        d2[j + 1], idx[j + 1] = dv, iv
+
+
+@numba.njit(cache=True, nogil=True)
+def _outside(lo_m, hi_m, x):  # pragma: no cover - compiled
+    """How far ``x`` lies outside ``lo_m .. hi_m`` (0 inside)."""
+    return max(max(lo_m - x, x - hi_m), 0.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def knn_covariances(points, at, k, radius_m, bound2, max_cells_per_axis=64):  # pragma: no cover - compiled
+    """The covariances of ``points[at]``'s neighbourhoods and their sizes, as ``preprocess.cloud._knn_covariances``
+    computes them from a SciPy ``cKDTree`` query (``k`` nearest with squared distance below ``bound2``, the square
+    of ``distance_upper_bound``; of those, the ones within ``radius_m``; sorted by distance, the point itself
+    included): the offsets from the point, ``min(k, len(points))`` columns with the missing ones zero, summed as
+    numpy sums a row (:func:`pairwise_sum`), ``sum(x*y) / n - mean_x * mean_y``; fewer than 3 neighbours: the
+    identity. The neighbours are searched in a table of cubes about half the radius wide (at most
+    ``max_cells_per_axis`` per axis), in the cells that come within the radius of the point."""
+    m = len(at)
+    cov = np.zeros((m, 3, 3))
+    counts = np.zeros(m, np.int64)
+    if m == 0:
+        return cov, counts
+    kk = min(k, len(points))
+    extent = 0.0
+    for d in range(3):
+        extent = max(extent, points[:, d].max() - points[:, d].min())
+    cell_m = max(0.5 * radius_m * (1.0 + 1e-6), extent / max_cells_per_axis)
+    span = np.int64(np.floor(radius_m / cell_m)) + 1  # a point within the radius is at most this many cells away
+    reach2 = bound2 * (1.0 + 1e-6)  # the cells' distance test is conservative by this much
+    order, starts, base, dims = _cell_table(points, cell_m)
+    cand_d2 = np.empty(len(points))
+    cand_i = np.empty(len(points), np.int64)
+    cols = np.zeros((9, kk))  # x, y, z, xx, yy, zz, xy, xz, yz per neighbour column
+    for q in range(m):
+        p = at[q]
+        px, py, pz = points[p, 0], points[p, 1], points[p, 2]
+        c0 = np.int64(np.floor(px / cell_m)) - base[0]
+        c1 = np.int64(np.floor(py / cell_m)) - base[1]
+        c2 = np.int64(np.floor(pz / cell_m)) - base[2]
+        n_cand = 0
+        for i in range(max(c0 - span, 0), min(c0 + span, dims[0] - 1) + 1):
+            gx = _outside((base[0] + i) * cell_m, (base[0] + i + 1) * cell_m, px)
+            for j in range(max(c1 - span, 0), min(c1 + span, dims[1] - 1) + 1):
+                gy = _outside((base[1] + j) * cell_m, (base[1] + j + 1) * cell_m, py)
+                if gx * gx + gy * gy > reach2:
+                    continue
+                row = (i * dims[1] + j) * dims[2]
+                s = starts[row + max(c2 - span, 0)]
+                t = starts[row + min(c2 + span, dims[2] - 1) + 1]
+                for at_c in range(s, t):
+                    o = order[at_c]
+                    dx, dy, dz = px - points[o, 0], py - points[o, 1], pz - points[o, 2]
+                    d2 = dx * dx + dy * dy + dz * dz
+                    if d2 < bound2 and np.sqrt(d2) <= radius_m:
+                        cand_d2[n_cand] = d2
+                        cand_i[n_cand] = o
+                        n_cand += 1
+        _sorted_by_distance(cand_d2, cand_i, n_cand)
+        n = min(n_cand, kk)
+        cols[:, :] = 0.0
+        for c in range(n):
+            o = cand_i[c]
+            x, y, z = points[o, 0] - px, points[o, 1] - py, points[o, 2] - pz
+            cols[0, c], cols[1, c], cols[2, c] = x, y, z
+            cols[3, c], cols[4, c], cols[5, c] = x * x, y * y, z * z
+            cols[6, c], cols[7, c], cols[8, c] = x * y, x * z, y * z
+        counts[q] = n
+        if n < 3:
+            for d in range(3):
+                cov[q, d, d] = 1.0
+            continue
+        inv = 1.0 / max(n, 1)
+        mx, my, mz = pairwise_sum(cols[0], kk) * inv, pairwise_sum(cols[1], kk) * inv, pairwise_sum(cols[2], kk) * inv
+        cov[q, 0, 0] = pairwise_sum(cols[3], kk) * inv - mx * mx
+        cov[q, 1, 1] = pairwise_sum(cols[4], kk) * inv - my * my
+        cov[q, 2, 2] = pairwise_sum(cols[5], kk) * inv - mz * mz
+        cov[q, 0, 1] = cov[q, 1, 0] = pairwise_sum(cols[6], kk) * inv - mx * my
+        cov[q, 0, 2] = cov[q, 2, 0] = pairwise_sum(cols[7], kk) * inv - mx * mz
+        cov[q, 1, 2] = cov[q, 2, 1] = pairwise_sum(cols[8], kk) * inv - my * mz
+    return cov, counts
+
+
+# ------------------------------------------------------------------------------------------------ map order
+RADIX_BITS = 12
+"""radix_sort: the bits sorted per pass (4,096 buckets: two passes for indices below 16.7M)"""
+
+
+@numba.njit(cache=True, nogil=True)
+def radix_sort(values, low_bit):  # pragma: no cover - compiled
+    """Non-negative int64 ``values`` sorted by their bits from ``low_bit`` up (least significant digit first,
+    :data:`RADIX_BITS` per pass; stable, so that the bits below ``low_bit`` keep their order where those above
+    tie), in time linear in their number."""
+    n = len(values)
+    out = values.copy()
+    if n < 2:
+        return out
+    top = out.max()
+    tmp = np.empty(n, np.int64)
+    buckets = 1 << RADIX_BITS
+    mask = buckets - 1
+    count = np.empty(buckets + 1, np.int64)
+    shift = low_bit
+    while (top >> shift) > 0:
+        count[:] = 0
+        for i in range(n):
+            count[((out[i] >> shift) & mask) + 1] += 1
+        for b in range(1, buckets + 1):
+            count[b] += count[b - 1]
+        for i in range(n):
+            d = (out[i] >> shift) & mask
+            tmp[count[d]] = out[i]
+            count[d] += 1
+        out, tmp = tmp, out
+        shift += RADIX_BITS
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _in_map_order(order, positions):  # pragma: no cover - compiled
+    """``positions`` sorted by ``order[positions]`` (distinct map indices): each packed with its map index above bit
+    32 and sorted by those bits (:func:`radix_sort`; a comparison sort of the packed values below 2,048 of them,
+    where the radix's buckets would cost more), or argsorted when an index does not fit 32 bits."""
+    n = len(positions)
+    if len(order) >= 1 << 31:
+        keys = np.empty(n, np.int64)
+        for i in range(n):
+            keys[i] = order[positions[i]]
+        return positions[np.argsort(keys, kind="mergesort")]
+    packed = np.empty(n, np.int64)
+    for i in range(n):
+        packed[i] = (np.int64(order[positions[i]]) << 32) | positions[i]
+    packed = np.sort(packed) if n < 2048 else radix_sort(packed, 32)
+    out = np.empty(n, np.int64)
+    for i in range(n):
+        out[i] = packed[i] & 0xFFFFFFFF
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def gather_in_map_order(points, order, rows, frame_ids, positions):  # pragma: no cover - compiled
+    """The points at ``positions`` of a cell-sorted index (``points``; ``order``: each one's index in map order;
+    ``rows``: its frame's row in ``frame_ids``) in map order, as float64, and each one's frame: ``positions``
+    sorted by ``order`` (:func:`_in_map_order`), the rows read from the index's own arrays (a region's cells are a
+    few contiguous runs of them: cache-friendly, where the map-order points are spread over every frame)."""
+    at = _in_map_order(order, positions)
+    n = len(at)
+    pts = np.empty((n, 3))
+    fids = np.empty(n, np.int64)
+    for i in range(n):
+        for k in range(3):
+            pts[i, k] = np.float64(points[at[i], k])
+        fids[i] = frame_ids[rows[at[i]]]
+    return pts, fids
+
+
+# ------------------------------------------------------------------------------------------------ frame spread
+@numba.njit(cache=True, nogil=True)
+def _median(values):  # pragma: no cover - compiled
+    """``np.median`` of ``values`` (not empty): the middle value, or the mean of the two middle ones
+    (``(lo + hi) / 2.0``): selected (``np.partition``; the upper middle, then the largest below it), sorted when a
+    value is NaN (they sort last)."""
+    c = len(values)
+    k = c // 2
+    if np.isnan(values).any():
+        part = np.sort(values)
+        lo, hi = part[(c - 1) // 2], part[k]
+    else:
+        part = np.partition(values, k)
+        hi = part[k]
+        lo = hi
+        if c % 2 == 0:
+            lo = part[0]
+            for i in range(1, k):
+                lo = max(lo, part[i])
+    return lo if c % 2 == 1 else (lo + hi) / 2.0
+
+
+@numba.njit(cache=True, nogil=True)
+def group_medians(values, groups, first_id, n_ids, min_count):  # pragma: no cover - compiled
+    """The median of ``values`` per group id (``first_id .. first_id + n_ids - 1``, ascending) of the groups with at
+    least ``min_count`` members: the middle value, or the mean of the two middle ones (``(lo + hi) / 2.0``), as
+    ``np.median`` gives it. A counting sort by group, then each group's median (:func:`_median`)."""
+    counts = np.zeros(n_ids + 1, np.int64)
+    for i in range(len(groups)):
+        counts[groups[i] - first_id + 1] += 1
+    for g in range(1, n_ids + 1):
+        counts[g] += counts[g - 1]
+    fill = counts[:-1].copy()
+    by_group = np.empty(len(values))
+    for i in range(len(values)):
+        g = groups[i] - first_id
+        by_group[fill[g]] = values[i]
+        fill[g] += 1
+    out = np.empty(n_ids)
+    n_out = 0
+    for g in range(n_ids):
+        s, c = counts[g], counts[g + 1] - counts[g]
+        if c == 0 or c < min_count:
+            continue
+        out[n_out] = _median(by_group[s:s + c])
+        n_out += 1
+    return out[:n_out]
+
+
+# ------------------------------------------------------------------------------------------------ point normals
+@numba.njit(cache=True, nogil=True)
+def oriented_point_normals(voxel_normals, voxel_of, points, sensors, sensor_of):  # pragma: no cover - compiled
+    """Per point, its voxel's normal (``voxel_normals[voxel_of[i]]``, promoted to float64) turned towards its
+    sensor (``sensors[sensor_of[i]]``: negated where ``n . (sensor - p) < 0``, the dot product summed as
+    ``np.einsum("ij,ij->i", ...)`` sums three columns: the same float), and whether that normal is finite."""
+    n = len(voxel_of)
+    out = np.empty((n, 3))
+    ok = np.empty(n, np.bool_)
+    for i in range(n):
+        v, s = voxel_of[i], sensor_of[i]
+        nx, ny, nz = np.float64(voxel_normals[v, 0]), np.float64(voxel_normals[v, 1]), np.float64(voxel_normals[v, 2])
+        dx, dy, dz = sensors[s, 0] - points[i, 0], sensors[s, 1] - points[i, 1], sensors[s, 2] - points[i, 2]
+        dot = (nx * dx + nz * dz) + ny * dy  # einsum's order for three columns (the first and third, then the second)
+        if dot < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[i, 0], out[i, 1], out[i, 2] = nx, ny, nz
+        ok[i] = np.isfinite(nx) and np.isfinite(ny) and np.isfinite(nz)
+    return out, ok
