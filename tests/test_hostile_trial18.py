@@ -163,12 +163,21 @@ def test_t18_b8_a_resumes_revision_cut_off_its_segment_is_named_lost_and_the_hea
     # trial 19 W1, W4: `info` says why the head leaves frames out, and lost frames do not read as an interrupted build
     info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
     assert "stands in for revision 2" in info and "build interrupted" not in info, info
+    # trial 20 W3: merging it is refused with the way out that keeps the correction (the resume), not only a rollback
+    other = root / "b8_other"
+    _ok(run_cli("build", stores["log"], "--out", other, "--frames", "0:6", "--no-loop-closure"))
+    refusal = one_error(run_cli("merge", store, other, "--out", root / "b8_merged"))
+    assert "the stand-in for a revision lost to damage" in refusal and "build --resume" in refusal, refusal
     # trial 19 W4: a resume after the recovery stores the lost frames 35..39 again, and its note says so (it called
     # all 20 frames the stand-in leaves out "new"); the head is named as the stand-in it is
     resumed = _ok(run_cli("build", stores["log"], "--out", store, "--frames", "0:40", "--resume"))
     said = " ".join(resumed.stderr.split())
-    assert ("head was revision 2 (the stand-in for a lost revision); the 20 frames it does not place (20..39: 0 new "
-            "frames, 5 frames stored again after a loss, 15 stored frames it leaves out)") in said, said[-2000:]
+    assert "head was revision 2 (the stand-in for a lost revision, with revision 1's poses (external_file))" in said, (
+        said[-2000:])  # trial 20 W4: it said "(none), a correction"
+    assert ("the 20 frames it does not place (20..39: 0 new frames, 5 frames stored again after a loss, 15 stored "
+            "frames it leaves out)") in said, said[-2000:]
+    with FrameStore.open(store) as s:  # the carry revision takes the source of the poses it carries, not "none"
+        assert s.revisions[s.head].source.value == "external_file", s.revisions[s.head]
 
 
 def test_t18_w7_the_stand_in_for_a_lost_revision_places_its_predecessors_frames(stores: dict) -> None:

@@ -369,6 +369,8 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
     disk and invalid-pixel statistics of a store."""
     from collections import Counter
 
+    from driftmap.store.layout import MERGE_SUMMARY_FILE
+
     with open_store(store_path) as store:
         infos = [store.frame_info(int(f)) for f in store.frame_ids]
         table = Table(title=f"driftmap store {store_path}")
@@ -410,7 +412,11 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             why = ("stored after the revision it restores, or by an abandoned append" if store.head not in
                    store.loss.revision_ids else
                    f"the head stands in for revision {store.head}, whose record was lost to damage, with the frames "
-                   f"of the revision before it; a `build --resume` or a correction places them again")
+                   f"of the revision before it; " + (
+                       "on a merged store no command places them again: build each left-out session's log into a new "
+                       "store and append that (`driftmap merge STORE NEW --append`)"  # trial 20 W2
+                       if (store.path / MERGE_SUMMARY_FILE).is_file() else
+                       "a `build --resume` or a correction places them again"))
             table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: {why})")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))

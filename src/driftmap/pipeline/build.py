@@ -60,6 +60,7 @@ from driftmap.sources.base import FrameSource
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.layout import BUILD_CONFIG_FILE, BUILD_SOURCE_FILE, BUILD_SUMMARY_FILE, MANIFEST, MERGE_SUMMARY_FILE
 from driftmap.store.propagation import propagate_correction
+from driftmap.store.values import preview
 
 __all__ = [  # the names other modules and users take from here (several live in the sibling modules now)
     "BUILD_SOURCE_FILE", "DEFAULT_POSES_MAX_DT_NS", "SOURCE_OPTION_FLAGS", "BuildConfig", "BuildResult",
@@ -201,17 +202,24 @@ def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> 
     kept = np.array([int(f) in placed for f in ids])
     poses = np.array(store.poses(head))
     parent = store.ledger.revision(head)
-    made_by = parent  # the source of the carried poses: a rollback's are those of the revision it restores
-    while made_by.source is PoseSource.ROLLBACK and made_by.restores is not None:
-        made_by = store.ledger.revision(made_by.restores)
+    made_by = parent  # the source of the carried poses: a rollback's are those of the revision it restores, a
+    # stand-in's those of the revision before it (hostile trial 20 W4: the carry revision's source read "none")
+    lost = set(store.loss.revision_ids)
+    while True:
+        if made_by.source is PoseSource.ROLLBACK and made_by.restores is not None:
+            made_by = store.ledger.revision(made_by.restores)
+        elif made_by.revision_id in lost and made_by.parent_id is not None:
+            made_by = store.ledger.revision(made_by.parent_id)
+        else:
+            break
     new_ids = ids[~kept]
     # the head's world-frame correction of the neighbouring old frames, applied to the new frames' revision-0 poses
     prop_ids, prop_poses = propagate_correction(ids, store.ledger.stamps_ns, store.poses(0), ids[kept], poses[kept])
     poses[np.searchsorted(ids, prop_ids)] = prop_poses
     left_out = sorted(set(new_ids.tolist()) & existing)  # stored before this resume
     # (trial 19 W4: the note called every frame the head leaves out "new", also those stored before this resume)
-    lost = set(store.loss.frame_ids)
-    again = [f for f in new_ids.tolist() if f in lost and f not in existing]  # lost to damage, stored again now
+    lost_frames = set(store.loss.frame_ids)
+    again = [f for f in new_ids.tolist() if f in lost_frames and f not in existing]  # lost, stored again now
     parts = [f"{len(new_ids) - len(left_out) - len(again)} new frames",
              f"{len(again)} frames stored again after a loss" if again else "",
              f"{len(left_out)} stored frames it leaves out" if left_out else ""]
@@ -219,12 +227,30 @@ def _carry_head_correction(store: FrameStore, head: int, existing: set[int]) -> 
     revision = store.add_revision({int(f): poses[k] for k, f in enumerate(ids)}, source=made_by.source, parent=head,
                                   propagate=False,
                                   note=f"resume: revision {head}'s correction carried on to the {carried_to}")
-    what = ("the stand-in for a lost revision" if head in store.loss.revision_ids else
-            f"{parent.source.value}, a correction")
+    what = (f"the stand-in for a lost revision, with revision {made_by.revision_id}'s poses "
+            f"({made_by.source.value})" if head in lost else f"{parent.source.value}, a correction")
     logger.warning("resume: the store's head was revision %d (%s); the %d frames it does not place "
                    "(%d..%d: %s) would have sat at their uncorrected poses beside it, so revision %d carries that "
                    "correction on to them", head, what, len(new_ids), int(new_ids.min()),
                    int(new_ids.max()), carried_to, revision.revision_id)
+
+
+def _refuse_a_gap(src: FrameSource, existing: set[int], first_new: int) -> None:
+    """``--resume`` tracking on from the last stored frame: the first new frame must follow it as the stored frames
+    follow each other (at most twice their usual id step). A selection that jumps ahead (``--frames=-10:`` after
+    frames 0..24) made the odometry track across 25 missing frames and store the new ones 2-5.5 m off, exit 0
+    (hostile trial 20 B3)."""
+    ids = np.array(sorted(existing))
+    last = int(ids[-1])
+    step = int(np.median(np.diff(ids))) if len(ids) > 1 else 1
+    if first_new - last <= 2 * max(step, 1):
+        return
+    raise ConfigError(
+        f"{src.uri}: --resume would add frame {first_new} after frame {last}, the last stored one, skipping the "
+        f"frames between (the stored frames are {step} apart): the odometry tracks each frame from the one before "
+        f"and cannot bridge them. Nothing new was stored. Resume with a selection that holds frames {last + 1}.."
+        f"{first_new - 1} too (the stored selection's start and step, a later end), or build the later frames into "
+        f"another --out")
 
 
 STORED_POSE_TOLERANCE_M = 1e-6
@@ -278,11 +304,21 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             tick("frames", done, n_total)
             continue
         if existing and poser.source is PoseSource.ODOMETRY and frame.frame_id < last_stored:
+            if frame.frame_id in store.loss.frame_ids:  # (hostile trial 20 W1: "not stored", "the selection skipped")
+                raise ConfigError(
+                    f"{src.uri}: --resume would add frame {frame.frame_id} after frame {last_stored}, the last stored "
+                    f"one: frame {frame.frame_id} was stored and lost to damage (`driftmap recover` declared frames "
+                    f"{preview(store.loss.frame_ids)} lost). The odometry tracks forward in time from the stored frames "
+                    f"and cannot store a frame before them again; the store stays as it is (the lost frames a gap). "
+                    f"To have them, build the log into another --out; to add later frames, resume with a selection "
+                    f"that starts after frame {last_stored}")
             raise ConfigError(
                 f"{src.uri}: --resume would add frame {frame.frame_id} after frame {last_stored}, the last stored one: "
                 f"the odometry tracks forward in time from the stored frames and cannot place a frame before them "
                 f"(this --frames selection holds frames the stored selection skipped). Frame {frame.frame_id} was not stored; build "
                 f"them into another --out, or resume with a selection that starts after frame {last_stored}")
+        if existing and n_new == 0 and poser.source is PoseSource.ODOMETRY:
+            _refuse_a_gap(src, existing, frame.frame_id)
         t_b = time.perf_counter()
         T, health = poser.pose(frame)
         t_c = time.perf_counter()

@@ -372,11 +372,18 @@ def refuse_partial_head(path: Path, source: FrameStore, what: str) -> None:
         return
     out = np.setdiff1d(np.asarray(source.frame_ids, np.int64), placed)
     full = [r.revision_id for r in source.revisions if len(source.members(r.revision_id)) == len(source)]
-    raise ConfigError(f"{path}: its head (revision {source.head}, {source.ledger.revision(source.head).source.value}) "
+    stand_in = source.head in source.loss.revision_ids
+    head = ("the stand-in for a revision lost to damage" if stand_in else
+            source.ledger.revision(source.head).source.value)
+    # a stand-in's head keeps the correction of the revision before it: a resume of the store's own log places the
+    # frames left out with it, a rollback would drop it (hostile trial 20 W3)
+    resume = (f"run the `build --resume` that stored them again (it places them with the head's correction), or "
+              if stand_in and not (path / MERGE_SUMMARY_FILE).is_file() else "")
+    raise ConfigError(f"{path}: its head (revision {source.head}, {head}) "
                       f"places {len(placed)} of the {len(source)} frames it stores ({len(out)} left out, "
-                      f"{int(out.min())}..{int(out.max())}); {what} takes every stored frame of a session: roll it back "
-                      f"to a revision that places them all (`driftmap rollback {path} --to {full[-1]}`), or build the "
-                      f"frames the map should hold into a store of their own (`build --frames`)")
+                      f"{int(out.min())}..{int(out.max())}); {what} takes every stored frame of a session: {resume}roll "
+                      f"it back to a revision that places them all (`driftmap rollback {path} --to {full[-1]}`), or "
+                      f"build the frames the map should hold into a store of their own (`build --frames`)")
 
 
 def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:

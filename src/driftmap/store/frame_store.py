@@ -374,8 +374,8 @@ class FrameStore:
     def rollback(self, to: int, *, note: str = "") -> Revision:
         """A new revision whose poses equal revision ``to`` (nothing is deleted; a warning when the head already
         has those poses)."""
-        self._writable()
-        revision = self._persist(self.ledger.plan_rollback(to, note=note))
+        planned = self.ledger.plan_rollback(to, note=note)  # a bad target is refused before a segment is started
+        revision = self._persist(planned)  # (hostile trial 20 W5: each refusal left an empty segment)
         warn_about_revision(self, revision, f"{self.path}: rolling back to revision {to}")
         return revision
 

@@ -1,0 +1,84 @@
+"""Hostile trial 20's findings on resumes and rollbacks, each through the command line (docs/bad-input.md, trial 20;
+its store findings B1, B2 are in tests/test_store.py, W4 in tests/test_hostile_trial18.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from cli_run import one_error, run_cli
+
+from driftmap.store.frame_store import FrameStore
+
+
+def _ok(out):  # noqa: ANN001, ANN202 - a CompletedProcess
+    assert out.returncode == 0, (out.stdout[-2000:], out.stderr[-2000:])
+    return out
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """The trial's room (seed 3, 60 frames) and a store of its frames 0:25 (odometry, no loop closure)."""
+    root = tmp_path_factory.mktemp("trial20")
+    log = root / "room"
+    _ok(run_cli("synth", log, "--seed", 3, "--frames", 60))
+    store = root / "s25"
+    _ok(run_cli("build", log, "--out", store, "--frames", "0:25", "--threads", 1, "--no-loop-closure"))
+    return {"root": root, "log": log, "s25": store}
+
+
+def _copy(room: dict, name: str) -> Path:
+    import shutil
+
+    shutil.copytree(room["s25"], room["root"] / name)
+    return room["root"] / name
+
+
+def test_t20_b3_a_resume_that_jumps_ahead_of_the_stored_frames_is_refused(room: dict) -> None:
+    """B3: `build --resume --frames=-10:` on a store of frames 0..24 tracked across the 25 missing frames and stored
+    frames 50..59 2-5.5 m off, exit 0, naming no gap. The odometry cannot bridge it: refused, nothing stored. A
+    selection with the stored frames' own step resumes as before."""
+    store = _copy(room, "b3")
+    out = run_cli("build", room["log"], "--out", store, "--frames=-10:", "--threads", 1, "--resume",
+                  "--no-loop-closure")
+    message = one_error(out)
+    assert "would add frame 50 after frame 24" in message and "skipping the frames between" in message, message
+    assert "frames 25..49" in message, message
+    with FrameStore.open(store) as s:
+        assert len(s) == 25 and len(s.revisions) == 1
+    stepped = room["root"] / "b3_step"
+    _ok(run_cli("build", room["log"], "--out", stepped, "--frames", "0:20:4", "--threads", 1, "--no-loop-closure"))
+    _ok(run_cli("build", room["log"], "--out", stepped, "--frames", "0:40:4", "--threads", 1, "--resume",
+                "--no-loop-closure"))
+    with FrameStore.open(stepped) as s:
+        assert [int(i) for i in s.frame_ids] == list(range(0, 40, 4))
+
+
+def test_t20_w1_a_resume_over_a_frame_lost_mid_store_names_the_loss(room: dict) -> None:
+    """W1: a resume over a store that lost frame 12 to damage was refused as "frame 12 was not stored ... the
+    selection skipped it". It was stored and lost: the refusal says so and what can be done."""
+    store = _copy(room, "w1")
+    with FrameStore.open(store) as s:
+        ref = s._refs[12]
+    with open(ref.segment, "r+b") as fh:  # one bit of frame 12's points
+        fh.seek(ref.payload_offset + 64)
+        byte = fh.read(1)
+        fh.seek(ref.payload_offset + 64)
+        fh.write(bytes([byte[0] ^ 1]))
+    _ok(run_cli("recover", store))
+    message = one_error(run_cli("build", room["log"], "--out", store, "--frames", "0:40", "--threads", 1, "--resume",
+                                "--no-loop-closure"))
+    assert "frame 12 was stored and lost to damage" in message and "another --out" in message, message
+    assert "skipped" not in message, message
+
+
+def test_t20_w5_a_refused_rollback_writes_nothing(room: dict) -> None:
+    """W5: each `rollback --to 99` (no such revision) was refused but left an empty segment in the store."""
+    store = _copy(room, "w5")
+    before = json.loads((store / "store.json").read_text())["segments"]
+    for target in ("99", "-1"):
+        out = run_cli("rollback", store, "--to", target)
+        assert out.returncode != 0 and "does not exist" in " ".join((out.stdout + out.stderr).split()), out
+    assert json.loads((store / "store.json").read_text())["segments"] == before
+    assert sorted(p.name for p in store.glob("segment-*")) == [s["name"] for s in before]
