@@ -212,3 +212,15 @@ def test_t19_w3_a_resume_with_no_new_frames_places_the_frames_the_head_leaves_ou
     _ok(run_cli("export", store, "--trajectory", root / "w3.txt"))
     rows, largest, median = _steps(root / "w3.txt")
     assert rows == 60 and largest < 2 * median, (rows, largest, median)
+
+
+def test_t20_w6_diagnose_samples_only_the_frames_the_head_places(stores: dict) -> None:
+    """Hostile trial 20 W6: `diagnose` of a head that places 20 of 60 stored frames (a rollback) sampled all 60
+    ("sampling frames 60/60") and diagnosed 20. It samples the 20 it diagnoses."""
+    import json
+
+    out = _ok(run_cli("diagnose", stores["s5"], "--json", stores["root"] / "w6.json"))
+    said = " ".join(out.stderr.split())
+    assert "sampling frames" in said and "20/20" in said and "60/60" not in said, said[-2000:]
+    data = json.loads((stores["root"] / "w6.json").read_text())
+    assert data["n_frames"] == 20, {k: data[k] for k in ("n_frames", "revision") if k in data}

@@ -128,8 +128,15 @@ def run_diagnose(store: FrameStore, json_path: str | Path, *, revision: int | No
         check_ground_truth(store, gt, *ground_truth)
     t0 = time.perf_counter()
     sessions = store_sessions(store)  # a merged store: its frames session by session, the changes between them too
-    cloud = DiagnosticCloud.from_store(store, cfg.sampling,
-                                       progress=lambda stage, done, total: tick("sampling frames", done, len(store)),
+    # only the frames the diagnosed revisions place are sampled (hostile trial 20 W6: a stand-in head placing 25 of 50
+    # stored frames sampled all 50, "sampling frames 50/50"); a revision placing every frame samples them all
+    revisions = [r for r in (diagnosed, compare_revision) if r is not None]
+    sampled = None
+    if all(0 <= r <= store.head for r in revisions):  # (a revision that does not exist: diagnose_store says so)
+        placed = np.unique(np.concatenate([store.members(r) for r in revisions]))
+        sampled = None if len(placed) == len(store) else placed
+    cloud = DiagnosticCloud.from_store(store, cfg.sampling, frame_ids=sampled,
+                                       progress=lambda stage, done, total: tick("sampling frames", done, total),
                                        sessions=sessions if len(sessions) >= 2 else None)
     sampling_s = time.perf_counter() - t0
     tick("diagnosing", 0, None)
