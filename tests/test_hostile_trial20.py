@@ -44,15 +44,47 @@ def test_t20_b3_a_resume_that_jumps_ahead_of_the_stored_frames_is_refused(room: 
                   "--no-loop-closure")
     message = one_error(out)
     assert "would add frame 50 after frame 24" in message and "skipping the frames between" in message, message
-    assert "frames 25..49" in message, message
+    assert "holds frame 24 and the frames after it" in message, message
     with FrameStore.open(store) as s:
         assert len(s) == 25 and len(s.revisions) == 1
-    stepped = room["root"] / "b3_step"
-    _ok(run_cli("build", room["log"], "--out", stepped, "--frames", "0:20:4", "--threads", 1, "--no-loop-closure"))
-    _ok(run_cli("build", room["log"], "--out", stepped, "--frames", "0:40:4", "--threads", 1, "--resume",
+    # a selection that starts right after the last stored frame is tracked on
+    after = _copy(room, "b3_after")
+    _ok(run_cli("build", room["log"], "--out", after, "--frames", "25:30", "--threads", 1, "--resume",
                 "--no-loop-closure"))
-    with FrameStore.open(stepped) as s:
-        assert [int(i) for i in s.frame_ids] == list(range(0, 40, 4))
+
+
+@pytest.mark.parametrize("stored, resumed", [("0:3:3", "0:30:3"), ("0:25", "0:60:3"), ("0:20:4", "0:40:4")])
+def test_t21_b1_a_selection_holding_the_last_stored_frame_resumes_whatever_its_step(room: dict, stored: str,
+                                                                                  resumed: str) -> None:
+    """Hostile trial 21 B1, W4: the gap check (trial 20 B3) judged the jump from the last stored frame by the stored
+    frames' step, so a stepped build killed after its first frame, or a store of 0..24 resumed with step 3, could
+    never be resumed. A selection that yields the last stored frame is tracked on as an uninterrupted build is."""
+    store = room["root"] / f"b1_{stored.replace(':', '_')}"
+    _ok(run_cli("build", room["log"], "--out", store, "--frames", stored, "--threads", 1, "--no-loop-closure"))
+    _ok(run_cli("build", room["log"], "--out", store, "--frames", resumed, "--threads", 1, "--resume",
+                "--no-loop-closure"))
+    start, stop, step = (int(v) for v in resumed.split(":"))
+    with FrameStore.open(store) as s:
+        stored_ids = {int(i) for i in s.frame_ids}
+    assert set(range(start, stop, step)) <= stored_ids, sorted(stored_ids)
+
+
+def test_t21_b1_frames_lenient_skips_at_the_resume_point_do_not_stop_the_resume(room: dict) -> None:
+    """Hostile trial 21 B1 (b): frames 25..27 unreadable, a lenient build of 0:28 stores 0..24; its resume with
+    --lenient skips them again and tracks on to frame 28, as an uninterrupted lenient build does."""
+    import shutil
+
+    log = room["root"] / "room_bad"
+    shutil.copytree(room["log"], log)
+    pngs = sorted((log / "depth").glob("*.png"))
+    for png in pngs[25:28]:
+        png.write_bytes(b"garbage")
+    store = room["root"] / "lenient"
+    _ok(run_cli("build", log, "--out", store, "--frames", "0:28", "--threads", 1, "--no-loop-closure", "--lenient"))
+    _ok(run_cli("build", log, "--out", store, "--frames", "0:35", "--threads", 1, "--no-loop-closure", "--lenient",
+                "--resume"))
+    with FrameStore.open(store) as s:
+        assert [int(i) for i in s.frame_ids] == [*range(25), *range(28, 35)]
 
 
 def test_t20_w1_a_resume_over_a_frame_lost_mid_store_names_the_loss(room: dict) -> None:
