@@ -885,3 +885,30 @@ def test_a_damaged_record_of_an_intact_segment_is_corrected_and_declares_nothing
         with FrameStore.open(path) as store:
             assert not store.loss and len(store) == 12 and store.head == 1, field
         assert json.loads((path / "store.json").read_text())["segments"][1]["frames"] == [[6, 11]]
+
+
+def test_a_recovery_stopped_before_its_declaration_by_older_code_is_still_declared(
+        tmp_path: Path, synthetic_frames: list[Frame], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Hostile trial 21 B2: a recovery stopped after rewriting a segment and before declaring its loss leaves a
+    healthy segment whose record names more. With `rewritten_from_bytes` in its entry the next recovery declares the
+    loss; without it (older code left none, or the key was damaged) the segment read as never damaged and its record
+    was "corrected": frames 4, 5 lost without a word. The damaged copy kept beside the segment is evidence too."""
+    from driftmap.store import recovery
+
+    path = _six_frames_cut_in_frame_4(tmp_path / "s", synthetic_frames)
+
+    def full(self: object, *args: object) -> None:
+        raise OSError(28, "No space left on device", str(path / "segment-000001.mcap"))
+
+    monkeypatch.setattr(recovery._Recovery, "write_loss", full)
+    with pytest.raises(StoreError):
+        FrameStore.recover(path)
+    monkeypatch.undo()
+    manifest = json.loads((path / "store.json").read_text())
+    assert manifest["segments"][0].pop("rewritten_from_bytes") > 0  # as older code left it
+    (path / "store.json").write_text(json.dumps(manifest))
+    assert (path / "segment-000000.mcap.damaged").exists()
+    events = FrameStore.recover(path)
+    assert [e.loss.frame_ids for e in events if e.loss] == [(4, 5)], events
+    with FrameStore.open(path) as store:
+        assert store.loss.frame_ids == (4, 5)

@@ -193,9 +193,12 @@ class _Recovery:
             if seg.frames is None or seg.revisions is None:
                 recorded.append(None)
                 continue
-            if seg.rewritten_from is None and scan is not None:
+            kept = _damaged_copies(self.path / seg.name)
+            if seg.rewritten_from is None and scan is not None and not kept:
                 # an intact segment (never found damaged): what it holds is what it held, and a record naming more is
-                # itself damaged (a bit flip in store.json: trial 20 B2); record_held writes the true one
+                # itself damaged (a bit flip in store.json: trial 20 B2); record_held writes the true one. A segment
+                # an earlier recovery rewrote (its damaged copy kept beside it) is not: a recovery stopped before its
+                # declaration by older code, or whose rewritten_from_bytes was lost, left it so (trial 21 B2)
                 if seg.recorded_ids() != held_ids(scan):
                     logger.warning("%s: its manifest entry's record of what it holds does not match the intact "
                                    "segment (the manifest was damaged or edited); it is corrected, nothing is lost",
@@ -204,7 +207,8 @@ class _Recovery:
                 continue
             n_recorded = sum(b - a + 1 for a, b in seg.frames)
             implausible = [r for r in seg.revisions if r > last + len(beyond)]
-            size = seg.rewritten_from or 0  # what the segment was before the damage, not what survived (trial 20 B1)
+            # what the segment was before the damage, not what survived (trial 20 B1)
+            size = max([seg.rewritten_from or 0, *(_size(copy) for copy in kept)])
             if implausible or (not seg.declares_loss and n_recorded * frame_bytes > 4 * size):
                 logger.warning("%s: its manifest entry's record of what it holds does not fit the store (%s); it is "
                                "not used", self.path / seg.name,
@@ -316,11 +320,24 @@ class _Recovery:
                                          loss.only(new_frames, new_revisions)))
 
 
+def _damaged_copies(file: Path) -> list[Path]:
+    """The damaged copies recoveries kept of ``file`` (``NAME.damaged``, ``NAME.damaged.1`` ...), oldest first."""
+    copies = [p for p in file.parent.glob(file.name + DAMAGED_SUFFIX + "*") if p.is_file()]
+    return sorted(copies, key=lambda p: p.stat().st_mtime)
+
+
+def _size(file: Path) -> int:
+    try:
+        return file.stat().st_size
+    except OSError:
+        return 0
+
+
 def _cut_cause(file: Path, cut_frames: set[int], cut_revisions: set[int]) -> str:
     """Why frames and revisions are lost when ``file`` reads healthy but its manifest record names them."""
     named = [f"frames {preview(sorted(cut_frames))}" if cut_frames else "",
              f"revisions {preview(sorted(cut_revisions))}" if cut_revisions else ""]
-    copies = sorted(file.parent.glob(file.name + DAMAGED_SUFFIX + "*"), key=lambda p: p.stat().st_mtime)
+    copies = _damaged_copies(file)
     kept = f"; the damaged file an earlier recovery rewrote is kept as {copies[-1].name}" if copies else ""
     return (f"{file.name}: its manifest entry records {' and '.join(n for n in named if n)}, which it no longer holds "
             f"(cut off its end or damaged{kept})")
