@@ -391,7 +391,8 @@ def _given_poses_row(check: dict | None) -> str:
         return (f"NO: the {check['n_decisive']} frame pairs fit a sensor mounted turned by "
                 f"{mounting['angle_deg']:.1f} deg{but}")
     scale = check.get("step_scale") or {}
-    if scale.get("explains") and (2 * check["n_disagreeing"] < max(check["n_decisive"], 6) or scale.get("named")):
+    if (scale.get("explains") and 0.2 < scale["factor"] < 5.0  # (beyond: a unit mistake, named in the warning)
+            and (2 * check["n_disagreeing"] < max(check["n_decisive"], 6) or scale.get("named"))):
         return (f"NO: the {scale['n_pairs']} frame pairs' steps are {scale['factor']:.2f} times the file's (a depth "
                 f"scale?){but}")
     return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree{but}"

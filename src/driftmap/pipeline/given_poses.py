@@ -438,6 +438,11 @@ class GivenPosesCheck:
                     f"each pair alone stays within the registration's inlier distance, but every frame is turned about "
                     f"its own origin, so a surface seen from two places lands apart by about their distance times "
                     f"that angle. {advice}")
+        if (factor := self.unit_factor) is not None:
+            return (f"{what}: the poses do not move the way the frames do: the file's steps are {factor:.3g} times the "
+                    f"frames' own (median over the frame pairs), while they turn alike: are its positions in another "
+                    f"unit (millimetres: 1000, centimetres: 100)? driftmap reads metres. "
+                    + (then or "The frames are stored with these poses; give the file in metres"))
         scale = self.scale
         if scale is not None and (scale.named or (not self.pairs_disagree and scale.explains)):
             alone = "" if self.pairs_disagree else "; each pair alone stays within the registration's inlier distance"
@@ -449,11 +454,6 @@ class GivenPosesCheck:
                     f"metre), or are the file's positions in another unit? "
                     + (then or "The frames are stored with these poses and points; build again with the right scale "
                                 "or pose file"))
-        if (factor := self.unit_factor) is not None:
-            return (f"{what}: the poses do not move the way the frames do: the file's steps are {factor:.3g} times the "
-                    f"frames' own (median over the frame pairs), while they turn alike: are its positions in another "
-                    f"unit (millimetres: 1000, centimetres: 100)? driftmap reads metres. "
-                    + (then or "The frames are stored with these poses; give the file in metres"))
         bad = [p for p in self.pairs if p.disagrees]
         together = ""
         if mounting is not None and mounting.explains and mounting.residual_after_m <= (
