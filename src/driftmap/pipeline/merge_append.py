@@ -241,14 +241,20 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
             row = existing[uuid]
             k = int(row["session"])
             ids = np.asarray(store.frame_ids, np.int64)
-            if not np.isin(ids[ids // SESSION_ID_STRIDE == k], store.members()).any():  # undone by a rollback
+            mine = ids[ids // SESSION_ID_STRIDE == k]
+            if not np.isin(mine, store.members()).any():  # undone by a rollback, or lost to damage
                 why = (f"a rollback or the loss of revisions {preview(store.loss.revision_ids)} to damage "
                        f"(`driftmap recover`)" if store.loss.revision_ids else "a rollback")
+                placing = [r.revision_id for r in store.revisions if r.revision_id not in store.loss.revision_ids
+                           and len(mine) and np.isin(mine, store.members(r.revision_id)).any()]
+                # (hostile trial 21 W7: with every frame of the session lost, no rollback brings it back)
+                kept = (f"its frames stay stored in the revisions that place them (`driftmap rollback {merged} --to "
+                        f"{placing[-1]}` brings one back)" if placing else
+                        f"no revision places its {len(mine)} stored frames any more" if len(mine) else
+                        "every frame of it was lost to damage")
                 raise ConfigError(f"{p}: was session {k} of {merged} (store uuid {uuid}), which {why} left out of "
-                                  f"the head (revision {store.head}); its frames stay stored in the revisions that "
-                                  f"place them (`driftmap rollback {merged} --to R` brings one back), and a store is "
-                                  f"appended once: to append the session anew, build its log into a new store and "
-                                  f"append that")
+                                  f"the head (revision {store.head}); {kept}, and a store is appended once: to append "
+                                  f"the session anew, build its log into a new store and append that")
             raise ConfigError(f"{p}: is already session {row['session']} of {merged} (store uuid {uuid}, merged from "
                               f"{row['store']}); a session is appended once")
         if uuid in uuids:
