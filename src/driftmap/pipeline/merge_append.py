@@ -246,6 +246,7 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
                 why = (f"a rollback or the loss of revisions {preview(store.loss.revision_ids)} to damage "
                        f"(`driftmap recover`)" if store.loss.revision_ids else "a rollback")
                 placing = [r.revision_id for r in store.revisions if r.revision_id not in store.loss.revision_ids
+                           and r.revision_id != 0  # (each session in its own world frame: not the merged map)
                            and len(mine) and np.isin(mine, store.members(r.revision_id)).any()]
                 # (hostile trial 21 W7: with every frame of the session lost, no rollback brings it back)
                 kept = (f"its frames stay stored in the revisions that place them (`driftmap rollback {merged} --to "
