@@ -313,26 +313,35 @@ def unknown_in_cylinders(sat, origin, shape, samples, lo, hi, vs, radius2):  # p
 
 # ------------------------------------------------------------------------------------------------ voxel means
 @numba.njit(cache=True, nogil=True)
+def _packed_cells(points, cell_m):  # pragma: no cover - compiled
+    """The points' cubes of ``cell_m`` on the world lattice (floor of coordinate / size): the smallest cell and the
+    dims of their bounding box, and each point's cell packed into it (x slowest). At least one point."""
+    n = len(points)
+    cells = np.empty((n, 3), np.int64)
+    for i in range(n):
+        for k in range(3):
+            cells[i, k] = np.int64(np.floor(points[i, k] / cell_m))
+    base = np.empty(3, np.int64)
+    dims = np.empty(3, np.int64)
+    for k in range(3):
+        lo, hi = cells[0, k], cells[0, k]
+        for i in range(1, n):
+            lo = min(lo, cells[i, k])
+            hi = max(hi, cells[i, k])
+        base[k], dims[k] = lo, hi - lo + 1
+    packed = np.empty(n, np.int64)
+    for i in range(n):
+        packed[i] = ((cells[i, 0] - base[0]) * dims[1] + (cells[i, 1] - base[1])) * dims[2] + (cells[i, 2] - base[2])
+    return base, dims, packed
+
+
+@numba.njit(cache=True, nogil=True)
 def voxel_cells(pts, voxel_m, dense_per_point):  # pragma: no cover - compiled
     """The mean point of every occupied ``voxel_m`` voxel of the world lattice (ordered by lattice cell, x slowest),
     each point's voxel and each voxel's lattice cell, as ``decisions.voxel_normals.voxel_cells`` computes them: the
     sums in point order (``np.bincount``'s), then divided by the count."""
     n = len(pts)
-    keys = np.empty((n, 3), np.int64)
-    for i in range(n):
-        for k in range(3):
-            keys[i, k] = np.int64(np.floor(pts[i, k] / voxel_m))
-    base = np.empty(3, np.int64)
-    dims = np.empty(3, np.int64)
-    for k in range(3):
-        lo, hi = keys[0, k], keys[0, k]
-        for i in range(1, n):
-            lo = min(lo, keys[i, k])
-            hi = max(hi, keys[i, k])
-        base[k], dims[k] = lo, hi - lo + 1
-    packed = np.empty(n, np.int64)
-    for i in range(n):
-        packed[i] = ((keys[i, 0] - base[0]) * dims[1] + (keys[i, 1] - base[1])) * dims[2] + (keys[i, 2] - base[2])
+    base, dims, packed = _packed_cells(pts, voxel_m)
     inv = np.empty(n, np.int64)
     if dims[0] * dims[1] * dims[2] <= dense_per_point * n:
         rank = np.zeros(dims[0] * dims[1] * dims[2], np.int64)
@@ -422,22 +431,9 @@ def _cell_table(points, cell_m):  # pragma: no cover - compiled
     """The points binned into cubes of ``cell_m`` (a dense table over their bounding box): per cell (packed x
     slowest), where its points start in ``order`` (and the end, last); the smallest cell and the table's dims."""
     n = len(points)
-    base = np.empty(3, np.int64)
-    dims = np.empty(3, np.int64)
-    cells = np.empty((n, 3), np.int64)
-    for i in range(n):
-        for k in range(3):
-            cells[i, k] = np.int64(np.floor(points[i, k] / cell_m))
-    for k in range(3):
-        lo, hi = cells[0, k], cells[0, k]
-        for i in range(1, n):
-            lo = min(lo, cells[i, k])
-            hi = max(hi, cells[i, k])
-        base[k], dims[k] = lo, hi - lo + 1
+    base, dims, packed = _packed_cells(points, cell_m)
     starts = np.zeros(dims[0] * dims[1] * dims[2] + 1, np.int64)
-    packed = np.empty(n, np.int64)
     for i in range(n):
-        packed[i] = ((cells[i, 0] - base[0]) * dims[1] + cells[i, 1] - base[1]) * dims[2] + cells[i, 2] - base[2]
         starts[packed[i] + 1] += 1
     for c in range(1, len(starts)):
         starts[c] += starts[c - 1]
