@@ -470,3 +470,36 @@ def test_a_merged_store_whose_merge_revision_is_lost_says_its_sessions_are_not_m
     assert "shows session 1 at its own poses" in " ".join(out.stderr.split()), out.stderr[-2000:]
     clean = run_cli("info", merged["out"])
     assert "sessions not merged" not in " ".join(clean.stdout.replace("\u2502", " ").split())
+    # hostile trial 21 W6: no warning where it does not apply (one session, revision 0 which is unmerged by design)
+    for args in (("--session", "1"), ("--revision", "0")):
+        out = run_cli("export", store, "--trajectory", tmp_path / f"t{args[0]}.tum", *args)
+        assert out.returncode == 0 and "own poses" not in out.stderr, (args, out.stderr[-2000:])
+    # ... the robot's input says it: decide's representation names the sessions, the decisions on their frames are
+    # labelled (a clearance query at session 1's and at session 0's camera positions, the map's free space)
+    with FrameStore.open(store) as s:
+        ids, P = s.frame_ids, s.poses()
+    one, zero = P[ids >= SESSION_ID_STRIDE][::20, :3, 3], P[ids < SESSION_ID_STRIDE][::20, :3, 3]
+    queries = {"queries": [{"id": f"c{k}", "kind": "clearance", "points_m": p.tolist(), "radius_m": 0.05}
+                           for k, p in enumerate([one, zero])]
+               + [{"id": "e", "kind": "explore", "min_m": (one.min(0) - 1).tolist(), "max_m": (one.max(0) + 1).tolist(),
+                   "max_unknown_fraction": 0.9}]}
+    (tmp_path / "q.json").write_text(json.dumps(queries))
+    out = run_cli("decide", store, "--queries", tmp_path / "q.json", "--json", tmp_path / "d.json")
+    assert out.returncode == 0 and "shows session 1 at its own poses" in " ".join(out.stderr.split()), out.stderr[-2000:]
+    record = json.loads((tmp_path / "d.json").read_text())
+    assert record["representation"]["sessions_not_merged"] == [1], record["representation"]
+    assert "shows session 1 at its own poses" in record["representation"]["warnings"][0]
+    labelled = {d["id"]: d["failure_label"] for d in record["decisions"]
+                if any(f >= SESSION_ID_STRIDE for f in d["frames"])}
+    # a decision that fails for a reason of its own keeps that label (unknown_space, collision, ...); every other
+    # one made on session 1's frames is labelled
+    assert labelled.get("c0") == "sessions_not_merged" and None not in labelled.values(), record["decisions"]
+    unlabelled = [d for d in record["decisions"] if not any(f >= SESSION_ID_STRIDE for f in d["frames"])]
+    assert all(d["failure_label"] != "sessions_not_merged" for d in unlabelled), unlabelled
+    ok = run_cli("decide", merged["out"], "--queries", tmp_path / "q.json", "--json", tmp_path / "clean.json")
+    clean_record = json.loads((tmp_path / "clean.json").read_text())
+    assert ok.returncode == 0 and clean_record["representation"]["sessions_not_merged"] == []
+    assert "sessions_not_merged" not in {d["failure_label"] for d in clean_record["decisions"]}
+    # ... and `merge --append` refuses to build on that head (it appended with the sessions left unaligned)
+    line = one_error(run_cli("merge", store, merged["out"].parent / "B", "--append"))
+    assert "an append would build on that head" in line and "shows session 1 at its own poses" in line, line

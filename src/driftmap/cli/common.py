@@ -287,7 +287,8 @@ def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
     """Open a store for a command, printing what opening recovered. ``reads_map``: the command reads a revision's map
     (export, diagnose, decide, view): a store whose merge append was interrupted is refused, since its frames stored
     so far sit in every revision's map at their unmerged poses (hostile trial 16 B2); `info` shows it, running the
-    append again finishes it."""
+    append again finishes it. A revision that shows sessions unmerged because damage took the merge revision is
+    warned about by :func:`warn_unmerged`, once the command knows which revision it reads."""
     from driftmap.errors import ConfigError
     from driftmap.store.frame_store import FrameStore
 
@@ -302,16 +303,24 @@ def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
 
         if (unfinished := interrupted_build(store)) is not None:  # readable as it is, but not what a build finishes
             err_console.print(Text.assemble(("warning:", "yellow"), f" {path}: {unfinished}"), highlight=False)
-        if store.loss.revision_ids:
-            from driftmap.pipeline.merge import sessions_left_unmerged
-
-            if (unmerged := sessions_left_unmerged(store)) is not None:
-                err_console.print(Text.assemble(("warning:", "yellow"), f" {path}: {unmerged}"), highlight=False)
     for event in store.recovery_events:
         err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)
     if store.loss:
         err_console.print(Text.assemble(("recovered earlier:", "yellow"), f" {store.loss}"), highlight=False)
     return store
+
+
+def warn_unmerged(store, revisions, *, session: int | None = None) -> None:
+    """Warn when a revision the command reads shows sessions at their own, unmerged poses because damage took the
+    merge revision (hostile trials 19 W6, 21 W6); not when it reads one session (``--session``) or revision 0,
+    which shows the sessions unmerged by design."""
+    if session is not None or not store.loss.revision_ids:
+        return
+    from driftmap.store.unmerged import unmerged_sessions
+
+    for rev in dict.fromkeys(revisions):
+        if (found := unmerged_sessions(store, rev)) is not None:
+            err_console.print(Text.assemble(("warning:", "yellow"), f" {store.path}: {found}"), highlight=False)
 
 
 _OS_HINTS = {

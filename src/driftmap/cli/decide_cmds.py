@@ -22,6 +22,7 @@ from driftmap.cli.common import (
     refuse_existing,
     refuse_same_output,
     stage_ticker,
+    warn_unmerged,
 )
 
 FIGURE = "decisions.png"
@@ -101,6 +102,7 @@ def decide(
     with open_store(store_path, reads_map=True) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
         _precheck(store, query_set, volume, revisions, decide_config)
+        warn_unmerged(store, revisions)
         if diagnosis is not None:
             _check_diagnosis_frames(store, diagnosis)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
@@ -315,6 +317,7 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                 raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
+            warn_unmerged(other, [other_rev])
             _check_same_log(store, other, against, same_log, rev, other_rev)
             a = decide(store, query_set, rev, volume, decide_config=decide_config, double_walls=walls(store, rev),
                        progress=tick)

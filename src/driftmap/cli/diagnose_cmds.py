@@ -27,6 +27,7 @@ from driftmap.cli.common import (
     refuse_output_on_input,
     refuse_same_output,
     stage_ticker,
+    warn_unmerged,
     writing_output,
 )
 
@@ -78,6 +79,8 @@ def diagnose(
         for rev, flag in ((revision, "--revision"), (compare_revision, "--compare-revision")):
             if rev is not None and not 0 <= rev <= store.head:  # before the first diagnosis, not after it
                 raise ConfigError(f"{flag} {rev}: {store_path} has revisions 0..{store.head}")
+        warn_unmerged(store, [store.head if revision is None else revision]
+                      + ([] if compare_revision is None else [compare_revision]))
         tick = stage_ticker(progress)
 
         run = run_diagnose(store, json_path, revision=revision, gt=gt, gt_format=gt_format, report_dir=report,
@@ -240,6 +243,7 @@ def view(
     check_output(out, "--out", folder=True)
 
     with open_store(store_path, reads_map=True) as store:
+        warn_unmerged(store, [store.head if revision is None else revision])
         with console.status(f"preparing the {color} view of {store_path}"), writing_output(out, "--out"):
             result = view_store(store, revision=revision, color=color, out_dir=out, voxel_size_m=voxel_size_m,
                                 headless=headless, backend=backend, reference_revision=reference,

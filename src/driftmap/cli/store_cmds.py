@@ -24,6 +24,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     refuse_same_output,
+    warn_unmerged,
 )
 
 
@@ -212,6 +213,7 @@ def export(
     with open_store(store_path, reads_map=True) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
+        warn_unmerged(store, [rev], session=session)
         if session is not None:
             from driftmap.pipeline.merge import session_frame_ids
 

@@ -8,6 +8,7 @@ Every query is checked before the first is answered: its fields when the file is
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
@@ -25,6 +26,7 @@ from driftmap.decisions.records import Decision, DecisionSet, Representation
 from driftmap.decisions.settings import DecideConfig, settings_hash
 from driftmap.decisions.voxel_normals import voxel_normals
 from driftmap.decisions.walls import double_walls_of
+from driftmap.store.unmerged import unmerged_sessions
 from driftmap.store.values import as_int
 from driftmap.volume.grid import BLOCK_RESOLUTION
 
@@ -32,6 +34,8 @@ if TYPE_CHECKING:
     from driftmap.config import VolumeConfig
     from driftmap.store.frame_store import FrameStore
     from driftmap.volume.layers import VolumeLayers
+
+logger = logging.getLogger(__name__)
 
 ProgressCallback = Callable[[str, int, int | None], None]
 
@@ -196,11 +200,19 @@ def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: Decid
         decisions.append(Decision(q.id, q.kind, latency_s=time.perf_counter() - t, **fields))
         tick("decide", n + 1, len(qs))
     rev = layers.revision
+    unmerged = unmerged_sessions(store, rev)
+    if unmerged is not None:  # the map lays those sessions over session 0's misaligned: a decision on them is not one
+        logger.warning("%s: %s", store.path, unmerged)
+        for d in decisions:
+            if d.failure_label is None and unmerged.frame_mask(np.asarray(d.frames, dtype=np.int64)).any():
+                d.failure_label = "sessions_not_merged"
     representation = Representation(
         store=str(store.path), revision=int(rev), settings_hash=settings_hash(layers.config, cfg),
         driftmap_version=__version__, store_uuid=_store_uuid(store), n_frames=len(store),
         settings={"volume": layers.config.model_dump(mode="json"), "decide": cfg.model_dump(mode="json")},
-        query_file=None if qs.source == "<memory>" else qs.source)
+        query_file=None if qs.source == "<memory>" else qs.source,
+        sessions_not_merged=[] if unmerged is None else list(unmerged.sessions),
+        warnings=[] if unmerged is None else [str(unmerged)])
     placed = store.ledger.member_rows(rev)  # the frames the revision places
     return DecisionSet(representation, decisions, qs, np.asarray(store.frame_ids, dtype=np.int64)[placed],
                        np.asarray(store.poses(rev))[placed], walls,

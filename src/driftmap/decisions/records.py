@@ -30,11 +30,16 @@ class Representation:
     n_frames: int = 0
     settings: dict = field(default_factory=dict)
     query_file: str | None = None
+    sessions_not_merged: list[int] = field(default_factory=list)
+    """sessions the revision shows at their own, unmerged poses because damage took the merge revision (hostile
+    trial 21 W6); the decisions whose frames include theirs carry the failure label ``sessions_not_merged``"""
+    warnings: list[str] = field(default_factory=list)
 
     def to_json(self) -> dict:
         return {"store": self.store, "revision": int(self.revision), "settings_hash": self.settings_hash,
                 "driftmap_version": self.driftmap_version, "store_uuid": self.store_uuid, "n_frames": int(self.n_frames),
-                "query_file": self.query_file, "settings": self.settings}
+                "query_file": self.query_file, "settings": self.settings,
+                "sessions_not_merged": [int(k) for k in self.sessions_not_merged], "warnings": list(self.warnings)}
 
 
 @dataclass

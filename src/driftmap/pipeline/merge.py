@@ -62,10 +62,11 @@ from driftmap.registration.loops import Keyframe, LoopClosureConfig, select_keyf
 from driftmap.registration.odometry import OdometryConfig
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.guards import refuse_inside_store
-from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE
+from driftmap.store.layout import BUILD_SOURCE_FILE, MERGE_SUMMARY_FILE, SESSION_ID_STRIDE
 from driftmap.store.lock import writer_alive
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
+from driftmap.store.unmerged import unmerged_sessions
 from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frames
 
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
@@ -75,9 +76,6 @@ __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SE
 
 logger = logging.getLogger(__name__)
 
-SESSION_ID_STRIDE = 1_000_000_000
-"""A merged store's frame id is ``session * SESSION_ID_STRIDE + the source frame id`` (session 1's frame 500 is
-1000000500): ids stay unique, sorted in session order, and the source id readable; source ids must be below it."""
 MERGE_URI_SCHEME = "driftmap-merge"
 """The scheme of a merged frame's ``provenance.source_uri`` (:func:`frame_origin`)."""
 
@@ -126,42 +124,12 @@ def store_sessions(store: FrameStore) -> dict[int, list[int]]:
     return sessions
 
 
-def sessions_left_unmerged(store: FrameStore) -> str | None:
-    """What a merged store whose merge revision (or an append's) was lost to damage shows, and what to do (hostile
-    trial 19 W6); None when no merge revision is lost or the head places every session by a surviving one.
-
-    The stand-in for a lost revision holds the poses of the revision before it, and a merged store's revision 0
-    holds each session in its own world frame: a head that takes them shows session ``k`` at its own origin, its map
-    laid over session 0's without alignment (2.1 m apart in the trial), and ``diagnose`` reads the seams as
-    misaligned regions. The sessions named are those, other than 0, whose every frame in the head sits at its
-    revision-0 pose."""
-    lost = set(store.loss.revision_ids)
-    summary_file = store.path / MERGE_SUMMARY_FILE
-    if not lost or not summary_file.is_file():
-        return None
-    try:
-        summary = json.loads(summary_file.read_text())
-        appends = summary.get("appends", []) if isinstance(summary, dict) else []
-        merges = {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
-    except (OSError, ValueError, TypeError):
-        merges = {1}  # revision 1 is the merge's own, whatever the summary says
-    lost_merges = sorted(merges & lost)
-    if not lost_merges:
-        return None
-    ids = store.frame_ids
-    placed = np.isin(ids, store.members())
-    at_own = placed & np.all(store.poses() == store.poses(0), axis=(1, 2))
-    session = ids // SESSION_ID_STRIDE
-    unmerged = [int(k) for k in np.unique(session[placed]) if k != 0 and at_own[session == k].sum() == placed[
-        session == k].sum()]
-    if not unmerged:
-        return None
-    return (f"revision {', '.join(map(str, lost_merges))}, the merge that placed the sessions in one world frame, was lost to "
-            f"damage: the head (revision {store.head}) shows session {', '.join(map(str, unmerged))} at "
-            f"{'its' if len(unmerged) == 1 else 'their'} own poses (revision 0, each session in its own world frame), "
-            f"not aligned with session 0, so the map lays them over each other misaligned. Export one session at a "
-            f"time (export --trajectory --session K), or merge the session stores again into a new store "
-            f"({MERGE_SUMMARY_FILE} names them)")
+def sessions_left_unmerged(store: FrameStore, revision: int | None = None) -> str | None:
+    """What a merged store whose merge revision (or an append's) was lost to damage shows in ``revision`` (default:
+    the head), and what to do (hostile trial 19 W6); None when it shows every session merged. See
+    :func:`driftmap.store.unmerged.unmerged_sessions`."""
+    found = unmerged_sessions(store, revision)
+    return None if found is None else str(found)
 
 
 def session_frame_ids(store: FrameStore, session: int) -> list[int]:

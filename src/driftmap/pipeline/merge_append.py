@@ -73,6 +73,7 @@ from driftmap.registration.place import scan_context_distance, yaw_guess
 from driftmap.store.frame_store import FrameStore
 from driftmap.store.manifest import read_manifest
 from driftmap.store.propagation import propagate_correction
+from driftmap.store.unmerged import unmerged_sessions
 from driftmap.store.values import preview
 
 __all__ = ["APPEND_MOVE_TOLERANCE_DEG", "APPEND_MOVE_TOLERANCE_M", "PENDING_KEY", "AppendResult",
@@ -221,6 +222,10 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
     if not store_sessions(store):
         raise ConfigError(f"{merged}: has {MERGE_SUMMARY_FILE} but its frames are not merged frames; --append needs a "
                           f"store `driftmap merge` made")
+    if (unmerged := unmerged_sessions(store)) is not None:  # hostile trial 21 W6: it appended onto that head
+        raise ConfigError(f"{merged}: {unmerged}; an append would build on that head and leave the session"
+                          f"{'s' if len(unmerged.sessions) > 1 else ''} unaligned. Merge the session stores again "
+                          f"into a new store, then append to that")
     own = str(read_manifest(merged)["store_uuid"])
     existing = {str(s["store_uuid"]): s for s in summary["sessions"] if s.get("connected")}
     first = store.frame(int(store.frame_ids[0]))

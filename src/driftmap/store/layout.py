@@ -32,6 +32,9 @@ BUILD_SUMMARY_FILE = "build_summary.json"
 """what ``build`` found: frames, tracking health, the odometry's settings, loops, timings"""
 MERGE_SUMMARY_FILE = "merge_summary.json"
 """what ``merge`` found: the sessions, their origins, the loops between them, the merge revision"""
+SESSION_ID_STRIDE = 1_000_000_000
+"""A merged store's frame id is ``session * SESSION_ID_STRIDE + the source frame id`` (session 1's frame 500 is
+1000000500): ids stay unique, sorted in session order, and the source id readable; source ids must be below it."""
 
 
 def segment_name(index: int) -> str:

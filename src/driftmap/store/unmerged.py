@@ -1,0 +1,83 @@
+"""A merged store whose merge revision was lost to damage: which sessions a revision shows at their own, unmerged
+poses (hostile trials 19 W6 and 21 W6).
+
+A merged store's revision 0 holds each session in its own world frame; the merge revision (1, and each append's)
+places them in session 0's. When damage takes a merge revision, the stand-in that keeps its place holds the poses of
+the revision before it, so every revision on top of it shows session ``k`` at its own origin: its map laid over
+session 0's without alignment (2.1 m apart in trial 19), which ``diagnose`` reads as misaligned seams and
+``decide`` as obstacles where there are none. Revision 0 itself shows the sessions unmerged by design and is not
+reported. The store layer answers the question so that every reader (export, diagnose, decide, merge --append) asks
+the same one."""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from driftmap.store.layout import MERGE_SUMMARY_FILE, SESSION_ID_STRIDE
+
+if TYPE_CHECKING:
+    from driftmap.store.frame_store import FrameStore
+
+__all__ = ["UnmergedSessions", "unmerged_sessions"]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class UnmergedSessions:
+    """``sessions`` (never 0) that ``revision`` shows at their revision-0 poses because the merge revisions
+    ``lost_merges`` were lost to damage."""
+
+    revision: int
+    lost_merges: tuple[int, ...]
+    sessions: tuple[int, ...]
+
+    def frame_mask(self, frame_ids: np.ndarray) -> np.ndarray:
+        """Which of ``frame_ids`` belong to the unmerged sessions."""
+        return np.isin(np.asarray(frame_ids, dtype=np.int64) // SESSION_ID_STRIDE, self.sessions)
+
+    def __str__(self) -> str:
+        which = ", ".join(map(str, self.sessions))
+        return (f"revision {', '.join(map(str, self.lost_merges))}, the merge that placed the sessions in one world "
+                f"frame, was lost to damage: revision {self.revision} shows session {which} at "
+                f"{'its' if len(self.sessions) == 1 else 'their'} own poses (revision 0, each session in its own world "
+                f"frame), not aligned with session 0, so the map lays them over each other misaligned. Export one "
+                f"session at a time (export --trajectory --session K), or merge the session stores again into a new "
+                f"store ({MERGE_SUMMARY_FILE} names them)")
+
+
+def _merge_revisions(store: FrameStore) -> set[int]:
+    """Revision 1 (the merge's own) and each recorded append's revision."""
+    try:
+        summary = json.loads((store.path / MERGE_SUMMARY_FILE).read_text())
+        appends = summary.get("appends", []) if isinstance(summary, dict) else []
+        return {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
+    except (OSError, ValueError, TypeError, KeyError):
+        logger.warning("%s: %s is unreadable; taking revision 1 as the only merge revision", store.path,
+                       MERGE_SUMMARY_FILE)
+        return {1}  # revision 1 is the merge's own, whatever the summary says
+
+
+def unmerged_sessions(store: FrameStore, revision: int | None = None) -> UnmergedSessions | None:
+    """The sessions other than 0 whose every frame ``revision`` (default: the head) places sits at its revision-0
+    pose, on a merged store that lost a merge revision to damage; None when none does, when no merge revision was
+    lost, or for revision 0 (unmerged by design)."""
+    rev = store.head if revision is None else int(revision)
+    lost = set(store.loss.revision_ids)
+    if rev == 0 or not lost or not (store.path / MERGE_SUMMARY_FILE).is_file():
+        return None
+    lost_merges = sorted(_merge_revisions(store) & lost)
+    if not lost_merges:
+        return None
+    ids = np.asarray(store.frame_ids, dtype=np.int64)
+    placed = np.isin(ids, store.members(rev))
+    at_own = placed & np.all(store.poses(rev) == store.poses(0), axis=(1, 2))
+    session = ids // SESSION_ID_STRIDE
+    unmerged = tuple(int(k) for k in np.unique(session[placed])
+                     if k != 0 and at_own[session == k].sum() == placed[session == k].sum())
+    return UnmergedSessions(rev, tuple(lost_merges), unmerged) if unmerged else None
