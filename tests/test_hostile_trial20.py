@@ -114,3 +114,36 @@ def test_t20_w5_a_refused_rollback_writes_nothing(room: dict) -> None:
         assert out.returncode != 0 and "does not exist" in " ".join((out.stdout + out.stderr).split()), out
     assert json.loads((store / "store.json").read_text())["segments"] == before
     assert sorted(p.name for p in store.glob("segment-*")) == [s["name"] for s in before]
+
+
+def test_t21_w5_a_comparison_across_revisions_placing_other_frames_says_so_and_keeps_its_cannot_judge(
+        room: dict, tmp_path: Path) -> None:
+    """Trial 21 W5: `diagnose --compare-revision 0` on a stand-in head placing 25 of 49 frames printed revision 0's
+    smearing score with no qualifier (a before / after of 2.40 -> 0.00 mm) although revision 0 was measured over
+    other frames and could not be judged either; the JSON's comparison held neither. Now the row and the JSON carry
+    the compared revision's verdict and frame count, and say when the frames differ."""
+    store = _copy(room, "t21w5")
+    _ok(run_cli("correct", store, "--poses", room["log"] / "groundtruth.txt", "--source", "ground_truth"))
+    _ok(run_cli("build", room["log"], "--out", store, "--frames", "0:50", "--threads", 1, "--resume",
+                "--no-loop-closure"))
+    with FrameStore.open(store) as s:
+        head, ref = s.head, s._refs[int(s.frame_ids[-1])]
+        assert len(s.members()) == 50
+    with open(ref.segment, "r+b") as fh:  # inside the last frame: it and the resume's revision after it cut off
+        fh.truncate(ref.payload_offset + 100)
+    _ok(run_cli("recover", store))
+    with FrameStore.open(store) as s:
+        assert head in s.loss.revision_ids and len(s.members()) == 25 and len(s.members(0)) == 49
+    out = _ok(run_cli("diagnose", store, "--json", tmp_path / "d.json", "--compare-revision", 0))
+    data = json.loads((tmp_path / "d.json").read_text())
+    cmp = data["comparison"]
+    assert data["n_frames"] == 25 and cmp["n_frames"] == 49 and cmp["same_frames"] is False, cmp
+    assert {"valid", "reasons", "smearing_score_valid"} <= set(cmp), cmp
+    text = " ".join(out.stdout.replace("\u2502", " ").split())
+    row = text.split("smearing score, revision 0")[1]
+    assert "over the 49 frames revision 0 places" in row and "not a before / after of one map" in row, row
+    assert ("cannot judge" in row.split(";")[0]) == (cmp["smearing_score_valid"] is False), (row, cmp)
+    # revisions placing the same frames (the stand-in and revision 1): no note, the same frames
+    out = _ok(run_cli("diagnose", store, "--json", tmp_path / "e.json", "--compare-revision", 1))
+    assert json.loads((tmp_path / "e.json").read_text())["comparison"]["same_frames"] is True
+    assert "not a before / after" not in " ".join(out.stdout.split())

@@ -120,8 +120,15 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
     if result.trajectory is not None:
         tr = result.trajectory
         rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
-    if other is not None:
-        rows.append((f"smearing score, revision {other.revision}", f"{1000 * other.smearing_score_m:.2f} mm"))
+    if other is not None:  # with its own coverage verdict, and the frames it is over when they differ (trial 21 W5)
+        cmp = data["comparison"]
+        value = f"{1000 * other.smearing_score_m:.2f} mm"
+        if cmp["smearing_score_valid"] is False:
+            value = f"cannot judge ({value})"
+        if not cmp["same_frames"]:
+            value += (f"; over the {cmp['n_frames']} frames revision {other.revision} places, revision "
+                      f"{result.revision}'s over its {data['n_frames']}: not a before / after of one map")
+        rows.append((f"smearing score, revision {other.revision}", value))
     if result.verification is not None:
         ver = data["double_wall"]["verified"]
         rows.append(("regions confirmed (Open3D)", f"{ver['regions_confirmed']} / {ver['regions_checked']}; "

@@ -222,6 +222,15 @@ def diagnosis_json(result: Diagnosis, other: Diagnosis | None = None) -> dict[st
     """The JSON document of ``driftmap diagnose --json``: the diagnosis and, with ``other``, its ``comparison``."""
     data = result.to_json()
     if other is not None:
-        data["comparison"] = {"revision": other.revision, "smearing_score_m": other.to_json()["smearing_score_m"],
-                              "fraction_flagged": other.double_walls.fraction_flagged}
+        mine, theirs = result.attribution.frame_ids, other.attribution.frame_ids
+        other_json = other.to_json()
+        smear = None if other.coverage is None else other.coverage.measures["smearing_score"]
+        # hostile trial 21 W5: the comparison carried neither its coverage verdict nor its frames, and a revision
+        # placing other frames read as a before / after of the same map
+        data["comparison"] = {"revision": other.revision, "smearing_score_m": other_json["smearing_score_m"],
+                              "fraction_flagged": other.double_walls.fraction_flagged,
+                              "n_frames": other_json["n_frames"], "valid": other_json["valid"],
+                              "reasons": other_json["reasons"],
+                              "smearing_score_valid": None if smear is None else bool(smear["valid"]),
+                              "same_frames": bool(np.array_equal(np.sort(mine), np.sort(theirs)))}
     return data
