@@ -454,3 +454,23 @@ def test_t18_b8_an_appends_revision_cut_off_its_segment_is_named_lost_and_its_se
     # trial 20 W2: `info` pointed to `build --resume` or a correction, which a merged store refuses
     info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
     assert "on a merged store no command places them again" in info and "build --resume" not in info, info
+    lost = N - N // 2  # trial 21 W7: the session's row said "N frames from ..." and not what was lost
+    assert f"session 2 {N // 2} frames from" in info and f"{lost} more lost to damage" in info, info
+
+
+def test_t21_w7_a_session_that_lost_every_frame_keeps_its_row_and_is_named(appended: dict, tmp_path: Path) -> None:
+    """Hostile trial 21 W7: the appended session's segment cut before its first frame: `info` dropped session 2's row
+    (only the lost ids hinted at it) and `export --session 2` answered "holds sessions 0, 1"; with every session
+    gone it answered "not a merged store". Both now name the loss."""
+    store = tmp_path / "gone"
+    shutil.copytree(appended["store"], store)
+    with FrameStore.open(store) as s:
+        ref = s._refs[min(f for f in s._refs if f // SESSION_ID_STRIDE == 2)]
+    with open(ref.segment, "r+b") as fh:
+        fh.truncate(ref.payload_offset + 100)
+    _ok(run_cli("recover", store))
+    info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
+    assert f"session 2 no frame left: all {N} lost to damage" in info and "/C" in info.split("session 2")[1], info
+    line = one_error(run_cli("export", store, "--trajectory", tmp_path / "t.tum", "--session", 2))
+    assert f"every frame of session 2 of {store} ({N}) was lost to damage" in line, line
+    assert "it holds sessions 0, 1" in line, line

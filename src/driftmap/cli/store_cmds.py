@@ -388,14 +388,23 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         table.add_row("frame ids", f"{int(store.frame_ids[0])} .. {int(store.frame_ids[-1])}" if infos else "-")
         from driftmap.pipeline.merge import frame_origin
 
+        from driftmap.pipeline.merge import lost_per_session, recorded_session_stores
+
         origins = [frame_origin(i.get("provenance")) for i in infos]
-        if infos and all(o is not None for o in origins):  # a merged store: one row per session
-            for k in sorted({o.session for o in origins}):  # type: ignore[union-attr]
+        lost = lost_per_session(store)  # hostile trial 21 W7: a session's lost frames, or all of them, went unsaid
+        if all(o is not None for o in origins) and (infos or lost):  # a merged store: one row per session
+            recorded = recorded_session_stores(store) if lost else {}
+            for k in sorted({o.session for o in origins} | set(lost)):  # type: ignore[union-attr]
                 mine = [o for o in origins if o.session == k]  # type: ignore[union-attr]
                 span = [i["stamp_ns"] for i, o in zip(infos, origins) if o.session == k]  # type: ignore[union-attr]
+                gone = (f"; {lost[k]} more lost to damage (driftmap recover declared them)" if k in lost else "")
+                if not mine:
+                    table.add_row(f"session {k}", f"no frame left: all {lost[k]} lost to damage (driftmap recover "
+                                                  f"declared them); it came from {recorded.get(k, 'a store the merge summary does not name')}")
+                    continue
                 table.add_row(f"session {k}", f"{len(mine)} frames from {mine[0].store} (revision {mine[0].revision}); "
                               f"stamps {min(span) / 1e9:.3f} .. {max(span) / 1e9:.3f} s "
-                              f"({(max(span) - min(span)) / 1e9:.2f} s)")
+                              f"({(max(span) - min(span)) / 1e9:.2f} s){gone}")
         from driftmap.pipeline.merge_append import interrupted_append
 
         unfinished = interrupted_append(store.path, store.head)

@@ -72,7 +72,7 @@ from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frame
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
            "MergeResult", "SessionReport", "copy_frames", "frame_origin", "keyframe_range", "merge_stores",
            "odometry_config", "record_graph_verdicts", "session_frame_ids", "session_keyframes", "session_of",
-           "sessions_left_unmerged", "store_sessions"]
+           "lost_per_session", "recorded_session_stores", "sessions_left_unmerged", "store_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -136,12 +136,38 @@ def session_frame_ids(store: FrameStore, session: int) -> list[int]:
     """The frame ids of ``session`` in a merged store; :class:`ConfigError` naming the store when it is not a merged
     one or has no such session (``export --session``)."""
     sessions = store_sessions(store)
+    lost = lost_per_session(store)
+    if session not in sessions and session in lost:  # hostile trial 21 W7: "not a merged store" after the loss
+        raise ConfigError(f"--session {session}: every frame of session {session} of {store.path} ({lost[session]}) "
+                          f"was lost to damage (`driftmap recover` declared them; `driftmap info` lists the loss); "
+                          + (f"it holds sessions {', '.join(map(str, sorted(sessions)))}" if sessions else
+                             "it holds no frames"))
     if not sessions:
         raise ConfigError(f"--session {session}: {store.path} is not a merged store (driftmap merge makes one): it "
                           f"has no sessions")
     if session not in sessions:
         raise ConfigError(f"--session {session}: {store.path} holds sessions {', '.join(map(str, sorted(sessions)))}")
     return sessions[session]
+
+
+def lost_per_session(store: FrameStore) -> dict[int, int]:
+    """How many frames of each session of a merged store were lost to damage (``driftmap recover`` declared them);
+    ``{}`` for a store no merge made or one that lost none."""
+    if not store.loss.frame_ids or not (store.path / MERGE_SUMMARY_FILE).is_file():
+        return {}
+    k, n = np.unique(np.asarray(store.loss.frame_ids, dtype=np.int64) // SESSION_ID_STRIDE, return_counts=True)
+    return {int(a): int(b) for a, b in zip(k, n, strict=True)}
+
+
+def recorded_session_stores(store: FrameStore) -> dict[int, str]:
+    """The source store of each session as the merge summary records it (``{}`` when it cannot be read): what
+    names a session none of whose frames is left."""
+    try:
+        summary = json.loads((store.path / MERGE_SUMMARY_FILE).read_text())
+        rows = summary.get("sessions", []) if isinstance(summary, dict) else []
+        return {int(r["session"]): str(r["store"]) for r in rows if isinstance(r, dict) and "session" in r}
+    except (OSError, ValueError, TypeError, KeyError):
+        return {}
 
 
 def session_of(frame_id: int) -> tuple[int, int]:
