@@ -147,3 +147,31 @@ def test_t21_w5_a_comparison_across_revisions_placing_other_frames_says_so_and_k
     out = _ok(run_cli("diagnose", store, "--json", tmp_path / "e.json", "--compare-revision", 1))
     assert json.loads((tmp_path / "e.json").read_text())["comparison"]["same_frames"] is True
     assert "not a before / after" not in " ".join(out.stdout.split())
+
+
+def test_t21_w8_a_recovery_stopped_before_recording_its_rewrite_is_finished_with_the_true_cause(
+        room: dict, tmp_path: Path) -> None:
+    """Trial 21 W8: a recovery killed after replacing a truncated segment by its rewrite, before writing the
+    manifest: the next one rewrote it again and recorded "size differs from the manifest" as the cause for good. It
+    now finishes that rewrite, names the damaged copy's truncation, and declares the same loss as an uninterrupted
+    recovery."""
+    import shutil
+
+    whole = _copy(room, "t21w8_whole")
+    segment = whole / "segment-000000.mcap"
+    cut = segment.stat().st_size // 2
+    stopped = tmp_path / "stopped"
+    shutil.copytree(whole, stopped)  # the state the kill leaves: the original manifest, the rewrite, the damaged copy
+    with open(segment, "r+b") as fh:
+        fh.truncate(cut)
+    shutil.copy2(segment, stopped / "segment-000000.mcap.damaged")
+    first = " ".join(_ok(run_cli("recover", whole)).stdout.split())
+    assert "truncated" in first, first
+    shutil.copy2(segment, stopped / "segment-000000.mcap")
+    out = " ".join(_ok(run_cli("recover", stopped)).stdout.split())
+    assert "rewritten by an earlier recovery that stopped before recording it" in out, out
+    assert "size differs from the manifest" not in out and "truncated" in out, out
+    with FrameStore.open(whole) as a, FrameStore.open(stopped) as b:
+        assert a.loss.frame_ids == b.loss.frame_ids and a.loss.revision_ids == b.loss.revision_ids
+        assert len(a.loss.frame_ids) > 0 and list(a.frame_ids) == list(b.frame_ids)
+        assert "size differs" not in str(b.loss), str(b.loss)

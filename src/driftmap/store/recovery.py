@@ -169,7 +169,12 @@ class _Recovery:
         if not healthy:
             if seg.rewritten_from is None:  # (an unfinished recovery's, kept: the size before the damage it found)
                 seg.rewritten_from = seg.bytes if seg.bytes is not None else scan.size
-            scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
+            copies = _damaged_copies(file)
+            if (copies and seg.state == "closed" and scan.complete and not scan.problem and not scan.damaged_chunks
+                    and not twice and not unreadable):
+                self.finish_rewrite(seg, scan, copies[-1])
+            else:
+                scan = self.rewrite_segment(index, seg, scan, twice, unreadable)
         # compared with the records once every segment is checked, and the records updated only once the loss is
         # declared: a recovery stopped in between (disk full) leaves the old records, so the next one still finds
         # what was cut off
@@ -261,6 +266,22 @@ class _Recovery:
         self.events.append(RecoveryEvent(seg.name, f"rewritten (damaged original kept as {damaged.name})",
                                          len(scan.frames), len(scan.revisions), tail + scan.damaged_bytes, detail))
         return scan_segment(file, verify=False)  # the frames now live in the rewritten file
+
+    def finish_rewrite(self, seg: SegmentEntry, scan: SegmentScan, copy: Path) -> None:
+        """A segment that reads clean but not at its manifest size, beside a damaged copy: a recovery stopped
+        between replacing it by its rewrite and writing the manifest. The rewrite stands (rewriting it again would
+        name "size differs from the manifest" as the cause, hostile trial 21 W8); the cause is the damaged copy's."""
+        copy_scan = scan_segment(copy, verify=True, stop_on_error=False)
+        detail = _damage_detail(copy_scan, [], [], False)
+        if detail == "size differs from the manifest":
+            detail = f"damaged (kept as {copy.name})"
+        seg.bytes = scan.size
+        self.write_manifest()
+        self.damage.append(f"{seg.name}: {detail}")
+        self.damaged_segments.add(seg.name)
+        self.events.append(RecoveryEvent(seg.name, f"rewritten by an earlier recovery that stopped before recording "
+                                                   f"it (damaged original kept as {copy.name})",
+                                         len(scan.frames), len(scan.revisions), 0, detail))
 
     def forget_missing_segments(self) -> None:
         """Take the missing segments off the manifest (recorded as ``lost_segments``)."""
