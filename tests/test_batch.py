@@ -31,7 +31,7 @@ from driftmap.fleet import (
     synth_fleet,
 )
 from driftmap.fleet.config import CONFIG_FILE, config_hash
-from driftmap.fleet.folders import RESULT_FILE, TMP_DIR, completed_result
+from driftmap.fleet.folders import BATCH_LOCK, RESULT_FILE, TMP_DIR, completed_result
 from driftmap.fleet.report import rank_worst_first
 from driftmap.pipeline.build import BuildConfig, build
 from driftmap.pipeline.diagnose import run_diagnose
@@ -401,3 +401,31 @@ def test_cli_resume_redoes_a_log_replaced_in_place(config_file: Path, tmp_path: 
     status = {r["name"]: (r["status"], r["frames"]) for r in json.loads((out / "fleet.json").read_text())["logs"]}
     assert status == {"room-a": ("ok", 8), "room-b": ("skipped", 10)}
     assert (out / "room-b" / RESULT_FILE).stat().st_mtime_ns == kept
+
+
+def test_cli_a_second_batch_into_a_folder_a_batch_is_writing_is_refused(batch, fleet_logs: Path, config_file: Path,
+                                                                        tmp_path: Path) -> None:
+    """Two batches into one --out: the second's --resume took the first's logs in progress (DIR/.fleet-tmp) for an
+    interrupted batch's and removed them. The running batch holds DIR/.fleet-batch.lock; a second is refused, naming
+    the process, and touches nothing; once the lock is free, --resume goes on."""
+    import fcntl
+    import shutil
+
+    out = tmp_path / "out"
+    shutil.copytree(batch[0].out_dir, out)
+    in_progress = out / TMP_DIR / "room-00.0a1b2c3d"
+    in_progress.mkdir(parents=True)
+    (in_progress / "partial").write_text("a log being written")
+    with open(out / BATCH_LOCK, "a+") as held:  # the running batch
+        fcntl.flock(held.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+        held.seek(0)
+        held.truncate()
+        held.write("424242\n")
+        held.flush()
+        line = _one_line_error(_cli("batch", fleet_logs / "room-01", "--out", out, "--resume", "--config",
+                                    config_file))
+        assert "another driftmap batch (process 424242) is writing into it" in line, line
+        assert (in_progress / "partial").is_file()
+    ran = _cli("batch", fleet_logs / "room-01", "--out", out, "--resume", "--config", config_file)
+    assert ran.returncode == 0, ran.stderr
+    assert not in_progress.exists()  # the lock was free: what was left is an interrupted batch's

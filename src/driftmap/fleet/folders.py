@@ -18,6 +18,7 @@ records the log's row, the hash of the config it was made with and the fingerpri
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import hashlib
 import json
 import logging
@@ -26,14 +27,14 @@ import secrets
 import shutil
 from collections.abc import Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from driftmap._version import __version__
 from driftmap.errors import ConfigError
 from driftmap.files import fsync_dir
 
-__all__ = ["FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "damage",
-           "input_fingerprint", "prepare_out_dir", "publish", "temp_folder"]
+__all__ = ["BATCH_LOCK", "FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "damage",
+           "input_fingerprint", "prepare_out_dir", "publish", "release_batch_lock", "temp_folder"]
 
 logger = logging.getLogger(__name__)
 
@@ -43,13 +44,18 @@ RESULT_FILE = "result.json"
 TMP_DIR = ".fleet-tmp"
 LOG_FILES = ("store", "diagnosis.json", RESULT_FILE)
 """What a complete log folder holds at least."""
+BATCH_LOCK = ".fleet-batch.lock"
+"""flock'ed by the batch writing into the folder (its pid inside): a second batch is refused"""
 
 
-def prepare_out_dir(out_dir: Path, resume: bool) -> None:
+def prepare_out_dir(out_dir: Path, resume: bool) -> IO[str]:
     """Make ``out_dir`` a batch's folder: new or empty, or an earlier batch's with ``resume``; partial logs of an
-    interrupted batch are removed. Anything else is refused (:class:`ConfigError`) before it is touched."""
+    interrupted batch are removed. Anything else is refused (:class:`ConfigError`) before it is touched, and so is a
+    folder another batch is writing into (its partial logs would be taken for an interrupted batch's and removed).
+    Returns the batch lock (``DIR/.fleet-batch.lock``, flock'ed), held until :func:`release_batch_lock`."""
     if out_dir.exists() and not out_dir.is_dir():
         raise ConfigError(f"--out {out_dir}: is a file, but a batch writes a folder")
+    _refuse_a_running_batch(out_dir)
     earlier = (out_dir / MARKER).is_file()
     if out_dir.is_dir() and any(out_dir.iterdir()) and not earlier:
         raise ConfigError(f"--out {out_dir}: exists, is not empty and holds no batch ({MARKER}); choose another --out")
@@ -57,8 +63,61 @@ def prepare_out_dir(out_dir: Path, resume: bool) -> None:
         raise ConfigError(f"--out {out_dir}: holds an earlier batch; pass --resume to continue it (complete logs made "
                           f"with the same config are kept), or choose another --out")
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / MARKER).write_text(json.dumps({"format": "driftmap-fleet", "driftmap": __version__}) + "\n")
-    clean_temp(out_dir)
+    lock = _take_batch_lock(out_dir)
+    try:
+        (out_dir / MARKER).write_text(json.dumps({"format": "driftmap-fleet", "driftmap": __version__}) + "\n")
+        clean_temp(out_dir)
+    except BaseException:
+        release_batch_lock(lock)
+        raise
+    return lock
+
+
+def _running_batch_message(out_dir: Path, lock: Path) -> str:
+    try:
+        pid = (lock.read_text().split() or ["?"])[-1]
+    except OSError:
+        pid = "?"
+    return (f"--out {out_dir}: another driftmap batch (process {pid}) is writing into it; wait for it to finish (then "
+            f"--resume continues it), or choose another --out")
+
+
+def _refuse_a_running_batch(out_dir: Path) -> None:
+    """:class:`ConfigError` when a live batch holds the lock of ``out_dir`` (checked without write access)."""
+    lock = out_dir / BATCH_LOCK
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except OSError:
+        return  # no lock file: no batch ever ran there, or it cannot be read (the write below says so)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError:
+        raise ConfigError(_running_batch_message(out_dir, lock)) from None
+    finally:
+        os.close(fd)
+
+
+def _take_batch_lock(out_dir: Path) -> IO[str]:
+    lock = out_dir / BATCH_LOCK
+    fh = open(lock, "a+")  # noqa: SIM115  (held open until release_batch_lock)
+    try:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        fh.close()
+        raise ConfigError(_running_batch_message(out_dir, lock)) from None
+    fh.seek(0)
+    fh.truncate()
+    fh.write(f"{os.getpid()}\n")
+    fh.flush()
+    return fh
+
+
+def release_batch_lock(fh: IO[str]) -> None:
+    """Release the lock :func:`prepare_out_dir` took (the file stays: a later batch takes it again)."""
+    with contextlib.suppress(OSError):
+        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    with contextlib.suppress(OSError):
+        fh.close()
 
 
 def clean_temp(out_dir: Path) -> list[str]:

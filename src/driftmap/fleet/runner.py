@@ -31,7 +31,13 @@ from typing import Any
 
 from driftmap.errors import ConfigError, DriftmapError
 from driftmap.fleet.config import BatchConfig, config_hash
-from driftmap.fleet.folders import clean_temp, completed_result, input_fingerprint, prepare_out_dir
+from driftmap.fleet.folders import (
+    clean_temp,
+    completed_result,
+    input_fingerprint,
+    prepare_out_dir,
+    release_batch_lock,
+)
 from driftmap.fleet.inputs import LogSpec
 from driftmap.fleet.reaper import (
     adopt_orphans,
@@ -327,7 +333,17 @@ def run_batch(specs: Sequence[LogSpec], out_dir: str | Path, config: BatchConfig
     if len(set(names)) != len(names):
         raise ConfigError("two logs of the batch have one name; give each its own (--name in a list file)")
     fresh = not out_dir.exists()
-    prepare_out_dir(out_dir, resume)
+    lock = prepare_out_dir(out_dir, resume)
+    try:
+        return _run_locked(specs, out_dir, config, workers, ray_address, resume, progress, hook, ray, names, fresh, t0)
+    finally:
+        release_batch_lock(lock)
+
+
+def _run_locked(specs: Sequence[LogSpec], out_dir: Path, config: BatchConfig, workers: int | None,
+                ray_address: str | None, resume: bool, progress: ProgressCallback | None, hook: LogHook | None,
+                ray: Any, names: list[str], fresh: bool, t0: float) -> FleetResult:
+    """:func:`run_batch` with ``out_dir`` prepared and its batch lock held."""
     config_file = config.write_tables(out_dir)
     rows = _skipped_rows(specs, config, out_dir) if resume else {}
     todo = [s for s in specs if s.name not in rows]
