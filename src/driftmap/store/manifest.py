@@ -96,6 +96,9 @@ def _contents_ok(seg: dict[str, Any]) -> bool:
         return False
     total = sum(b - a + 1 for a, b in frames)
     size = seg.get("bytes")
+    before = seg.get("rewritten_from_bytes")  # a segment found damaged: its record is of what it held before
+    if isinstance(size, int) and isinstance(before, int) and not isinstance(before, bool) and before > size:
+        size = before  # (hostile trial 22 B1: a rewrite that shrank it made its own record "malformed")
     # a record the segment's bytes cannot hold (hostile trial 19 B2, B4, W5: ranges of millions of frames)
     # (a data_lost segment lists each id it declares in its event: at least 2 bytes each)
     per_frame, per_revision = (2, 2) if seg.get("declares_loss") is True else (MIN_FRAME_RECORD_BYTES,
