@@ -65,3 +65,51 @@ def test_t22_b1_a_recovery_stopped_after_its_rewrite_was_recorded_declares_the_l
         assert a.loss.revision_ids == b.loss.revision_ids == (2,)
     text = " ".join(_ok(run_cli("rollback", stopped, "--to", 0)).stdout.split())
     assert "revision 3" in text and "revision 2:" not in text, text
+
+
+def test_t22_b4_a_resume_across_a_gap_in_its_selection_keeps_the_scale_check(room: dict, tmp_path: Path) -> None:
+    """B4: `build --resume --frames=-10:` with a pose file scaled 0.769x, after frames 0:25 stored with it (which read
+    "NO: ... 1.30 times the file's"), read "given poses fit the frames: yes": the pair 24 -> 50 across the gap drove the
+    fitted factor negative. No pair spans a gap in the selection now, and the scale is still named."""
+    scaled = tmp_path / "scaled.txt"
+    with scaled.open("w") as out:
+        for line in (room["log"] / "groundtruth.txt").read_text().splitlines():
+            if line.startswith("#") or not line.strip():
+                out.write(line + "\n")
+                continue
+            v = line.split()
+            v[1:4] = [repr(float(x) * 0.769) for x in v[1:4]]
+            out.write(" ".join(v) + "\n")
+    store = tmp_path / "G2"
+    _ok(run_cli("build", room["log"], "--out", store, "--frames", "0:25", "--poses", scaled, "--threads", 1,
+                "--no-loop-closure"))
+    out = _ok(run_cli("build", room["log"], "--out", store, "--frames=-10:", "--poses", scaled, "--threads", 1,
+                      "--no-loop-closure", "--resume"))
+    check = json.loads((store / "build_summary.json").read_text())["given_poses_check"]
+    assert check["consistent"] is False and 1.2 < check["step_scale"]["factor"] < 1.4, check
+    pairs = [(p["frame_a"], p["frame_b"]) for p in check["pairs"]]
+    assert not any(a < 25 <= 50 <= b for a, b in pairs), pairs
+    assert "times the file's (a depth scale?)" in " ".join(out.stdout.replace("\u2502", " ").split())
+
+
+@pytest.mark.parametrize("where", ["chunk boundary", "file start"])
+def test_t22_b3_one_zeroed_disk_block_loses_only_the_chunks_it_hits(room: dict, tmp_path: Path, where: str) -> None:
+    """B3: one zeroed 4 KB block across a chunk boundary lost 21 frames and revision 2 although only 2 of 28 chunks
+    were damaged; the same block over the file's first bytes (magic, header, the first chunk's start) lost all 25
+    frames. The scan now goes on at the next chunk whose framing and CRC check, taking the channels the lost chunk
+    registered from the summary: only the frames of the chunks the block hit are lost."""
+    from driftmap.store.segment_scan import scan_segment
+
+    name, _ = _last_frames_segment(room["C"])
+    store = tmp_path / "zeroed"
+    shutil.copytree(room["C"], store)
+    payloads = sorted(ref.payload_offset for ref in scan_segment(store / name).frames)
+    # from 3000 bytes before a frame's points: the end of the chunk before it and the start of its own
+    start = 0 if where == "file start" else payloads[len(payloads) // 2] - 3000
+    with open(store / name, "r+b") as fh:
+        fh.seek(start)
+        fh.write(b"\0" * 4096)
+    _ok(run_cli("recover", store))
+    with FrameStore.open(store) as s:
+        assert 1 <= len(s.loss.frame_ids) <= 2 and 2 not in s.loss.revision_ids, s.loss
+        assert len(s) + len(s.loss.frame_ids) == 50

@@ -84,10 +84,12 @@ def scan_segment(path: Path, *, verify: bool = True, stop_on_error: bool = True)
         buf = memoryview(mm)
         try:
             scan.size = min(size, len(buf))
+            section = _DataSection(buf, scan, verify, stop_on_error)
             if bytes(buf[:8]) != MCAP_MAGIC:
-                scan.problem, scan.problem_offset = "not an MCAP file (bad magic)", 0
-                return scan
-            _DataSection(buf, scan, verify, stop_on_error).walk()
+                if not section.skip_damage(0, "not an MCAP file (bad magic)"):
+                    scan.problem, scan.problem_offset = "not an MCAP file (bad magic)", 0
+                    return scan
+            section.walk()
         finally:
             buf.release()
     finally:
@@ -105,34 +107,85 @@ class _DataSection:
         # the message index records a chunk's messages must have next: channel id -> ((log time, offset), ...);
         # None: not checked (after a damaged chunk)
         self.expected_index: dict[int, tuple[tuple[int, int], ...]] | None = {}
+        self.resume_at = 8  # where the walk goes on (after the magic, or after skipped damage)
 
     def walk(self) -> None:
-        """Read every record up to the end of data (or the first problem, recorded in the scan)."""
+        """Read every record up to the end of data (or the first problem, recorded in the scan). With
+        ``stop_on_error=False`` a problem inside the data section is skipped to the next intact chunk when one
+        follows (:meth:`skip_damage`)."""
         buf, scan, size = self.buf, self.scan, self.scan.size
-        pos = 8
-        scan.valid_bytes = pos
+        pos = self.resume_at
+        scan.valid_bytes = max(scan.valid_bytes, 8)
         while pos < size:
+            problem = None
             if pos + 9 > size:
-                scan.problem, scan.problem_offset = "truncated record header", pos
-                return
-            opcode = buf[pos]
-            (length,) = struct.unpack_from("<Q", buf, pos + 1)
-            end = pos + 9 + length
-            if end > size:
-                scan.problem, scan.problem_offset = f"truncated record (opcode 0x{opcode:02x}, {length} bytes)", pos
-                return
-            if opcode in (Opcode.DATA_END, Opcode.CHUNK) and self.expected_index:
-                scan.problem, scan.problem_offset = "the message index of the chunk before is missing", pos
-                return
-            if opcode == Opcode.DATA_END:
-                self.data_end(pos, length, end)
-                return
-            problem = self.record(opcode, pos, end)
+                problem = "truncated record header"
+            else:
+                opcode = buf[pos]
+                (length,) = struct.unpack_from("<Q", buf, pos + 1)
+                end = pos + 9 + length
+                if end > size:
+                    problem = f"truncated record (opcode 0x{opcode:02x}, {length} bytes)"
+                elif opcode in (Opcode.DATA_END, Opcode.CHUNK) and self.expected_index:
+                    problem = "the message index of the chunk before is missing"
+                elif opcode == Opcode.DATA_END:
+                    self.data_end(pos, length, end)
+                    return
+                else:
+                    problem = self.record(opcode, pos, end)
             if problem is not None:
+                if self.skip_damage(pos, problem):
+                    pos = self.resume_at
+                    continue
                 scan.problem, scan.problem_offset = problem, pos
                 return
             pos = end
             scan.valid_bytes = pos
+
+    def skip_damage(self, pos: int, problem: str) -> bool:
+        """With ``stop_on_error=False`` and ``verify``: the damage at ``pos`` is recorded as a damaged region and the
+        walk goes on at the next chunk after it whose CRC and framing check (hostile trial 22 B3: one zeroed 4 KB
+        block across a chunk boundary, or over the file's first bytes, lost every intact chunk after it). False when
+        no intact chunk follows (a truncated tail stays the scan's problem)."""
+        if self.stop_on_error or not self.verify:
+            return False
+        nxt = self.next_intact_chunk(pos + 1)
+        if nxt is None:
+            return False
+        for channel_id, topic in _summary_channels(self.buf, self.scan.size).items():  # those the damage took
+            self.channels.setdefault(channel_id, topic)
+        logger.warning("%s: skipping damaged bytes %d..%d (%s) to the next intact chunk", self.scan.path, pos, nxt,
+                       problem)
+        self.scan.damaged_chunks.append((pos, problem))
+        self.scan.damaged_bytes += nxt - pos
+        self.expected_index = None
+        self.resume_at = nxt
+        return True
+
+    def next_intact_chunk(self, start: int) -> int | None:
+        """The offset of the first chunk record at or after ``start`` whose framing and CRC check, or None. Candidates
+        are the chunk opcode bytes whose record fits the file and whose fields add up to its length; only those are
+        read in full."""
+        buf, size, raw = self.buf, self.scan.size, self.buf.obj
+        at = start
+        while True:
+            q = raw.find(bytes([Opcode.CHUNK]), at, size)
+            if q < 0 or q + 9 + 40 > size:
+                return None
+            at = q + 1
+            (length,) = struct.unpack_from("<Q", buf, q + 1)
+            end = q + 9 + length
+            if length < 40 or end > size:
+                continue
+            (n_compression,) = struct.unpack_from("<I", buf, q + 9 + 28)
+            if n_compression > 16 or q + 9 + 32 + n_compression + 8 > end:
+                continue
+            (n_records,) = struct.unpack_from("<Q", buf, q + 9 + 32 + n_compression)
+            if 32 + n_compression + 8 + n_records != length:
+                continue
+            content = scan_chunk(buf, q + 9, end, self.scan.path, dict(self.channels), True)
+            if not isinstance(content, str):
+                return q
 
     def data_end(self, pos: int, length: int, end: int) -> None:
         scan = self.scan
@@ -223,6 +276,35 @@ def _summary_problem(buf: memoryview, size: int, data_end: int, chunk_offsets: l
         return (f"the summary lists {len(listed)} chunks, the data section holds {len(chunk_offsets)} "
                 f"(first difference at offset {at})"), at
     return None
+
+
+def _summary_channels(buf: memoryview, size: int) -> dict[int, str]:
+    """The channels (id -> topic) a closed segment's summary lists, when its footer and CRC check; ``{}`` otherwise.
+    A chunk registers a channel where it is first used: after damage that took that chunk, the summary still names
+    the topics of the intact chunks' messages."""
+    footer = size - len(MCAP_MAGIC) - (1 + 8 + 20)
+    try:
+        if footer < 8 or bytes(buf[size - len(MCAP_MAGIC):]) != MCAP_MAGIC or buf[footer] != Opcode.FOOTER:
+            return {}
+        summary_start, _offsets_start, summary_crc = struct.unpack_from("<QQI", buf, footer + 9)
+        if not 8 <= summary_start < footer or summary_crc == 0 or zlib.crc32(
+                buf[summary_start : footer + 9 + 16]) != summary_crc:
+            return {}
+        channels: dict[int, str] = {}
+        pos = summary_start
+        while pos + 9 <= footer:
+            opcode = buf[pos]
+            (length,) = struct.unpack_from("<Q", buf, pos + 1)
+            if pos + 9 + length > footer:
+                return {}
+            if opcode == Opcode.CHANNEL and length >= 8:
+                channel_id, _schema_id, n = struct.unpack_from("<HHI", buf, pos + 9)
+                if 8 + n <= length:
+                    channels[channel_id] = bytes(buf[pos + 17 : pos + 17 + n]).decode()
+            pos += 9 + length
+        return channels
+    except (struct.error, UnicodeDecodeError, ValueError):
+        return {}
 
 
 def read_store_uuid(path: Path) -> str | None:
