@@ -58,3 +58,26 @@ def test_a_negative_or_weak_factor_is_never_reported() -> None:
     assert negative is not None and negative.factor < 0 and not negative.explains, negative
     weak = step_scale(_pairs(0.8, rng, noise_m=0.03))
     assert weak is not None and (weak.residual_after_m > 0.6 * weak.residual_before_m) <= (not weak.explains), weak
+
+
+def test_one_wild_pair_does_not_drive_the_factor_negative() -> None:
+    """Trial 22 B4: a resume across a gap in its selection paired frames 24 and 50 (1.5 m and a half turn apart,
+    registered 1.7 m off). A least-squares start read -0.06 and the 1.3x scale of the other seven went unreported;
+    the start is the median of the pairs' own factors now, and the wild pair is left out of the fit."""
+    rng = np.random.default_rng(3)
+    pairs = _pairs(1.3, rng)
+    wild = pairs[5]
+    step = np.array([1.2, -0.9, 0.2])
+    pairs[5] = GivenPosePair(wild.frame_a, wild.frame_b, float(np.linalg.norm(step)), 174.5, 0.95, 0.97, 1.68, 178.0,
+                             0.05, (*step, *wild.motion_file[3:]), (*(-0.3 * step), *wild.motion_file[3:]))
+    scale = step_scale(pairs)
+    assert scale is not None and scale.n_pairs == 7 and abs(scale.factor - 1.3) < 0.05 and scale.explains, scale
+
+
+def test_a_lidars_scale_names_no_depth_scale() -> None:
+    """Trial 22 W3: a LiDAR's scaled pose file was told to mind --depth-scale, which a LiDAR source refuses."""
+    rng = np.random.default_rng(4)
+    lidar = GivenPosesCheck(0.05, tuple(_pairs(1.3, rng)), 2.0, (), "lidar").reason("the file") or ""
+    depth = GivenPosesCheck(0.05, tuple(_pairs(1.3, rng)), 2.0).reason("the file") or ""
+    assert "times the file's" in lidar and "--depth-scale" not in lidar and "another unit" in lidar, lidar
+    assert "--depth-scale" in depth, depth

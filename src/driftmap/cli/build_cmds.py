@@ -393,8 +393,8 @@ def _given_poses_row(check: dict | None) -> str:
     scale = check.get("step_scale") or {}
     if (scale.get("explains") and 0.2 < scale["factor"] < 5.0  # (beyond: a unit mistake, named in the warning)
             and (2 * check["n_disagreeing"] < max(check["n_decisive"], 6) or scale.get("named"))):
-        return (f"NO: the {scale['n_pairs']} frame pairs' steps are {scale['factor']:.2f} times the file's (a depth "
-                f"scale?){but}")
+        why = "a depth scale?" if check.get("sensor_kind", "depth_camera") == "depth_camera" else "a unit or scale?"
+        return f"NO: the {scale['n_pairs']} frame pairs' steps are {scale['factor']:.2f} times the file's ({why}){but}"
     return f"NO: {check['n_disagreeing']} of {check['n_decisive']} frame pairs disagree{but}"
 
 
