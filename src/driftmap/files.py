@@ -10,13 +10,18 @@ from __future__ import annotations
 
 import contextlib
 import errno as errno_codes
+import fcntl
+import logging
 import os
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
+from typing import IO
 
 from driftmap.errors import DuplicateKeyError, OutputWriteError
 
+
+logger = logging.getLogger(__name__)
 
 MAX_NAME_IN_TEMP = 200
 """The temporary file's name repeats at most this much of the output's name (names are limited to 255 bytes)."""
@@ -30,6 +35,36 @@ def fsync_dir(folder: Path) -> None:
             os.fsync(fd)
         finally:
             os.close(fd)
+
+
+def flock_held(lock: Path) -> bool:
+    """True if some process holds an exclusive ``flock`` on the file ``lock`` (a store's writer lock, a batch's
+    lock). Needs no write access: the file is opened read-only, and one that is missing or cannot be opened means
+    no holder is known."""
+    try:
+        fd = os.open(lock, os.O_RDONLY)
+    except FileNotFoundError:
+        return False
+    except OSError as exc:
+        logger.debug("%s: cannot open the lock to see whether it is held (%s)", lock, exc)
+        return False
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno in (errno_codes.EAGAIN, errno_codes.EACCES)
+    else:
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return False
+    finally:
+        os.close(fd)
+
+
+def flock_release(fh: IO[str]) -> None:
+    """Release a lock file held open with ``flock`` (errors are ignored: the lock goes with the file)."""
+    with contextlib.suppress(OSError):
+        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+    with contextlib.suppress(OSError):
+        fh.close()
 
 
 @contextlib.contextmanager

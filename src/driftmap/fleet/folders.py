@@ -31,7 +31,7 @@ from typing import IO, Any
 
 from driftmap._version import __version__
 from driftmap.errors import ConfigError
-from driftmap.files import fsync_dir
+from driftmap.files import flock_held, flock_release, fsync_dir
 
 __all__ = ["BATCH_LOCK", "FLEET_JSON", "MARKER", "RESULT_FILE", "TMP_DIR", "clean_temp", "completed_result", "damage",
            "input_fingerprint", "prepare_out_dir", "publish", "release_batch_lock", "temp_folder"]
@@ -84,17 +84,8 @@ def _running_batch_message(out_dir: Path, lock: Path) -> str:
 
 def _refuse_a_running_batch(out_dir: Path) -> None:
     """:class:`ConfigError` when a live batch holds the lock of ``out_dir`` (checked without write access)."""
-    lock = out_dir / BATCH_LOCK
-    try:
-        fd = os.open(lock, os.O_RDONLY)
-    except OSError:
-        return  # no lock file: no batch ever ran there, or it cannot be read (the write below says so)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError:
-        raise ConfigError(_running_batch_message(out_dir, lock)) from None
-    finally:
-        os.close(fd)
+    if flock_held(out_dir / BATCH_LOCK):
+        raise ConfigError(_running_batch_message(out_dir, out_dir / BATCH_LOCK))
 
 
 def _take_batch_lock(out_dir: Path) -> IO[str]:
@@ -114,10 +105,7 @@ def _take_batch_lock(out_dir: Path) -> IO[str]:
 
 def release_batch_lock(fh: IO[str]) -> None:
     """Release the lock :func:`prepare_out_dir` took (the file stays: a later batch takes it again)."""
-    with contextlib.suppress(OSError):
-        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-    with contextlib.suppress(OSError):
-        fh.close()
+    flock_release(fh)
 
 
 def clean_temp(out_dir: Path) -> list[str]:

@@ -6,16 +6,14 @@ from __future__ import annotations
 import contextlib
 import errno
 import fcntl
-import logging
 import os
 from pathlib import Path
 from typing import IO
 
 from driftmap.errors import StoreError
+from driftmap.files import flock_held, flock_release
 from driftmap.store.guards import RESUME_HINT, store_io_error
 from driftmap.store.layout import LOCK_FILE
-
-logger = logging.getLogger(__name__)
 
 
 def acquire_writer_lock(folder: Path) -> IO[str]:
@@ -50,29 +48,10 @@ def acquire_writer_lock(folder: Path) -> IO[str]:
 
 def release_writer_lock(fh: IO[str]) -> None:
     """Release a lock taken by :func:`acquire_writer_lock` (errors are ignored: the lock goes with the file)."""
-    with contextlib.suppress(OSError):
-        fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
-    with contextlib.suppress(OSError):
-        fh.close()
+    flock_release(fh)
 
 
 def writer_alive(folder: Path) -> bool:
     """True if some process holds the writer lock of the store in ``folder``. Needs no write access: the lock file
     is opened read-only, and one that is missing or cannot be opened means no writer is known."""
-    lock = folder / LOCK_FILE
-    try:
-        fd = os.open(lock, os.O_RDONLY)
-    except FileNotFoundError:
-        return False
-    except OSError as exc:
-        logger.debug("%s: cannot open the writer lock to see whether a writer is alive (%s)", lock, exc)
-        return False
-    try:
-        fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
-    except OSError as exc:
-        return exc.errno in (errno.EAGAIN, errno.EACCES)
-    else:
-        fcntl.flock(fd, fcntl.LOCK_UN)
-        return False
-    finally:
-        os.close(fd)
+    return flock_held(folder / LOCK_FILE)
