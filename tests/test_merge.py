@@ -4,6 +4,7 @@ modified; bad input (another sensor, another place, the same store twice) is ref
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import json
 import os
@@ -197,6 +198,75 @@ def test_a_real_session_of_another_room_is_not_merged(sessions: dict, kitchen_se
     assert "no session could be connected to session 0" in err and "session 1" in err, err
     assert "loops agree on where session 1 lies in session 0" in err and "free space the other saw through" in err
     assert not (tmp_path / "x").exists() and _hashes(kitchen_session) == before
+
+
+def test_two_agreeing_loops_the_pose_graph_splits_do_not_connect_a_session(sessions: dict, tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """CI of stop 48: the 7-Scenes kitchen against the room once found (RANSAC draws differ run to run) two loops that
+    agreed with each other and met the free-space gate, and the merge's pose graph rejected one of them: the merge
+    went ahead on one loop. Here A and B keep only two of their agreeing loops and one of them is moved 1.5 m: the
+    graph rejects at least one, fewer than two are left, and the merge is refused naming why; nothing is written."""
+    import driftmap.pipeline.merge as merge_module
+    from driftmap.pipeline.merge_loops import find_pair_loops
+
+    def two_loops_one_wrong(*args, **kwargs):
+        pair = find_pair_loops(*args, **kwargs)
+        assert len(pair.consistent) >= 2
+        pair.consistent = pair.consistent[:2]
+        wrong = pair.consistent[1]
+        pair.consistent[1] = dataclasses.replace(
+            wrong, T_a_b=wrong.T_a_b @ geometry.make_transform(Rotation.identity(), [1.5, 0.0, 0.0]))
+        return pair
+
+    monkeypatch.setattr(merge_module, "find_pair_loops", two_loops_one_wrong)
+    with pytest.raises(MergeError, match="no session could be connected to session 0") as exc:
+        merge_stores([sessions["A"], sessions["B"]], tmp_path / "out", config=FAST)
+    assert "the pose graph rejected" in str(exc.value) and "fewer than 2 left" in str(exc.value), exc.value
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_source_that_declares_lost_frames_is_merged_with_a_warning_and_the_count(sessions: dict,
+                                                                                  tmp_path: Path) -> None:
+    """Hostile trial 22 W7, through the CLI: B cut short and recovered (its store declares the lost frames) merges
+    with A, and the merge says so: a warning naming the session and the count, and ``frames_lost_in_source`` in the
+    session's record of ``merge_summary.json``."""
+    cut = tmp_path / "Bcut"
+    shutil.copytree(sessions["B"], cut)
+    segment = cut / "segment-000000.mcap"
+    os.truncate(segment, int(segment.stat().st_size * 0.66))
+    assert run_cli("recover", cut).returncode == 0
+    with FrameStore.open(cut) as store:
+        lost, kept = len(store.loss.frame_ids), len(store)
+    assert lost > 0 and kept > 0
+    out = run_cli("merge", sessions["A"], cut, "--out", tmp_path / "x")
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert f"declares {lost} frames lost to damage" in " ".join(out.stderr.split()), out.stderr[-2000:]
+    rows = json.loads((tmp_path / "x" / MERGE_SUMMARY_FILE).read_text())["sessions"]
+    assert [(r["n_frames"], r["frames_lost_in_source"]) for r in rows] == [(60, 0), (kept, lost)]
+
+
+def test_loops_the_graph_rejects_disconnect_a_pair_only_below_two() -> None:
+    """:func:`drop_graph_rejected`: a pair keeping two agreeing loops stays connected, one left with fewer is not,
+    and the rejected loops' records say why."""
+    from driftmap.pipeline.merge_loops import PairLoops, drop_graph_rejected
+    from driftmap.registration.loops import CandidateKind, LoopCandidate
+
+    def pair(n: int, a: int, b: int) -> PairLoops:
+        p = PairLoops(a, b, candidates=n)
+        p.verified = p.consistent = [LoopCandidate(100 * a + 10 * b + i, SESSION_ID_STRIDE * b + i, CandidateKind.DESCRIPTOR, True,
+                                                   "ok", None, np.eye(4)) for i in range(n)]
+        p.records = [{"a": c.a, "b": c.b, "accepted": True, "reason": "ok"} for c in p.consistent]
+        return p
+
+    keeps, loses, never = pair(3, 0, 1), pair(2, 0, 2), pair(1, 1, 2)
+    rejected = {(keeps.consistent[0].a, keeps.consistent[0].b), (loses.consistent[1].a, loses.consistent[1].b),
+                (never.consistent[0].a, never.consistent[0].b)}
+    assert drop_graph_rejected([keeps, loses, never], rejected) == [loses]
+    assert keeps.connected and len(keeps.consistent) == 3 and not keeps.graph_rejected
+    assert not loses.connected and len(loses.consistent) == 1 and len(loses.graph_rejected) == 1
+    assert "2 loops agree on where session 2 lies in session 0, but the pose graph rejected 1" in loses.why_not_connected()
+    assert [r["accepted"] for r in loses.records] == [True, False] and "pose graph rejected" in loses.records[1]["reason"]
+    assert never.consistent and not never.graph_rejected  # not connected before: nothing to drop
 
 
 def test_a_real_session_of_another_room_is_not_appended(merged: dict, kitchen_session: Path, tmp_path: Path) -> None:

@@ -55,7 +55,13 @@ from driftmap.pipeline.loop_closure import (
     odometry_edges,
     optimize_calibrated,
 )
-from driftmap.pipeline.merge_loops import MIN_CONSISTENT_LOOPS, PairLoops, connected_sessions, find_pair_loops
+from driftmap.pipeline.merge_loops import (
+    MIN_CONSISTENT_LOOPS,
+    PairLoops,
+    connected_sessions,
+    drop_graph_rejected,
+    find_pair_loops,
+)
 from driftmap.pipeline.resume import recorded_odometry
 from driftmap.preprocess.scene import sample_positions
 from driftmap.registration.loops import Keyframe, LoopClosureConfig, select_keyframes
@@ -72,7 +78,7 @@ from driftmap.volume.defaults import lidar_max_range, lidar_max_range_from_frame
 __all__ = ["MERGE_SUMMARY_FILE", "MERGE_URI_SCHEME", "MIN_CONSISTENT_LOOPS", "SESSION_ID_STRIDE", "FrameOrigin",
            "MergeResult", "SessionReport", "copy_frames", "frame_origin", "keyframe_range", "merge_stores",
            "odometry_config", "record_graph_verdicts", "session_frame_ids", "session_keyframes", "session_of",
-           "lost_per_session", "recorded_session_stores", "sessions_left_unmerged", "store_sessions"]
+           "lost_per_session", "recorded_session_stores", "sessions_left_unmerged", "source_losses", "store_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -170,6 +176,16 @@ def recorded_session_stores(store: FrameStore) -> dict[int, str]:
         return {}
 
 
+def source_losses(k: int, path: Path, store: FrameStore) -> int:
+    """How many frames the source store of session ``k`` declares lost to damage, with a warning when any: a merge
+    takes what is left, and the session's record keeps the count (``frames_lost_in_source``)."""
+    lost = len(store.loss.frame_ids)
+    if lost:
+        logger.warning("session %d (%s) declares %d frames lost to damage (`driftmap recover`; `driftmap info` lists "
+                       "them); its %d stored frames are merged, the lost ones cannot be", k, path, lost, len(store))
+    return lost
+
+
 def session_of(frame_id: int) -> tuple[int, int]:
     """``(session, source frame id)`` of a merged store's frame id."""
     return int(frame_id) // SESSION_ID_STRIDE, int(frame_id) % SESSION_ID_STRIDE
@@ -200,6 +216,9 @@ class SessionReport:
     T_merged_session: list[float] | None = None
     """where the session's own world frame lies in the merged one after optimisation (its first keyframe's
     correction, 16 numbers row-major); None when not connected"""
+    frames_lost_in_source: int = 0
+    """frames the source store itself declares lost to damage (``driftmap recover``): they are not in the merge
+    (hostile trial 22 W7: a recovered, cut log merged without a word)"""
 
 
 @dataclass
@@ -489,7 +508,8 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
     keyframes = [session_keyframes(k, s, lc, max_range_m, tick) for k, s in enumerate(sources)]
     stages["keyframes"] = time.perf_counter() - t0
     reports = [SessionReport(k, str(p.resolve()), uuids[k], s.head, s.ledger.revision(s.head).source.value, len(s),
-                             n_keyframes=len(keyframes[k]), frame_id_offset=k * SESSION_ID_STRIDE)
+                             n_keyframes=len(keyframes[k]), frame_id_offset=k * SESSION_ID_STRIDE,
+                             frames_lost_in_source=source_losses(k, p, s))
                for k, (p, s) in enumerate(zip(paths, sources, strict=True))]
 
     t1 = time.perf_counter()
@@ -499,30 +519,34 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
             stage = f"loops, sessions {i}-{j}"
             pairs.append(find_pair_loops(i, j, keyframes[i], keyframes[j], lc, lambda d, t, s=stage: tick(s, d, t)))
     stages["loops between sessions"] = time.perf_counter() - t1
-    connected, T_align = connected_sessions(len(sources), pairs)
-    not_connected = [k for k in range(len(sources)) if k not in connected]
-    for k in not_connected:
-        reasons = [f"with session {p.session_a if p.session_b == k else p.session_b}: "
-                   f"{p.why_not_connected() or 'connected only to sessions not connected to session 0'}"
-                   for p in pairs if k in (p.session_a, p.session_b)]
-        reports[k].reason = "; ".join(reasons)
-        logger.warning("session %d (%s) is not connected to session 0: %s; it is left out of the merged store", k,
-                       paths[k], reports[k].reason)
-    if not_connected and len(connected) == 1:
-        raise MergeError(
-            f"no session could be connected to session 0 ({paths[0]}): "
-            + "; ".join(f"session {k} ({paths[k]}): {reports[k].reason}" for k in not_connected)
-            + f"; nothing was written. Are they stores of the same place? (a session needs at least "
-              f"{MIN_CONSISTENT_LOOPS} agreeing loops with another)")
-    for k in connected:
-        reports[k].connected = True
-
-    result = MergeResult(out=str(out), sessions=reports, pairs=[p.summary() for p in pairs],
-                         not_connected=not_connected,
-                         revision_id=None, n_frames=0, loop_closure_config=lc.model_dump(mode="json"),
-                         keyframe_max_range_m=max_range_m,
-                         volume_defaults=volume_defaults(paths, sources, connected), seconds_per_stage=stages)
-    opt_poses, covariances, note = _optimise(connected, keyframes, T_align, pairs, lc, config, result, tick, stages)
+    while True:  # again without the pairs whose agreeing loops the pose graph rejected (drop_graph_rejected)
+        connected, T_align = connected_sessions(len(sources), pairs)
+        not_connected = [k for k in range(len(sources)) if k not in connected]
+        for k, report in enumerate(reports):
+            report.connected = k in connected
+            report.reason = "" if report.connected else "; ".join(
+                f"with session {p.session_a if p.session_b == k else p.session_b}: "
+                f"{p.why_not_connected() or 'connected only to sessions not connected to session 0'}"
+                for p in pairs if k in (p.session_a, p.session_b))
+        for k in not_connected:
+            logger.warning("session %d (%s) is not connected to session 0: %s; it is left out of the merged store", k,
+                           paths[k], reports[k].reason)
+        if not_connected and len(connected) == 1:
+            raise MergeError(
+                f"no session could be connected to session 0 ({paths[0]}): "
+                + "; ".join(f"session {k} ({paths[k]}): {reports[k].reason}" for k in not_connected)
+                + f"; nothing was written. Are they stores of the same place? (a session needs at least "
+                  f"{MIN_CONSISTENT_LOOPS} agreeing loops with another)")
+        result = MergeResult(out=str(out), sessions=reports, pairs=[p.summary() for p in pairs],
+                             not_connected=not_connected,
+                             revision_id=None, n_frames=0, loop_closure_config=lc.model_dump(mode="json"),
+                             keyframe_max_range_m=max_range_m,
+                             volume_defaults=volume_defaults(paths, sources, connected), seconds_per_stage=stages)
+        opt_poses, covariances, note, rejected = _optimise(connected, keyframes, T_align, pairs, lc, config, result,
+                                                           tick, stages)
+        if not drop_graph_rejected([p for p in pairs if p.session_a in connected and p.session_b in connected],
+                                   rejected):
+            break
     t3 = time.perf_counter()
     scratch_dir = out.parent / f".{out.name}.merge-{secrets.token_hex(4)}"  # renamed to ``out`` when complete
     try:
@@ -566,9 +590,11 @@ def _merge(paths: list[Path], sources: list[FrameStore], uuids: list[str], out: 
 
 def _optimise(connected: list[int], keyframes: list[list[Keyframe]], T_align: dict[int, NDArray[np.float64]],
               pairs: list[PairLoops], lc: LoopClosureConfig, config: BuildConfig, result: MergeResult,
-              tick: ProgressCallback, stages: dict[str, float]) -> tuple[dict[int, NDArray[np.float64]], dict, str]:
+              tick: ProgressCallback,
+              stages: dict[str, float]) -> tuple[dict[int, NDArray[np.float64]], dict, str, set[tuple[int, int]]]:
     """One pose graph over the connected sessions: their keyframes placed by the loops' alignment, each session's
-    odometry edges (the head's relative poses), the consistent loops between connected sessions."""
+    odometry edges (the head's relative poses), the consistent loops between connected sessions. Also returns the
+    loops the graph rejected (``(a, b)`` frame ids)."""
     t = time.perf_counter()
     from_trajectory = config.odometry_edges != "registration"  # auto: the head's relative poses (module docstring)
     nodes: list[Keyframe] = []
@@ -587,18 +613,18 @@ def _optimise(connected: list[int], keyframes: list[list[Keyframe]], T_align: di
     stages["pose graph"] = time.perf_counter() - t
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     result.information_scale = scratch.information_scale
-    record_graph_verdicts(result, opt)
+    rejected = record_graph_verdicts(result, opt)
     origins = ", ".join(f"session {k}: {result.sessions[k].store} revision {result.sessions[k].head_revision}"
                         for k in connected)
     note = (f"merge of {len(connected)} sessions ({origins}); {len(loops)} loops between sessions, graph error "
             f"{opt.initial_error:.3g} -> {opt.final_error:.3g}")
-    return dict(opt.poses), dict(opt.covariances or {}), note
+    return dict(opt.poses), dict(opt.covariances or {}), note, rejected
 
 
-def record_graph_verdicts(result: Any, opt: Any) -> None:
+def record_graph_verdicts(result: Any, opt: Any) -> set[tuple[int, int]]:
     """The pose graph's verdict on each accepted loop of ``result.pairs`` (``graph_chi2``, ``graph_weight``,
     ``kept_by_graph``) and ``result.loops_rejected_by_graph``, with a warning when it rejected any (a merge's
-    :class:`MergeResult` or an append's result; ``opt`` the optimisation)."""
+    :class:`MergeResult` or an append's result; ``opt`` the optimisation). Returns the rejected loops' ``(a, b)``."""
     verdict = {(r.key_from, r.key_to): r for r in opt.loop_residuals}
     for p in result.pairs:
         for rec in p["loops"]:
@@ -609,6 +635,7 @@ def record_graph_verdicts(result: Any, opt: Any) -> None:
     if result.loops_rejected_by_graph:
         logger.warning("%d of %d loops between sessions rejected by the pose graph (chi2 > %.1f)",
                        result.loops_rejected_by_graph, len(opt.loop_residuals), opt.chi2_threshold)
+    return {(r.key_from, r.key_to) for r in opt.loop_residuals if not r.accepted}
 
 
 def copy_frames(merged: FrameStore, connected: Sequence[int], paths: Any, sources: Any, uuids: Any,

@@ -65,9 +65,10 @@ from driftmap.pipeline.merge import (
     record_graph_verdicts,
     refuse_partial_head,
     session_keyframes,
+    source_losses,
     store_sessions,
 )
-from driftmap.pipeline.merge_loops import MIN_CONSISTENT_LOOPS, PairLoops, find_pair_loops
+from driftmap.pipeline.merge_loops import MIN_CONSISTENT_LOOPS, PairLoops, drop_graph_rejected, find_pair_loops
 from driftmap.registration.loops import CandidateKind, Keyframe, LoopClosureConfig, select_keyframes, verify
 from driftmap.registration.place import scan_context_distance, yaw_guess
 from driftmap.store.frame_store import FrameStore
@@ -408,7 +409,8 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
         keyframes[k] = session_keyframes(k, src, lc, max_range_m, tick)
     stages["keyframes"] = time.perf_counter() - t
     reports = {k: SessionReport(k, str(p.resolve()), uuids[n], src.head, src.ledger.revision(src.head).source.value,
-                                len(src), n_keyframes=len(keyframes[k]), frame_id_offset=k * SESSION_ID_STRIDE)
+                                len(src), n_keyframes=len(keyframes[k]), frame_id_offset=k * SESSION_ID_STRIDE,
+                                frames_lost_in_source=source_losses(k, p, src))
                for n, (k, p, src) in enumerate(zip(numbers, paths, sources, strict=True))}
     result = AppendResult(store=str(merged.resolve()), sessions=list(reports.values()), pairs=[], not_connected=[],
                           previous_head=head, move_tolerance_m=tol_m, move_tolerance_deg=tol_deg, resumed=resumed,
@@ -421,33 +423,39 @@ def _append(merged: Path, store: FrameStore, summary: dict[str, Any], paths: lis
             stage = f"loops, sessions {i}-{j}"
             pairs.append(find_pair_loops(i, j, keyframes[i], keyframes[j], lc, lambda d, m, s=stage: tick(s, d, m)))
     stages["loops between sessions"] = time.perf_counter() - t
-    result.pairs = [p.summary() for p in pairs]
-    placed = _place_new_sessions(store, head, existing, numbers, keyframes, pairs)
-    for k in numbers:
-        if k in placed:
-            reports[k].connected = True
-            continue
-        reasons = [f"with session {p.session_a if p.session_b == k else p.session_b}: "
-                   f"{p.why_not_connected() or 'connected only to new sessions that are not connected'}"
-                   for p in pairs if k in (p.session_a, p.session_b)]
-        reports[k].reason = "; ".join(reasons)
-        result.not_connected.append(k)
-        logger.warning("session %d (%s) is not connected to the merged store's sessions: %s; nothing of it is "
-                       "appended", k, reports[k].store, reports[k].reason)
-    connected_new = [k for k in numbers if k in placed]
-    if not connected_new:
-        raise MergeError(
-            f"no new session could be connected to {merged}: "
-            + "; ".join(f"session {k} ({reports[k].store}): {reports[k].reason}" for k in numbers)
-            + f"; nothing was written. Are they stores of the same place? (a session needs at least "
-              f"{MIN_CONSISTENT_LOOPS} agreeing loops with another)")
-    if resumed and result.not_connected:
-        raise MergeError(f"{merged}: finishing the interrupted append, sessions {result.not_connected} no longer "
-                         f"connect; their frames stay stored without a revision (the head {head} is the map before "
-                         f"the append)")
-
-    poses, covariances, note = _optimise(store, head, existing, connected_new, keyframes, placed, pairs, summary, lc,
-                                         config, result, tick)
+    while True:  # again without the pairs whose agreeing loops the pose graph rejected (drop_graph_rejected)
+        result.pairs = [p.summary() for p in pairs]
+        result.not_connected, result.loops_reused, result.loops_reverified = [], 0, 0
+        placed = _place_new_sessions(store, head, existing, numbers, keyframes, pairs)
+        for k in numbers:
+            reports[k].connected = k in placed
+            if k in placed:
+                reports[k].reason = ""
+                continue
+            reasons = [f"with session {p.session_a if p.session_b == k else p.session_b}: "
+                       f"{p.why_not_connected() or 'connected only to new sessions that are not connected'}"
+                       for p in pairs if k in (p.session_a, p.session_b)]
+            reports[k].reason = "; ".join(reasons)
+            result.not_connected.append(k)
+            logger.warning("session %d (%s) is not connected to the merged store's sessions: %s; nothing of it is "
+                           "appended", k, reports[k].store, reports[k].reason)
+        connected_new = [k for k in numbers if k in placed]
+        if not connected_new:
+            raise MergeError(
+                f"no new session could be connected to {merged}: "
+                + "; ".join(f"session {k} ({reports[k].store}): {reports[k].reason}" for k in numbers)
+                + f"; nothing was written. Are they stores of the same place? (a session needs at least "
+                  f"{MIN_CONSISTENT_LOOPS} agreeing loops with another)")
+        if resumed and result.not_connected:
+            raise MergeError(f"{merged}: finishing the interrupted append, sessions {result.not_connected} no longer "
+                             f"connect; their frames stay stored without a revision (the head {head} is the map "
+                             f"before the append)")
+        poses, covariances, note, rejected = _optimise(store, head, existing, connected_new, keyframes, placed, pairs,
+                                                       summary, lc, config, result, tick)
+        in_graph = set(existing) | set(connected_new)
+        if not drop_graph_rejected([p for p in pairs if p.session_a in in_graph and p.session_b in in_graph],
+                                   rejected):
+            break
     src_of = dict(zip(numbers, sources, strict=True))
     new_rows = {k: (src_of[k].frame_ids + k * SESSION_ID_STRIDE, src_of[k].ledger.stamps_ns, src_of[k].poses(src_of[k].head))
                 for k in connected_new}
@@ -549,9 +557,9 @@ def _recorded_loops(summary: dict[str, Any], existing: list[int], keyframes: dic
 def _optimise(store: FrameStore, head: int, existing: list[int], connected_new: list[int],
               keyframes: dict[int, list[Keyframe]], placed: dict[int, NDArray[np.float64]], pairs: list[PairLoops],
               summary: dict[str, Any], lc: LoopClosureConfig, config: BuildConfig, result: AppendResult,
-              tick: ProgressCallback) -> tuple[dict[int, NDArray[np.float64]], dict, str]:
-    """One pose graph over every session (module docstring, 4): the optimised keyframe poses, their covariances and
-    the revision's note."""
+              tick: ProgressCallback) -> tuple[dict[int, NDArray[np.float64]], dict, str, set[tuple[int, int]]]:
+    """One pose graph over every session (module docstring, 4): the optimised keyframe poses, their covariances,
+    the revision's note and the loops the graph rejected (``(a, b)`` frame ids)."""
     t = time.perf_counter()
     from_trajectory = config.odometry_edges != "registration"
     P_head = store.poses(head)
@@ -581,13 +589,13 @@ def _optimise(store: FrameStore, head: int, existing: list[int], connected_new: 
     result.seconds_per_stage["pose graph"] = time.perf_counter() - t
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     result.information_scale = scratch.information_scale
-    record_graph_verdicts(result, opt)
+    rejected = record_graph_verdicts(result, opt)
     new = ", ".join(f"session {s.session}: {s.store} revision {s.head_revision}" for s in result.sessions
                     if s.session in connected_new)
     note = (f"append of {len(connected_new)} session(s) ({new}) to {len(existing)} merged; {len(new_loops)} new "
             f"loops, {result.loops_reused + result.loops_reverified} recorded; graph error {opt.initial_error:.3g} -> "
             f"{opt.final_error:.3g}")
-    return dict(opt.poses), dict(opt.covariances or {}), note
+    return dict(opt.poses), dict(opt.covariances or {}), note, rejected
 
 
 def _session_poses(ids: NDArray[np.int64], stamps: NDArray[np.int64], rev0: NDArray[np.float64],
