@@ -474,3 +474,28 @@ def test_t21_w7_a_session_that_lost_every_frame_keeps_its_row_and_is_named(appen
     line = one_error(run_cli("export", store, "--trajectory", tmp_path / "t.tum", "--session", 2))
     assert f"every frame of session 2 of {store} ({N}) was lost to damage" in line, line
     assert "it holds sessions 0, 1" in line, line
+
+
+def test_t22_w4_a_store_json_older_than_the_append_names_what_the_merge_summary_records(appended: dict,
+                                                                                        tmp_path: Path) -> None:
+    """Hostile trial 22 W4: the append's segment and its store.json entry both gone (a store.json older than the
+    append): `recover` called the store intact and `info` showed sessions 0 and 1 only, session 2 and revision 2
+    gone without a word. Both now name what merge_summary.json records and the store neither holds nor declares
+    lost; the intact store shows no such row."""
+    info = " ".join(_ok(run_cli("info", appended["store"])).stdout.replace("\u2502", " ").split())
+    assert "missing (merge summary)" not in info, info
+    store = tmp_path / "older-json"
+    shutil.copytree(appended["store"], store)
+    manifest = json.loads((store / "store.json").read_text())
+    last = manifest["segments"].pop()
+    (store / last["name"]).unlink()
+    (store / "store.json").write_text(json.dumps(manifest, indent=1))
+    with FrameStore.open(store) as s:
+        head = s.head
+        assert 2 not in set((np.asarray(s.frame_ids) // SESSION_ID_STRIDE).tolist()) and not s.loss
+    out = _ok(run_cli("recover", store))
+    said = " ".join(out.stderr.split())
+    assert f"session 2 ({N} frames from" in said and "none of them" in said, said
+    assert f"revision {head + 1} (the merge's or an append's)" in said and "neither holds nor declares lost" in said
+    info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
+    assert "missing (merge summary)" in info and f"session 2 ({N} frames from" in info, info

@@ -10,6 +10,7 @@ from typing import Annotated, Optional
 import numpy as np
 import typer
 from rich.table import Table
+from rich.text import Text
 
 from driftmap.cli.common import (
     CALIB_HELP,
@@ -18,6 +19,7 @@ from driftmap.cli.common import (
     check_output,
     choice,
     console,
+    err_console,
     finite,
     finite_within,
     open_store,
@@ -431,6 +433,11 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: {why})")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))
+        from driftmap.store.unmerged import missing_merge_records
+
+        if (missing := missing_merge_records(store)) is not None:  # hostile trial 22 W4
+            table.add_row("missing (merge summary)", missing)
+        if store.loss:
             from driftmap.pipeline.merge import sessions_left_unmerged
 
             if (unmerged := sessions_left_unmerged(store)) is not None:
@@ -464,3 +471,8 @@ def recover(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Fr
         console.print(f"{store_path}: intact (or already recovered); nothing to do")
     for event in events:
         console.print(f"recovered {event}")
+    from driftmap.store.unmerged import missing_merge_records
+
+    with FrameStore.open(store_path) as store:  # what no segment can say (hostile trial 22 W4)
+        if (missing := missing_merge_records(store)) is not None:
+            err_console.print(Text.assemble(("warning:", "yellow"), f" {store_path}: {missing}"), highlight=False)

@@ -23,7 +23,7 @@ from driftmap.store.layout import MERGE_SUMMARY_FILE, SESSION_ID_STRIDE
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
 
-__all__ = ["UnmergedSessions", "unmerged_sessions"]
+__all__ = ["UnmergedSessions", "missing_merge_records", "unmerged_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -81,3 +81,41 @@ def unmerged_sessions(store: FrameStore, revision: int | None = None) -> Unmerge
     unmerged = tuple(int(k) for k in np.unique(session[placed])
                      if k != 0 and at_own[session == k].sum() == placed[session == k].sum())
     return UnmergedSessions(rev, tuple(lost_merges), unmerged) if unmerged else None
+
+
+def missing_merge_records(store: FrameStore) -> str | None:
+    """What ``merge_summary.json`` records that the store neither holds nor declares lost, in words; None when
+    nothing is missing (or the store is no merge's). Hostile trial 22 W4: a merged store whose last segment and its
+    ``store.json`` entry were both gone (a ``store.json`` older than the last append) read as intact, session 2 and
+    revision 2 gone without a word, while the summary records both. Recorded: every connected session's frame
+    count, the merge's revision 1 and each append's revision."""
+    path = store.path / MERGE_SUMMARY_FILE
+    if not path.is_file():
+        return None
+    try:
+        summary = json.loads(path.read_text())
+        sessions = [(int(s["session"]), int(s["n_frames"]), str(s.get("store", "?")))
+                    for s in summary.get("sessions", []) if isinstance(s, dict) and s.get("connected")]
+        revisions = {1} | {int(a["revision_id"]) for a in summary.get("appends", [])
+                           if isinstance(a, dict) and a.get("revision_id")}
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return None  # an unreadable summary is reported where it is read (_merge_revisions)
+    ids = np.asarray(store.frame_ids, dtype=np.int64)
+    held = dict(zip(*np.unique(ids // SESSION_ID_STRIDE, return_counts=True), strict=True))
+    lost_ids = np.asarray(store.loss.frame_ids, dtype=np.int64)
+    lost = dict(zip(*np.unique(lost_ids // SESSION_ID_STRIDE, return_counts=True), strict=True))
+    parts = []
+    for k, n, source in sessions:
+        have = int(held.get(k, 0)) + int(lost.get(k, 0))
+        if have < n:
+            parts.append(f"session {k} ({n} frames from {source}): "
+                         + ("none of them" if have == 0 else f"{n - have} of them"))
+    present = {r.revision_id for r in store.revisions} | set(store.loss.revision_ids)
+    gone = sorted(revisions - present)
+    if gone:
+        parts.append(f"revision {', '.join(map(str, gone))} (the merge's or an append's)")
+    if not parts:
+        return None
+    return (f"{MERGE_SUMMARY_FILE} records {'; '.join(parts)}, which the store neither holds nor declares lost: "
+            f"a segment and its store.json entry are gone (a store.json older than the last append?). Restore the "
+            f"store from a backup, or merge the session stores again into a new store")
