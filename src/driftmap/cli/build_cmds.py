@@ -374,16 +374,21 @@ def _loops_by_cue(loops: list[dict]) -> str:
 
 
 def _given_poses_row(check: dict | None) -> str:
-    """``yes (8 frame pairs)`` / ``NO: 8 of 8 frame pairs disagree`` / ``-`` (odometry's poses, or too few frame pairs
-    overlap enough to decide)."""
+    """``yes (8 frame pairs)`` / ``NO: 8 of 8 frame pairs disagree`` / ``cannot judge (2 of 8 pairs decide)`` (too few
+    frame pairs overlap enough to decide) / ``-`` (odometry's poses, or no frame pair to check)."""
     if check is not None and check.get("error"):
         return "not checked (see the warning)"
     spikes = (check or {}).get("spike_frames") or []
     but = (f"; but frame{'s' if len(spikes) > 1 else ''} {', '.join(str(f) for f in spikes[:5])}"
            f"{' ...' if len(spikes) > 5 else ''} jump{'' if len(spikes) > 1 else 's'} away and back (a corrupt pose row?)"
            if spikes else "")
-    if check is None or check.get("consistent") is None:
+    if check is None:
         return "-" + but
+    if check.get("consistent") is None:
+        pairs = check.get("pairs") or []
+        slid = sum(1 for p in pairs if p.get("slid"))
+        why = f", {slid} slid along repeated structure" if slid else ""
+        return f"cannot judge ({check.get('n_decisive', 0)} of {len(pairs)} pairs decide{why}){but}" if pairs else "-" + but
     if check["consistent"]:
         return f"yes ({check['n_decisive']} frame pairs){but}"
     mounting = check.get("mounting_rotation") or {}
