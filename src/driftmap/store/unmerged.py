@@ -51,12 +51,16 @@ class UnmergedSessions:
                 f"store ({MERGE_SUMMARY_FILE} names them)")
 
 
+def _recorded_merge_revisions(summary: object) -> set[int]:
+    """Revision 1 and the append revisions a parsed merge summary records."""
+    appends = summary.get("appends", []) if isinstance(summary, dict) else []
+    return {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
+
+
 def _merge_revisions(store: FrameStore) -> set[int]:
     """Revision 1 (the merge's own) and each recorded append's revision."""
     try:
-        summary = json.loads((store.path / MERGE_SUMMARY_FILE).read_text())
-        appends = summary.get("appends", []) if isinstance(summary, dict) else []
-        return {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
+        return _recorded_merge_revisions(json.loads((store.path / MERGE_SUMMARY_FILE).read_text()))
     except (OSError, ValueError, TypeError, KeyError):
         logger.warning("%s: %s is unreadable; taking revision 1 as the only merge revision", store.path,
                        MERGE_SUMMARY_FILE)
@@ -96,8 +100,7 @@ def missing_merge_records(store: FrameStore) -> str | None:
         summary = json.loads(path.read_text())
         sessions = [(int(s["session"]), int(s["n_frames"]), str(s.get("store", "?")))
                     for s in summary.get("sessions", []) if isinstance(s, dict) and s.get("connected")]
-        revisions = {1} | {int(a["revision_id"]) for a in summary.get("appends", [])
-                           if isinstance(a, dict) and a.get("revision_id")}
+        revisions = _recorded_merge_revisions(summary)
     except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return None  # an unreadable summary is reported where it is read (_merge_revisions)
     ids = np.asarray(store.frame_ids, dtype=np.int64)
