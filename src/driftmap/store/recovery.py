@@ -28,6 +28,7 @@ from driftmap.store.guards import RECOVER_HINT, store_io_error
 from driftmap.store.layout import (
     DAMAGED_SUFFIX,
     MANIFEST,
+    MERGE_SUMMARY_FILE,
     RECOVERING_SUFFIX,
     TMP_SUFFIX,
     dropped_tail_name,
@@ -50,6 +51,7 @@ from driftmap.store.reading import decode_frame
 from driftmap.store.segment import SegmentWriter
 from driftmap.store.segment_format import EVENT_DATA_LOST
 from driftmap.store.segment_scan import SegmentScan, iter_payload_bytes, read_store_uuid, scan_segment
+from driftmap.store.unmerged import recorded_merge_revisions
 from driftmap.store.values import preview
 from driftmap.store.writing import next_segment_index, start_segment
 
@@ -231,6 +233,22 @@ class _Recovery:
             self.cut_frames |= cut_frames
             self.cut_revisions |= cut_revisions
 
+    def note_merge_records(self) -> None:
+        """Note the merge and append revisions ``merge_summary.json`` records that no segment holds or declares lost
+        (hostile trial 22 W4: a segment gone with its manifest entry, a ``store.json`` older than the last append,
+        left nothing else that names them, and a later revision took the lost id). Their frames' ids the summary
+        does not record: ``missing_merge_records`` names the sessions short of frames."""
+        held = set().union(*(held_ids(scan)[1] for _, scan in self.held if scan is not None))
+        gone = recorded_merge_revisions(self.path) - held - self.cut_revisions
+        if gone:
+            logger.warning("%s: %s records revisions %s that no segment holds", self.path, MERGE_SUMMARY_FILE,
+                           preview(sorted(gone)))
+            self.cut_revisions |= gone
+            self.cut_causes[MERGE_SUMMARY_FILE] = (f"{MERGE_SUMMARY_FILE} records revision "
+                                                   f"{', '.join(map(str, sorted(gone)))} (the merge's or an "
+                                                   f"append's), which no segment holds: a segment gone with its "
+                                                   f"{MANIFEST} entry")
+
     def rewrite_segment(self, index: int, seg: SegmentEntry, scan: SegmentScan, twice: list[int],
                         unreadable: list[tuple[int, str]]) -> SegmentScan:
         """Rewrite a segment from its intact chunks (the damaged file is kept beside it); returns its new scan."""
@@ -295,6 +313,7 @@ class _Recovery:
         """What the damage took from the revisions that survived: declared in a ``data_lost`` event of its own, in a
         new segment."""
         self.note_cuts()
+        self.note_merge_records()
         new_frames, new_revisions = replay(self.path, PoseLedger(), {}, self.scans, strict=False)[1:]
         new_frames |= self.cut_frames  # (not declared by a loss record written after the copy that was lost)
         new_revisions |= self.cut_revisions

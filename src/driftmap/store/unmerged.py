@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -23,7 +24,7 @@ from driftmap.store.layout import MERGE_SUMMARY_FILE, SESSION_ID_STRIDE
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
 
-__all__ = ["UnmergedSessions", "missing_merge_records", "unmerged_sessions"]
+__all__ = ["UnmergedSessions", "missing_merge_records", "recorded_merge_revisions", "unmerged_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +56,16 @@ def _recorded_merge_revisions(summary: object) -> set[int]:
     """Revision 1 and the append revisions a parsed merge summary records."""
     appends = summary.get("appends", []) if isinstance(summary, dict) else []
     return {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
+
+
+def recorded_merge_revisions(path: Path) -> set[int]:
+    """The merge and append revisions the merge summary in store folder ``path`` records; empty when the store is no
+    merge's or its summary cannot be read (nothing is then taken from it). An append records its revision only after
+    the revision is stored (``merge_append._write``), so a recorded revision the store lacks was lost."""
+    try:
+        return _recorded_merge_revisions(json.loads((path / MERGE_SUMMARY_FILE).read_text()))
+    except (OSError, ValueError, TypeError, KeyError, AttributeError):
+        return set()
 
 
 def _merge_revisions(store: FrameStore) -> set[int]:
