@@ -163,3 +163,34 @@ def test_t22_w6_true_poses_at_every_4th_frame_cannot_judge_rather_than_disagree(
     check = json.loads((store / "build_summary.json").read_text())["given_poses_check"]
     assert check["consistent"] is None and any(p["slid"] for p in check["pairs"]), check
     assert all(not p["decisive"] for p in check["pairs"] if p["slid"])
+
+
+@pytest.mark.parametrize("offset", [20, 27], ids=["length-field", "library-text"])
+def test_t22_w5_a_flipped_bit_in_a_segment_header_is_damage_recover_rewrites(room: dict, tmp_path: Path,
+                                                                              offset: int) -> None:
+    """W5: a flipped bit in a segment's MCAP header (its profile string's length, or a byte of the library name made
+    non-UTF-8) went unnoticed: driftmap never reads the header, `recover` called the store intact, and other MCAP
+    tools could not open the segment. It is damage now: opening names the file and the header, `recover` rewrites the
+    segment with every frame kept, and the mcap library reads the header of the rewrite."""
+    from mcap.reader import make_reader
+
+    name, _ = _last_frames_segment(room["C"])
+    store = tmp_path / "flipped"
+    shutil.copytree(room["C"], store)
+    raw = bytearray((store / name).read_bytes())
+    assert raw[8] == 0x01 and offset < 17 + int.from_bytes(raw[9:17], "little")  # the header record's bytes
+    raw[offset] ^= 0x10 if offset == 20 else 0x80
+    (store / name).write_bytes(bytes(raw))
+    out = run_cli("info", store)
+    assert out.returncode == 1, out.stdout
+    said = " ".join(out.stderr.split())
+    assert f"{name}: damaged at offset 8: damaged MCAP header record" in said and "driftmap recover" in said, said
+    done = " ".join(_ok(run_cli("recover", store)).stdout.split())
+    assert f"recovered {name}: rewritten" in done and "kept 25 frames" in done, done
+    with open(store / name, "rb") as fh:
+        header = make_reader(fh).get_header()
+    assert header.profile == "" and header.library.startswith("driftmap "), header
+    with FrameStore.open(store) as fixed, FrameStore.open(room["C"]) as original:
+        assert not fixed.loss and list(fixed.frame_ids) == list(original.frame_ids)
+        assert (fixed.poses() == original.poses()).all() and fixed.head == original.head
+    assert "nothing to do" in _ok(run_cli("recover", store)).stdout

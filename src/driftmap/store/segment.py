@@ -62,6 +62,7 @@ from driftmap.store.segment_format import (
     MCAP_MAGIC,
     MESSAGE_HEADER_BYTES,
     PAYLOAD_ALIGNMENT,
+    SEGMENT_LIBRARY_PREFIX,
     TOPIC_FRAMES,
     TOPIC_REVISIONS,
     TOPIC_SEGMENT,
@@ -124,7 +125,7 @@ class SegmentWriter:
         self._fh = open_new_segment_file(self.path)
         with self._writing("starting the segment"):
             self._writer = Writer(self._fh, chunk_size=1 << 62, compression=CompressionType.NONE, use_chunking=True)
-            self._writer.start(profile="", library=f"driftmap {__version__}")
+            self._writer.start(profile="", library=f"{SEGMENT_LIBRARY_PREFIX}{__version__}")
             json_schemas = {
                 "driftmap.SegmentEvent": JSON_SCHEMA_SEGMENT,
                 "driftmap.FrameInfo": JSON_SCHEMA_FRAME_INFO,

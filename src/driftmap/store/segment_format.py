@@ -32,6 +32,8 @@ import json
 from typing import Any
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+# a segment's MCAP header: profile "" and library "driftmap VERSION" (SegmentWriter; checked by scan_segment)
+SEGMENT_LIBRARY_PREFIX = "driftmap "
 PAYLOAD_ALIGNMENT = 16
 TOPIC_SEGMENT = "/driftmap/segment"
 TOPIC_FRAMES = "/driftmap/frames"

@@ -16,7 +16,7 @@ from mcap.opcode import Opcode
 
 from driftmap.errors import StoreError
 from driftmap.store.chunk_scan import ChunkContent, StoredFrameRef, scan_chunk
-from driftmap.store.segment_format import MCAP_MAGIC
+from driftmap.store.segment_format import MCAP_MAGIC, SEGMENT_LIBRARY_PREFIX
 
 logger = logging.getLogger(__name__)
 
@@ -95,6 +95,31 @@ def scan_segment(path: Path, *, verify: bool = True, stop_on_error: bool = True)
     finally:
         mm.close()
     return scan
+
+
+def _header_problem(buf: memoryview, body: int, end: int) -> str | None:
+    """What is wrong with the header record whose fields lie in ``buf[body:end]``, or None: its two length-prefixed
+    strings must fill it exactly and decode as UTF-8, the profile must be the store's (empty) and the library
+    driftmap (``SegmentWriter``). driftmap's own reads never use the header, but other MCAP tools cannot open a
+    segment whose header does not decode, so a flipped bit in it is damage that ``recover`` rewrites."""
+    strings = []
+    pos = body
+    for _ in range(2):
+        if pos + 4 > end:
+            return "damaged MCAP header record (truncated field)"
+        (n,) = struct.unpack_from("<I", buf, pos)
+        if pos + 4 + n > end:
+            return "damaged MCAP header record (a field overruns it)"
+        try:
+            strings.append(bytes(buf[pos + 4 : pos + 4 + n]).decode("utf-8"))
+        except UnicodeDecodeError:
+            return "damaged MCAP header record (not UTF-8)"
+        pos += 4 + n
+    if pos != end:
+        return "damaged MCAP header record (its fields do not fill it)"
+    if strings[0] != "" or not strings[1].startswith(SEGMENT_LIBRARY_PREFIX):
+        return f"damaged MCAP header record (profile {strings[0]!r}, library {strings[1]!r})"
+    return None
 
 
 class _DataSection:
@@ -200,6 +225,8 @@ class _DataSection:
 
     def record(self, opcode: int, pos: int, end: int) -> str | None:
         """Read the record at ``pos`` (not the end of data); returns the problem that ends the scan, or None."""
+        if pos == 8:  # MCAP begins with a header record, which other MCAP readers decode (hostile trial 22 W5)
+            return _header_problem(self.buf, pos + 9, end) if opcode == Opcode.HEADER else "no MCAP header record"
         if opcode == Opcode.CHUNK:
             return self.chunk(pos, end)
         if opcode == Opcode.MESSAGE_INDEX:
@@ -211,8 +238,6 @@ class _DataSection:
                 listed = tuple(struct.iter_unpack("<QQ", self.buf[body + 6 : end]))
                 if self.expected_index.pop(channel_id, None) != listed:
                     return "message index record disagrees with its chunk"
-            return None
-        if opcode == Opcode.HEADER and pos == 8:
             return None
         # the store writes nothing else into the data section: anything else is damage (a chunk whose opcode byte
         # changed must not be skipped as if it were some other record)
