@@ -194,3 +194,56 @@ def test_t22_w5_a_flipped_bit_in_a_segment_header_is_damage_recover_rewrites(roo
         assert not fixed.loss and list(fixed.frame_ids) == list(original.frame_ids)
         assert (fixed.poses() == original.poses()).all() and fixed.head == original.head
     assert "nothing to do" in _ok(run_cli("recover", store)).stdout
+
+
+def test_t22_b1b_a_damaged_store_json_and_a_cut_segment_in_one_event_declare_the_loss(room: dict,
+                                                                                       tmp_path: Path) -> None:
+    """B1 (b): `store.json` damaged (its store_uuid a number) and the segment holding frames 25-49 and revision 2
+    cut to about half in one event (a power cut). The manifest was rebuilt from the segments without reading the old
+    one's records, so the cut-off frames and revision 2 went unsaid and a rollback reused id 2. The records the
+    damaged manifest still holds are evidence now: the loss is declared and the next id is 3."""
+    name, seg = _last_frames_segment(room["C"])
+    store = tmp_path / "power-cut"
+    shutil.copytree(room["C"], store)
+    with open(store / name, "r+b") as fh:
+        fh.truncate(int(seg["bytes"] * 0.52))
+    manifest = json.loads((store / "store.json").read_text())
+    manifest["store_uuid"] = 5
+    (store / "store.json").write_text(json.dumps(manifest, indent=1))
+    done = " ".join(_ok(run_cli("recover", store)).stdout.split())
+    assert f"store.json: rebuilt from {len(manifest['segments'])} segments" in done and "recorded the loss" in done, done
+    recorded = set(range(seg["frames"][0][0], seg["frames"][-1][-1] + 1))
+    with FrameStore.open(store) as s:
+        held = set(map(int, s.frame_ids))
+        assert held < set(range(50)) and len(held) > 25, sorted(held)  # a part of the segment survived
+        assert set(s.loss.frame_ids) == recorded - held and s.loss.revision_ids == tuple(seg["revisions"])
+    out = _ok(run_cli("rollback", store, "--to", 0))
+    assert f"revision {max(seg['revisions']) + 1}: poses of revision 0 restored" in out.stdout, out.stdout
+
+
+def test_carry_records_takes_only_this_stores_well_formed_records(tmp_path: Path) -> None:
+    """The records a rebuilt manifest takes from the one it replaces (store/manifest.py carry_records): each well
+    formed entry of a manifest whose store id is this store's or damaged; none of another store's manifest."""
+    from driftmap.store.manifest import carry_records
+
+    for n in range(3):
+        (tmp_path / f"segment-00000{n}.mcap").write_bytes(b"\0" * 20000)
+    me = "0123456789abcdef0123456789abcdef"
+    rebuilt = {"store_uuid": me, "segments": [{"name": f"segment-00000{n}.mcap", "state": "closed" if n else "open",
+                                               "bytes": 20000 if n else None} for n in range(3)]}
+    old = {"store_uuid": 5, "segments": [
+        {"name": "segment-000000.mcap", "state": "closed", "bytes": 90000, "frames": [[0, 9]], "revisions": [1]},
+        {"name": "segment-000001.mcap", "state": "closed", "bytes": 20000, "frames": [[10, 10**6]], "revisions": []},
+        {"name": "segment-000002.mcap", "state": "closed", "bytes": "x", "frames": [[11, 12]], "revisions": [2]}]}
+    file = tmp_path / "store.json"
+    for uuid_old, expected in ((5, ["segment-000000.mcap"]), (me, ["segment-000000.mcap"]),
+                               (me[:-1] + "g", ["segment-000000.mcap"]), ("f" * 32, [])):
+        file.write_text(json.dumps(old | {"store_uuid": uuid_old}))
+        fresh = json.loads(json.dumps(rebuilt))
+        assert carry_records(file, fresh) == expected, uuid_old
+        first = fresh["segments"][0]
+        if expected:  # the cut segment (open, smaller than it was) keeps its old size as the evidence's yardstick
+            assert first["frames"] == [[0, 9]] and first["revisions"] == [1] and first["rewritten_from_bytes"] == 90000
+        assert all("frames" not in e for e in fresh["segments"][1:])  # 10**6 frames in 20 kB; a size "x"
+    file.write_text("{not json")
+    assert carry_records(file, json.loads(json.dumps(rebuilt))) == []

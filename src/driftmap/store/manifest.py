@@ -223,6 +223,49 @@ def manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None
     }
 
 
+def carry_records(file: Path, rebuilt: dict[str, Any]) -> list[str]:
+    """Into ``rebuilt`` (a manifest rebuilt from the segments), the records the manifest ``file`` it replaces kept of
+    what each segment held, where that file still parses: each entry on its own, only when well formed
+    (:func:`_contents_ok`), and only when the old manifest is not another store's (its ``store_uuid`` a different
+    valid id). A segment found cut (rebuilt as open, smaller than its old size) gets its old size as
+    ``rewritten_from_bytes``. Recovery judges these records as it judges any (``_Recovery.note_cuts``): hostile trial
+    22 B1 (b), a damaged ``store.json`` and a cut segment in one event, lost 12 frames and a revision without a word
+    because the rebuild never read the old records. Returns the names of the segments whose record was carried."""
+    try:
+        old = json.loads(file.read_bytes())
+    except (OSError, ValueError, RecursionError):
+        return []
+    if not isinstance(old, dict) or not isinstance(old.get("segments"), list):
+        return []
+    old_uuid = old.get("store_uuid")
+    if isinstance(old_uuid, str) and len(old_uuid) == 32 and old_uuid != rebuilt["store_uuid"]:
+        try:
+            uuid.UUID(hex=old_uuid)
+            return []  # another store's manifest: its records say nothing of these segments
+        except ValueError:
+            pass  # a damaged id: the manifest is this store's
+    entries = {e["name"]: e for e in rebuilt["segments"]}
+    carried = []
+    for seg in old["segments"]:
+        entry = entries.get(seg.get("name")) if isinstance(seg, dict) else None
+        if entry is None or seg.get("frames") is None:
+            continue
+        try:
+            if not _contents_ok(seg):
+                continue
+        except TypeError:  # a field of another type than the check compares
+            continue
+        entry["frames"], entry["revisions"] = seg["frames"], seg["revisions"]
+        if seg.get("declares_loss") is True:
+            entry["declares_loss"] = True
+        before = max(_size_or_none(seg.get("rewritten_from_bytes")) or 0, _size_or_none(seg.get("bytes")) or 0)
+        size = (file.parent / entry["name"]).stat().st_size
+        if seg.get("rewritten_from_bytes") is not None or (entry["state"] == "open" and before > size):
+            entry["rewritten_from_bytes"] = before
+        carried.append(entry["name"])
+    return carried
+
+
 def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[SegmentEntry]) -> None:
     """Record ``segments`` in ``manifest`` and write it to ``folder`` (atomically: an ``OSError`` leaves the manifest
     on disk as it was)."""

@@ -38,6 +38,7 @@ from driftmap.store.ledger import PoseLedger
 from driftmap.store.lock import acquire_writer_lock, release_writer_lock, writer_alive
 from driftmap.store.manifest import (
     SegmentEntry,
+    carry_records,
     entries_of,
     fsync_dir,
     lost_segments,
@@ -62,6 +63,7 @@ def recover_store(path: Path) -> list[RecoveryEvent]:
     """:meth:`FrameStore.recover <driftmap.store.frame_store.FrameStore.recover>` (an ``OSError`` of a step names
     the file it was working on)."""
     manifest, rebuilt_because = _manifest_to_recover(path)
+    n_rebuilt_from = len(manifest["segments"])  # (the recovery adds any segment it writes to the list)
     run = _Recovery(path, manifest)
     lock = acquire_writer_lock(path)
     try:
@@ -77,7 +79,7 @@ def recover_store(path: Path) -> list[RecoveryEvent]:
         release_writer_lock(lock)
     n_frames, n_revisions = _reopened(path)
     if rebuilt_because is not None:
-        run.events.insert(0, RecoveryEvent(MANIFEST, f"rebuilt from {len(manifest['segments'])} segments{run.kept_manifest}",
+        run.events.insert(0, RecoveryEvent(MANIFEST, f"rebuilt from {n_rebuilt_from} segments{run.kept_manifest}",
                                            n_frames, n_revisions, 0, rebuilt_because))
     for event in run.events:
         logger.info("recover %s: %s", path, event)  # returned to the caller, who reports them
@@ -91,7 +93,7 @@ def _manifest_to_recover(path: Path) -> tuple[dict[str, Any], str | None]:
         manifest = read_manifest(path, hint=False)
     except StoreCorruptError as exc:
         because = str(exc)
-        return manifest_from_segments(path, because), because
+        return _rebuilt(path, manifest_from_segments(path, because)), because
     segments = entries_of(manifest)
     unlisted = unlisted_segments(path, segments)
     strangers = [s.name for s in segments if (path / s.name).exists()
@@ -100,7 +102,15 @@ def _manifest_to_recover(path: Path) -> tuple[dict[str, Any], str | None]:
         return manifest, None
     because = (f"{path / MANIFEST}: " + (f"does not list {preview(unlisted)}" if unlisted else
                f"names store {manifest['store_uuid']}, its segments {preview(strangers)} another"))
-    return manifest_from_segments(path, because, lost_segments(manifest)), because
+    return _rebuilt(path, manifest_from_segments(path, because, lost_segments(manifest))), because
+
+
+def _rebuilt(path: Path, manifest: dict[str, Any]) -> dict[str, Any]:
+    """A manifest rebuilt from the segments, with what the one it replaces recorded of each segment's contents."""
+    carried = carry_records(path / MANIFEST, manifest)
+    if carried:
+        logger.info("%s: the records of what %s held are taken from the manifest it replaces", path, preview(carried))
+    return manifest
 
 
 def _reopened(path: Path) -> tuple[int, int]:
