@@ -247,3 +247,66 @@ def test_carry_records_takes_only_this_stores_well_formed_records(tmp_path: Path
         assert all("frames" not in e for e in fresh["segments"][1:])  # 10**6 frames in 20 kB; a size "x"
     file.write_text("{not json")
     assert carry_records(file, json.loads(json.dumps(rebuilt))) == []
+
+
+def test_t22_b2_a_recovery_stopped_with_its_size_record_lost_still_declares_a_large_cut(room: dict,
+                                                                                         tmp_path: Path) -> None:
+    """B2: the segment holding frames 25-49 and revision 2 cut to 13 % of its size; a recovery rewrote it and
+    recorded the rewrite, then stopped before declaring the loss, and the manifest's ``rewritten_from_bytes`` was
+    lost (a flipped bit in the key). Only the damaged copy's size was left as the size before the damage: a lower
+    bound, against which the record of 25 frames read as implausible, and the loss went unsaid. The note recovery now
+    keeps beside the copy (``NAME.before-damage.json``) holds the size: the loss is declared, the next id is 3."""
+    name, seg = _last_frames_segment(room["C"])
+    full = tmp_path / "full"
+    shutil.copytree(room["C"], full)
+    with open(full / name, "r+b") as fh:
+        fh.truncate(int(seg["bytes"] * 0.13))
+    _ok(run_cli("recover", full))  # what the stopped recovery had done to the segment before it stopped
+    note = json.loads((full / f"{name}.before-damage.json").read_text())
+    assert note["bytes"] == seg["bytes"] and note["frames"] == seg["frames"], note
+
+    def stopped(keep_note: bool) -> Path:
+        store = tmp_path / f"stopped-{keep_note}"
+        shutil.copytree(room["C"], store)
+        for suffix in ("", ".damaged") + ((".before-damage.json",) if keep_note else ()):
+            shutil.copy2(full / f"{name}{suffix}", store / f"{name}{suffix}")
+        manifest = json.loads((store / "store.json").read_text())
+        entry = next(s for s in manifest["segments"] if s["name"] == name)
+        entry["bytes"] = (store / name).stat().st_size  # the rewrite recorded; rewritten_from_bytes lost
+        (store / "store.json").write_text(json.dumps(manifest, indent=1))
+        return store
+
+    recorded = set(range(seg["frames"][0][0], seg["frames"][-1][-1] + 1))
+    without = stopped(False)  # the evidence the trial had: the record is judged against the copy's size
+    out = _ok(run_cli("recover", without))
+    assert "does not fit the store" in " ".join(out.stderr.split()), out.stderr
+    with FrameStore.open(without) as s:
+        assert not s.loss.frame_ids
+    store = stopped(True)
+    done = " ".join(_ok(run_cli("recover", store)).stdout.split())
+    assert "recorded the loss" in done, done
+    with FrameStore.open(store) as s:
+        held = set(map(int, s.frame_ids))
+        assert len(held) < 30 and set(s.loss.frame_ids) == recorded - held, sorted(held)
+        assert s.loss.revision_ids == tuple(seg["revisions"])
+    out = _ok(run_cli("rollback", store, "--to", 0))
+    assert f"revision {max(seg['revisions']) + 1}: poses of revision 0 restored" in out.stdout, out.stdout
+
+
+def test_t22_w1_a_resume_through_the_last_frame_with_a_far_wider_step_is_said(room: dict, tmp_path: Path) -> None:
+    """W1: frames 0..24 stored; `--resume --frames 24:60:24` holds frame 24, so the gap refusal lets it through, and
+    the odometry tracked frame 48 from frame 24 2.1 m off, exit 0 without a word (as an uninterrupted `0:60:24` build
+    tracks its frames). It is still tracked on (trial 21 B1), but a step over 4 times the stored one is said; step 3
+    after step 1 stays quiet."""
+    base = tmp_path / "base"
+    _ok(run_cli("build", room["log"], "--out", base, "--frames", "0:25", "--threads", 1, "--no-loop-closure"))
+    said = {}
+    for frames in ("24:60:24", "24:34:3"):
+        store = tmp_path / frames.replace(":", "_")
+        shutil.copytree(base, store)
+        out = _ok(run_cli("build", room["log"], "--out", store, "--frames", frames, "--threads", 1,
+                          "--no-loop-closure", "--resume"))
+        said[frames] = " ".join(out.stderr.split())
+    assert "--resume goes on from frame 24 to frame 48, 24 frames on, while the stored frames are 1 apart" \
+        in said["24:60:24"], said["24:60:24"]
+    assert "--resume goes on" not in said["24:34:3"], said["24:34:3"]

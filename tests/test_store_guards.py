@@ -510,7 +510,7 @@ def test_disk_full_when_starting_a_segment_or_writing_the_manifest(store3: tuple
     def full(path_: Path, data: dict) -> None:
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
-    monkeypatch.setattr(frame_store, "_atomic_write_json", full)
+    monkeypatch.setattr(frame_store, "atomic_write_json", full)
     with FrameStore.open(path, "a") as store, \
             pytest.raises(StoreIOError, match=r"store.json: starting segment segment-000001.mcap \(appending frame 3\) "
                                               r"failed: no space left"):

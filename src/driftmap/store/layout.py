@@ -20,6 +20,9 @@ SEGMENT_INDEX = re.compile(r"segment-([0-9]+)\.")
 """the index in the name of a segment or of a file named after one (``segment-000003.mcap.damaged``)"""
 DAMAGED_SUFFIX = ".damaged"
 """a damaged file that recovery replaced, kept beside it (``segment-NNNNNN.mcap.damaged``, ``store.json.damaged``)"""
+BEFORE_DAMAGE_SUFFIX = ".before-damage.json"
+"""beside a segment recovery found damaged, kept for good: its size before the damage and the manifest's record of what
+it held (``segment-NNNNNN.mcap.before-damage.json``)"""
 RECOVERING_SUFFIX = ".recovering"
 """a segment being rewritten by recovery (renamed over the damaged one when complete)"""
 TMP_SUFFIX = ".tmp"

@@ -81,7 +81,7 @@ MIN_REVISION_RECORD_BYTES = 64
 """Fewer bytes than any stored revision record takes."""
 
 
-def _contents_ok(seg: dict[str, Any]) -> bool:
+def contents_ok(seg: dict[str, Any]) -> bool:
     """A segment entry's optional content record is well formed: ``frames`` sorted disjoint inclusive integer
     ranges naming no more frames than the segment has bytes, ``revisions`` distinct sorted integers."""
     frames, revisions = seg.get("frames"), seg.get("revisions")
@@ -176,7 +176,7 @@ def read_manifest(path: Path, *, hint: bool = True) -> dict[str, Any]:
                 or isinstance(size, bool) or (size is not None and size < 0)):
             raise StoreCorruptError(f"{file}: unreadable manifest (segment entry {seg!r} is malformed){fix}",
                                     path=file, offset=None)
-        if not _contents_ok(seg):
+        if not contents_ok(seg):
             raise StoreCorruptError(f"{file}: unreadable manifest (segment {seg['name']}: its record of the frames "
                                     f"and revisions it holds is malformed){fix}", path=file, offset=None)
     if len(set(names)) != len(names):
@@ -226,7 +226,7 @@ def manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None
 def carry_records(file: Path, rebuilt: dict[str, Any]) -> list[str]:
     """Into ``rebuilt`` (a manifest rebuilt from the segments), the records the manifest ``file`` it replaces kept of
     what each segment held, where that file still parses: each entry on its own, only when well formed
-    (:func:`_contents_ok`), and only when the old manifest is not another store's (its ``store_uuid`` a different
+    (:func:`contents_ok`), and only when the old manifest is not another store's (its ``store_uuid`` a different
     valid id). A segment found cut (rebuilt as open, smaller than its old size) gets its old size as
     ``rewritten_from_bytes``. Recovery judges these records as it judges any (``_Recovery.note_cuts``): hostile trial
     22 B1 (b), a damaged ``store.json`` and a cut segment in one event, lost 12 frames and a revision without a word
@@ -247,11 +247,12 @@ def carry_records(file: Path, rebuilt: dict[str, Any]) -> list[str]:
     entries = {e["name"]: e for e in rebuilt["segments"]}
     carried = []
     for seg in old["segments"]:
-        entry = entries.get(seg.get("name")) if isinstance(seg, dict) else None
+        name = seg.get("name") if isinstance(seg, dict) else None
+        entry = entries.get(name) if isinstance(name, str) else None
         if entry is None or seg.get("frames") is None:
             continue
         try:
-            if not _contents_ok(seg):
+            if not contents_ok(seg):
                 continue
         except TypeError:  # a field of another type than the check compares
             continue
@@ -275,10 +276,10 @@ def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[Segmen
                              **({"declares_loss": True} if s.declares_loss else {}),
                              **({"rewritten_from_bytes": s.rewritten_from} if s.rewritten_from is not None else {})}
                             for s in segments]
-    _atomic_write_json(folder / MANIFEST, manifest)
+    atomic_write_json(folder / MANIFEST, manifest)
 
 
-def _atomic_write_json(path: Path, data: dict[str, Any]) -> None:
+def atomic_write_json(path: Path, data: dict[str, Any]) -> None:
     tmp = path.with_name(path.name + TMP_SUFFIX)
     with open(tmp, "w") as fh:
         json.dump(data, fh, indent=1)
