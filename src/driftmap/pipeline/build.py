@@ -254,6 +254,25 @@ def _refuse_a_gap(src: FrameSource, existing: set[int], first_new: int) -> None:
         f"another --out")
 
 
+def _warn_a_wider_step(src: FrameSource, existing: set[int], first_new: int) -> None:
+    """``--resume`` through the last stored frame with a step over 4 times the stored frames' own (step 3 after step 1
+    stays quiet: the odometry bridges it on the trials' logs): tracked on, as
+    an uninterrupted build of the selection tracks it (hostile trial 21 B1), but said: the odometry tracks each frame
+    from the one before, and a step it cannot bridge stores the frame off without a flag (hostile trial 22 W1:
+    ``--frames 24:60:24`` after frames 0..24 stored frame 48 2.1 m off, exit 0; ``build --frames 0:60:24`` from
+    scratch stores frame 24 0.4 m off too)."""
+    ids = np.array(sorted(existing))
+    if len(ids) < 2:
+        return  # no stored step to compare with
+    last = int(ids[-1])
+    step = max(int(np.median(np.diff(ids))), 1)
+    if first_new - last > 4 * step:
+        logger.warning("%s: --resume goes on from frame %d to frame %d, %d frames on, while the stored frames are %d "
+                       "apart: the odometry tracks each frame from the one before, and a frame it cannot bridge to is "
+                       "stored off without a flag; check the trajectory (export --trajectory), or resume with the "
+                       "stored step", src.uri, last, first_new, first_new - last, step)
+
+
 STORED_POSE_TOLERANCE_M = 1e-6
 """``--resume`` with given poses: a stored frame's pose and the source's may differ by this (m, and rad) at most."""
 
@@ -324,6 +343,8 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             # the selection yields the last stored frame and then this one: what an uninterrupted build tracks too
             # (a step, frames --lenient skips, a gap in the log; hostile trial 21 B1). Otherwise it starts past it:
             _refuse_a_gap(src, existing, frame.frame_id)
+        elif existing and n_new == 0 and poser.source is PoseSource.ODOMETRY:
+            _warn_a_wider_step(src, existing, frame.frame_id)
         t_b = time.perf_counter()
         T, health = poser.pose(frame)
         t_c = time.perf_counter()
