@@ -500,8 +500,8 @@ def test_t22_w4_a_store_json_older_than_the_append_names_what_the_merge_summary_
     # the lost append revision is declared lost, so that no later revision takes its id (the summary records no
     # frame ids: the session's frames stay named by the warning only)
     done = " ".join(out.stdout.split())
-    assert f"merge_summary.json records revision {head + 1} (the merge's or an append's), which no segment holds" \
-        in done, done
+    assert f"merge_summary.json records revision {head + 1} (an append's) with its session's frames, which no " \
+           f"segment holds" in done, done
     with FrameStore.open(store) as s:
         assert s.loss.revision_ids == (head + 1,) and not s.loss.frame_ids and s.head == head + 1
     info = " ".join(_ok(run_cli("info", store)).stdout.replace("\u2502", " ").split())
@@ -510,3 +510,32 @@ def test_t22_w4_a_store_json_older_than_the_append_names_what_the_merge_summary_
     out = _ok(run_cli("rollback", store, "--to", 0))
     assert f"revision {head + 2}: poses of revision 0 restored" in " ".join(out.stdout.split()), out.stdout
     assert "nothing to do" in _ok(run_cli("recover", store)).stdout
+
+
+@pytest.mark.parametrize("edit", ["next", "later", "negative", "huge", "foreign"])
+def test_t23_b1_a_damaged_merge_summary_never_makes_up_a_lost_revision(appended: dict, room: dict, tmp_path: Path,
+                                                                        edit: str) -> None:
+    """Hostile trial 23 B1: `recover` took every append revision merge_summary.json records and the store lacks for
+    lost (trial 22 W4's fix), so an edited `revision_id` (one flipped bit) declared phantom revisions on an intact
+    store, a negative one left it unreadable for good and 2,000,000 ran out of memory; another store's summary
+    dropped into a plain build did the same. The summary counts only where the store bears it out (the append's
+    session is gone too): each of these recovers nothing and the store stays as it was."""
+    if edit == "foreign":
+        store = tmp_path / "plain"
+        shutil.copytree(room["root"] / "C", store)
+        shutil.copy2(appended["store"] / "merge_summary.json", store / "merge_summary.json")
+    else:
+        store = tmp_path / "edited"
+        shutil.copytree(appended["store"], store)
+        summary = json.loads((store / "merge_summary.json").read_text())
+        with FrameStore.open(store) as s:
+            head = s.head
+        summary["appends"][-1]["revision_id"] = {"next": head + 1, "later": head + 3, "negative": -1,
+                                                 "huge": 2_000_000}[edit]
+        (store / "merge_summary.json").write_text(json.dumps(summary))
+    with FrameStore.open(store) as s:
+        before = (s.head, len(s.revisions), s.poses().copy())
+    out = _ok(run_cli("recover", store))
+    assert "nothing to do" in out.stdout, out.stdout
+    with FrameStore.open(store) as s:
+        assert not s.loss and (s.head, len(s.revisions)) == before[:2] and (s.poses() == before[2]).all()

@@ -37,6 +37,7 @@ from driftmap.store.layout import (
     segment_name,
 )
 from driftmap.store.ledger import PoseLedger
+from driftmap.store.merge_records import lost_append_revisions
 from driftmap.store.lock import acquire_writer_lock, release_writer_lock, writer_alive
 from driftmap.store.manifest import (
     SegmentEntry,
@@ -56,7 +57,6 @@ from driftmap.store.reading import decode_frame
 from driftmap.store.segment import SegmentWriter
 from driftmap.store.segment_format import EVENT_DATA_LOST
 from driftmap.store.segment_scan import SegmentScan, iter_payload_bytes, read_store_uuid, scan_segment
-from driftmap.store.unmerged import recorded_merge_revisions
 from driftmap.store.values import preview
 from driftmap.store.writing import next_segment_index, start_segment
 
@@ -254,20 +254,22 @@ class _Recovery:
             self.cut_revisions |= cut_revisions
 
     def note_merge_records(self) -> None:
-        """Note the merge and append revisions ``merge_summary.json`` records that no segment holds or declares lost
-        (hostile trial 22 W4: a segment gone with its manifest entry, a ``store.json`` older than the last append,
-        left nothing else that names them, and a later revision took the lost id). Their frames' ids the summary
-        does not record: ``missing_merge_records`` names the sessions short of frames."""
-        held = set().union(*(held_ids(scan)[1] for _, scan in self.held if scan is not None))
-        gone = recorded_merge_revisions(self.path) - held - self.cut_revisions
+        """Note the append revisions ``merge_summary.json`` records that were lost with their segment (hostile trial
+        22 W4: a segment gone with its manifest entry, a ``store.json`` older than the last append, left nothing else
+        that names them, and a later revision took the lost id), as far as the store's own contents bear the summary
+        out (:func:`lost_append_revisions`). Their frames' ids the summary does not record: ``missing_merge_records``
+        names the sessions short of frames."""
+        every = [held_ids(scan) for _, scan in self.held if scan is not None]
+        frames = set().union(*(f for f, _ in every)) | self.cut_frames
+        held = set().union(*(r for _, r in every)) | self.cut_revisions
+        gone = lost_append_revisions(self.path, frames, held)
         if gone:
             logger.warning("%s: %s records revisions %s that no segment holds", self.path, MERGE_SUMMARY_FILE,
                            preview(sorted(gone)))
             self.cut_revisions |= gone
-            self.cut_causes[MERGE_SUMMARY_FILE] = (f"{MERGE_SUMMARY_FILE} records revision "
-                                                   f"{', '.join(map(str, sorted(gone)))} (the merge's or an "
-                                                   f"append's), which no segment holds: a segment gone with its "
-                                                   f"{MANIFEST} entry")
+            self.cut_causes[MERGE_SUMMARY_FILE] = (
+                f"{MERGE_SUMMARY_FILE} records revision {', '.join(map(str, sorted(gone)))} (an append's) with its "
+                f"session's frames, which no segment holds: a segment gone with its {MANIFEST} entry")
 
     def rewrite_segment(self, index: int, seg: SegmentEntry, scan: SegmentScan, twice: list[int],
                         unreadable: list[tuple[int, str]]) -> SegmentScan:

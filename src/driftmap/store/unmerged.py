@@ -14,17 +14,17 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from driftmap.store.layout import MERGE_SUMMARY_FILE, SESSION_ID_STRIDE
+from driftmap.store.merge_records import recorded_merge_revisions_in
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
 
-__all__ = ["UnmergedSessions", "missing_merge_records", "recorded_merge_revisions", "unmerged_sessions"]
+__all__ = ["UnmergedSessions", "missing_merge_records", "unmerged_sessions"]
 
 logger = logging.getLogger(__name__)
 
@@ -52,26 +52,10 @@ class UnmergedSessions:
                 f"store ({MERGE_SUMMARY_FILE} names them)")
 
 
-def _recorded_merge_revisions(summary: object) -> set[int]:
-    """Revision 1 and the append revisions a parsed merge summary records."""
-    appends = summary.get("appends", []) if isinstance(summary, dict) else []
-    return {1} | {int(a["revision_id"]) for a in appends if isinstance(a, dict) and a.get("revision_id")}
-
-
-def recorded_merge_revisions(path: Path) -> set[int]:
-    """The merge and append revisions the merge summary in store folder ``path`` records; empty when the store is no
-    merge's or its summary cannot be read (nothing is then taken from it). An append records its revision only after
-    the revision is stored (``merge_append._write``), so a recorded revision the store lacks was lost."""
-    try:
-        return _recorded_merge_revisions(json.loads((path / MERGE_SUMMARY_FILE).read_text()))
-    except (OSError, ValueError, TypeError, KeyError, AttributeError):
-        return set()
-
-
 def _merge_revisions(store: FrameStore) -> set[int]:
     """Revision 1 (the merge's own) and each recorded append's revision."""
     try:
-        return _recorded_merge_revisions(json.loads((store.path / MERGE_SUMMARY_FILE).read_text()))
+        return recorded_merge_revisions_in(json.loads((store.path / MERGE_SUMMARY_FILE).read_text()))
     except (OSError, ValueError, TypeError, KeyError):
         logger.warning("%s: %s is unreadable; taking revision 1 as the only merge revision", store.path,
                        MERGE_SUMMARY_FILE)
@@ -111,7 +95,7 @@ def missing_merge_records(store: FrameStore) -> str | None:
         summary = json.loads(path.read_text())
         sessions = [(int(s["session"]), int(s["n_frames"]), str(s.get("store", "?")))
                     for s in summary.get("sessions", []) if isinstance(s, dict) and s.get("connected")]
-        revisions = _recorded_merge_revisions(summary)
+        revisions = recorded_merge_revisions_in(summary)
     except (OSError, ValueError, TypeError, KeyError, AttributeError):
         return None  # an unreadable summary is reported where it is read (_merge_revisions)
     ids = np.asarray(store.frame_ids, dtype=np.int64)
