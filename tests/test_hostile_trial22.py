@@ -1,5 +1,5 @@
-"""Hostile trial 22's findings on recovery evidence and the given-poses check, each through the command line
-(docs/bad-input.md, trial 22)."""
+"""Hostile trials 22 and 23: their findings on recovery evidence and the given-poses check, each through the command
+line (docs/bad-input.md, trials 22 and 23)."""
 
 from __future__ import annotations
 
@@ -310,3 +310,75 @@ def test_t22_w1_a_resume_through_the_last_frame_with_a_far_wider_step_is_said(ro
     assert "--resume goes on from frame 24 to frame 48, 24 frames on, while the stored frames are 1 apart" \
         in said["24:60:24"], said["24:60:24"]
     assert "--resume goes on" not in said["24:34:3"], said["24:34:3"]
+
+
+def _flip_uuid(store: Path) -> None:
+    p = store / "store.json"
+    m = json.loads(p.read_text())
+    m["store_uuid"] = m["store_uuid"][:-1] + ("0" if m["store_uuid"][-1] != "0" else "1")
+    p.write_text(json.dumps(m, indent=1))
+
+
+def _flip_comma(store: Path) -> None:
+    text = (store / "store.json").read_text()
+    at = text.index(",", text.index("segment-000000"))
+    (store / "store.json").write_text(text[:at] + "-" + text[at + 1:])
+
+
+def _number_uuid(store: Path) -> None:
+    p = store / "store.json"
+    m = json.loads(p.read_text())
+    m["store_uuid"] = 5
+    p.write_text(json.dumps(m, indent=1))
+
+
+@pytest.mark.parametrize("case", ["b2-stopped-after-rebuild", "b3-uuid-digit", "b4-segment-deleted",
+                                  "b5-not-json", "w1-foreign"])
+def test_t23_a_damaged_store_json_still_names_what_a_cut_or_gone_segment_held(room: dict, tmp_path: Path,
+                                                                              monkeypatch: pytest.MonkeyPatch,
+                                                                              case: str) -> None:
+    """Hostile trial 23: a damaged `store.json` beside a cut (or deleted) segment lost the cut frames and revision 2
+    without a word when the damaged manifest was read as another store's (B3: one flipped hex digit of its id), did
+    not parse (B5: a comma flipped), or listed a segment that is gone (B4), or when the recovery that rebuilt it was
+    stopped before it declared the loss (B2: the cut segment's record was never written). Each declares the loss now
+    and the next id is 3. Another store's manifest (W1: its id with a non-hex character) names nothing."""
+    from driftmap.store import recovery
+
+    name, seg = _last_frames_segment(room["C"])
+    store = tmp_path / case
+    shutil.copytree(room["C"], store)
+    if case == "b4-segment-deleted":
+        (store / name).unlink()
+    else:
+        with open(store / name, "r+b") as fh:
+            fh.truncate(int(seg["bytes"] * 0.52))
+    if case == "w1-foreign":
+        other = json.loads((store / "store.json").read_text())
+        other["store_uuid"] = "z" + "0123456789abcdef" * 2  # another store's id, one character damaged
+        other["store_uuid"] = other["store_uuid"][:32]
+        for entry in other["segments"]:
+            if entry.get("frames"):
+                entry["frames"] = [[a + 10**6, b + 10**6] for a, b in entry["frames"]]
+        (store / "store.json").write_text(json.dumps(other, indent=1))
+    else:
+        {"b2-stopped-after-rebuild": _number_uuid, "b3-uuid-digit": _flip_uuid, "b4-segment-deleted": _number_uuid,
+         "b5-not-json": _flip_comma}[case](store)
+    if case == "b2-stopped-after-rebuild":
+        def stop(*_args: object) -> None:
+            raise KeyboardInterrupt  # as a SIGKILL after the rebuilt manifest was written
+
+        with monkeypatch.context() as m:
+            m.setattr(recovery._Recovery, "check_segment", stop)
+            with pytest.raises(KeyboardInterrupt):
+                FrameStore.recover(store)
+        assert json.loads((store / "store.json").read_text()).get("rebuilt_because")
+    _ok(run_cli("recover", store))
+    recorded = set(range(seg["frames"][0][0], seg["frames"][-1][-1] + 1))
+    with FrameStore.open(store) as s:
+        held = set(map(int, s.frame_ids))
+        if case == "w1-foreign":
+            assert not any(f >= 10**6 for f in s.loss.frame_ids), s.loss
+            return
+        assert set(s.loss.frame_ids) == recorded - held and s.loss.revision_ids == tuple(seg["revisions"]), s.loss
+    out = _ok(run_cli("rollback", store, "--to", 0))
+    assert f"revision {max(seg['revisions']) + 1}: poses of revision 0 restored" in out.stdout, out.stdout

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import mmap
 import os
+import re
 import time
 import uuid
 from collections.abc import Iterable
@@ -223,48 +224,84 @@ def manifest_from_segments(path: Path, why: str, lost_segments: list[str] | None
     }
 
 
-def carry_records(file: Path, rebuilt: dict[str, Any]) -> list[str]:
+MAX_UUID_FLIPS = 4
+"""An old manifest whose ``store_uuid`` differs from its segments' in at most this many of the 32 characters is this
+store's, damaged (hostile trial 23 B3: one flipped hex digit read as another store's); two stores' random ids
+differ in about 30."""
+
+
+def carry_records(file: Path, rebuilt: dict[str, Any], *, only_missing: bool = False) -> list[str]:
     """Into ``rebuilt`` (a manifest rebuilt from the segments), the records the manifest ``file`` it replaces kept of
-    what each segment held, where that file still parses: each entry on its own, only when well formed
-    (:func:`contents_ok`), and only when the old manifest is not another store's (its ``store_uuid`` a different
-    valid id). A segment found cut (rebuilt as open, smaller than its old size) gets its old size as
-    ``rewritten_from_bytes``. Recovery judges these records as it judges any (``_Recovery.note_cuts``): hostile trial
-    22 B1 (b), a damaged ``store.json`` and a cut segment in one event, lost 12 frames and a revision without a word
-    because the rebuild never read the old records. Returns the names of the segments whose record was carried."""
-    try:
-        old = json.loads(file.read_bytes())
-    except (OSError, ValueError, RecursionError):
-        return []
-    if not isinstance(old, dict) or not isinstance(old.get("segments"), list):
-        return []
-    old_uuid = old.get("store_uuid")
-    if isinstance(old_uuid, str) and len(old_uuid) == 32 and old_uuid != rebuilt["store_uuid"]:
-        try:
-            uuid.UUID(hex=old_uuid)
-            return []  # another store's manifest: its records say nothing of these segments
-        except ValueError:
-            pass  # a damaged id: the manifest is this store's
+    what each segment held: each entry on its own, only when well formed (:func:`contents_ok`), and only when the old
+    manifest is this store's (:data:`MAX_UUID_FLIPS`). The file is read leniently: when it no longer parses as JSON,
+    each segment entry that still does counts (trial 23 B5: one flipped comma lost every record). A segment found cut
+    (rebuilt as open, smaller than its old size) gets its old size as ``rewritten_from_bytes``; a segment the old
+    manifest lists that is gone from the folder (and not recorded lost) is listed again, so that recovery finds it
+    missing and declares what its record names (trial 23 B4). Recovery judges these records as it judges any
+    (``_Recovery.note_cuts``): hostile trial 22 B1 (b), a damaged ``store.json`` and a cut segment in one event,
+    lost 12 frames and a revision without a word because the rebuild never read the old records. ``only_missing``:
+    only into entries without a record (a manifest rebuilt by a recovery that was stopped: trial 23 B2). Returns the
+    names of the segments whose record was carried."""
+    old_uuid, old_entries = _lenient_manifest(file)
+    new_uuid = rebuilt["store_uuid"]
+    if isinstance(old_uuid, str) and len(old_uuid) == len(new_uuid) and \
+            sum(a != b for a, b in zip(old_uuid, new_uuid, strict=True)) > MAX_UUID_FLIPS:
+        return []  # another store's manifest: its records say nothing of these segments
     entries = {e["name"]: e for e in rebuilt["segments"]}
+    gone_before = set(lost_segments(rebuilt))
     carried = []
-    for seg in old["segments"]:
-        name = seg.get("name") if isinstance(seg, dict) else None
-        entry = entries.get(name) if isinstance(name, str) else None
-        if entry is None or seg.get("frames") is None:
+    for seg in old_entries:
+        name = seg.get("name")
+        if not isinstance(name, str) or seg.get("frames") is None:
             continue
         try:
             if not contents_ok(seg):
                 continue
         except TypeError:  # a field of another type than the check compares
             continue
+        entry = entries.get(name)
+        if entry is None:
+            if not SEGMENT_FILE.fullmatch(name) or name in gone_before or (file.parent / name).exists():
+                continue
+            entry = entries[name] = {"name": name, "state": "closed", "bytes": _size_or_none(seg.get("bytes"))}
+        elif only_missing and entry.get("frames") is not None:
+            continue
         entry["frames"], entry["revisions"] = seg["frames"], seg["revisions"]
         if seg.get("declares_loss") is True:
             entry["declares_loss"] = True
         before = max(_size_or_none(seg.get("rewritten_from_bytes")) or 0, _size_or_none(seg.get("bytes")) or 0)
-        size = (file.parent / entry["name"]).stat().st_size
+        path = file.parent / name
+        size = path.stat().st_size if path.exists() else 0
         if seg.get("rewritten_from_bytes") is not None or (entry["state"] == "open" and before > size):
-            entry["rewritten_from_bytes"] = before
-        carried.append(entry["name"])
+            entry["rewritten_from_bytes"] = max(before, _size_or_none(entry.get("rewritten_from_bytes")) or 0)
+        carried.append(name)
+    rebuilt["segments"] = sorted(entries.values(), key=lambda e: segment_index(e["name"]))
     return carried
+
+
+def _lenient_manifest(file: Path) -> tuple[object, list[dict[str, Any]]]:
+    """The ``store_uuid`` and the segment entries of manifest ``file``: the whole JSON, else each segment entry that
+    still parses on its own (and the id, if its field still reads); nothing when the file cannot be read."""
+    try:
+        raw = file.read_bytes().decode("utf-8", errors="replace")
+    except OSError:
+        return None, []
+    try:
+        old = json.loads(raw)
+        if isinstance(old, dict) and isinstance(old.get("segments"), list):
+            return old.get("store_uuid"), [s for s in old["segments"] if isinstance(s, dict)]
+    except (ValueError, RecursionError):
+        pass
+    decoder, entries = json.JSONDecoder(), []
+    for match in re.finditer(r'\{\s*"name"\s*:', raw):
+        try:
+            entry = decoder.raw_decode(raw, match.start())[0]
+        except (ValueError, RecursionError):
+            continue
+        if isinstance(entry, dict):
+            entries.append(entry)
+    found = re.search(r'"store_uuid"\s*:\s*"([^"]*)"', raw)
+    return (found.group(1) if found else None), entries
 
 
 def write_manifest(folder: Path, manifest: dict[str, Any], segments: list[SegmentEntry]) -> None:

@@ -98,6 +98,13 @@ def _manifest_to_recover(path: Path) -> tuple[dict[str, Any], str | None]:
     except StoreCorruptError as exc:
         because = str(exc)
         return _rebuilt(path, manifest_from_segments(path, because)), because
+    copies = _damaged_copies(path / MANIFEST)
+    if manifest.get("rebuilt_because") and copies:
+        # rebuilt by a recovery that may have stopped before it declared the loss: the damaged manifest's records of
+        # segments the rebuilt one holds none for (a cut segment's, not written while it was open: trial 23 B2)
+        carried = carry_records(copies[-1], manifest, only_missing=True)
+        if carried:
+            logger.info("%s: the records of what %s held are taken from %s", path, preview(carried), copies[-1].name)
     segments = entries_of(manifest)
     unlisted = unlisted_segments(path, segments)
     strangers = [s.name for s in segments if (path / s.name).exists()
