@@ -463,12 +463,25 @@ class GivenPosesCheck:
         decisive pairs disagree); None: fewer than :data:`MIN_DISAGREEING` pairs decide (frames that overlap too little,
         a robot that does not move); also False when the pairs together show a mounting rotation
         (:attr:`MountingRotation.explains`) or a scale of the steps (:attr:`StepScale.explains`) that no pair shows
-        alone."""
+        alone; None too for a fit that the pairs that slid could overturn (:attr:`slides_could_disagree`)."""
         if self.n_decisive < MIN_DISAGREEING:
             return None
         mounting, scale = self.mounting, self.scale
-        return not (self.pairs_disagree or (mounting is not None and mounting.explains)
+        fits = not (self.pairs_disagree or (mounting is not None and mounting.explains)
                     or (scale is not None and scale.explains))
+        return None if fits and self.slides_could_disagree else fits
+
+    @property
+    def slides_could_disagree(self) -> bool:
+        """The pairs that slid (:attr:`GivenPosePair.slid`), which do not decide, would make the pairs disagree if
+        they counted as disagreeing: a slide keeps the file's turn, but the pairs of a wrong file slide too (hostile
+        trial 23 B6: a 10 deg mounting rotation on the room at every 3rd frame read "yes" on 4 deciding pairs, 1
+        disagreeing, with 3 slid; it read "NO: 4 of 7" before slides stopped deciding). A "yes" they could overturn
+        cannot judge."""
+        slid = sum(p.slid and p.fit_registered >= MIN_REGISTERED_FIT
+                   and p.fit_registered - p.fit_as_given >= MIN_FIT_GAIN for p in self.pairs)
+        n = self.n_disagreeing + slid
+        return slid > 0 and n >= MIN_DISAGREEING and 2 * n >= self.n_decisive + slid
 
     def reason(self, what: str, then: str | None = None) -> str | None:
         """Why ``what`` (the pose file, as the user named it) does not fit the frames (None when it does); ``then``:
