@@ -1,6 +1,7 @@
 """What a merged store's summary (``merge_summary.json``) records of the store's own revisions, read at the store
-layer: the merge's revision 1 and each append's. ``recover`` declares lost the append revisions lost with their segment
-(hostile trial 22 W4: :func:`lost_append_revisions`), and ``store/unmerged.py`` names the sessions a lost merge revision leaves unmerged."""
+layer: the merge's revision 1 and each append's. ``recover`` declares lost the append revisions lost with their
+segment (hostile trial 22 W4: :func:`lost_append_revisions`), and ``store/unmerged.py`` names the sessions a lost
+merge revision leaves unmerged."""
 
 from __future__ import annotations
 

@@ -37,7 +37,6 @@ from driftmap.store.layout import (
     segment_name,
 )
 from driftmap.store.ledger import PoseLedger
-from driftmap.store.merge_records import lost_append_revisions
 from driftmap.store.lock import acquire_writer_lock, release_writer_lock, writer_alive
 from driftmap.store.manifest import (
     SegmentEntry,
@@ -52,6 +51,7 @@ from driftmap.store.manifest import (
     unlisted_segments,
     write_manifest,
 )
+from driftmap.store.merge_records import lost_append_revisions
 from driftmap.store.opening import load_segments, replay
 from driftmap.store.reading import decode_frame
 from driftmap.store.segment import SegmentWriter
