@@ -67,11 +67,11 @@ class SegmentEntry:
 def entries_of(manifest: dict[str, Any]) -> list[SegmentEntry]:
     """The segments a (validated) manifest lists, in its order."""
     return [SegmentEntry(s["name"], s["state"], s.get("bytes"), s.get("frames"), s.get("revisions"),
-                         s.get("declares_loss") is True, _size_or_none(s.get("rewritten_from_bytes")))
+                         s.get("declares_loss") is True, size_or_none(s.get("rewritten_from_bytes")))
             for s in manifest["segments"]]
 
 
-def _size_or_none(value: Any) -> int | None:
+def size_or_none(value: Any) -> int | None:
     return value if isinstance(value, int) and not isinstance(value, bool) and 0 <= value < 1 << 62 else None
 
 
@@ -80,6 +80,15 @@ MIN_FRAME_RECORD_BYTES = 512
 size over this many frames."""
 MIN_REVISION_RECORD_BYTES = 64
 """Fewer bytes than any stored revision record takes."""
+
+
+def loose_record_ok(seg: dict[str, Any]) -> bool:
+    """A record read from a file that may hold anything (a damaged manifest's entry, a recovery's note): present and
+    well formed (:func:`contents_ok`), False also for fields of other types than the check compares."""
+    try:
+        return seg.get("frames") is not None and contents_ok(seg)
+    except TypeError:
+        return False
 
 
 def contents_ok(seg: dict[str, Any]) -> bool:
@@ -252,28 +261,23 @@ def carry_records(file: Path, rebuilt: dict[str, Any], *, only_missing: bool = F
     carried = []
     for seg in old_entries:
         name = seg.get("name")
-        if not isinstance(name, str) or seg.get("frames") is None:
-            continue
-        try:
-            if not contents_ok(seg):
-                continue
-        except TypeError:  # a field of another type than the check compares
+        if not isinstance(name, str) or not loose_record_ok(seg):
             continue
         entry = entries.get(name)
         if entry is None:
             if not SEGMENT_FILE.fullmatch(name) or name in gone_before or (file.parent / name).exists():
                 continue
-            entry = entries[name] = {"name": name, "state": "closed", "bytes": _size_or_none(seg.get("bytes"))}
+            entry = entries[name] = {"name": name, "state": "closed", "bytes": size_or_none(seg.get("bytes"))}
         elif only_missing and entry.get("frames") is not None:
             continue
         entry["frames"], entry["revisions"] = seg["frames"], seg["revisions"]
         if seg.get("declares_loss") is True:
             entry["declares_loss"] = True
-        before = max(_size_or_none(seg.get("rewritten_from_bytes")) or 0, _size_or_none(seg.get("bytes")) or 0)
+        before = max(size_or_none(seg.get("rewritten_from_bytes")) or 0, size_or_none(seg.get("bytes")) or 0)
         path = file.parent / name
         size = path.stat().st_size if path.exists() else 0
         if seg.get("rewritten_from_bytes") is not None or (entry["state"] == "open" and before > size):
-            entry["rewritten_from_bytes"] = max(before, _size_or_none(entry.get("rewritten_from_bytes")) or 0)
+            entry["rewritten_from_bytes"] = max(before, size_or_none(entry.get("rewritten_from_bytes")) or 0)
         carried.append(name)
     rebuilt["segments"] = sorted(entries.values(), key=lambda e: segment_index(e["name"]))
     return carried

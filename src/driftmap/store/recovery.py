@@ -42,12 +42,13 @@ from driftmap.store.manifest import (
     SegmentEntry,
     atomic_write_json,
     carry_records,
-    contents_ok,
     entries_of,
     fsync_dir,
+    loose_record_ok,
     lost_segments,
     manifest_from_segments,
     read_manifest,
+    size_or_none,
     unlisted_segments,
     write_manifest,
 )
@@ -424,15 +425,12 @@ def _before_damage(file: Path) -> dict[str, Any]:
         return {}
     if not isinstance(note, dict) or note.get("segment") != file.name:
         return {}
-    size = note.get("bytes")
-    if isinstance(size, bool) or not isinstance(size, int) or not 0 <= size < 1 << 62:
+    size = size_or_none(note.get("bytes"))
+    if size is None:
         return {}
     out: dict[str, Any] = {"bytes": size}
-    try:
-        if note.get("frames") is not None and contents_ok({**note, "bytes": size}):
-            out["frames"], out["revisions"] = note["frames"], note["revisions"]
-    except TypeError:
-        pass
+    if loose_record_ok(note):
+        out["frames"], out["revisions"] = note["frames"], note["revisions"]
     return out
 
 
