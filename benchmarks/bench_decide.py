@@ -63,6 +63,10 @@ Checks (on the results of the last timed pass; the run fails when one does not h
   1 cm voxel over its 64 nearest within 3 cm and takes the dominant one and the spread; the anchor one plane): their median angle and
   the foothold decisions' agreement are in the details.
 
+``decide(..., threads=2)`` is timed in the same passes (``details.threads``: its median, the speed-up over one
+thread); its records must equal one thread's, bit for bit, or the run fails. The headline (``ours``) stays one
+thread.
+
 Per-query latency (``Decision.latency_s``, per kind) and ``decide``'s own split (prepare / decide) are in the details,
 and (not in a quick run) the top functions of a cProfile of ``decide`` on 10 queries of each kind. The run's target
 ratio is 1 s over the anchor's time, so that PASS means the issue's absolute target (1,000 queries <= 1 s) is met; the
@@ -106,6 +110,8 @@ BUDGET_S = 900.0
 """no further repetition is started when it would take the timed passes beyond this (a pass of ``decide`` took 9-19
 minutes on the shared 2-core machine when this benchmark was written: one repetition is then all there is)"""
 PROFILE_PER_KIND = 10
+THREADS = 2
+"""``decide(..., threads=THREADS)`` is timed too (in the details): the queries answered by both cores"""
 
 
 # ------------------------------------------------------------------------------------------------------ the map
@@ -429,8 +435,11 @@ def run(quick: bool = False) -> list[dict]:
         def brute(item: QuerySet) -> None:
             last["anchor"] = anchor.answer(item)
 
+        def ours_threads(item: QuerySet) -> None:
+            last["ours_threads"] = decide(store, item, layers=layers, threads=THREADS)
+
         load_before = os.getloadavg()
-        timings = _timed({"driftmap": ours, "kdtree_brute_force": brute}, qs,
+        timings = _timed({"driftmap": ours, "kdtree_brute_force": brute, "driftmap_threads": ours_threads}, qs,
                          max_repeats=QUICK_REPEATS if quick else REPEATS, budget_s=BUDGET_S)
         load_after = os.getloadavg()
         decisions, theirs = last["ours"].decisions, last["anchor"]
@@ -467,8 +476,11 @@ def run(quick: bool = False) -> list[dict]:
             counts[f"{d.kind}:{d.decision}"] += 1
             if d.kind != "explore":
                 lat_theirs[d.kind].append(theirs[d.id]["latency_s"])
+        check(records(last["ours_threads"]) == records(last["ours"]),
+              f"decide with {THREADS} threads: other records than with 1 (they must be the same, bit for bit)")
         profile = None if quick else _profile_top(store, qs, layers)
         ours_t = timings.pop("driftmap")
+        threads_t = timings.pop("driftmap_threads")
         anchor_s = timings["kdtree_brute_force"]["median_s"]
         n_points = int(layers.view.n_points)
         n_steps = sum(len(_path_samples(q.path_m, anchor.step)) for q in qs if q.kind == "collision")
@@ -481,6 +493,10 @@ def run(quick: bool = False) -> list[dict]:
             "anchor_per_query_ms": 1e3 * anchor_s / len(qs),
             "anchor_answers": "800 (explore not answered by the anchor: no unknown space in a point cloud)",
             "ratio_vs_anchor": ours_t["median_s"] / anchor_s,
+            "threads": {"threads": THREADS, "total_s": threads_t["median_s"],
+                        "target_met": threads_t["median_s"] <= TARGET_S,
+                        "speed_up_vs_1_thread": ours_t["median_s"] / threads_t["median_s"], "timing": threads_t,
+                        "records": "the same as with 1 thread, bit for bit (checked)"},
             "times_over_target": ours_t["median_s"] / TARGET_S,
             "latency_per_kind_ours": {k: _latency_stats(v) for k, v in lat_ours.items()},
             "latency_per_kind_anchor": {k: _latency_stats(v) for k, v in lat_theirs.items()},

@@ -533,3 +533,71 @@ def test_a_decide_table_in_the_config_sets_the_thresholds_through_the_cli(gt_dec
                                 tmp_path / "bad.json", "--config", tmp_path / "bad.toml"))
     assert "decide.grasp_min_points" in line and "bad.toml" in line, line
     assert not (tmp_path / "bad.json").exists()
+
+
+def _without_latency(records: list[dict]) -> list[dict]:
+    return [{k: v for k, v in d.items() if k != "latency_s"} for d in records]
+
+
+def test_threads_answer_the_same_decisions_bit_for_bit(gt_decisions: DecisionSet, queries, gt_store: FrameStore,
+                                                       tmp_path: Path) -> None:
+    """``decide --threads 2`` through the CLI, on the whole query set (the shared voxel normals, frame spreads and
+    provenance all read by two threads at once), writes the same records as the library's one thread, every float
+    bit for bit (the JSON floats compared exactly), in the query file's order; a thread count the machine does
+    not take is one error line naming --threads."""
+    out_json = tmp_path / "threads.json"
+    out = _cli("decide", gt_store.path, "--queries", QUERY_FILE, "--json", out_json, "--threads", 2)
+    assert out.returncode == 0, out.stderr[-3000:]
+    threaded = json.loads(out_json.read_text())["decisions"]
+    single = json.loads(json.dumps(gt_decisions.to_json()))["decisions"]
+    assert [d["id"] for d in threaded] == [q.id for q in queries]
+    assert _without_latency(threaded) == _without_latency(single)
+    line = _one_error_line(_cli("decide", gt_store.path, "--queries", QUERY_FILE, "--json", tmp_path / "o.json",
+                                "--threads", 100_000))
+    assert "--threads: 100000 threads is more than this machine takes" in line, line
+    zero = _cli("decide", gt_store.path, "--queries", QUERY_FILE, "--json", tmp_path / "o.json", "--threads", 0)
+    assert zero.returncode == 2 and "Invalid value for '--threads'" in zero.stderr, zero.stderr
+    assert not (tmp_path / "o.json").exists()
+
+
+def test_threads_of_the_library_are_checked(gt_store: FrameStore, queries) -> None:
+    from driftmap.errors import ConfigError
+
+    for bad in (0, -1, 2.5, True, 100_000):
+        with pytest.raises(ConfigError, match="threads"):
+            decide(gt_store, queries, threads=bad)
+
+
+def test_threads_run_in_a_pool_and_a_failing_query_is_raised(monkeypatch: pytest.MonkeyPatch) -> None:
+    """With 2 threads the queries run in the pool's threads, the decisions come back in the queries' order, and a
+    query that raises is raised to the caller, naming it (the others' results are not returned half)."""
+    import importlib
+    import threading
+
+    decide_module = importlib.import_module("driftmap.decisions.decide")  # the package exports the function
+    ran_in: dict[str, str] = {}
+
+    def fake(ctx, q):  # noqa: ANN001, ANN202
+        ran_in[q.id] = threading.current_thread().name
+        if q.id == "bad":
+            raise QueryError(f"query {q.id!r}: cannot answer", query_id=q.id)
+        return {"decision": "free", "margin": 1.0, "uncertainty": None, "failure_label": None, "frames": [],
+                "stamp_ns_newest": None}
+
+    class Context:
+        prepared = 0
+
+        def prepare_shared(self) -> None:
+            Context.prepared += 1
+
+    monkeypatch.setitem(decide_module.DECIDERS, "clearance", fake)
+    qs = parse_queries({"queries": [{"id": f"q{k}", "kind": "clearance", "points_m": [[0, 0, k]], "radius_m": 0.1}
+                                    for k in range(40)]})
+    ticks: list[int] = []
+    out = decide_module._answer_all(Context(), qs, 2, lambda stage, done, total: ticks.append(done))
+    assert [d.id for d in out] == [q.id for q in qs] and ticks == list(range(1, 41))
+    assert Context.prepared == 1 and all(name.startswith("driftmap-decide") for name in ran_in.values())
+    bad = parse_queries({"queries": [*qs.raw[:5], {"id": "bad", "kind": "clearance", "points_m": [[0, 0, 0]],
+                                                    "radius_m": 0.1}, *qs.raw[5:10]]})
+    with pytest.raises(QueryError, match="bad"):
+        decide_module._answer_all(Context(), bad, 2, lambda stage, done, total: None)

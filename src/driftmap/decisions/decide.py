@@ -11,12 +11,14 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Iterable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from driftmap import __version__
+from driftmap.config import check_threads
 from driftmap.decisions import space, surface
 from driftmap.decisions.errors import QueryError
 from driftmap.decisions.evidence import DecisionContext
@@ -123,14 +125,18 @@ def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarra
 def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path, revision: int | None = None,
            config: VolumeConfig | None = None, *, decide_config: DecideConfig | None = None,
            layers: VolumeLayers | None = None, double_walls: Any = None,
-           progress: ProgressCallback | None = None) -> DecisionSet:
+           progress: ProgressCallback | None = None, threads: int = 1) -> DecisionSet:
     """Answer every query on ``revision`` (default: the head) of ``store``.
 
     ``config``: the volumetric settings (defaults follow the sensor); ``layers``: layers of that revision already
     built (else they are built here, which is most of the time of a first call); ``double_walls``: a
     :class:`~driftmap.diagnostics.diagnosis.Diagnosis` of the revision, the JSON ``diagnose --json`` wrote (path
-    or dict) or a list of regions -- the double walls in reach of each query then label and bound it.
+    or dict) or a list of regions -- the double walls in reach of each query then label and bound it;
+    ``threads``: queries answered at once (1 up to :func:`~driftmap.config.max_threads`); the decisions are the
+    same, bit for bit, with any count. The compiled query kernels release the GIL, but each query's Python steps
+    hold it, so 2 threads are not twice as fast as 1 (docs/decisions.md, "Speed").
     """
+    threads = check_threads(threads, "threads")
     qs = as_query_set(queries)
     rev = store.head if revision is None else as_int(revision, "revision")
     store.ledger.revision(rev)  # an unknown revision: a StoreError naming it, before any work
@@ -146,18 +152,20 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
         raise QueryError(f"the layers given are of revision {layers.revision}, not {rev}", query_id=None)
     layers_s = time.perf_counter() - t0
     check_on_map(qs, layers)
-    return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s)
+    return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s, threads)
 
 
 def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path,
                      revisions: Sequence[int], config: VolumeConfig | None = None, *,
                      decide_config: DecideConfig | None = None, double_walls: Sequence[Any] | None = None,
-                     progress: ProgressCallback | None = None) -> tuple[list[DecisionSet], VolumeLayers]:
+                     progress: ProgressCallback | None = None,
+                     threads: int = 1) -> tuple[list[DecisionSet], VolumeLayers]:
     """:func:`decide` on each revision in turn; the layers are built once and then updated to the next revision
     (:meth:`~driftmap.volume.layers.VolumeLayers.apply`: only the frames that moved). Returns the decision sets
     and the layers (of the last revision)."""
     from driftmap.volume.layers import VolumeLayers
 
+    threads = check_threads(threads, "threads")
     qs = as_query_set(queries)
     revisions = [as_int(r, "revisions") for r in revisions]
     if not revisions:
@@ -181,24 +189,49 @@ def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | di
         else:
             layers.apply(int(rev), store)
         out.append(_decide_on(store, qs, layers, decide_config or DecideConfig(), walls[n], progress,
-                              time.perf_counter() - t0))
+                              time.perf_counter() - t0, threads))
     assert layers is not None
     return out, layers
 
 
+def _answer(ctx: DecisionContext, q: Query) -> Decision:
+    t = time.perf_counter()
+    fields = DECIDERS[q.kind](ctx, q)
+    return Decision(q.id, q.kind, latency_s=time.perf_counter() - t, **fields)
+
+
+def _answer_all(ctx: DecisionContext, qs: QuerySet, threads: int, tick: ProgressCallback) -> list[Decision]:
+    """The decisions of ``qs`` in order, ``threads`` queries at a time. Each query reads only what :func:`prepare`
+    and :meth:`DecisionContext.prepare_shared` built beforehand (and memos whose value does not depend on who
+    computes it first), so the order in which the threads finish changes nothing."""
+    queries = list(qs)
+    if threads == 1 or len(queries) < 2:
+        decisions = []
+        for n, q in enumerate(queries):
+            decisions.append(_answer(ctx, q))
+            tick("decide", n + 1, len(queries))
+        return decisions
+    ctx.prepare_shared()
+    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="driftmap-decide")
+    try:
+        futures = [pool.submit(_answer, ctx, q) for q in queries]
+        decisions = []
+        for n, future in enumerate(futures):
+            decisions.append(future.result())  # a query's error is raised here, naming it
+            tick("decide", n + 1, len(queries))
+        return decisions
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: DecideConfig, walls: list,
-               progress: ProgressCallback | None, layers_s: float) -> DecisionSet:
+               progress: ProgressCallback | None, layers_s: float, threads: int = 1) -> DecisionSet:
     tick = progress or (lambda stage, done, total: None)
     ctx = DecisionContext(store, layers.revision, layers, cfg, walls)
     t_all = time.perf_counter()
     prepare(layers, cfg, kinds=[q.kind for q in qs])
     prepare_s = time.perf_counter() - t_all
-    decisions: list[Decision] = []
-    for n, q in enumerate(qs):
-        t = time.perf_counter()
-        fields = DECIDERS[q.kind](ctx, q)
-        decisions.append(Decision(q.id, q.kind, latency_s=time.perf_counter() - t, **fields))
-        tick("decide", n + 1, len(qs))
+    decisions = _answer_all(ctx, qs, threads, tick)
     rev = layers.revision
     unmerged = unmerged_sessions(store, rev)
     if unmerged is not None:  # the map lays those sessions over session 0's misaligned: a decision on them is not one

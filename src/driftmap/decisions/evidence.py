@@ -103,6 +103,16 @@ class DecisionContext:
             self._point_index = point_index(self.layers, self.config.range_limited_points)
         return self._point_index
 
+    def prepare_shared(self) -> None:
+        """Build what the queries would otherwise build on first use (the point index, the frames' pose revisions,
+        the pose covariances, the layers' provenance index), so that queries answered in several threads only read
+        it."""
+        _ = self.point_index
+        self.pose_revisions([])
+        if self._covariances is None:
+            self._covariances = self.store.ledger.covariances(self.revision)
+        self.layers.observers(np.zeros((1, 3)))
+
     # ------------------------------------------------------------------------------------------- frames
     def frames_report(self, frames: NDArray[np.int64] | list[int]) -> tuple[list[int], int | None]:
         """Sorted unique frame ids and the stamp of the newest (None without frames)."""
