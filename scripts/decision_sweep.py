@@ -7,6 +7,7 @@ magnitudes and the given seeds. Writes OUT/sweep.json (every run), OUT/sweep.md 
 assumption, OUT/sweep-<assumption>.png (flipped fraction against the magnitude, a line per seed).
 
 Usage: .venv/bin/python scripts/decision_sweep.py [--out docs/sweep] [--seeds 0,1] [--only pose_drift,motion]
+(with --only, the other assumptions' runs already in OUT/sweep.json are kept and the table and plots cover all)
 (about 25 s per perturbed store on 2 shared cores: 64 stores, half an hour)
 """
 
@@ -21,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from driftmap.decisions import load_queries
-from driftmap.decisions.sweep import ASSUMPTIONS, sweep
+from driftmap.decisions.sweep import ASSUMPTIONS, spearman_by_assumption, sweep
 from driftmap.pipeline.build import build
 from driftmap.store.frame_store import FrameStore
 
@@ -81,7 +82,15 @@ def main() -> None:
         result = sweep(FrameStore.open(store_path), load_queries(QUERIES), Path(tmp) / "work", assumptions=names,
                        seeds=seeds, progress=lambda m: print(f"[{time.perf_counter() - t0:6.0f} s] {m}", flush=True))
     data = result.to_json()
-    (args.out / "sweep.json").write_text(json.dumps(data, indent=1))
+    kept_file = args.out / "sweep.json"
+    if names and kept_file.exists():  # the other assumptions' runs of an earlier sweep stay (same queries)
+        kept = json.loads(kept_file.read_text())
+        if kept.get("n_queries") == data["n_queries"]:
+            runs = [r for r in kept["runs"] if r["assumption"] not in names] + data["runs"]
+            order = {name: k for k, name in enumerate(ASSUMPTIONS)}
+            runs.sort(key=lambda r: (order.get(r["assumption"], len(order)), r["magnitude"], r["seed"]))
+            data = {"n_queries": data["n_queries"], "runs": runs, "spearman": spearman_by_assumption(runs)}
+    kept_file.write_text(json.dumps(data, indent=1))
     (args.out / "sweep.md").write_text(table(data))
     plot(data, args.out)
     print(table(data))

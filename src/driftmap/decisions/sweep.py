@@ -110,13 +110,13 @@ ASSUMPTIONS: dict[str, Assumption] = {a.name: a for a in (
     Assumption("dropout_random", "fraction", (0.5, 0.7, 0.85, 0.95), perturb_points=_dropout_random),
     Assumption("dropout_structured", "fraction", (0.25, 0.5, 0.75, 0.9), perturb_points=_dropout_structured,
                needs_image=True),
-    Assumption("occlusion", "fraction of the image", (0.2, 0.35, 0.5, 0.7), perturb_points=_occlusion,
+    Assumption("occlusion", "fraction of the image", (0.1, 0.2, 0.35, 0.5, 0.7, 0.9), perturb_points=_occlusion,
                needs_image=True),
     Assumption("depth_scale", "%", (0.5, 1.0, 2.0, 4.0), perturb_points=_depth_scale),
     Assumption("pose_drift", "%/m", (0.5, 1.0, 2.0, 4.0), perturb_poses=_pose_drift),
     Assumption("motion", "cm", (2.0, 4.0, 8.0, 16.0), perturb_poses=_motion),
     Assumption("focal_length", "%", (2.0, 4.0, 8.0, 16.0), perturb_points=_focal_length, needs_image=True),
-    Assumption("extrinsic_rotation", "deg", (0.25, 0.5, 1.0, 2.0), perturb_points=_extrinsic_rotation),
+    Assumption("extrinsic_rotation", "deg", (0.25, 0.5, 1.0, 2.0, 4.0, 8.0), perturb_points=_extrinsic_rotation),
 )}
 
 
@@ -176,6 +176,18 @@ class SweepRun:
         return dict(self.__dict__)
 
 
+def spearman_by_assumption(runs: Sequence[dict]) -> dict[str, float | None]:
+    """Per assumption (in the order of ``runs``), the Spearman rank correlation of the flipped fraction with the
+    magnitude over all its runs (every magnitude and seed); None where either is constant."""
+    from scipy.stats import spearmanr
+
+    out: dict[str, float | None] = {}
+    for name in dict.fromkeys(r["assumption"] for r in runs):
+        m, f = np.array([(r["magnitude"], r["flipped_fraction"]) for r in runs if r["assumption"] == name]).T
+        out[name] = None if np.ptp(m) == 0 or np.ptp(f) == 0 else float(spearmanr(m, f).statistic)
+    return out
+
+
 @dataclass
 class SweepResult:
     """Every run, and per assumption the Spearman rank correlation of the flipped fraction with the magnitude."""
@@ -184,14 +196,7 @@ class SweepResult:
     runs: list[SweepRun] = field(default_factory=list)
 
     def spearman(self) -> dict[str, float | None]:
-        from scipy.stats import spearmanr
-
-        out: dict[str, float | None] = {}
-        for name in dict.fromkeys(r.assumption for r in self.runs):
-            rows = [(r.magnitude, r.flipped_fraction) for r in self.runs if r.assumption == name]
-            m, f = np.array(rows).T
-            out[name] = None if np.ptp(m) == 0 or np.ptp(f) == 0 else float(spearmanr(m, f).statistic)
-        return out
+        return spearman_by_assumption([r.to_json() for r in self.runs])
 
     def to_json(self) -> dict:
         return {"n_queries": len(self.baseline), "runs": [r.to_json() for r in self.runs], "spearman": self.spearman()}
