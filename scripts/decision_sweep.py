@@ -2,13 +2,13 @@
 """The perturbation sweep of the decisions (docs/decisions.md, "The perturbation sweep").
 
 The embedded synthetic loop log placed with its ground-truth poses, its 333 generated queries
-(datasets/synthetic-loop-queries.json); every assumption of :mod:`driftmap.decisions.sweep` at its four default
+(datasets/synthetic-loop-queries.json); every assumption of :mod:`driftmap.decisions.sweep` at its default (4 or 6)
 magnitudes and the given seeds. Writes OUT/sweep.json (every run), OUT/sweep.md (the table) and one plot per
 assumption, OUT/sweep-<assumption>.png (flipped fraction against the magnitude, a line per seed).
 
 Usage: .venv/bin/python scripts/decision_sweep.py [--out docs/sweep] [--seeds 0,1] [--only pose_drift,motion]
 (with --only, the other assumptions' runs already in OUT/sweep.json are kept and the table and plots cover all)
-(about 25 s per perturbed store on 2 shared cores: 64 stores, half an hour)
+(about 20 s per perturbed store on 2 shared cores: 72 stores, 25 minutes)
 """
 
 from __future__ import annotations
