@@ -205,23 +205,22 @@ def _answer_all(ctx: DecisionContext, qs: QuerySet, threads: int, tick: Progress
     and :meth:`DecisionContext.prepare_shared` built beforehand (and memos whose value does not depend on who
     computes it first), so the order in which the threads finish changes nothing."""
     queries = list(qs)
+    pool = None
     if threads == 1 or len(queries) < 2:
-        decisions = []
-        for n, q in enumerate(queries):
-            decisions.append(_answer(ctx, q))
-            tick("decide", n + 1, len(queries))
-        return decisions
-    ctx.prepare_shared()
-    pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="driftmap-decide")
+        answers: Iterable[Decision] = (_answer(ctx, q) for q in queries)
+    else:
+        ctx.prepare_shared()
+        pool = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="driftmap-decide")
+        answers = (f.result() for f in [pool.submit(_answer, ctx, q) for q in queries])  # an error raised here
     try:
-        futures = [pool.submit(_answer, ctx, q) for q in queries]
         decisions = []
-        for n, future in enumerate(futures):
-            decisions.append(future.result())  # a query's error is raised here, naming it
+        for n, decision in enumerate(answers):
+            decisions.append(decision)
             tick("decide", n + 1, len(queries))
         return decisions
     finally:
-        pool.shutdown(wait=True, cancel_futures=True)
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: DecideConfig, walls: list,

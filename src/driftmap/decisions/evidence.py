@@ -105,13 +105,17 @@ class DecisionContext:
 
     def prepare_shared(self) -> None:
         """Build what the queries would otherwise build on first use (the point index, the frames' pose revisions,
-        the pose covariances, the layers' provenance index), so that queries answered in several threads only read
-        it."""
+        the pose covariances; the layers' structures are :func:`~driftmap.decisions.decide.prepare`'s), so that
+        queries answered in several threads only read it."""
         _ = self.point_index
         self.pose_revisions([])
+        self.covariances()
+
+    def covariances(self) -> dict[int, NDArray[np.float64]]:
+        """The revision's pose covariances by frame (read from the ledger once)."""
         if self._covariances is None:
             self._covariances = self.store.ledger.covariances(self.revision)
-        self.layers.observers(np.zeros((1, 3)))
+        return self._covariances
 
     # ------------------------------------------------------------------------------------------- frames
     def frames_report(self, frames: NDArray[np.int64] | list[int]) -> tuple[list[int], int | None]:
@@ -164,9 +168,8 @@ class DecisionContext:
     def pose_marginal_m(self, point: NDArray[np.float64] | None, frames: list[int]) -> float | None:
         """The median over ``frames`` of the pose covariance propagated to ``point`` (module docstring); None
         without a point or without frames whose pose carries a covariance."""
-        if self._covariances is None:
-            self._covariances = self.store.ledger.covariances(self.revision)
-        covs = [(f, self._covariances[f]) for f in frames if f in self._covariances]
+        known = self.covariances()
+        covs = [(f, known[f]) for f in frames if f in known]
         if point is None or not covs:
             return None
         T = np.stack([self.view.pose(f) for f, _ in covs])
