@@ -91,7 +91,7 @@ def test_the_covariance_is_propagated_to_the_evidence_point() -> None:
     pose = np.eye(4)
     pose[:3, :3] = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # turned 90 deg about z
     covs = {1: np.diag([1e-4] * 3 + [0.0] * 3), 2: np.diag([0.0] * 5 + [1e-4]), 3: np.diag([4e-4] * 3 + [0.0] * 3)}
-    fake = SimpleNamespace(_covariances=covs, view=SimpleNamespace(pose=lambda f: pose))
+    fake = SimpleNamespace(covariances=lambda: covs, view=SimpleNamespace(pose=lambda f: pose))
     point = pose[:3, :3] @ np.array([2.0, 0.0, 0.0])  # 2 m along the sensor's x
     marginal = DecisionContext.pose_marginal_m
     assert marginal(fake, point, [1]) == pytest.approx(0.01)
