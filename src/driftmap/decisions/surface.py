@@ -32,6 +32,7 @@ from driftmap.decisions.voxel_normals import (  # noqa: F401 - re-export
     voxel_normals,
 )
 from driftmap.kernels.queries import oriented_point_normals
+from driftmap.kernels.regions import median, select_box, select_cylinder
 from driftmap.preprocess.cloud import estimate_normals
 
 if TYPE_CHECKING:
@@ -108,14 +109,12 @@ def dominant_normal(normals: NDArray[np.float64], angles: bool = True
     return e, np.degrees(np.arccos(np.clip(normals @ e, -1.0, 1.0)))
 
 
-def _region_points(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[np.float64], inside) -> tuple:
-    """Points of the region grown by ``normal_margin_m``, which of them are inside (``inside(pts)``), their
-    oriented normals (only computed when enough points are inside) and frames."""
+def _region_points(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple:
+    """Points of the region grown by ``normal_margin_m`` (float64, map order), their frames and the grown box."""
     m = ctx.config.normal_margin_m
     box = (lo - m, hi + m)
     pts, fids = ctx.points_in_box(*box)
-    mask = inside(pts) if len(pts) else np.zeros(0, bool)
-    return pts, fids, mask, box
+    return pts, fids, box
 
 
 # ------------------------------------------------------------------------------------------------ grasp
@@ -129,15 +128,9 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
     max_spread = q.max_normal_spread_deg if q.max_normal_spread_deg is not None else c.grasp_max_normal_spread_deg
     lo, hi = q.roi_min_m, q.roi_max_m
 
-    def in_roi(p: NDArray[np.float64]) -> NDArray[np.bool_]:  # per axis: no reduction over a last axis of 3
-        mask = (p[:, 0] >= lo[0]) & (p[:, 0] <= hi[0])
-        mask &= (p[:, 1] >= lo[1]) & (p[:, 1] <= hi[1])
-        mask &= (p[:, 2] >= lo[2]) & (p[:, 2] <= hi[2])
-        return mask
-
-    pts, fids, inside, box = _region_points(ctx, lo, hi, in_roi)
-    n_in = int(inside.sum())
-    f_in = np.compress(inside, fids)
+    pts, fids, box = _region_points(ctx, lo, hi)
+    inside, p_in, f_in = select_box(pts, fids, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+    n_in = len(p_in)
     frames = unique_ids(f_in)
     if n_in < min_points:
         out = ctx.finish("too_few_points", "too_few_points", q.roi_min_m, q.roi_max_m, None, frames)
@@ -145,11 +138,10 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
         out["evidence_m"] = 0.5 * (q.roi_min_m + q.roi_max_m)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    p_in = np.compress(inside, pts, axis=0)
     normals, ok = _oriented_normals(ctx, pts, inside, box, p_in, f_in, frames)
     e, angles = dominant_normal(_finite_rows(normals, ok))
     spread = float(np.percentile(angles, 90))
-    offset = float(np.median(p_in @ e))
+    offset = float(median(p_in @ e))
     centroid = p_in.mean(axis=0)
     contact = centroid - (float(centroid @ e) - offset) * e
     margin = max_spread - spread
@@ -173,27 +165,23 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
     max_flat = q.max_flatness_m if q.max_flatness_m is not None else c.foothold_max_flatness_m
     r, centre = q.radius_m, q.center_m
 
-    def inside(p: NDArray[np.float64]) -> NDArray[np.bool_]:  # the values of np.linalg.norm(p[:, :2] - c[:2], axis=1)
-        dx, dy = p[:, 0] - centre[0], p[:, 1] - centre[1]
-        return (np.sqrt(dx * dx + dy * dy) <= r) & (np.abs(p[:, 2] - centre[2]) <= r)
-
     lo, hi = q.extent_m()
-    pts, fids, mask, box = _region_points(ctx, lo, hi, inside)
-    n_in = int(mask.sum())
-    f_in = np.compress(mask, fids)
+    pts, fids, box = _region_points(ctx, lo, hi)
+    # inside: np.linalg.norm(p[:, :2] - centre[:2], axis=1) <= r and |z - centre_z| <= r
+    mask, p_in, f_in = select_cylinder(pts, fids, np.asarray(centre, np.float64), float(r))
+    n_in = len(p_in)
     frames = unique_ids(f_in)
     if n_in < min_points:
         out = ctx.finish("too_few_points", "too_few_points", lo, hi, None, frames)
         out.update(margin=None, evidence_m=centre)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    p_in = np.compress(mask, pts, axis=0)
     normals, ok = _oriented_normals(ctx, pts, mask, box, p_in, f_in, frames)
     e, _ = dominant_normal(_finite_rows(normals, ok), angles=False)
     if e[2] < 0:
         e = -e
     along = p_in @ e
-    offset = float(np.median(along))
+    offset = float(median(along))
     flatness = float(np.sqrt(np.mean((along - offset) ** 2)))
     slope = float(np.degrees(np.arccos(np.clip(abs(e[2]), 0.0, 1.0))))
     if flatness > max_flat:

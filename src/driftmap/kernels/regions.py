@@ -1,0 +1,69 @@
+"""Compiled per-query steps of the surface decisions (:mod:`driftmap.decisions.surface`): a region's points selected
+from the points gathered around it -- which lie inside, and those points and their frames compacted -- in one pass
+instead of a numpy mask, two ``compress`` calls and their temporaries, and the median of a region's offsets.
+
+Each kernel computes what the numpy expressions it replaces compute, in the same float64 arithmetic (numba compiles
+without fast-math: no fused multiply-add, and ``np.sqrt`` is correctly rounded in both), so the same points are
+selected in the same order and the median is the same value (of tied zeros, either sign); tests/test_kernels_regions.py checks them against the
+numpy expressions. They release the GIL, so that queries answered in several threads overlap here.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+from driftmap.kernels.queries import _median
+
+
+@numba.njit(cache=True, nogil=True)
+def _compact(pts, fids, mask, m):  # pragma: no cover - compiled
+    p_in = np.empty((m, 3))
+    f_in = np.empty(m, np.int64)
+    j = 0
+    for i in range(len(mask)):
+        if mask[i]:
+            p_in[j, 0], p_in[j, 1], p_in[j, 2] = pts[i, 0], pts[i, 1], pts[i, 2]
+            f_in[j] = fids[i]
+            j += 1
+    return mask, p_in, f_in
+
+
+@numba.njit(cache=True, nogil=True)
+def select_box(pts, fids, lo, hi):  # pragma: no cover - compiled
+    """``mask = (lo <= p) & (p <= hi)`` on every axis (float64 ``pts``; NaN never inside), ``pts[mask]`` and
+    ``fids[mask]``."""
+    n = len(pts)
+    mask = np.empty(n, np.bool_)
+    m = 0
+    for i in range(n):
+        x, y, z = pts[i, 0], pts[i, 1], pts[i, 2]
+        ok = x >= lo[0] and x <= hi[0] and y >= lo[1] and y <= hi[1] and z >= lo[2] and z <= hi[2]
+        mask[i] = ok
+        m += ok
+    return _compact(pts, fids, mask, m)
+
+
+@numba.njit(cache=True, nogil=True)
+def select_cylinder(pts, fids, centre, radius):  # pragma: no cover - compiled
+    """``mask = (sqrt(dx*dx + dy*dy) <= radius) & (|z - centre_z| <= radius)`` (a vertical cylinder of height
+    ``2 radius``; float64 ``pts``; NaN never inside), ``pts[mask]`` and ``fids[mask]``."""
+    n = len(pts)
+    mask = np.empty(n, np.bool_)
+    m = 0
+    for i in range(n):
+        dx = pts[i, 0] - centre[0]
+        dy = pts[i, 1] - centre[1]
+        ok = np.sqrt(dx * dx + dy * dy) <= radius and abs(pts[i, 2] - centre[2]) <= radius
+        mask[i] = ok
+        m += ok
+    return _compact(pts, fids, mask, m)
+
+
+@numba.njit(cache=True, nogil=True)
+def median(values):  # pragma: no cover - compiled
+    """``np.median`` of a non-empty float64 array: NaN when a value is NaN, else the middle value or the mean of the
+    two middle ones (``values`` is left as it is: the partition is a copy)."""
+    if np.isnan(values).any():
+        return np.nan
+    return _median(values)
