@@ -32,7 +32,7 @@ from driftmap.decisions.voxel_normals import (  # noqa: F401 - re-export
     voxel_normals,
 )
 from driftmap.kernels.queries import oriented_point_normals
-from driftmap.kernels.regions import median, select_box, select_cylinder
+from driftmap.kernels.regions import select_box, select_cylinder
 from driftmap.preprocess.cloud import estimate_normals
 
 if TYPE_CHECKING:
@@ -141,7 +141,7 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
     normals, ok = _oriented_normals(ctx, pts, inside, box, p_in, f_in, frames)
     e, angles = dominant_normal(_finite_rows(normals, ok))
     spread = float(np.percentile(angles, 90))
-    offset = float(median(p_in @ e))
+    offset = float(np.median(p_in @ e))
     centroid = p_in.mean(axis=0)
     contact = centroid - (float(centroid @ e) - offset) * e
     margin = max_spread - spread
@@ -181,7 +181,7 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
     if e[2] < 0:
         e = -e
     along = p_in @ e
-    offset = float(median(along))
+    offset = float(np.median(along))
     flatness = float(np.sqrt(np.mean((along - offset) ** 2)))
     slope = float(np.degrees(np.arccos(np.clip(abs(e[2]), 0.0, 1.0))))
     if flatness > max_flat:

@@ -1,10 +1,11 @@
 """Compiled per-query steps of the surface decisions (:mod:`driftmap.decisions.surface`): a region's points selected
 from the points gathered around it -- which lie inside, and those points and their frames compacted -- in one pass
-instead of a numpy mask, two ``compress`` calls and their temporaries, and the median of a region's offsets.
+instead of a numpy mask, two ``compress`` calls and their temporaries. (A compiled median of the offsets was slower than
+``np.median``'s introselect and is not used.)
 
 Each kernel computes what the numpy expressions it replaces compute, in the same float64 arithmetic (numba compiles
 without fast-math: no fused multiply-add, and ``np.sqrt`` is correctly rounded in both), so the same points are
-selected in the same order and the median is the same value (of tied zeros, either sign); tests/test_kernels_regions.py checks them against the
+selected in the same order; tests/test_kernels_regions.py checks them against the
 numpy expressions. They release the GIL, so that queries answered in several threads overlap here.
 """
 
@@ -12,8 +13,6 @@ from __future__ import annotations
 
 import numba
 import numpy as np
-
-from driftmap.kernels.queries import _median
 
 
 @numba.njit(cache=True, nogil=True)
@@ -58,12 +57,3 @@ def select_cylinder(pts, fids, centre, radius):  # pragma: no cover - compiled
         mask[i] = ok
         m += ok
     return _compact(pts, fids, mask, m)
-
-
-@numba.njit(cache=True, nogil=True)
-def median(values):  # pragma: no cover - compiled
-    """``np.median`` of a non-empty float64 array: NaN when a value is NaN, else the middle value or the mean of the
-    two middle ones (``values`` is left as it is: the partition is a copy)."""
-    if np.isnan(values).any():
-        return np.nan
-    return _median(values)
