@@ -21,7 +21,8 @@ from driftmap._version import __version__
 from driftmap.files import atomic_write
 from driftmap.fleet.folders import FLEET_JSON
 
-__all__ = ["CONTRACT_KEYS", "JUDGED_KEYS", "cannot_judge", "rank_worst_first", "write_fleet_json", "write_fleet_report"]
+__all__ = ["CONTRACT_KEYS", "JUDGED_KEYS", "cannot_judge", "rank_worst_first", "ranking_labels", "write_fleet_json",
+           "write_fleet_report"]
 
 CONTRACT_KEYS = ("name", "input", "status", "error", "frames", "time_s", "ate_rmse_m", "drift_percent_per_m",
                  "fraction_flagged", "smearing_score_m")
@@ -69,19 +70,28 @@ def rank_worst_first(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
                   reverse=True)
 
 
+def ranking_labels(ranked: list[dict[str, Any]]) -> list[str]:
+    """The ranking figure's row labels: each log's name, with "(cannot judge)" where its diagnosis cannot judge its
+    map -- such logs rank first, and their bars (grey, hatched) are no measure of the map."""
+    return [r["name"] + (" (cannot judge)" if cannot_judge(r) else "") for r in ranked]
+
+
 def _plot_ranking(path: Path, ranked: list[dict[str, Any]]) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = [r["name"] for r in ranked][::-1]
+    names = ranking_labels(ranked)[::-1]
+    judged = [not cannot_judge(r) for r in ranked][::-1]
     flagged = [100 * max(_number(r, "fraction_flagged"), 0.0) for r in ranked][::-1]
     drift = [max(_number(r, "drift_percent_per_m"), 0.0) for r in ranked][::-1]
     fig, axes = plt.subplots(1, 2, figsize=(10, 1.2 + 0.35 * len(names)), sharey=True)
-    axes[0].barh(names, flagged, color="tab:red")
+    for ax, values, colour in ((axes[0], flagged, "tab:red"), (axes[1], drift, "tab:blue")):
+        # a log whose diagnosis cannot judge its map: grey and hatched (its figures are no measure of it)
+        ax.barh(names, values, color=[colour if j else "0.75" for j in judged],
+                hatch=[None if j else "//" for j in judged], edgecolor="0.4", linewidth=0.5)
     axes[0].set_xlabel("surface voxels doubled (%)")
-    axes[1].barh(names, drift, color="tab:blue")
     axes[1].set_xlabel("drift rate (% of path)")
     fig.suptitle("logs ranked worst first (top)")
     fig.tight_layout()
@@ -97,10 +107,16 @@ def _plot_drift(path: Path, ranked: list[dict[str, Any]]) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6.5, 4.5))
-    labelled = False
+    labelled = grey_labelled = False
     for r in ranked:
         x, y = _number(r, "drift_percent_per_m"), _number(r, "fraction_flagged")
         if not (math.isfinite(x) and math.isfinite(y)):
+            continue
+        if cannot_judge(r):  # its figures are no measure of the map: a grey cross, named as such
+            ax.scatter(x, 100 * y, marker="x", color="0.5", zorder=3,
+                       label=None if grey_labelled else "diagnosis cannot judge the map")
+            grey_labelled = True
+            ax.annotate(r["name"], (x, 100 * y), fontsize=7, color="0.4", xytext=(3, 3), textcoords="offset points")
             continue
         before = _number(r, "fraction_flagged_before")
         if math.isfinite(before):  # the same log before loop closure: a hollow marker joined to the filled one
@@ -110,7 +126,7 @@ def _plot_drift(path: Path, ranked: list[dict[str, Any]]) -> None:
             labelled = True
         ax.scatter(x, 100 * y, color="tab:purple", zorder=3)
         ax.annotate(r["name"], (x, 100 * y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-    if labelled:
+    if labelled or grey_labelled:
         ax.legend(loc="best", fontsize=8)
     ax.set_xlabel("drift rate (% of path travelled)")
     ax.set_ylabel("surface voxels doubled (%)")
