@@ -5,7 +5,8 @@ across the fleet), and the failures with their reasons.
 "Worst" is first a log whose diagnosis says it cannot judge its map (``valid`` false: its figures are no measure of
 it), then the larger fraction of surface voxels doubled (``fraction_flagged``), then the larger drift rate, then the
 larger smearing score; a log without a figure ranks after those with one. The table shows "cannot judge" in place of
-the figures of such a diagnosis (they stay in ``fleet.json``, beside ``valid``).
+the figures of such a diagnosis (they stay in ``fleet.json``, beside ``valid``); the figures draw them grey (hatched
+bars labelled "(cannot judge)", crosses in the scatter).
 """
 
 from __future__ import annotations
