@@ -66,10 +66,13 @@ def as_query_set(queries: QuerySet | Sequence[Query] | dict | str | Path) -> Que
     return parse_queries(items)
 
 
-def check_on_map(queries: Iterable[Query], layers: VolumeLayers) -> None:
+def check_on_map(queries: Iterable[Query], layers: VolumeLayers, decide_config: DecideConfig | None = None) -> None:
     """A query whose whole region lies outside the layers' grid (the map's bounds) is a :class:`QueryError`
-    naming it: a unit or frame mistake, not a question about unknown space."""
+    naming it: a unit or frame mistake, not a question about unknown space; so is one needing more work than
+    :func:`check_work` allows at the layers' voxel size."""
+    queries = list(queries)
     check_in_box(queries, layers.grid.min_m, layers.grid.max_m)
+    check_work(queries, float(layers.grid.voxel_size_m), decide_config)
 
 
 def reach_of(store: FrameStore, revision: int, config: VolumeConfig | None) -> tuple[np.ndarray, np.ndarray]:
@@ -91,18 +94,29 @@ def reach_of(store: FrameStore, revision: int, config: VolumeConfig | None) -> t
 def check_sweeps(queries: Iterable[Query], store: FrameStore, config: VolumeConfig | None,
                  decide_config: DecideConfig | None = None) -> None:
     """Before the layers are built: no collision path needs more than :data:`space.MAX_PATH_SAMPLES` footprint
-    placements at the sweep step (the layers' half voxel by default): else a :class:`QueryError` naming it."""
+    placements at the sweep step (the layers' half voxel by default), and no clearance query's balls span more than
+    :data:`space.MAX_BALL_COLUMNS` voxel columns: else a :class:`QueryError` naming it."""
     from driftmap.config import VolumeConfig
-    from driftmap.decisions.query_file import CollisionQuery
+    from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery
     from driftmap.volume.defaults import resolve_config
 
-    sweeps = [q for q in queries if isinstance(q, CollisionQuery)]
-    if not sweeps:
+    queries = list(queries)
+    if not any(isinstance(q, (ClearanceQuery, CollisionQuery)) for q in queries):
         return
     voxel_m = float(resolve_config(store, config or VolumeConfig()).voxel_size_m)
-    for q in sweeps:
-        space.check_path_samples(q, space.sweep_step(q, (decide_config or DecideConfig()).sweep_step_m, voxel_m,
-                                                     warn=False))
+    check_work(queries, voxel_m, decide_config)
+
+
+def check_work(queries: Iterable[Query], voxel_m: float, decide_config: DecideConfig | None = None) -> None:
+    """:func:`check_sweeps` at a given voxel size (the layers' when they are built)."""
+    from driftmap.decisions.query_file import ClearanceQuery, CollisionQuery
+
+    step = (decide_config or DecideConfig()).sweep_step_m
+    for q in queries:
+        if isinstance(q, CollisionQuery):
+            space.check_path_samples(q, space.sweep_step(q, step, voxel_m, warn=False))
+        elif isinstance(q, ClearanceQuery):
+            space.check_ball_columns(q, voxel_m)
 
 
 def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarray) -> None:
@@ -151,7 +165,7 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
     elif layers.revision != rev:
         raise QueryError(f"the layers given are of revision {layers.revision}, not {rev}", query_id=None)
     layers_s = time.perf_counter() - t0
-    check_on_map(qs, layers)
+    check_on_map(qs, layers, decide_config)
     return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s, threads)
 
 
@@ -185,7 +199,7 @@ def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | di
         t0 = time.perf_counter()
         if layers is None:
             layers = VolumeLayers.from_store(store, int(rev), config, progress=progress)
-            check_on_map(qs, layers)
+            check_on_map(qs, layers, decide_config)
         else:
             layers.apply(int(rev), store)
         out.append(_decide_on(store, qs, layers, decide_config or DecideConfig(), walls[n], progress,

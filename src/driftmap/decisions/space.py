@@ -79,15 +79,56 @@ def unknown_in_ball(layers: VolumeLayers, point: NDArray[np.float64], radius_m: 
     return unknown_in_columns(layers, *_ball_columns(layers, point, radius_m))
 
 
+MAX_BALL_COLUMNS = 50_000_000
+"""clearance: a query whose balls span more voxel columns than this (summed over its points, at the layers' voxel
+size) is refused, not counted (a few seconds of work at this size)."""
+BALL_COLUMN_CHUNK = 1 << 20
+"""clearance: the columns of at most this many (and at least one point's) are enumerated at once, so a query's
+memory stays bounded (~150 MB) whatever its point count."""
+
+
+def _ball_cells(pts: NDArray[np.float64], radius_m: float, vs: float) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    return np.floor((pts - radius_m) / vs).astype(np.int64), np.floor((pts + radius_m) / vs).astype(np.int64)
+
+
+def n_ball_columns(points: NDArray[np.float64], radius_m: float, voxel_m: float) -> int:
+    """The lattice columns :func:`unknown_in_balls` enumerates for ``points`` (their balls' bounding squares)."""
+    lo, hi = _ball_cells(np.asarray(points, dtype=np.float64).reshape(-1, 3), radius_m, voxel_m)
+    return int(((hi[:, 0] - lo[:, 0] + 1).astype(np.float64) * (hi[:, 1] - lo[:, 1] + 1)).sum())
+
+
+def check_ball_columns(q: ClearanceQuery, voxel_m: float) -> None:
+    """A :class:`QueryError` naming the query when its balls span more than :data:`MAX_BALL_COLUMNS` columns."""
+    n = n_ball_columns(q.points_m, q.radius_m, voxel_m)
+    if n > MAX_BALL_COLUMNS:
+        raise QueryError(f"query {q.id!r}: {len(q.points_m):,} points of radius_m {q.radius_m:g} span {n:,.0f} "
+                         f"voxel columns at the layers' {voxel_m:g} m voxels, more than {MAX_BALL_COLUMNS:,}: split "
+                         "it, use fewer points or a smaller radius", query_id=q.id, field="radius_m")
+
+
 def unknown_in_balls(layers: VolumeLayers, points: NDArray[np.float64], radius_m: float) -> int:
-    """:func:`unknown_in_ball` summed over ``points`` (one summed-volume lookup for all their columns, found for all
-    the points at once: the same columns and z ranges as :func:`_ball_columns` per point)."""
+    """:func:`unknown_in_ball` summed over ``points`` (one summed-volume lookup for the columns of many points, found
+    for them at once: the same columns and z ranges as :func:`_ball_columns` per point), in chunks of at most
+    :data:`BALL_COLUMN_CHUNK` columns (or one point's)."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if len(pts) == 0:
         return 0
     vs = layers.grid.voxel_size_m
-    lo = np.floor((pts - radius_m) / vs).astype(np.int64)
-    hi = np.floor((pts + radius_m) / vs).astype(np.int64)
+    lo, hi = _ball_cells(pts, radius_m, vs)
+    counts = (hi[:, 0] - lo[:, 0] + 1) * (hi[:, 1] - lo[:, 1] + 1)
+    ends = np.cumsum(counts)
+    total, start = 0, 0
+    while start < len(pts):  # each chunk: the points whose columns end within BALL_COLUMN_CHUNK of its first's start
+        base = ends[start] - counts[start]
+        stop = max(start + 1, int(np.searchsorted(ends, base + BALL_COLUMN_CHUNK, side="right")))
+        total += _unknown_in_ball_chunk(layers, pts[start:stop], lo[start:stop], hi[start:stop], radius_m)
+        start = stop
+    return total
+
+
+def _unknown_in_ball_chunk(layers: VolumeLayers, pts: NDArray[np.float64], lo: NDArray[np.int64],
+                           hi: NDArray[np.int64], radius_m: float) -> int:
+    vs = layers.grid.voxel_size_m
     ny = hi[:, 1] - lo[:, 1] + 1
     counts = (hi[:, 0] - lo[:, 0] + 1) * ny
     which = np.repeat(np.arange(len(pts)), counts)  # per column, its point
