@@ -38,6 +38,8 @@ ABSOLUTE_HALF_RANGE = 1 << (KEY_BITS_PER_AXIS - 1)
 BOUNDING_GRID_MAX_VOXELS = 2**62
 """A bounding grid (:meth:`VoxelGrid.around`) must hold fewer voxels than this: keys stay below ``2**62``."""
 _INT64_KEY_LIMIT = 2**63
+_COORD_LIMIT = float(2**62)
+"""|voxel coordinate| below this: ``floor(p / voxel_size_m)`` fits int64 with room for the grids' spans."""
 _DENSE_SPAN_PER_KEY = 16
 _DENSE_SPAN_MIN = 1 << 22
 
@@ -73,13 +75,27 @@ def voxel_coords(points: ArrayLike, voxel_size_m: float) -> NDArray[np.int64]:
     """(N, 3) int64 voxel coordinates ``floor(points / voxel_size_m)``.
 
     The division runs in the points' dtype (float32 points, a Python float size: float32), as every caller did
-    before this module existed. A non-finite point has no voxel: :class:`GeometryError` (leave them out first)."""
+    before this module existed. A non-finite point has no voxel: :class:`GeometryError` (leave them out first). A
+    voxel size so small that a coordinate leaves +-2^62 (or, in float32, rounds to 0) is a :class:`ConfigError`:
+    the cast to int64 would wrap silently (hostile trial 24 B2: ``--voxel-size-m 1e-100`` gave a 1-point map)."""
     _check_voxel_size(voxel_size_m)
     p = np.asarray(points)
     if p.ndim != 2 or p.shape[1] != 3:
         raise GeometryError(f"voxel_coords: expected (N, 3) points, got shape {p.shape}")
     _check_finite(p)
-    return np.floor(p / voxel_size_m).astype(np.int64)
+    return floor_coords(p, voxel_size_m)
+
+
+def floor_coords(values: NDArray[np.floating], voxel_size_m: float) -> NDArray[np.int64]:
+    """``floor(values / voxel_size_m)`` as int64 (finite ``values``), a :class:`ConfigError` where a result would
+    leave +-2^62 or the size rounds to 0 in the values' dtype: the cast would wrap silently."""
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        q = np.floor(values / voxel_size_m)
+    if q.size and not (-_COORD_LIMIT < q.min() and q.max() < _COORD_LIMIT):  # also inf / NaN from a size of 0
+        raise ConfigError(f"voxel_size_m {voxel_size_m:g} is too small for these points (their voxel coordinates "
+                          f"reach {max(abs(float(q.min())), abs(float(q.max()))):.3g}, beyond +-2^62, or the size "
+                          f"rounds to 0 in {values.dtype}): use a larger voxel size")
+    return q.astype(np.int64)
 
 
 def voxel_coord_columns(columns: Sequence[NDArray[np.floating]], voxel_size_m: float) -> list[NDArray[np.int64]]:
@@ -89,7 +105,7 @@ def voxel_coord_columns(columns: Sequence[NDArray[np.floating]], voxel_size_m: f
         raise GeometryError(f"voxel_coord_columns: expected 3 columns, got {len(columns)}")
     for col in columns:
         _check_finite(col)
-    return [np.floor(col / voxel_size_m).astype(np.int64) for col in columns]
+    return [floor_coords(np.asarray(col), voxel_size_m) for col in columns]
 
 
 @dataclass(frozen=True)

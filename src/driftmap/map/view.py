@@ -61,7 +61,7 @@ from driftmap.map.view_types import (  # re-exported: the view's result types
 )
 from driftmap.preprocess.cloud import RegionOfInterest
 from driftmap.store.guards import atomic_output, refuse_inside_store
-from driftmap.voxels import first_per_key, voxel_keys
+from driftmap.voxels import first_per_key, floor_coords, voxel_keys
 
 if TYPE_CHECKING:
     from driftmap.store.frame_store import FrameStore
@@ -482,7 +482,7 @@ class MapView:
         if not voxel_size_m > 0:
             raise ConfigError(f"voxel_size_m must be positive, got {voxel_size_m}")
         pts = self.frame_points_world(int(self.frame_ids[row]))
-        keys = np.floor(pts[np.isfinite(pts).all(axis=1)] / voxel_size_m).astype(np.int64)
+        keys = floor_coords(pts[np.isfinite(pts).all(axis=1)], voxel_size_m)
         if len(keys) == 0:
             return keys
         first = first_per_key(voxel_keys(keys, None))  # in key order, as np.unique(return_index=True)
