@@ -5,6 +5,7 @@ revision, and with ``--compare A,B`` or ``--against OTHER_STORE`` list the decis
 from __future__ import annotations
 
 import json
+import logging
 import re
 from pathlib import Path
 from typing import Annotated
@@ -159,8 +160,11 @@ def _brief(value) -> str:
 
 
 def _check_diagnosis_frames(store, diagnosis: Path) -> None:
-    """--diagnosis must be of this store's log: every frame it lists is in the store with the same stamp (a
-    diagnosis of another store, or of a store of other frames, would put its double walls in the wrong place)."""
+    """--diagnosis must be of this store: the store id it names (``store_uuid``; older diagnoses have none) is this
+    store's, and every frame it lists is in the store with the same stamp (a diagnosis of another store, or of a
+    store of other frames, would put its double walls in the wrong place; two logs of the same length can share
+    every frame id and stamp, hostile trial 24 B3). A diagnosis without a store id (an older one) is checked by its
+    frames alone, with a warning."""
     import json
 
     import numpy as np
@@ -168,10 +172,19 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> None:
     from driftmap.errors import ConfigError
 
     try:
-        frames = json.loads(diagnosis.read_text(encoding="utf-8-sig")).get("frames") or []
+        data = json.loads(diagnosis.read_text(encoding="utf-8-sig"))
+        uuid = data.get("store_uuid")
+        frames = data.get("frames") or []
         listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in frames}
     except (OSError, ValueError, TypeError, KeyError, AttributeError, RecursionError):
         return  # unreadable or malformed: double_walls_of names the problem
+    if isinstance(uuid, str) and uuid != store.uuid:
+        raise ConfigError(f"{diagnosis}: --diagnosis is of another store (store_uuid {uuid}), not of {store.path} "
+                          f"({store.uuid}): diagnose this store")
+    if not isinstance(uuid, str):
+        logging.getLogger(__name__).warning(
+            "%s: the diagnosis names no store (no store_uuid: an older diagnose wrote it): only its frames and stamps "
+            "are checked against %s", diagnosis, store.path)
     ids, stamps = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
     ours = dict(zip(ids.tolist(), stamps.tolist()))
     for fid, stamp in listed.items():
@@ -320,6 +333,12 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                 raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
+            if other.uuid == store.uuid and other_rev == rev:  # hostile trial 24 W6: as --compare A,A is refused
+                from driftmap.errors import ConfigError
+
+                raise ConfigError(f"--against {against}: compares revision {rev} of {store.path} with itself (the "
+                                  "same store): name another store, or another revision with --against-revision "
+                                  "(or --compare A,B)")
             warn_unmerged(other, [other_rev])
             _check_same_log(store, other, against, same_log, rev, other_rev)
             a = decide(store, query_set, rev, volume, decide_config=decide_config, double_walls=walls(store, rev),

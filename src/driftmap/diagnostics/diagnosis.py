@@ -80,6 +80,9 @@ class Diagnosis:
     """A store of several sessions: ``{session: [frame ids]}``."""
     session_changes_skipped: str | None = None
     """A store of several sessions whose changes could not be judged: why (e.g. a LiDAR store without a max range)."""
+    store_uuid: str | None = None
+    """The diagnosed store's id (:attr:`FrameStore.uuid`; None for a diagnosis of a cloud), so that a tool reading the
+    diagnosis (``decide --diagnosis``) can tell it is of the store it is given."""
 
     @property
     def smearing_score_m(self) -> float:
@@ -89,6 +92,7 @@ class Diagnosis:
         dw, at = self.double_walls, self.attribution
         out = {
             "revision": int(self.revision),
+            "store_uuid": self.store_uuid,
             "smearing_score_m": _num(dw.smearing_score_m),
             "smearing_score_per_scale_m": {f"{k:g}": _num(v) for k, v in dw.score_per_scale_m.items()},
             "smearing_score_revisit_m": _num(dw.revisit_score_m(at.config.revisit_min_path_m)),
@@ -289,6 +293,7 @@ def diagnose_store(store: FrameStore, revision: int | None = None, *, config: Di
     diagnosis = diagnose_cloud(cloud, poses, revision=rev, config=config, ground_truth=gt_poses, ground_truth_rows=gt_rows,
                                row_sessions=row_sessions)
     diagnosis.seconds["sampling"] = sampling_s
+    diagnosis = dataclasses.replace(diagnosis, store_uuid=store.uuid)
     if sessions is not None and len(sessions) >= 2:
         t = time.perf_counter()
         try:

@@ -346,6 +346,11 @@ class FrameStore:
     def head(self) -> int:
         return self.ledger.head
 
+    @property
+    def uuid(self) -> str:
+        """The store's id (``store_uuid`` of its manifest): what a file made from it (a diagnosis) names it by."""
+        return str(self._manifest["store_uuid"])
+
     def poses(self, revision: int | None = None) -> NDArray[np.float64]:
         """(M, 4, 4) ``T_world_sensor`` of every frame (in ``frame_ids`` order) in a revision (default head)."""
         return self.ledger.poses(self.head if revision is None else revision)
