@@ -106,9 +106,12 @@ def decide(
         revisions = list(pair) if pair else [store.head if revision is None else revision]
         _precheck(store, query_set, volume, revisions, decide_config)
         warn_unmerged(store, revisions)
-        if diagnosis is not None:
-            _check_diagnosis_frames(store, diagnosis)
+        named = True if diagnosis is None else _check_diagnosis_frames(store, diagnosis)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
+        if not named:  # warned only for a diagnosis that is one (a malformed one is a single error line)
+            logging.getLogger(__name__).warning(
+                "%s: the diagnosis names no store (no store_uuid: an older diagnose wrote it): only its frames and "
+                "stamps are checked against %s", diagnosis, store.path)
         with progress_bar() as progress:
             tick = stage_ticker(progress, {"volume": "volumetric layers", "decide": "decisions"})
             result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
@@ -159,12 +162,13 @@ def _brief(value) -> str:
     return text if len(text) <= 30 else kinds.get(type(value), f"a {type(value).__name__}")
 
 
-def _check_diagnosis_frames(store, diagnosis: Path) -> None:
+def _check_diagnosis_frames(store, diagnosis: Path) -> bool:
     """--diagnosis must be of this store: the store id it names (``store_uuid``; older diagnoses have none) is this
     store's, and every frame it lists is in the store with the same stamp (a diagnosis of another store, or of a
     store of other frames, would put its double walls in the wrong place; two logs of the same length can share
     every frame id and stamp, hostile trial 24 B3). A diagnosis without a store id (an older one) is checked by its
-    frames alone, with a warning."""
+    frames alone: False is returned (the caller warns). True otherwise (a malformed file too: its reader names the
+    problem)."""
     import json
 
     import numpy as np
@@ -177,14 +181,10 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> None:
         frames = data.get("frames") or []
         listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in frames}
     except (OSError, ValueError, TypeError, KeyError, AttributeError, RecursionError):
-        return  # unreadable or malformed: double_walls_of names the problem
+        return True  # unreadable or malformed: double_walls_of names the problem
     if isinstance(uuid, str) and uuid != store.uuid:
         raise ConfigError(f"{diagnosis}: --diagnosis is of another store (store_uuid {uuid}), not of {store.path} "
                           f"({store.uuid}): diagnose this store")
-    if not isinstance(uuid, str):
-        logging.getLogger(__name__).warning(
-            "%s: the diagnosis names no store (no store_uuid: an older diagnose wrote it): only its frames and stamps "
-            "are checked against %s", diagnosis, store.path)
     ids, stamps = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
     ours = dict(zip(ids.tolist(), stamps.tolist()))
     for fid, stamp in listed.items():
@@ -192,6 +192,7 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> None:
             what = "is not in the store" if fid not in ours else f"has stamp {ours[fid]} ns in the store, {stamp} ns there"
             raise ConfigError(f"{diagnosis}: --diagnosis is not of {store.path} (its frame {fid} {what}): diagnose "
                               f"this store")
+    return isinstance(uuid, str)
 
 
 def _precheck(store, query_set, volume, revisions: list[int], decide_config=None) -> None:
