@@ -334,8 +334,8 @@ def _run(store, query_set, volume, revision, pair, against, against_revision, di
                 raise StoreError(f"--against-revision {against_revision}: the --against store {against} has no "
                                  f"revision {against_revision} (its revisions are 0..{other.head})")
             other.ledger.revision(other_rev)
-            if other.uuid == store.uuid and other_rev == rev:  # hostile trial 24 W6: as --compare A,A is refused
-                from driftmap.errors import ConfigError
+            if other_rev == rev and Path(other.path).resolve() == Path(store.path).resolve():  # trial 24 W6: as
+                from driftmap.errors import ConfigError  # --compare A,A is refused (a copy elsewhere is another store)
 
                 raise ConfigError(f"--against {against}: compares revision {rev} of {store.path} with itself (the "
                                   "same store): name another store, or another revision with --against-revision "
