@@ -182,9 +182,6 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> bool:
         listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in frames}
     except (OSError, ValueError, TypeError, KeyError, AttributeError, RecursionError):
         return True  # unreadable or malformed: double_walls_of names the problem
-    if isinstance(uuid, str) and uuid != store.uuid:
-        raise ConfigError(f"{diagnosis}: --diagnosis is of another store (store_uuid {uuid}), not of {store.path} "
-                          f"({store.uuid}): diagnose this store")
     ids, stamps = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
     ours = dict(zip(ids.tolist(), stamps.tolist()))
     for fid, stamp in listed.items():
@@ -192,6 +189,9 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> bool:
             what = "is not in the store" if fid not in ours else f"has stamp {ours[fid]} ns in the store, {stamp} ns there"
             raise ConfigError(f"{diagnosis}: --diagnosis is not of {store.path} (its frame {fid} {what}): diagnose "
                               f"this store")
+    if isinstance(uuid, str) and uuid != store.uuid:  # after the frames: a frame that differs is the plainer reason
+        raise ConfigError(f"{diagnosis}: --diagnosis is of another store (store_uuid {uuid}), not of {store.path} "
+                          f"({store.uuid}): diagnose this store")
     return isinstance(uuid, str)
 
 
