@@ -149,8 +149,7 @@ def _ball_columns(layers: VolumeLayers, point: NDArray[np.float64], radius_m: fl
     """The lattice columns ``(gx, gy)`` whose square comes within ``radius_m`` of ``point`` and per column the z
     range ``z0 .. z1`` of the voxels whose cube does."""
     vs = layers.grid.voxel_size_m
-    lo = np.floor((point - radius_m) / vs).astype(np.int64)
-    hi = np.floor((point + radius_m) / vs).astype(np.int64)
+    lo, hi = _ball_cells(point, radius_m, vs)
     gx, gy = (a.ravel() for a in np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij"))
     rho2 = _gap(gx, point[0], vs) ** 2 + _gap(gy, point[1], vs) ** 2  # to each column's square
     keep = rho2 <= radius_m * radius_m
