@@ -140,6 +140,11 @@ def close_loops(store: FrameStore, config: BuildConfig, result: BuildResult, tic
     stages["pose graph"] = time.perf_counter() - t2
     result.graph_error_before, result.graph_error_after = opt.initial_error, opt.final_error
     _record_graph_verdicts(result, opt)
+    if opt.loop_residuals and result.loops_rejected_by_graph >= len(opt.loop_residuals):
+        # nothing closed: a revision would only carry the keyframe edges' re-registration, labelled a loop closure
+        logger.warning("loop closure: the pose graph rejected all %d verified loops; no loop closure revision, the "
+                       "odometry stays revision 0", len(opt.loop_residuals))
+        return
     t3 = time.perf_counter()
     _store_correction(store, result, opt)
     stages["correction"] = time.perf_counter() - t3
@@ -273,6 +278,14 @@ def _record_graph_verdicts(result: BuildResult, opt: PoseGraphResult) -> None:
                        len(opt.loop_residuals), opt.chi2_threshold)
 
 
+def _loops_note(result: BuildResult, opt: PoseGraphResult) -> str:
+    """"N loops", or "K of N loops kept by the graph" when it rejected some (trial 24 W2)."""
+    if not result.loops_rejected_by_graph:
+        return f"{result.loops_accepted} loops"
+    kept = len(opt.loop_residuals) - result.loops_rejected_by_graph
+    return f"{kept} of {len(opt.loop_residuals)} loops kept by the graph"
+
+
 def _store_correction(store: FrameStore, result: BuildResult, opt: PoseGraphResult) -> None:
     """The optimised keyframe poses as a new ``loop_closure`` revision (propagated to the other frames) applied to
     the map; the largest correction into ``result``."""
@@ -285,7 +298,7 @@ def _store_correction(store: FrameStore, result: BuildResult, opt: PoseGraphResu
     # the keyframes were optimised from revision 0's poses: the other frames follow them from revision 0 as well
     revision = store.add_revision(opt.poses, source=PoseSource.LOOP_CLOSURE, parent=0, propagate=True,
                                   covariances=opt.covariances,
-                                  note=f"{result.loops_accepted} loops, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
+                                  note=f"{_loops_note(result, opt)}, graph error {opt.initial_error:.3g} -> {opt.final_error:.3g}")
     changes = MapView.from_store(store, 0).apply(revision.revision_id)
     result.loop_revision = revision.revision_id
     result.max_correction_m = changes.max_translation_m
