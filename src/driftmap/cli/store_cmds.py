@@ -227,22 +227,27 @@ def export(
                 raise typer.BadParameter(f"{store.path} holds one session (no store that driftmap merge made): its "
                                          f"layers are its latest state already; leave --latest-state out",
                                          param_hint="--latest-state")
+        # every output that can fail on the map's content is made (and checked) before the first file is written
+        volume, prepared = None, {}
+        if any(p is not None for p, _ in volume_outputs) or (mcap_path is not None and not no_volume):
+            volume = _volume_layers(store, rev, settings.volume, latest_state=latest_state)
+            prepared = _prepare_volume(volume, mesh_path, octomap_path, grid2d_path, band)
+        if map_path is not None:
+            from driftmap.map.view import MapView
+
+            fused = MapView.from_store(store, rev).fused_for_export(map_path, voxel_size_m=voxel_size_m)
         if trajectory is not None:
             store.export_trajectory(trajectory, revision=rev, format=format,
                                     frame_ids=None if session is None else session_ids)
             console.print(f"trajectory (revision {rev}, {format}{'' if session is None else f', session {session}'}): "
                           f"{trajectory}")
         if map_path is not None:
-            from driftmap.map.view import MapView
-
-            view = MapView.from_store(store, rev)
-            _, n_written = view.write(map_path, voxel_size_m=voxel_size_m, provenance=voxel_size_m is not None)
+            _, n_written = MapView.write_fused(map_path, fused, provenance=voxel_size_m is not None)
+            del fused
             detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
             console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
-        volume = None
-        if any(p is not None for p, _ in volume_outputs) or (mcap_path is not None and not no_volume):
-            volume = _volume_layers(store, rev, settings.volume, latest_state=latest_state)
-            _write_volume(volume, mesh_path, octomap_path, grid2d_path, band)
+        if volume is not None:
+            _write_volume(volume, mesh_path, octomap_path, grid2d_path, band, prepared)
         if mcap_path is not None:
             from driftmap.export.foxglove import export_foxglove_mcap
 
@@ -351,19 +356,34 @@ def _volume_layers(store, revision: int, config, *, latest_state: bool = False):
     return layers
 
 
+def _prepare_volume(layers, mesh_path: Optional[Path], octomap_path: Optional[Path], grid2d_path: Optional[Path],  # noqa: ANN001
+                    band: Optional[tuple[float, float]]) -> dict:
+    """The mesh, OctoMap tree and 2-D grid to write, made and checked before any file is written (trial 24 W3)."""
+    from driftmap.volume.export import occupancy_grid2d, prepare_mesh, prepare_octomap
+
+    prepared: dict = {}
+    if mesh_path is not None:
+        prepared["mesh"] = prepare_mesh(layers, mesh_path)
+    if octomap_path is not None:
+        prepared["octomap"] = prepare_octomap(layers, octomap_path)
+    if grid2d_path is not None:
+        prepared["grid2d"] = occupancy_grid2d(layers, band or _observed_band(layers))
+    return prepared
+
+
 def _write_volume(layers, mesh_path: Optional[Path], octomap_path: Optional[Path], grid2d_path: Optional[Path],  # noqa: ANN001
-                  band: Optional[tuple[float, float]]) -> None:
+                  band: Optional[tuple[float, float]], prepared: dict) -> None:
     from driftmap.volume.export import write_grid2d, write_mesh, write_octomap
 
     if mesh_path is not None:
-        m = write_mesh(layers, mesh_path)
+        m = write_mesh(layers, mesh_path, mesh=prepared["mesh"])
         console.print(f"mesh ({m.n_vertices:,} vertices, {m.n_triangles:,} triangles): {mesh_path}", highlight=False)
     if octomap_path is not None:
-        o = write_octomap(layers, octomap_path)
+        o = write_octomap(layers, octomap_path, prepared=prepared["octomap"])
         console.print(f"octomap ({o.n_occupied:,} occupied, {o.n_free:,} free voxels, resolution "
                       f"{o.resolution_m:g} m): {octomap_path}", highlight=False)
     if grid2d_path is not None:
-        g = write_grid2d(layers, grid2d_path, band or _observed_band(layers))
+        g = write_grid2d(layers, grid2d_path, band or _observed_band(layers), grid=prepared["grid2d"])
         console.print(f"2-D map ({g.band_m[0]:g}..{g.band_m[1]:g} m): {grid2d_path} + {g.pgm_path.name}", highlight=False)
 
 

@@ -682,6 +682,13 @@ class MapView:
         a path inside a store folder is refused (:func:`driftmap.store.refuse_inside_store`). Each file is written
         under a temporary name and renamed into place when complete: a failed export leaves no partial file, and an
         existing file survives a failed overwrite."""
+        fused = self.fused_for_export(path, voxel_size_m=voxel_size_m, roi=roi)
+        return self.write_fused(path, fused, provenance=provenance)
+
+    def fused_for_export(self, path: str | Path, *, voxel_size_m: float | None = None,
+                         roi: RegionOfInterest | None = None) -> FusedMap:
+        """What :meth:`write` checks before it writes, and the fused map it would write (same errors): a caller
+        writing several files checks them all first (``export`` writes nothing when one output would fail)."""
         path = Path(path)
         if path.suffix.lower() not in (".ply", ".pcd"):
             raise ConfigError(f"{path}: map export supports .ply and .pcd")
@@ -696,6 +703,12 @@ class MapView:
             raise EmptyExportError(f"{path}: the map of revision {self.revision} has no point to write ({len(self.frame_ids)} "
                                    f"frames, none with a finite point{' in the region' if roi is not None else ''}); "
                                    f"nothing written")
+        return fused
+
+    @staticmethod
+    def write_fused(path: str | Path, fused: FusedMap, *, provenance: bool = False) -> tuple[Path, int]:
+        """Write what :meth:`fused_for_export` returned (its per-voxel provenance beside it with ``provenance``)."""
+        path = Path(path)
         if not provenance:
             return write_cloud(path, fused.points_world), len(fused.points_world)
         side = Path(str(path) + ".provenance.npz")

@@ -142,18 +142,10 @@ class Grid2DExportSummary:
 
 
 # ------------------------------------------------------------------------------------------------------ mesh
-def write_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: float | None = None,
-               flag: str = "--mesh") -> MeshExportSummary:
-    """Write the TSDF's triangle mesh (:meth:`VolumeLayers.mesh`) to ``path``: ``.ply`` (binary PLY with vertex
-    normals), ``.obj`` (Wavefront OBJ text with vertex normals, no material file) or ``.stl`` (binary STL: triangles
-    with their normals, no shared vertices). World frame, metres.
-
-    ``flag`` names the option in errors. Raises :class:`~driftmap.errors.ConfigError` for another suffix,
-    :class:`~driftmap.errors.OutputInsideStoreError` for a path inside a store folder,
-    :class:`~driftmap.errors.EmptyExportError` when the mesh has no triangle (nothing is written) and
-    :class:`~driftmap.errors.OutputWriteError` naming ``path`` when the file cannot be written."""
-    import open3d as o3d
-
+def prepare_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: float | None = None,
+                 flag: str = "--mesh") -> o3d.geometry.TriangleMesh:
+    """Everything :func:`write_mesh` checks before it writes, and the mesh it would write: a caller writing several
+    files checks them all first (``export`` writes nothing when one output would fail). Same errors."""
     path = Path(path)
     suffix = path.suffix.lower()
     if suffix not in MESH_SUFFIXES:
@@ -161,14 +153,34 @@ def write_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: floa
                           f"(got {suffix or 'no suffix'!r})")
     refuse_inside_store(path, flag)
     mesh = tsdf_mesh(layers, weight_threshold)
-    n_tri, n_vert = len(mesh.triangles), len(mesh.vertices)
-    if n_tri == 0:
+    if len(mesh.triangles) == 0:
         counts = layers.arrays.tsdf_count
         threshold = _weight_threshold(weight_threshold)
         raise EmptyExportError(f"{flag} {path}: the TSDF of revision {layers.revision} has no surface to mesh "
                                f"({int(np.count_nonzero(counts))} voxels with a TSDF sample, "
                                f"{int(np.count_nonzero(counts >= threshold))} of them observed at least {threshold:g} "
                                f"times; {layers.grid.describe()}); nothing written")
+    return mesh
+
+
+def write_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: float | None = None,
+               flag: str = "--mesh", mesh: o3d.geometry.TriangleMesh | None = None) -> MeshExportSummary:
+    """Write the TSDF's triangle mesh (:meth:`VolumeLayers.mesh`) to ``path``: ``.ply`` (binary PLY with vertex
+    normals), ``.obj`` (Wavefront OBJ text with vertex normals, no material file) or ``.stl`` (binary STL: triangles
+    with their normals, no shared vertices). World frame, metres.
+
+    ``flag`` names the option in errors. Raises :class:`~driftmap.errors.ConfigError` for another suffix,
+    :class:`~driftmap.errors.OutputInsideStoreError` for a path inside a store folder,
+    :class:`~driftmap.errors.EmptyExportError` when the mesh has no triangle (nothing is written) and
+    :class:`~driftmap.errors.OutputWriteError` naming ``path`` when the file cannot be written. ``mesh``: the one
+    :func:`prepare_mesh` returned for ``layers`` and ``path`` (checked already; not computed again)."""
+    import open3d as o3d
+
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if mesh is None:
+        mesh = prepare_mesh(layers, path, weight_threshold=weight_threshold, flag=flag)
+    n_tri, n_vert = len(mesh.triangles), len(mesh.vertices)
     if suffix == ".stl":
         mesh.compute_triangle_normals()  # Open3D's STL writer needs them
     with atomic_output(path, flag, guard=False) as tmp:
@@ -192,21 +204,17 @@ def tsdf_mesh(layers: VolumeLayers, weight_threshold: float | None = None) -> o3
 
 
 # --------------------------------------------------------------------------------------------------- octomap
-def write_octomap(layers: VolumeLayers, path: str | Path, *, flag: str = "--octomap") -> OctomapExportSummary:
-    """Write the occupancy layers as an OctoMap binary tree (``.bt``) at ``path``.
+@dataclass(frozen=True)
+class PreparedOctomap:
+    """The tree :func:`write_octomap` writes (maximum likelihood, inner nodes updated) and its voxel counts."""
 
-    The tree (pyoctomap ``OcTree``) has the layers' voxel size as resolution and the config's sensor model
-    (``prob_hit``, ``prob_miss``, ``clamp_min``, ``clamp_max``, ``occupancy_threshold``). Every observed voxel gets its
-    clamped log-odds (:meth:`VolumeLayers.log_odds_flat`) through ``updateNode(coord, log_odds)`` on an empty node,
-    so the node holds exactly that value (OctoMap's lattice is driftmap's: voxel ``i`` covers
-    ``[i, i + 1) * resolution``); then, as OctoMap's own tools do before writing, ``updateInnerOccupancy``,
-    ``toMaxLikelihood`` (every node set to the clamp of its state) and ``prune`` (done by ``writeBinary``). The file
-    holds the maximum-likelihood state of every observed voxel (2 bits a node: occupied / free / has children);
-    unobserved voxels are absent, which OctoMap reads as unknown. The sensor model is not stored in a ``.bt``.
+    tree: object
+    n_occupied: int
+    n_free: int
 
-    Raises :class:`~driftmap.errors.ConfigError` for a suffix other than ``.bt`` or a map beyond OctoMap's 16-bit keys,
-    :class:`~driftmap.errors.OutputInsideStoreError`, :class:`~driftmap.errors.EmptyExportError` when no voxel is
-    observed, :class:`~driftmap.errors.OutputWriteError` naming ``path`` when the file cannot be written."""
+
+def prepare_octomap(layers: VolumeLayers, path: str | Path, *, flag: str = "--octomap") -> PreparedOctomap:
+    """Everything :func:`write_octomap` checks before it writes, and the tree it would write (same errors)."""
     import pyoctomap
 
     path = Path(path)
@@ -248,12 +256,36 @@ def write_octomap(layers: VolumeLayers, path: str | Path, *, flag: str = "--octo
             tree.updateNodes(centres[sel], float(value), True)  # lazy: inner nodes once, below
     tree.updateInnerOccupancy()
     tree.toMaxLikelihood()
+    return PreparedOctomap(tree, int(occupied.sum()), int((~occupied).sum()))
+
+
+def write_octomap(layers: VolumeLayers, path: str | Path, *, flag: str = "--octomap",
+                  prepared: PreparedOctomap | None = None) -> OctomapExportSummary:
+    """Write the occupancy layers as an OctoMap binary tree (``.bt``) at ``path``.
+
+    The tree (pyoctomap ``OcTree``) has the layers' voxel size as resolution and the config's sensor model
+    (``prob_hit``, ``prob_miss``, ``clamp_min``, ``clamp_max``, ``occupancy_threshold``). Every observed voxel gets its
+    clamped log-odds (:meth:`VolumeLayers.log_odds_flat`) through ``updateNode(coord, log_odds)`` on an empty node,
+    so the node holds exactly that value (OctoMap's lattice is driftmap's: voxel ``i`` covers
+    ``[i, i + 1) * resolution``); then, as OctoMap's own tools do before writing, ``updateInnerOccupancy``,
+    ``toMaxLikelihood`` (every node set to the clamp of its state) and ``prune`` (done by ``writeBinary``). The file
+    holds the maximum-likelihood state of every observed voxel (2 bits a node: occupied / free / has children);
+    unobserved voxels are absent, which OctoMap reads as unknown. The sensor model is not stored in a ``.bt``.
+
+    Raises :class:`~driftmap.errors.ConfigError` for a suffix other than ``.bt`` or a map beyond OctoMap's 16-bit keys,
+    :class:`~driftmap.errors.OutputInsideStoreError`, :class:`~driftmap.errors.EmptyExportError` when no voxel is
+    observed, :class:`~driftmap.errors.OutputWriteError` naming ``path`` when the file cannot be written.
+    ``prepared``: what :func:`prepare_octomap` returned for ``layers`` and ``path`` (not built again)."""
+    path = Path(path)
+    if prepared is None:
+        prepared = prepare_octomap(layers, path, flag=flag)
+    tree = prepared.tree
     with atomic_output(path, flag, guard=False) as tmp:
         if not tree.writeBinary(str(tmp)):  # OctoMap's writeBinary: toMaxLikelihood, prune, write
             raise OSError("OctoMap could not write the binary tree")
     summary = OctomapExportSummary(
-        path=path, resolution_m=float(tree.getResolution()), n_occupied=int(occupied.sum()),
-        n_free=int((~occupied).sum()), n_tree_nodes=int(tree.size()), n_leaf_nodes=int(tree.getNumLeafNodes()),
+        path=path, resolution_m=float(tree.getResolution()), n_occupied=prepared.n_occupied,
+        n_free=prepared.n_free, n_tree_nodes=int(tree.size()), n_leaf_nodes=int(tree.getNumLeafNodes()),
         metric_min_m=_triple(tree.getMetricMin()), metric_max_m=_triple(tree.getMetricMax()),
         bytes=path.stat().st_size)
     logger.info("octomap: %s, %d occupied and %d free voxels of %g m, %d nodes after pruning (revision %d)", path,
@@ -322,7 +354,7 @@ def _observed_z_range(layers: VolumeLayers) -> str:
 
 
 def write_grid2d(layers: VolumeLayers, yaml_path: str | Path, band_m: Sequence[float], *, flag: str = "--grid2d",
-                 band_flag: str = "--band-m") -> Grid2DExportSummary:
+                 band_flag: str = "--band-m", grid: Grid2D | None = None) -> Grid2DExportSummary:
     """Write the 2-D occupancy map of ``band_m`` (:func:`occupancy_grid2d`) in the ROS ``map_server`` format:
     ``yaml_path`` and a PGM of the same name next to it (``map.yaml`` -> ``map.pgm``).
 
@@ -343,7 +375,8 @@ def write_grid2d(layers: VolumeLayers, yaml_path: str | Path, band_m: Sequence[f
     pgm_path = yaml_path.with_suffix(".pgm")
     refuse_inside_store(yaml_path, flag)
     refuse_inside_store(pgm_path, flag)
-    grid = occupancy_grid2d(layers, band_m, flag=band_flag)
+    if grid is None:  # else: occupancy_grid2d(layers, band_m) computed (and checked) by the caller
+        grid = occupancy_grid2d(layers, band_m, flag=band_flag)
     image = grid.pgm_image()
     height, width = image.shape
     with atomic_output(pgm_path, flag, guard=False) as tmp, open(tmp, "wb") as fh:
@@ -394,7 +427,10 @@ __all__ = [
     "Grid2DExportSummary",
     "MeshExportSummary",
     "OctomapExportSummary",
+    "PreparedOctomap",
     "occupancy_grid2d",
+    "prepare_mesh",
+    "prepare_octomap",
     "tsdf_mesh",
     "write_grid2d",
     "write_mesh",
