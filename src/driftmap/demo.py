@@ -215,6 +215,7 @@ def _prepare(out_dir: str | Path, log_path: str | Path | None, max_frames: int |
     # the map exports: map.export_voxel_size_m when set, else the demo's own 1 cm
     map_voxel_m = config.map.export_voxel_size_m if config.map.export_voxel_size_m is not None else DEMO_MAP_VOXEL_M
     n = len(log) if max_frames is None else min(max_frames, len(log))
+    _remove_earlier_results(out)
     store_dir = out / "store"
     if store_dir.exists():  # an earlier demo's store (checked above): the demo rebuilds it
         shutil.rmtree(store_dir)
@@ -246,6 +247,26 @@ def _check_results_folder(out: Path) -> None:
     store_dir = out / "store"
     if store_dir.exists() and not is_store_folder(store_dir):
         raise ConfigError(f"{store_dir}: is not a frame store the demo wrote; move it away or give a new folder (--out)")
+
+
+def _remove_earlier_results(out: Path) -> None:
+    """The files an earlier demo's ``summary.json`` lists in ``out`` (its store aside): a run that writes fewer of them
+    (no loop-closure revision) leaves none of the other log's maps or figures beside its own (trial 24 W5). Only a
+    listed file directly in ``out`` or ``out/figures`` is removed, matched by name."""
+    try:
+        files = json.loads((out / "summary.json").read_text()).get("files", {})
+    except (OSError, ValueError, RecursionError, AttributeError):
+        return
+    if not isinstance(files, dict):
+        return
+    for key, value in files.items():
+        if key == "store" or not isinstance(value, str):
+            continue
+        listed = Path(value)
+        target = out / "figures" / listed.name if listed.parent.name == "figures" else out / listed.name
+        if target.is_symlink() or target.is_file():  # a link is removed, never what it points to
+            logger.info("demo: removing the earlier run's %s", target)
+            target.unlink()
 
 
 def _build(run: _DemoRun) -> BuildResult:
