@@ -339,16 +339,28 @@ def test_cli_refuses_an_out_among_the_inputs_and_reserved_names(fleet_logs: Path
 def test_failed_log_errors_name_the_final_folder_and_how_to_drop_ground_truth(fleet_logs: Path, config_file: Path,
                                                                                tmp_path: Path,
                                                                                monkeypatch: pytest.MonkeyPatch) -> None:
-    """W10: a log too short for ATE/RPE with ground_truth "auto" says how to turn it off; an export failure names
-    DIR/<name>/mesh.ply, not the temporary folder that is gone by then."""
+    """W10: a log too short for ATE/RPE with ground_truth "auto" says how to turn it off; trial 24 W7: that
+    optional ground truth no longer fails the log -- it is diagnosed without it (no ATE) and the row says why. An
+    export failure names DIR/<name>/mesh.ply, not the temporary folder that is gone by then."""
     from driftmap.errors import EmptyExportError
+    from driftmap.fleet.report import write_fleet_report
     from driftmap.fleet.task import run_log
 
     out = tmp_path / "out"
     spec = LogSpec(name="one", input=str(fleet_logs / "room-00"), frames="0:2")
     row = run_log(spec, load_batch_config(config_file), out)
+    assert row["status"] == "ok" and row["error"] is None and row["ate_rmse_m"] is None, row
+    note = row["ground_truth_error"]
+    assert "ATE/RPE need at least 3" in note and '[fleet] ground_truth = "none"' in note, note
+    assert TMP_DIR not in note and "diagnosed without it" in note, note
+    assert "ATE/RPE need at least 3" in (out / "one" / "log.txt").read_text()
+    write_fleet_report(out, [row])
+    assert "Ground truth left out" in (out / "fleet.html").read_text()
+    # a ground truth the list gives (--gt) is the user's: its failure still fails the log
+    spec = LogSpec(name="two", input=str(fleet_logs / "room-00"), frames="0:2",
+                   gt=str(fleet_logs / "room-00" / "groundtruth.txt"), gt_format="tum")
+    row = run_log(spec, load_batch_config(config_file), out)
     assert row["status"] == "failed" and "ATE/RPE need at least 3" in row["error"], row
-    assert '[fleet] ground_truth = "none"' in row["error"] and TMP_DIR not in row["error"], row["error"]
 
     def no_surface(layers, path, *, flag="--mesh", **_):
         raise EmptyExportError(f"{flag} {path}: the TSDF has no surface to mesh")
@@ -356,11 +368,11 @@ def test_failed_log_errors_name_the_final_folder_and_how_to_drop_ground_truth(fl
     monkeypatch.setattr("driftmap.volume.export.write_mesh", no_surface)
     mesh_config = tmp_path / "mesh.toml"
     mesh_config.write_text(CONFIG.replace('exports = ["trajectory"]', 'exports = ["mesh"]\nground_truth = "none"'))
-    spec = LogSpec(name="one", input=str(fleet_logs / "room-00"), frames="0:4")
+    spec = LogSpec(name="meshed", input=str(fleet_logs / "room-00"), frames="0:4")
     row = run_log(spec, load_batch_config(mesh_config), out)
-    assert row["status"] == "failed" and f"{out / 'one' / 'mesh.ply'}:" in row["error"], row["error"]
+    assert row["status"] == "failed" and f"{out / 'meshed' / 'mesh.ply'}:" in row["error"], row["error"]
     assert TMP_DIR not in row["error"] and "--mesh" not in row["error"], row["error"]
-    assert not (out / "one").exists()
+    assert not (out / "meshed").exists()
 
 
 def test_cli_a_ray_that_cannot_start_is_one_error_line(fleet_logs: Path, tmp_path: Path) -> None:

@@ -185,6 +185,17 @@ def _failures_table(rows: list[dict[str, Any]]) -> str:
     return f"<table><tr><th>log</th><th>input</th><th>error</th><th>reason</th></tr>{body}</table>"
 
 
+def _ground_truth_notes(rows: list[dict[str, Any]]) -> str:
+    """The logs diagnosed without the ground truth ``ground_truth = "auto"`` found, because it failed (no ATE)."""
+    left_out = [r for r in rows if r.get("ground_truth_error")]
+    if not left_out:
+        return ""
+    body = "".join(f"<tr><td>{html.escape(r['name'])}</td><td>{html.escape(str(r['ground_truth_error']))}</td></tr>"
+                   for r in left_out)
+    return (f"<h2>Ground truth left out</h2><table><tr><th>log</th><th>why (diagnosed without it, no ATE)</th></tr>"
+            f"{body}</table>")
+
+
 STYLE = ("body{font-family:sans-serif;margin:2em}table{border-collapse:collapse;margin:1em 0}"
          "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}td:first-child,th:first-child{text-align:left}"
          "img{max-width:100%}")
@@ -205,7 +216,7 @@ def write_fleet_report(out_dir: Path, rows: list[dict[str, Any]]) -> dict[str, P
             f"<style>{STYLE}</style></head><body><h1>driftmap fleet report</h1>"
             f"<p>{len(rows)} logs: {counts}. Ranked worst first: the fraction of surface voxels doubled, then the "
             f"drift rate (LC: loop closure).</p>{figures}<h2>Logs, worst first</h2>{_results_table(ranked)}"
-            f"<h2>Failures</h2>{_failures_table(rows)}</body></html>\n")
+            f"{_ground_truth_notes(rows)}<h2>Failures</h2>{_failures_table(rows)}</body></html>\n")
     with atomic_write(out_dir / FLEET_HTML, "fleet.html") as tmp:
         tmp.write_text(page)
     files["html"] = out_dir / FLEET_HTML
