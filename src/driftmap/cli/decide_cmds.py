@@ -4,9 +4,11 @@ revision, and with ``--compare A,B`` or ``--against OTHER_STORE`` list the decis
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import re
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Annotated
 
@@ -104,7 +106,8 @@ def decide(
     volume, decide_config = settings.volume, settings.decide
     with open_store(store_path, reads_map=True) as store:
         revisions = list(pair) if pair else [store.head if revision is None else revision]
-        _precheck(store, query_set, volume, revisions, decide_config)
+        with _naming_query_file(queries):
+            _precheck(store, query_set, volume, revisions, decide_config)
         warn_unmerged(store, revisions)
         named = True if diagnosis is None else _check_diagnosis_frames(store, diagnosis)
         walls = None if diagnosis is None else double_walls_of(diagnosis, revisions[0])  # its revision checked first
@@ -112,7 +115,7 @@ def decide(
             logging.getLogger(__name__).warning(
                 "%s: the diagnosis names no store (no store_uuid: an older diagnose wrote it): only its frames and "
                 "stamps are checked against %s", diagnosis, store.path)
-        with progress_bar() as progress:
+        with progress_bar() as progress, _naming_query_file(queries):
             tick = stage_ticker(progress, {"volume": "volumetric layers", "decide": "decisions"})
             result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
                           same_log, decide_config, threads)
@@ -126,6 +129,19 @@ def decide(
     console.print(bold("decisions: ", json_path))
     if figure is not None:
         console.print(bold("report: ", figure))
+
+
+@contextlib.contextmanager
+def _naming_query_file(queries: Path) -> Iterator[None]:
+    """A query that cannot be answered on this map names the query file as well as the query (trial 24 W8)."""
+    from driftmap.decisions.errors import QueryError
+
+    try:
+        yield
+    except QueryError as exc:
+        if exc.query_id is None or str(exc).startswith(f"{queries}:"):
+            raise
+        raise QueryError(f"{queries}: {exc}", query_id=exc.query_id, field=exc.field) from None
 
 
 def _check_diagnosis_shape(diagnosis: Path) -> None:

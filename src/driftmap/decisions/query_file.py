@@ -262,11 +262,15 @@ def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
     queries: list[Query] = []
     seen: set[str] = set()
     from_yaml = source.lower().endswith((".yaml", ".yml"))
+    named = "" if source == "<memory>" else f"{source}: "  # a file's errors name it (trial 24 W8)
     for n, item in enumerate(items):
-        query = parse_query(item, n, from_yaml=from_yaml)
+        try:
+            query = parse_query(item, n, from_yaml=from_yaml)
+        except QueryError as exc:
+            raise QueryError(f"{named}{exc}", query_id=exc.query_id, field=exc.field) from None
         if query.id in seen:
-            raise QueryError(f"query {query.id!r}: the id is used twice (ids name decisions: each must be unique)",
-                             query_id=query.id, field="id")
+            raise QueryError(f"{named}query {query.id!r}: the id is used twice (ids name decisions: each must be "
+                             f"unique)", query_id=query.id, field="id")
         seen.add(query.id)
         queries.append(query)
     return QuerySet(queries, source, [dict(i) for i in items])
