@@ -115,7 +115,8 @@ def g2o() -> None:
     folder = shared_datasets_dir() / "pose-graphs"
     for name in ("parking-garage.g2o", "sphere_bignoise_vertex3.g2o", "cubicle.g2o"):
         t0 = time.perf_counter()
-        res = optimize_g2o(folder / name)
+        # cubicle.g2o holds information matrices that are not positive definite: read as gtsam.readG2o does
+        res = optimize_g2o(folder / name, non_pd_information="gtsam" if name == "cubicle.g2o" else "refuse")
         print(f"{name}: error {res.initial_error:.4g} -> {res.final_error:.4g} (converged {res.converged}, "
               f"{time.perf_counter() - t0:.1f} s)")
 

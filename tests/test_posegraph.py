@@ -206,7 +206,11 @@ def test_large_3d_benchmarks_converge_like_plain_gtsam(datasets_dir: Path, name:
     minimum, see docs/posegraph.md), cubicle 5.41e6 -> 1373 in 39."""
     path = datasets_dir / "pose-graphs" / f"{name}.g2o"
     ref_initial, ref_final, ref_iterations = _plain_gtsam_lm(path)
-    result = optimize_g2o(path)
+    if name == "cubicle":  # 5021 of its 16869 information matrices are not positive definite: refused by default
+        with pytest.raises(PoseGraphError, match=r"cubicle.g2o:5753: EDGE_SE3:QUAT 1 -> 2: .*not positive definite.*"
+                                                 r"5021 of 16869"):
+            optimize_g2o(path)
+    result = optimize_g2o(path, non_pd_information="gtsam" if name == "cubicle" else "refuse")
     assert result.converged
     assert result.final_error < 0.05 * result.initial_error
     assert result.initial_error == pytest.approx(ref_initial, rel=1e-9)
@@ -419,3 +423,55 @@ def test_lm_at_a_stationary_point_converges_within_the_noise_and_warns_beyond_it
                                time.perf_counter(), None, warnings)
     assert iterations == 0 and ok is converged
     assert bool(warnings) is not converged and all("maximum lambda" in w for w in warnings)
+
+
+# ------------------------------------------------------------------------------------------------------------
+# g2o lines checked before GTSAM reads them (hostile trial 25 B1, W1)
+_V0 = "VERTEX_SE3:QUAT 0 0 0 0 0 0 0 1"
+_V1 = "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 1"
+_INFO = "1 0 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"  # identity, upper triangle
+
+
+@pytest.mark.parametrize("lines, message", [
+    # B1: [[1, 5], [5, 1]] in the translation block (eigenvalue -4): GTSAM's unchecked Cholesky made it [[1,5],[5,26]]
+    ([_V0, _V1, "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 1 5 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"],
+     r"g2o:3: EDGE_SE3:QUAT 0 -> 1: the information matrix is not positive definite \(smallest eigenvalue -4"),
+    ([_V0, _V1, "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 " + " ".join(["0"] * 21)], r"g2o:3: .*not positive definite"),
+    ([_V0, "VERTEX_SE3:QUAT -5 1 0 0 0 0 0 1"], r"g2o:2: id '-5' is not a whole number"),
+    ([_V0, "VERTEX_SE3:QUAT 99999999999999999999 1 0 0 0 0 0 1"], r"g2o:2: id '99999999999999999999'"),
+    ([_V0, "VERTEX_SE3:QUAT 1 1 0 0"], r"g2o:2: a VERTEX_SE3:QUAT line holds 1 id\(s\), 7 pose numbers; this one "
+                                       r"holds 4 values"),
+    ([_V0, _V1 + " 99"], r"g2o:2: .*this one holds 9 values"),
+    ([_V0, "VERTEX_SE3:QUAT 1 1 0 0 0 0 0 5"], r"g2o:2: VERTEX_SE3:QUAT 1: quaternion has norm 5.0000"),
+    ([_V0, _V1, f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1.22 {_INFO}"], r"g2o:3: .*quaternion has norm 1.2200"),
+    ([_V0, "VERTEX_SE3:QUAT 1 nan 0 0 0 0 0 1"], r"g2o:2: VERTEX_SE3:QUAT 1: holds NaN or inf"),
+    ([_V0, _V1, f"EDGE_SE3:QUAT 0 7 1 0 0 0 0 0 1 {_INFO}"], r"g2o:3: EDGE_SE3:QUAT 0 -> 7: no vertex 7 in the file"),
+    ([_V0, _V1, f"EDGE_SE3:QUAT 1 1 1 0 0 0 0 0 1 {_INFO}"], r"g2o:3: .*must join two different vertices"),
+    ([_V0, _V1, "FIX 4", f"EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 {_INFO}"], r"g2o:3: FIX 4: no vertex 4"),
+    (["VERTEX_SE2 0 0 0 0", "VERTEX_SE2 1 1 0 0", "EDGE_SE2 0 1 1 0 0 -1 0 0 1 0 1"],
+     r"g2o:3: EDGE_SE2 0 -> 1: the information matrix is not positive definite"),
+])
+def test_g2o_lines_are_checked_before_gtsam_reads_them(tmp_path: Path, lines: list[str], message: str) -> None:
+    path = tmp_path / "bad.g2o"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(PoseGraphError, match=message):
+        PoseGraph.from_g2o(path)
+
+
+def test_g2o_fix_lines_hold_their_nodes_and_non_pd_information_can_be_read_as_gtsam_does(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """FIX 1 holds node 1 where the file puts it (the edge then moves node 0); non_pd_information='gtsam' reads
+    [[1, 5], [5, 1]] as GTSAM does, [[1, 5], [5, 26]], with a warning."""
+    path = tmp_path / "fix.g2o"
+    path.write_text("\n".join([_V0, _V1, "FIX 1", f"EDGE_SE3:QUAT 0 1 2 0 0 0 0 0 1 {_INFO}"]) + "\n")
+    pg = PoseGraph.from_g2o(path)
+    assert [p.key for p in pg.effective_priors()] == [1]
+    result = pg.optimize()
+    assert result.poses[1][0, 3] == pytest.approx(1.0, abs=1e-6) and result.poses[0][0, 3] == pytest.approx(-1.0, abs=1e-6)
+    path.write_text("\n".join([_V0, _V1, "EDGE_SE3:QUAT 0 1 1 0 0 0 0 0 1 1 5 0 0 0 0 1 0 0 0 0 1 0 0 0 1 0 0 1 0 1"]))
+    with caplog.at_level("WARNING"):
+        pg = PoseGraph.from_g2o(path, non_pd_information="gtsam")
+    assert np.allclose(pg.edges[0].information_6x6[:2, :2], [[1, 5], [5, 26]])
+    assert "1 of 1 edges' information matrices are not positive definite" in caplog.text
+    with pytest.raises(PoseGraphError, match="non_pd_information must be one of refuse, gtsam"):
+        PoseGraph.from_g2o(path, non_pd_information="accept")

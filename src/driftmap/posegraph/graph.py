@@ -285,6 +285,7 @@ class PoseGraph:
         *,
         loop_robust: RobustKernel = RobustKernel.NONE,
         loop_robust_param: float | None = None,
+        non_pd_information: str = "refuse",
     ) -> PoseGraph:
         """Read a g2o file with ``gtsam.readG2o``.
 
@@ -294,11 +295,18 @@ class PoseGraph:
         :data:`PLANAR_OUT_OF_PLANE_INFORMATION`, so the optimum and error equal the 2D problem's.
         g2o does not label edges: ``key_to == key_from + 1`` becomes :attr:`EdgeKind.ODOMETRY`, any other edge
         :attr:`EdgeKind.LOOP`. Loops get ``loop_robust`` (default none: a g2o benchmark is a least-squares
-        problem, and this reproduces it). No prior is read; the default prior applies.
+        problem, and this reproduces it). ``FIX`` lines become priors on their nodes (else the default prior).
+
+        Every line is checked before GTSAM reads the file (:func:`~driftmap.posegraph.g2o.check_g2o_lines`): a
+        malformed line, a negative or huge id, NaN / inf, a non-unit quaternion, an edge to a missing vertex and an
+        information matrix that is not positive definite are :class:`~driftmap.errors.PoseGraphError` naming
+        ``path:line``. ``non_pd_information="gtsam"`` reads such matrices as ``gtsam.readG2o`` does instead (another
+        matrix, with a warning; the shared ``cubicle.g2o`` needs it).
         """
         path = Path(path)
         pg = cls()
-        is3d = read_g2o_into(pg, path, loop_robust=loop_robust, loop_robust_param=loop_robust_param)
+        is3d = read_g2o_into(pg, path, loop_robust=loop_robust, loop_robust_param=loop_robust_param,
+                             non_pd_information=non_pd_information)
         logger.info("read %s (%s): %d nodes, %d edges (%d loops)", path, "3D" if is3d else "2D lifted to 3D",
                     len(pg._nodes), len(pg._edges), len(pg.loop_edges))
         return pg
@@ -338,9 +346,10 @@ def optimize_g2o(
     method: Optimizer = Optimizer.LM,
     *,
     loop_robust: RobustKernel = RobustKernel.NONE,
+    non_pd_information: str = "refuse",
     **optimize_kwargs: object,
 ) -> PoseGraphResult:
     """Read ``path`` with :meth:`PoseGraph.from_g2o` and optimise it (keywords go to :meth:`PoseGraph.optimize`)."""
-    graph = PoseGraph.from_g2o(path, loop_robust=loop_robust)
+    graph = PoseGraph.from_g2o(path, loop_robust=loop_robust, non_pd_information=non_pd_information)
     return graph.optimize(method, **optimize_kwargs)  # type: ignore[arg-type]
 
