@@ -183,6 +183,11 @@ PLANE_REFINE_SHARE_TOLERANCE = 0.05
 REFINE_CORRESPONDENCE_VOXELS = 1.0
 """``kiss_refine_gicp``: GICP correspondences within this many odometry voxels."""
 
+MIN_REGISTRATION_POINTS = 10
+"""A scan (or depth frame) with fewer points than this after the odometry's voxel grid is not registered: its pose is
+predicted (constant velocity) and it stays out of the map. One distinct point fits any surface perfectly (hostile
+trial 25 B2: 87,000 copies of one point were tracked "ok" 1.4 m off)."""
+
 
 @dataclass(frozen=True, slots=True)
 class OdometryStep:
@@ -273,8 +278,9 @@ class GicpMapOdometry:
         if self._last is None:
             T = self._T_world_first.copy()
             health = TrackingHealth(TrackingStatus.FIRST, n_points=fine.size(), fitness_radius_m=radius, hypothesis="start")
-        elif fine.size() < 10:
-            reason = f"{fine.size()} points within {c.min_range_m:.2f}..{c.max_range_m:.2f} m: pose predicted"
+        elif fine.size() < MIN_REGISTRATION_POINTS:
+            reason = (f"{fine.size()} points within {c.min_range_m:.2f}..{c.max_range_m:.2f} m after the "
+                      f"{c.gicp_downsample_m:g} m voxel grid ({n_points} measured): pose predicted")
             logger.warning("frame %d: %s", frame.frame_id, reason)
             T = _nearest_rigid(self._last @ self._delta)
             health = TrackingHealth(TrackingStatus.LOST, n_points=fine.size(), fitness_radius_m=radius,
@@ -433,7 +439,9 @@ class KissOdometry:
         scan = kiss.preprocessor.preprocess(pts, stamps, kiss.last_delta)
         source, scan_down = kiss.voxelize(scan)
         radius = c.tracking_fitness_radius_voxels * c.voxel_size_m
-        if kiss.local_map.empty():
+        if len(source) < MIN_REGISTRATION_POINTS:
+            health, T = self._predicted(frame.frame_id, len(source), len(pts), radius)
+        elif kiss.local_map.empty():
             T = kiss.last_pose
             health = TrackingHealth(TrackingStatus.FIRST, n_points=len(source), fitness_radius_m=radius,
                                     hypothesis="start")
@@ -446,6 +454,20 @@ class KissOdometry:
         T_stamp = self._at_stamp(frame, T)
         self._last_stamp_ns = frame.stamp_ns
         return OdometryStep(frame.frame_id, self._T_world_odom @ T_stamp, len(pts), dt, health)
+
+    def _predicted(self, frame_id: int, n_source: int, n_points: int, radius: float
+                   ) -> tuple[TrackingHealth, NDArray[np.float64]]:
+        """A scan with too few distinct points to register (:data:`MIN_REGISTRATION_POINTS`): the constant-velocity
+        pose (the start pose before the map has begun), the scan kept out of the map, the motion model unchanged."""
+        kiss, c = self._kiss, self.config
+        started = not kiss.local_map.empty()
+        T = _nearest_rigid(kiss.last_pose @ kiss.last_delta) if started else kiss.last_pose
+        reason = (f"{n_source} points within {c.min_range_m:.2f}..{c.max_range_m:.2f} m after the {c.voxel_size_m:g} m "
+                  f"voxel grid ({n_points} measured): pose {'predicted' if started else 'of the start; the map begins at the next scan'}")
+        logger.warning("frame %d: %s", frame_id, reason)
+        kiss.last_pose = T
+        return TrackingHealth(TrackingStatus.LOST, n_points=n_source, fitness_radius_m=radius,
+                              hypothesis="constant_velocity" if started else "start", reason=reason), T
 
     def _at_stamp(self, frame: Frame, T_mid: NDArray[np.float64]) -> NDArray[np.float64]:
         """KISS-ICP's pose of a scan with per-point times is the pose at the middle of its times (it deskews about
