@@ -10,7 +10,7 @@ import json
 from pathlib import Path
 
 import numpy as np
-from cli_run import run_cli
+from cli_run import one_error, run_cli
 
 from driftmap.store.frame_store import FrameStore
 
@@ -51,3 +51,53 @@ def test_t25_b2_a_scan_of_one_repeated_point_is_flagged_and_its_pose_predicted(b
         poses = s.poses()
     t = poses[:, :3, 3]
     assert np.linalg.norm(t[4] - 0.5 * (t[3] + t[5])) < 0.15, t[3:6]
+
+
+def test_t25_w6_a_log_of_empty_depth_images_builds_no_store(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """Six 7-Scenes frames whose depth images are all zeros (or all 65535): build exits 1 saying no frame holds a
+    point, leaves no store, and prints no raw "warning: Empty point cloud" from small_gicp. One empty image among good
+    ones is still flagged and bridged, and the store builds."""
+    from PIL import Image
+
+    for fill, name in ((0, "zeros"), (65535, "saturated")):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "camera-intrinsics.txt").symlink_to(sevenscenes_dir / "camera-intrinsics.txt")
+        for i in range(6):
+            Image.fromarray(np.full((480, 640), fill, np.uint16)).save(folder / f"frame-{i:06d}.depth.png")
+        out = run_cli("build", folder, "--out", tmp_path / f"s-{name}", "--threads", "1")
+        line = one_error(out)
+        assert "none of the 6 frames read holds a point" in line and "no store was kept" in line, line
+        assert "Empty point cloud" not in out.stdout + out.stderr
+        assert not (tmp_path / f"s-{name}").exists()
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    (mixed / "camera-intrinsics.txt").symlink_to(sevenscenes_dir / "camera-intrinsics.txt")
+    for i in range(6):
+        src = sevenscenes_dir / f"frame-{i:06d}.depth.png"
+        if i == 3:
+            Image.fromarray(np.zeros((480, 640), np.uint16)).save(mixed / src.name)
+        else:
+            (mixed / src.name).symlink_to(src)
+    _ok(run_cli("build", mixed, "--out", tmp_path / "s-mixed", "--threads", "1", "--no-loop-closure"))
+    tracking = json.loads((tmp_path / "s-mixed" / "build_summary.json").read_text())["tracking"]
+    assert [f["frame_id"] for f in tracking["flagged"]] == [3], tracking["flagged"]
+
+
+def test_t25_w6_decide_on_a_map_without_points_says_so(tmp_path: Path) -> None:
+    """A store whose frames hold no point (as the API can write): the layers are refused as an empty map, not as
+    "a voxel larger than the map"."""
+    from driftmap.frame import Frame, PoseEstimate, SensorKind
+
+    store = FrameStore.create(tmp_path / "s")
+    for i in range(3):
+        store.append(Frame(frame_id=i, stamp_ns=i * 100_000_000, points_sensor=np.zeros((0, 3), np.float32),
+                           sensor_name="lidar", sensor_kind=SensorKind.LIDAR,
+                           pose=PoseEstimate(np.eye(4), revision=0)))
+    store.close()
+    q = tmp_path / "q.json"
+    q.write_text(json.dumps({"queries": [{"id": "c", "kind": "clearance", "points_m": [[0, 0, 1]], "radius_m": 0.2}]}))
+    config = tmp_path / "c.toml"
+    config.write_text("[volume]\nmax_range_m = 10.0\n")  # a LiDAR store made through the API records no range
+    line = one_error(run_cli("decide", tmp_path / "s", "--queries", q, "--json", tmp_path / "o.json", "--config", config))
+    assert "the map of revision 0 has no point (3 frames, none with a point)" in line, line

@@ -146,13 +146,17 @@ def build(
         n_stored = len(store)
         store.close()
         what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        if new_store and n_stored == 0:
+        if new_store and (n_stored == 0 or isinstance(exc, _NoPointStored)):
             remove_new_store(out, out_existed, new_dirs)
         elif n_stored:
             logger.warning("build %s with %d frames stored; %s is kept (continue it with --resume)", what, n_stored, out)
         raise
     finally:
         store.close()
+
+
+class _NoPointStored(SourceError):
+    """Every frame a new store received is empty (hostile trial 25 W6): the store is removed, as one of no frame is."""
 
 
 def _check_pose_arguments(poses_file: str | Path | None, poses_from_source: bool, kitti_frame: str,
@@ -300,7 +304,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
     poser = _Poser(src, store, config, pose_of, poses_from_source, pose_of_source, existing, tick)
     n_total = len(src)
     invalid: list[float] = []
-    n_new = 0
+    n_new = n_pointless = 0
     t_read = t_odom = t_store = 0.0
     t0 = time.perf_counter()
     frame_iter = iter(src)
@@ -353,6 +357,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
         t_store += time.perf_counter() - t_c
         t_odom += t_c - t_b
         n_new += 1
+        n_pointless += frame.n_points == 0
         tick("frames", done, n_total)
     pose_source, odometry, odometry_config, scene = poser.source, poser.odometry, poser.odometry_config, poser.scene
     stages["read+validate"] = t_read
@@ -368,6 +373,10 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             frame_index, reason = src.skipped[0]
             raise SourceError(f"every frame read was skipped ({len(src.skipped)}; --lenient), so nothing was stored; "
                               f"the first, frame {frame_index}: {reason}")
+    if n_new and n_pointless == n_new and n_new == len(store):
+        raise _NoPointStored(f"none of the {n_new} frames read holds a point (every depth pixel invalid or out of "
+                             f"range, or an empty scan), so no store was kept: check the frames (a depth image of "
+                             f"zeros, the wrong --depth-scale or --format)")
     result = BuildResult(
         store=str(store.path), n_frames=len(store), n_frames_new=n_new,
         mean_invalid_fraction=float(np.mean(invalid)) if invalid else None,

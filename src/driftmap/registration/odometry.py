@@ -254,6 +254,9 @@ class GicpMapOdometry:
         pts, _ = _strided_points(frame, c.max_points)
         r = np.linalg.norm(pts, axis=1)
         pts = pts[(r >= c.min_range_m) & (r <= c.max_range_m)]
+        if len(pts) == 0:  # small_gicp prints "warning: Empty point cloud" to the console for each
+            empty = small_gicp.PointCloud(np.zeros((0, 3)))
+            return empty, empty, 0
         fine, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_downsample_m, num_neighbors=10,
                                                num_threads=c.num_threads)
         coarse, _ = small_gicp.preprocess_points(pts, downsampling_resolution=c.gicp_coarse_downsample_m, num_neighbors=10,
@@ -275,16 +278,24 @@ class GicpMapOdometry:
         fine, coarse, n_points = self._clouds(frame)
         c = self.config
         radius = c.gicp_max_correspondence_m
-        if self._last is None:
+        if self._last is None and fine.size() >= MIN_REGISTRATION_POINTS:
             T = self._T_world_first.copy()
             health = TrackingHealth(TrackingStatus.FIRST, n_points=fine.size(), fitness_radius_m=radius, hypothesis="start")
-        elif fine.size() < MIN_REGISTRATION_POINTS:
+        elif fine.size() < MIN_REGISTRATION_POINTS:  # the map does not start (or grow) with it
+            started = self._last is not None
             reason = (f"{fine.size()} points within {c.min_range_m:.2f}..{c.max_range_m:.2f} m after the "
-                      f"{c.gicp_downsample_m:g} m voxel grid ({n_points} measured): pose predicted")
+                      f"{c.gicp_downsample_m:g} m voxel grid ({n_points} measured): pose "
+                      f"{'predicted' if started else 'of the start; the map begins at the next frame'}")
             logger.warning("frame %d: %s", frame.frame_id, reason)
-            T = _nearest_rigid(self._last @ self._delta)
+            T = _nearest_rigid(self._last @ self._delta) if started else self._T_world_first.copy()
             health = TrackingHealth(TrackingStatus.LOST, n_points=fine.size(), fitness_radius_m=radius,
-                                    hypothesis="constant_velocity", reason=reason)
+                                    hypothesis="constant_velocity" if started else "start", reason=reason)
+            if started:  # as before trial 25: the frame counts among the tracked ones, its (few) points stay out
+                self._last = T
+                self._n_tracked += 1
+            self.n_frames += 1
+            self.seconds += time.perf_counter() - t0
+            return OdometryStep(frame.frame_id, T, n_points, time.perf_counter() - t0, health)
         else:
             pred = _nearest_rigid(self._last @ self._delta)
             T, inliers, _ = self._align(self._fine, fine, pred, c.gicp_max_correspondence_m)

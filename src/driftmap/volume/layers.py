@@ -23,7 +23,7 @@ import open3d as o3d
 import open3d.core as o3c
 from numpy.typing import NDArray
 
-from driftmap.errors import ConfigError, EmptyStoreError
+from driftmap.errors import ConfigError, EmptyExportError, EmptyStoreError
 from driftmap.frame import SensorKind
 from driftmap.kernels import volume as kernels
 from driftmap.volume.config import VolumeConfig
@@ -522,6 +522,9 @@ def covering_grid(view: MapView, config: VolumeConfig, frame_ids: Iterable[int] 
     """The grid :meth:`VolumeLayers.from_view` sizes for these frames of ``view`` (default: all; ``config``
     resolved): their boxes cut to the max range around each sensor, plus the padding and the truncation."""
     ids = [int(f) for f in (view.frame_ids if frame_ids is None else frame_ids)]
+    if ids and view.n_points == 0:  # not "a voxel larger than the map" (hostile trial 25 W6)
+        raise EmptyExportError(f"the map of revision {view.revision} has no point ({len(ids)} frames, none with a "
+                               f"point): no volumetric layers to build")
     lo, hi = _view_bounds(view, ids, config.max_range_m)
     extent = np.asarray(hi, dtype=np.float64) - np.asarray(lo, dtype=np.float64)
     if float(config.voxel_size_m) > float(np.max(extent)):
