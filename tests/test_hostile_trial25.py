@@ -101,3 +101,36 @@ def test_t25_w6_decide_on_a_map_without_points_says_so(tmp_path: Path) -> None:
     config.write_text("[volume]\nmax_range_m = 10.0\n")  # a LiDAR store made through the API records no range
     line = one_error(run_cli("decide", tmp_path / "s", "--queries", q, "--json", tmp_path / "o.json", "--config", config))
     assert "the map of revision 0 has no point (3 frames, none with a point)" in line, line
+
+
+def test_t25_b3_w7_the_layers_queries_of_a_navigation_stack_are_bounded_and_checked(room10: dict) -> None:
+    """B3: ``VolumeLayers.sweep`` (docs/navigation-stack.md) made every placement of a path or every voxel of a
+    footprint whatever their number: a 1e7 m path took 24 GB, a 20 m radius 3.8 GiB, a 1e6 m radius a raw
+    ValueError. They are refused before any is made, as ``decide`` refuses a collision path. W7: ``states``,
+    ``observers`` and ``clearance_m`` check their points alike (finite real (N, 3): a NaN read as unknown, or as a
+    lattice overflow), and a bad ``unknown_is`` is a ConfigError."""
+    import pytest
+
+    from driftmap.errors import ConfigError
+    from driftmap.volume import VolumeConfig, VolumeLayers
+
+    with FrameStore.open(room10["gt"]) as store:
+        layers = VolumeLayers.from_store(store, store.head, config=VolumeConfig(voxel_size_m=0.05))
+    ok = layers.sweep(np.array([[0, 0, 1.0], [1.0, 0, 1.0]]), radius_m=0.1)
+    for length in (1e5, 1e7):  # 1e5 m: 4 million placements at half-voxel steps
+        with pytest.raises(ConfigError, match=r"sweep: path_m .* footprint placements .* more than 1,000,000"):
+            layers.sweep(np.array([[0, 0, 1.0], [length, 0, 1.0]]), radius_m=0.1)
+    for footprint in ({"radius_m": 20.0}, {"radius_m": 1e6}, {"box_m": (1e5, 1e5, 1e5)}):
+        with pytest.raises(ConfigError, match=r"sweep: the footprint .* voxels .* more than 4,000,000"):
+            layers.sweep(np.array([[0, 0, 1.0], [1.0, 0, 1.0]]), **footprint)
+    with pytest.raises(ConfigError, match=r"voxel tests"):  # each bound alone passes, their product does not
+        layers.sweep(np.array([[0, 0, 1.0], [20_000.0, 0, 1.0]]), radius_m=1.0)
+    again = layers.sweep(np.array([[0, 0, 1.0], [1.0, 0, 1.0]]), radius_m=0.1)  # the bounds change no answer
+    assert (again.outcome, again.distance_m) == (ok.outcome, ok.distance_m)
+    for bad in ([[np.nan, 0, 1]], [[np.inf, 0, 1]], np.zeros((2, 2)), np.array([[1 + 1j, 0, 1]]), [["a", 0, 1]]):
+        for call in (layers.states, layers.observers, layers.clearance_m):
+            with pytest.raises(ConfigError, match=r"points must be finite real \(N, 3\) metres"):
+                call(bad)
+    with pytest.raises(ConfigError, match=r"unknown_is must be one of .*got 'maybe'"):
+        layers.clearance_m([[0, 0, 1.0]], unknown_is="maybe")
+    assert layers.states([0, 0, 1.0]).shape == (1,)  # one point is (1, 3)

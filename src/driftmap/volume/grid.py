@@ -136,3 +136,23 @@ def offset_between(old: GridSpec, new: GridSpec) -> tuple[int, int, int]:
     if not math.isclose(old.voxel_size_m, new.voxel_size_m, rel_tol=0, abs_tol=0):
         raise ConfigError("grids of different voxel sizes")
     return tuple(int(a - b) for a, b in zip(old.origin_index, new.origin_index))  # type: ignore[return-value]
+
+
+def world_points(points_m: object, what: str) -> NDArray[np.float64]:
+    """``points_m`` as finite real world points, float64 ``(N, 3)`` (one point ``(3,)`` is taken as ``(1, 3)``), or a
+    :class:`~driftmap.errors.ConfigError` naming ``what`` (the call and its argument): the one check of every layers
+    query that takes points (hostile trial 25 W7: a NaN point read as unknown, as a lattice overflow or as an error,
+    depending on the call)."""
+    try:
+        arr = np.asarray(points_m)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{what}: points must be finite real (N, 3) metres ({exc})") from None
+    if arr.dtype.kind not in "biuf":
+        raise ConfigError(f"{what}: points must be finite real (N, 3) metres, got dtype {arr.dtype}")
+    pts = np.atleast_2d(arr.astype(np.float64, copy=False))
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ConfigError(f"{what}: points must be finite real (N, 3) metres, got shape {arr.shape}")
+    if not np.all(np.isfinite(pts)):
+        bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
+        raise ConfigError(f"{what}: points must be finite real (N, 3) metres; point {bad} is {pts[bad].tolist()}")
+    return pts

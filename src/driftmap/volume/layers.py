@@ -27,7 +27,7 @@ from driftmap.errors import ConfigError, EmptyExportError, EmptyStoreError
 from driftmap.frame import SensorKind
 from driftmap.kernels import volume as kernels
 from driftmap.volume.config import VolumeConfig
-from driftmap.volume.grid import BLOCK_RESOLUTION, GridSpec
+from driftmap.volume.grid import BLOCK_RESOLUTION, GridSpec, world_points
 from driftmap.volume.observation import Observation, observe
 
 if TYPE_CHECKING:
@@ -427,7 +427,7 @@ class VolumeLayers:
 
     def states(self, points_m: NDArray[np.floating]) -> NDArray[np.int8]:
         """The state of the voxel holding each world point (outside the grid: unknown)."""
-        idx, inside = self.grid.grid_index(np.atleast_2d(np.asarray(points_m, dtype=np.float64)))
+        idx, inside = self.grid.grid_index(world_points(points_m, "states"))
         out = np.full(len(idx), UNKNOWN, dtype=np.int8)
         out[inside] = self.states_flat(self.grid.flat(idx[inside]))
         return out
@@ -464,7 +464,7 @@ class VolumeLayers:
             order = np.lexsort((fids, keys))
             self._observers = (keys[order], fids[order])
         keys, fids = self._observers
-        q = _pack(self.grid.lattice_index(np.atleast_2d(np.asarray(points_m, dtype=np.float64))))
+        q = _pack(self.grid.lattice_index(world_points(points_m, "observers")))
         lo, hi = np.searchsorted(keys, q, "left"), np.searchsorted(keys, q, "right")
         return [fids[a:b] for a, b in zip(lo, hi)]
 

@@ -21,13 +21,20 @@ from scipy.spatial import cKDTree
 
 from driftmap.errors import ConfigError
 from driftmap.volume.config import UnknownIs
+from driftmap.volume.grid import world_points
 from driftmap.volume.protocol import Layers
 
 OCCUPIED, FREE, UNKNOWN = 1, 0, -1
 
 
 def _policy(layers: Layers, unknown_is: UnknownIs | str | None) -> UnknownIs:
-    return UnknownIs(unknown_is) if unknown_is is not None else layers.config.unknown_is
+    if unknown_is is None:
+        return layers.config.unknown_is
+    try:
+        return UnknownIs(unknown_is)
+    except ValueError:
+        raise ConfigError(f"unknown_is must be one of {', '.join(u.value for u in UnknownIs)}, got "
+                          f"{unknown_is!r}") from None
 
 
 def _cached(layers: Layers, name: str, build):  # noqa: ANN001, ANN202 - a small memo per layers version
@@ -98,9 +105,8 @@ def clearance_m(layers: Layers, points_m: ArrayLike, unknown_is: UnknownIs | str
     is an obstacle, to the nearest unknown voxel (outside the grid: 0); with ``unknown_is = free`` unknown space
     does not count (infinity where nothing was ever occupied). ``max_m``: distances are only needed up to this (a
     costmap's inflation radius): larger ones are reported as ``max_m``, and far queries are much cheaper."""
-    pts = np.atleast_2d(np.asarray(points_m, dtype=np.float64))
-    if pts.shape[1:] != (3,) or not np.all(np.isfinite(pts)):
-        raise ConfigError(f"clearance_m: points must be finite (N, 3), got shape {pts.shape}")
+    pts = world_points(points_m, "clearance_m")
+    _policy(layers, unknown_is)  # checked before any work
     if max_m is not None and not (np.isfinite(max_m) and max_m > 0):
         raise ConfigError(f"clearance_m: max_m must be a positive number of metres, got {max_m}")
     tree = surface_tree(layers)
@@ -154,13 +160,22 @@ def sweep(layers: Layers, path_m: ArrayLike, *, radius_m: float | None = None,
     """Move a sphere (``radius_m``) or an axis-aligned box (``box_m``: edge lengths x, y, z) along the polyline
     ``path_m`` (K >= 2 points) in steps of ``step_m`` (default half a voxel) and return the first voxel inside the
     footprint that is occupied or unknown (whichever comes first along the path)."""
-    path = np.asarray(path_m, dtype=np.float64)
-    if path.ndim != 2 or path.shape[1] != 3 or len(path) < 2 or not np.all(np.isfinite(path)):
+    path = world_points(path_m, "sweep: path_m")
+    if len(path) < 2:
         raise ConfigError(f"sweep: the path must be K >= 2 finite points (K, 3), got shape {path.shape}")
-    offsets = _footprint_offsets(layers.grid.voxel_size_m, radius_m, box_m)
     step = step_m if step_m is not None else 0.5 * layers.grid.voxel_size_m
-    if not step > 0:
-        raise ConfigError(f"sweep: step_m must be positive, got {step}")
+    if not (np.isfinite(step) and step > 0):
+        raise ConfigError(f"sweep: step_m must be a positive number of metres, got {step}")
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    n_samples = 1 + int(np.maximum(1.0, np.ceil(seg / step)).sum())  # what _samples makes, before it makes them
+    if n_samples > MAX_SWEEP_PLACEMENTS:
+        raise ConfigError(f"sweep: path_m ({float(seg.sum()):.6g} m) needs {n_samples:,} footprint placements at "
+                          f"steps of {step:g} m, more than {MAX_SWEEP_PLACEMENTS:,}: split it or check its units")
+    offsets = _footprint_offsets(layers.grid.voxel_size_m, radius_m, box_m)
+    if n_samples * len(offsets) > MAX_SWEEP_VOXEL_TESTS:
+        raise ConfigError(f"sweep: {n_samples:,} placements of a footprint of {len(offsets):,} voxels are "
+                          f"{n_samples * len(offsets):,} voxel tests, more than {MAX_SWEEP_VOXEL_TESTS:,}: a shorter "
+                          f"path, a smaller footprint or a longer step_m")
     samples, along = _samples(path, step)
     for s, d in zip(samples, along):
         cells = s + offsets
@@ -176,6 +191,17 @@ def sweep(layers: Layers, path_m: ArrayLike, *, radius_m: float | None = None,
     return SweepResult("clear", None, None, np.zeros(0, np.int64))
 
 
+MAX_SWEEP_PLACEMENTS = 1_000_000
+"""sweep: a path needing more footprint placements than this is refused before any is made (as ``decide`` refuses a
+collision path; hostile trial 25 B3: a 1e7 m path took 24 GB)."""
+
+MAX_FOOTPRINT_CELLS = 4_000_000
+"""sweep: a footprint whose box spans more voxels than this (a sphere of radius 1.5 m at 2 cm) is refused."""
+
+MAX_SWEEP_VOXEL_TESTS = 2_000_000_000
+"""sweep: placements x footprint voxels beyond this (minutes of work) is refused."""
+
+
 def _footprint_offsets(voxel_size_m: float, radius_m: float | None, box_m: ArrayLike | None) -> NDArray[np.float64]:
     """World offsets, one per voxel of the footprint, on the voxel lattice around the sample point."""
     if (radius_m is None) == (box_m is None):
@@ -189,7 +215,13 @@ def _footprint_offsets(voxel_size_m: float, radius_m: float | None, box_m: Array
         if box.shape != (3,) or not np.all(np.isfinite(box)) or np.any(box < 0):
             raise ConfigError(f"sweep: box_m must be three finite edge lengths >= 0, got {box_m!r}")
         half = 0.5 * box
-    n = np.ceil(half / voxel_size_m).astype(int)
+    n = np.ceil(half / voxel_size_m)
+    cells = float(np.prod(2 * n + 1))
+    if cells > MAX_FOOTPRINT_CELLS:
+        what = f"radius_m {radius_m:g}" if radius_m is not None else f"box_m {np.asarray(box_m).tolist()}"
+        raise ConfigError(f"sweep: the footprint ({what}) spans {cells:,.0f} voxels of {voxel_size_m:g} m around each "
+                          f"placement, more than {MAX_FOOTPRINT_CELLS:,}: check its units or use larger voxels")
+    n = n.astype(int)
     grid = np.stack(np.meshgrid(*[np.arange(-k, k + 1) for k in n], indexing="ij"), axis=-1).reshape(-1, 3)
     offsets = grid * voxel_size_m
     if radius_m is not None:
