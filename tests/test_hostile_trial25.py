@@ -134,3 +134,28 @@ def test_t25_b3_w7_the_layers_queries_of_a_navigation_stack_are_bounded_and_chec
     with pytest.raises(ConfigError, match=r"unknown_is must be one of .*got 'maybe'"):
         layers.clearance_m([[0, 0, 1.0]], unknown_is="maybe")
     assert layers.states([0, 0, 1.0]).shape == (1,)  # one point is (1, 3)
+
+
+def test_t25_w5_queries_made_in_code_take_numpy_values() -> None:
+    """A navigation stack computes in numpy: numpy scalars and arrays are taken where Python numbers and lists are
+    (they were "not a number"), and give the same queries; numpy bools and complex numbers are still refused. A numpy
+    thread count is taken as a revision already was."""
+    import pytest
+
+    from driftmap.config import check_threads
+    from driftmap.decisions import parse_queries
+    from driftmap.decisions.errors import QueryError
+
+    plain = {"queries": [{"id": "a", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]], "radius_m": 0.25},
+                         {"id": "b", "kind": "collision", "path_m": [[0, 0, 1.0], [1.0, 0, 1.0]],
+                          "footprint": {"box_m": [0.2, 0.2, 0.5]}}]}
+    numpy = {"queries": [{"id": np.str_("a"), "kind": "clearance", "points_m": np.array([[0.0, 0.0, 1.0]]),
+                          "radius_m": np.float32(0.25)},
+                         {"id": "b", "kind": "collision", "path_m": [np.zeros(3) + [0, 0, 1], np.array([1.0, 0, 1])],
+                          "footprint": {"box_m": np.array([0.2, 0.2, 0.5])}}]}
+    a, b = parse_queries(plain), parse_queries(numpy)
+    assert a.raw == b.raw and json.dumps(b.raw)  # the records stay JSON
+    for value in (np.bool_(True), np.complex64(1)):
+        with pytest.raises(QueryError, match="radius_m must be a number"):
+            parse_queries({"queries": [{**plain["queries"][0], "radius_m": value}]})
+    assert check_threads(np.int64(2)) == 2 and isinstance(check_threads(np.int32(1)), int)

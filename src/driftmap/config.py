@@ -25,6 +25,7 @@ from __future__ import annotations
 import enum
 import json
 import math
+import numbers
 import os
 import tomllib
 import types
@@ -55,6 +56,8 @@ def max_threads() -> int:
 def check_threads(n: int, what: str = "num_threads") -> int:
     """``n`` if it is a usable thread count (1 .. :func:`max_threads`), else a :class:`ConfigError` naming ``what``:
     the one check of every thread count driftmap takes (config files, ``--threads``)."""
+    if isinstance(n, numbers.Integral) and not isinstance(n, bool):  # numpy's ints too (hostile trial 25 W5)
+        n = int(n)
     if isinstance(n, bool) or not isinstance(n, int) or n < 1:
         raise ConfigError(f"{what}: a thread count must be a whole number >= 1, got {n!r}")
     if n > max_threads():

@@ -259,6 +259,7 @@ def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
         raise QueryError(f"{source}: 'queries' must be a list, got {type(items).__name__}", query_id=None)
     if not items:
         raise QueryError(f"{source}: the query list is empty", query_id=None)
+    items = [_from_numpy(item) for item in items]  # numpy values as Python ones (hostile trial 25 W5)
     queries: list[Query] = []
     seen: set[str] = set()
     from_yaml = source.lower().endswith((".yaml", ".yml"))
@@ -424,6 +425,20 @@ _BUILDERS = {"clearance": _clearance, "collision": _collision, "grasp": _grasp, 
 
 
 # ------------------------------------------------------------------------------------------------ values
+def _from_numpy(value: Any) -> Any:
+    """Queries made in code hold numpy values: an array becomes its nested list, a numpy scalar its Python value (a
+    numpy bool a bool, a complex a complex: the checks below refuse them as numbers), in mappings and lists too."""
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Mapping):
+        return {k: _from_numpy(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_from_numpy(v) for v in value]
+    return value
+
+
 def _is_number(v: Any) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool)
 
