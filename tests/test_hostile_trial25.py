@@ -159,3 +159,39 @@ def test_t25_w5_queries_made_in_code_take_numpy_values() -> None:
         with pytest.raises(QueryError, match="radius_m must be a number"):
             parse_queries({"queries": [{**plain["queries"][0], "radius_m": value}]})
     assert check_threads(np.int64(2)) == 2 and isinstance(check_threads(np.int32(1)), int)
+
+
+def test_t25_w2_a_g2o_file_given_as_poses_is_named_a_pose_graph(datasets_dir: Path, room10: dict,
+                                                                 tmp_path: Path) -> None:
+    g2o = datasets_dir / "pose-graphs" / "parking-garage.g2o"
+    for args in (("correct", room10["gt"], "--poses", g2o), ("build", room10["log"], "--out", tmp_path / "s", "--poses", g2o)):
+        line = one_error(run_cli(*args))
+        assert "a g2o pose graph (VERTEX_/EDGE_ lines), not a trajectory" in line and "PoseGraph.from_g2o" in line, line
+    assert not (tmp_path / "s").exists()
+
+
+def test_t25_w4_a_store_being_written_is_not_called_interrupted(room10: dict, tmp_path: Path) -> None:
+    """While a process holds the writer lock of a store with no build summary yet (a build running), `info` and
+    `export` say a process is writing it (naming the pid) instead of "its build was interrupted ... --resume" (a
+    --resume the lock then refuses); once the lock is gone, the same store reads as interrupted."""
+    import os
+    import shutil
+
+    from driftmap.store.layout import BUILD_SUMMARY_FILE
+    from driftmap.store.lock import acquire_writer_lock, release_writer_lock
+
+    store = tmp_path / "s"
+    shutil.copytree(room10["gt"], store)
+    (store / BUILD_SUMMARY_FILE).unlink()
+    lock = acquire_writer_lock(store)
+    try:
+        info = _ok(run_cli("info", store))
+        text = " ".join(info.stdout.split())
+        assert f"process {os.getpid()} is writing this store now" in text and "build interrupted" not in text, text
+        out = _ok(run_cli("export", store, "--trajectory", tmp_path / "t.tum"))
+        err = " ".join(out.stderr.split())
+        assert "is writing this store now" in err and "--resume" not in err, err
+    finally:
+        release_writer_lock(lock)
+    text = " ".join(_ok(run_cli("info", store)).stdout.split())
+    assert "build interrupted" in text and "is writing this store now" not in text, text

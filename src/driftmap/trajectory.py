@@ -583,6 +583,8 @@ def detect_trajectory_format(path: str | Path) -> str:
         if len(fields) >= 8 and fields[0].lstrip("-").isdigit() and numeric(fields):
             return "euroc"
     fields = line.replace(",", " ").split()
+    if fields and fields[0].upper().startswith(("VERTEX_", "EDGE_")):
+        raise SourceError(f"{path}: {G2O_HINT}")
     is_int = all(f.lstrip("-").isdigit() for f in fields)
     if len(fields) == 3 and is_int and len(head) >= 2 and len(head[1].split()) == 4:
         return "redwood"
@@ -596,8 +598,15 @@ def detect_trajectory_format(path: str | Path) -> str:
         return "tum"
     raise SourceError(
         f"{path}: cannot tell the trajectory format: the first data line has {len(fields)} fields "
-        f"({line[:80]!r}); tried {tried} (pass format=)"
+        f"({line[:80]!r}); tried {tried} (give the format: `correct --format`, `diagnose --gt-format`, or format= "
+        f"in the API)"
     )
+
+
+G2O_HINT = ("a g2o pose graph (VERTEX_/EDGE_ lines), not a trajectory: driftmap reads g2o files as pose graphs "
+            "(driftmap.posegraph.PoseGraph.from_g2o); optimise it there and give its poses as a TUM, KITTI or 4x4 "
+            "trajectory file")
+"""What a trajectory reader says of a g2o file (hostile trial 25 W2: "expected 8 columns")."""
 
 
 def read_trajectory(path: str | Path, format: str | None = None) -> Trajectory:
@@ -627,8 +636,8 @@ def _other_format_hint(path: Path, format: str) -> str | None:
     as TUM got a seconds-versus-nanoseconds question, not the format)."""
     try:
         detected = detect_trajectory_format(path)
-    except SourceError:
-        return None
+    except SourceError as exc:
+        return G2O_HINT if G2O_HINT in str(exc) else None
     if detected == format:
         return None
     return (f"the file looks like a {detected} trajectory ({TRAJECTORY_FORMATS[detected]}), not {format}: give its "

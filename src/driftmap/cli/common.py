@@ -299,9 +299,9 @@ def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
         if (unfinished := interrupted_append(store.path, store.head)) is not None:
             store.close()
             raise ConfigError(f"{path}: {unfinished}; until then its frames would be read at their unmerged poses")
-        from driftmap.pipeline.resume import interrupted_build
+        from driftmap.pipeline.resume import build_running, interrupted_build
 
-        if (unfinished := interrupted_build(store)) is not None:  # readable as it is, but not what a build finishes
+        if (unfinished := build_running(store) or interrupted_build(store)) is not None:  # readable as it is
             err_console.print(Text.assemble(("warning:", "yellow"), f" {path}: {unfinished}"), highlight=False)
     for event in store.recovery_events:
         err_console.print(Text.assemble(("recovered:", "yellow"), f" {event}"), highlight=False)

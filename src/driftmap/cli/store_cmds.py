@@ -432,8 +432,10 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
         unfinished = interrupted_append(store.path, store.head)
         if unfinished:
             table.add_row("append interrupted", unfinished)
-        from driftmap.pipeline.resume import interrupted_build
+        from driftmap.pipeline.resume import build_running, interrupted_build
 
+        if (running := build_running(store)) is not None:
+            table.add_row("being written", running)
         if (unfinished_build := interrupted_build(store)) is not None:
             table.add_row("build interrupted", unfinished_build)
         table.add_row("sensors", ", ".join(f"{k}: {v}" for k, v in sensors.items()) or "-")

@@ -203,11 +203,33 @@ def _sha256(path: Path) -> str | None:
         return None
 
 
+def build_running(store: FrameStore) -> str | None:
+    """What a process that holds the store's writer lock now is doing to it (a build, a correction, a merge still
+    running), or None when no process writes it: a reader then sees a snapshot, and a store without its summary is
+    not an interrupted build (hostile trial 25 W4: it was called interrupted, and the `--resume` it advised was
+    refused as another process appending)."""
+    from driftmap.store.layout import LOCK_FILE
+    from driftmap.store.lock import writer_alive
+
+    if not writer_alive(store.path):
+        return None
+    try:
+        pid = (store.path / LOCK_FILE).read_text().strip()
+    except OSError:
+        pid = ""
+    who = f"process {pid}" if pid.isdigit() else "another process"
+    return (f"{who} is writing this store now ({len(store)} frames so far): what is read is a snapshot of it; read it "
+            f"again when that process has finished")
+
+
 def interrupted_build(store: FrameStore) -> str | None:
     """What an interrupted ``build`` left, with the command that finishes it; None for a finished build or a store no
     build made. A build writes ``build_source.json`` first and ``build_summary.json`` (with its frame count) last, after
     loop closure: no summary, or one counting other frames than the store holds (a killed ``--resume``), is an
-    unfinished build (hostile trial 17 W2: it read as a finished store everywhere)."""
+    unfinished build (hostile trial 17 W2: it read as a finished store everywhere). A build still running is not
+    interrupted (:func:`build_running`): None."""
+    if build_running(store) is not None:
+        return None
     try:
         record = json.loads((store.path / BUILD_SOURCE_FILE).read_text())
     except (OSError, ValueError, RecursionError):
