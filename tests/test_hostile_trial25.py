@@ -195,3 +195,42 @@ def test_t25_w4_a_store_being_written_is_not_called_interrupted(room10: dict, tm
         release_writer_lock(lock)
     text = " ".join(_ok(run_cli("info", store)).stdout.split())
     assert "build interrupted" in text and "is writing this store now" not in text, text
+
+
+def test_t25_w9_an_output_that_appears_meanwhile_is_not_replaced(tmp_path: Path) -> None:
+    """Under ``no_clobber`` (commands run without --overwrite) a file that appeared at the output's name while it was
+    being made is kept and the write fails naming it; without it (--overwrite) it is replaced, as before."""
+    import pytest
+
+    from driftmap.errors import OutputWriteError
+    from driftmap.files import atomic_write, no_clobber
+
+    path = tmp_path / "map.ply"
+    with no_clobber(), pytest.raises(OutputWriteError, match="another process wrote a file of that name"):
+        with atomic_write(path, "--map") as tmp:
+            tmp.write_text("mine")
+            path.write_text("theirs")  # the other export finished first
+    assert path.read_text() == "theirs" and sorted(p.name for p in tmp_path.iterdir()) == ["map.ply"]
+    with atomic_write(path, "--map") as tmp:
+        tmp.write_text("mine")
+    assert path.read_text() == "mine"
+
+
+def test_t25_w9_two_exports_to_one_new_file_do_not_both_succeed(room10: dict, tmp_path: Path) -> None:
+    """Two `export --trajectory` to one new name at once (tum and kitti): one writes it, the other exits 1 (the name
+    taken meanwhile, or already there when it checked) -- before, both said they wrote it."""
+    import subprocess
+    import sys
+
+    out = tmp_path / "same.txt"
+    cmds = [[sys.executable, "-m", "driftmap.cli", "export", str(room10["gt"]), "--trajectory", str(out), "--format", f]
+            for f in ("tum", "kitti")]
+    procs = [subprocess.Popen(c, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for c in cmds]
+    results = [(p.wait(timeout=300), *p.communicate()) for p in procs]
+    codes = sorted(r[0] for r in results)
+    assert codes == [0, 1], results
+    winner = "tum" if results[0][0] == 0 else "kitti"
+    loser_err = " ".join(results[1 if winner == "tum" else 0][2].split())
+    assert "another process wrote a file of that name" in loser_err or "exists" in loser_err, loser_err
+    first = out.read_text().splitlines()[0]
+    assert first.startswith("#") == (winner == "tum"), (winner, first)  # the file is the winner's

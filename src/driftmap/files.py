@@ -9,6 +9,7 @@ Outputs that must not land inside a store folder are refused above this layer
 from __future__ import annotations
 
 import contextlib
+import contextvars
 import errno as errno_codes
 import fcntl
 import logging
@@ -67,6 +68,42 @@ def flock_release(fh: IO[str]) -> None:
         fh.close()
 
 
+_NO_CLOBBER: contextvars.ContextVar[bool] = contextvars.ContextVar("driftmap_no_clobber", default=False)
+
+
+@contextlib.contextmanager
+def no_clobber(active: bool = True) -> Iterator[None]:
+    """Within it, :func:`atomic_write` puts its file in place only where no file is: a command that refused an
+    existing output before its work (no ``--overwrite``) must not replace one that appeared meanwhile -- another
+    process writing the same name (hostile trial 25 W9: two exports to one new file both said they wrote it)."""
+    token = _NO_CLOBBER.set(active)
+    try:
+        yield
+    finally:
+        _NO_CLOBBER.reset(token)
+
+
+def _put_in_place(tmp: Path, path: Path) -> None:
+    """``os.replace``, or under :func:`no_clobber` a hard link that fails when ``path`` exists (a file system
+    without hard links: replaced only if nothing is there, which is not atomic against another writer)."""
+    if not _NO_CLOBBER.get():
+        os.replace(tmp, path)
+        return
+    try:
+        os.link(tmp, path)
+    except FileExistsError:
+        raise FileExistsError(errno_codes.EEXIST, "another process wrote a file of that name while this one was being "
+                                                  "made; it was not replaced (give --overwrite to replace it)") from None
+    except OSError as exc:
+        if exc.errno not in (errno_codes.EPERM, errno_codes.ENOTSUP, errno_codes.EOPNOTSUPP, errno_codes.EXDEV):
+            raise
+        if path.exists():
+            raise FileExistsError(errno_codes.EEXIST, "another process wrote a file of that name while this one was "
+                                                      "being made; it was not replaced (give --overwrite to replace "
+                                                      "it)") from None
+        os.replace(tmp, path)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     """Yield a temporary path (same folder, same suffix, so format detection by extension still works) for the body
@@ -86,13 +123,14 @@ def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
             os.fsync(fd)
         finally:
             os.close(fd)
-        os.replace(tmp, path)
+        _put_in_place(tmp, path)
         fsync_dir(path.parent)
     except OSError as exc:
         raise OutputWriteError(
             f"{path}: could not be written ({what}): {exc.strerror or exc}"
             + (" (no space left on the device)" if exc.errno == errno_codes.ENOSPC else "")
-            + "; nothing was written under that name (an existing file is unchanged)",
+            + ("" if exc.errno == errno_codes.EEXIST else "; nothing was written under that name (an existing file "
+               "is unchanged)"),
             path=path, errno=exc.errno) from exc
     finally:
         with contextlib.suppress(OSError):

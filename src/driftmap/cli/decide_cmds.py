@@ -120,11 +120,14 @@ def decide(
             result = _run(store, query_set, volume, revision, pair, against, against_revision, diagnose, walls, tick,
                           same_log, decide_config, threads)
     decisions, comparison, layers = result
-    _write(json_path, decisions, comparison)
-    if figure is not None:
-        from driftmap.decisions.figure import write_figure
+    from driftmap.files import no_clobber
 
-        write_figure(figure, decisions, layers, comparison)
+    with no_clobber(not overwrite):  # an output another process wrote meanwhile is not replaced (trial 25 W9)
+        _write(json_path, decisions, comparison)
+        if figure is not None:
+            from driftmap.decisions.figure import write_figure
+
+            write_figure(figure, decisions, layers, comparison)
     _render(decisions, comparison)
     console.print(bold("decisions: ", json_path))
     if figure is not None:

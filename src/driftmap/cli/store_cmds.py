@@ -212,7 +212,9 @@ def export(
     for path, flag in outputs:  # every output checked before anything is written
         if path is not None:
             refuse_existing(path, flag, overwrite)
-    with open_store(store_path, reads_map=True) as store:
+    from driftmap.files import no_clobber
+
+    with no_clobber(not overwrite), open_store(store_path, reads_map=True) as store:
         rev = store.head if revision is None else revision
         store.ledger.revision(rev)
         warn_unmerged(store, [rev], session=session)
