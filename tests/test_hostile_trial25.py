@@ -234,3 +234,33 @@ def test_t25_w9_two_exports_to_one_new_file_do_not_both_succeed(room10: dict, tm
     assert "another process wrote a file of that name" in loser_err or "exists" in loser_err, loser_err
     first = out.read_text().splitlines()[0]
     assert first.startswith("#") == (winner == "tum"), (winner, first)  # the file is the winner's
+
+
+def test_t25_b4_decide_refuses_another_stores_layers(room10: dict, tmp_path: Path) -> None:
+    """``decide(store, queries, layers=...)`` took any layers of the same revision id: another store's gave its
+    frames and plausible, wrong decisions. Layers carry their store's id; another store's are refused (by id, and by
+    frames for layers that carry none), and something that is not layers is a ConfigError."""
+    import pytest
+
+    from driftmap.decisions import decide, parse_queries
+    from driftmap.decisions.errors import QueryError
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.build import build
+    from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
+    from driftmap.volume import VolumeLayers
+
+    other_log = generate_synthetic_log(tmp_path / "log", SyntheticLogConfig(n_frames=12, seed=8))
+    build(other_log, tmp_path / "other", poses_file=other_log / "groundtruth.txt", loop_closure=False)
+    q = parse_queries({"queries": [{"id": "a", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]], "radius_m": 0.2}]})
+    with FrameStore.open(room10["gt"]) as store, FrameStore.open(tmp_path / "other") as other:
+        own = VolumeLayers.from_store(store, 0)
+        assert own.store_uuid == store.uuid
+        theirs = VolumeLayers.from_store(other, 0)
+        with pytest.raises(QueryError, match="the layers given are of another store"):
+            decide(store, q, layers=theirs)
+        theirs.store_uuid = None  # layers that name no store: judged by their frames (frames 10, 11 are not here)
+        with pytest.raises(QueryError, match=r"integrate frames .* does not hold \(\[10, 11\]\)"):
+            decide(store, q, layers=theirs)
+        with pytest.raises(ConfigError, match="layers must be the VolumeLayers of the store"):
+            decide(store, q, layers="x")
+        assert decide(store, q, layers=own).decisions[0].decision == decide(store, q).decisions[0].decision

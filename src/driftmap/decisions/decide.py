@@ -21,6 +21,7 @@ from driftmap import __version__
 from driftmap.config import check_threads
 from driftmap.decisions import space, surface
 from driftmap.decisions.errors import QueryError
+from driftmap.errors import ConfigError
 from driftmap.decisions.evidence import DecisionContext
 from driftmap.decisions.point_index import point_index
 from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_queries
@@ -136,6 +137,25 @@ def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarra
                              query_id=q.id, field=field)
 
 
+def check_layers_of(layers: Any, store: FrameStore, revision: int) -> None:
+    """Layers given to :func:`decide` are this store's, of this revision: another store's (its id, or frames it does
+    not hold) gave plausible, wrong decisions (hostile trial 25 B4), as did a revision id alone."""
+    from driftmap.volume.layers import VolumeLayers
+
+    if not isinstance(layers, VolumeLayers):
+        raise ConfigError(f"layers must be the VolumeLayers of the store (VolumeLayers.from_store), got "
+                          f"{type(layers).__name__}")
+    if layers.store_uuid is not None and layers.store_uuid != store.uuid:
+        raise QueryError(f"the layers given are of another store (id {layers.store_uuid}), not of {store.path} (id "
+                         f"{store.uuid})", query_id=None)
+    foreign = sorted(set(layers.frame_hits) - {int(f) for f in store.frame_ids})
+    if foreign:
+        raise QueryError(f"the layers given integrate frames {store.path} does not hold ({foreign[:5]}"
+                         f"{' ...' if len(foreign) > 5 else ''}): another store's layers", query_id=None)
+    if layers.revision != revision:
+        raise QueryError(f"the layers given are of revision {layers.revision}, not {revision}", query_id=None)
+
+
 def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path, revision: int | None = None,
            config: VolumeConfig | None = None, *, decide_config: DecideConfig | None = None,
            layers: VolumeLayers | None = None, double_walls: Any = None,
@@ -162,8 +182,8 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
         from driftmap.volume.layers import VolumeLayers
 
         layers = VolumeLayers.from_store(store, rev, config, progress=progress)
-    elif layers.revision != rev:
-        raise QueryError(f"the layers given are of revision {layers.revision}, not {rev}", query_id=None)
+    else:
+        check_layers_of(layers, store, rev)
     layers_s = time.perf_counter() - t0
     check_on_map(qs, layers, decide_config)
     return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s, threads)

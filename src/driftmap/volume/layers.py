@@ -130,6 +130,9 @@ class VolumeLayers:
     (removed: negated), summed by :meth:`hit_means`"""
     version: int = 0
     """incremented by every frame integrated or taken out (derived layers are cached per version)"""
+    store_uuid: str | None = None
+    """the id of the store whose frames they integrate (:attr:`FrameStore.uuid`): ``decide`` refuses another
+    store's layers (hostile trial 25 B4)"""
     cache: dict = field(default_factory=dict)
     _token: int = 0
     _observers: tuple[NDArray[np.int64], NDArray[np.int64]] | None = None
@@ -190,11 +193,10 @@ class VolumeLayers:
             raise EmptyStoreError(f"store {store.path}: no frames selected for volumetric layers",
                                   store=store.path, revision=view.revision)
         first = store.frame(ids[0])
-        if grid is not None:
-            layers = cls(config, grid, first.sensor_kind, view.revision, VoxelArrays.zeros(grid.n_voxels), view=view)
-            return layers._integrate_all(store, ids, tick)
-        grid = covering_grid(view, config, ids)
-        layers = cls(config, grid, first.sensor_kind, view.revision, VoxelArrays.zeros(grid.n_voxels), view=view)
+        if grid is None:
+            grid = covering_grid(view, config, ids)
+        layers = cls(config, grid, first.sensor_kind, view.revision, VoxelArrays.zeros(grid.n_voxels), view=view,
+                     store_uuid=store.uuid)
         return layers._integrate_all(store, ids, tick)
 
     def _integrate_all(self, store: FrameStore, ids: list[int], tick: ProgressCallback) -> VolumeLayers:
