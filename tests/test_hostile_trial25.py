@@ -264,3 +264,23 @@ def test_t25_b4_decide_refuses_another_stores_layers(room10: dict, tmp_path: Pat
         with pytest.raises(ConfigError, match="layers must be the VolumeLayers of the store"):
             decide(store, q, layers="x")
         assert decide(store, q, layers=own).decisions[0].decision == decide(store, q).decisions[0].decision
+
+
+def test_t25_w8_a_store_and_a_foxglove_view_name_a_way_to_read_frames_that_works(room10: dict, tmp_path: Path) -> None:
+    """`convert STORE` advised `export --mcap` and "read that", but that file is a Foxglove view no reader takes. The
+    advice now is the Python call that writes the store's frames as a ROS 2 log (followed here: build reads it, the
+    same frames), and reading a Foxglove view says what it is."""
+    from driftmap.export.mcap import export_mcap
+
+    line = one_error(run_cli("convert", room10["gt"], tmp_path / "z.mcap"))
+    assert "driftmap.export.mcap.export_mcap(" in line and "build_source.json" in line, line
+    assert "and read that" not in line
+    with FrameStore.open(room10["gt"]) as store:
+        export_mcap((store.frame(int(i)) for i in store.frame_ids), tmp_path / "frames.mcap")
+        n = len(store)
+    _ok(run_cli("build", tmp_path / "frames.mcap", "--out", tmp_path / "s", "--no-loop-closure"))
+    with FrameStore.open(tmp_path / "s") as rebuilt:
+        assert len(rebuilt) == n
+    _ok(run_cli("export", room10["gt"], "--mcap", tmp_path / "view.mcap", "--no-volume"))
+    line = one_error(run_cli("build", tmp_path / "view.mcap", "--out", tmp_path / "v"))
+    assert "it looks like a Foxglove view" in line and "`driftmap export --mcap`" in line, line

@@ -232,8 +232,11 @@ def open_source(path: str | Path, format: str | None = None, **options: Any) -> 
         raise SourceError(f"{path}: no such file or folder")
     if looks_like_store_folder(path):
         raise SourceError(f"{path}: is a driftmap frame store (what `driftmap build` writes), not a source to read "
-                          f"frames from: use it directly (driftmap diagnose / correct / export {path}), or export its "
-                          f"frames as a log with `driftmap export {path} --mcap OUT.mcap` and read that")
+                          f"frames from: use it directly (driftmap diagnose / correct / export {path}); to read its "
+                          f"frames as a log, build from the source it was built from (its build_source.json names "
+                          f"it), or write them as a ROS 2 MCAP log in Python with driftmap.export.mcap.export_mcap("
+                          f"(store.frame(i) for i in store.frame_ids), 'OUT.mcap') (`export --mcap` writes a "
+                          f"Foxglove view, which is not read)")
     if format is not None:
         if format not in formats:
             raise SourceError(f"unknown format {format!r}; known formats: {', '.join(sorted(formats))}")

@@ -80,7 +80,11 @@ def choose_sensor_topic(path: Path, topics: dict[str, TopicInfo], first_message:
                 candidates.append(name)
     if not candidates:
         listed = ", ".join(f"{t} ({i.msgtype})" for t, i in sorted(topics.items())) or "none"
-        raise SourceError(f"{path}: no PointCloud2 or depth Image topic to read frames from; topics: {listed}")
+        view = any(str(i.msgtype).startswith("foxglove") for i in topics.values())
+        hint = ("; it looks like a Foxglove view (foxglove.* messages, e.g. what `driftmap export --mcap` writes: "
+                "voxel-downsampled points to look at, not a log to read); read the log or data set it was made from"
+                if view else "")
+        raise SourceError(f"{path}: no PointCloud2 or depth Image topic to read frames from; topics: {listed}{hint}")
     if len(candidates) > 1:
         raise SourceError(f"{path}: several sensor topics, choose one with topic=: {', '.join(candidates)}")
     return candidates[0]
