@@ -284,3 +284,31 @@ def test_t25_w8_a_store_and_a_foxglove_view_name_a_way_to_read_frames_that_works
     _ok(run_cli("export", room10["gt"], "--mcap", tmp_path / "view.mcap", "--no-volume"))
     line = one_error(run_cli("build", tmp_path / "view.mcap", "--out", tmp_path / "v"))
     assert "it looks like a Foxglove view" in line and "`driftmap export --mcap`" in line, line
+
+
+def test_t25_b5_decide_refuses_another_stores_diagnosis_as_the_cli_does(room10: dict, tmp_path: Path) -> None:
+    """``decide(..., double_walls=FILE_OR_DICT)`` took another store's diagnosis (the CLI refused it): its walls
+    dropped the one in reach and the uncertainty with it. The library checks a file, a dict and a Diagnosis alike;
+    the store's own diagnosis is taken; a bare list of regions names no store and is taken as given."""
+    import pytest
+
+    from driftmap.decisions import decide, parse_queries
+    from driftmap.decisions.errors import QueryError
+    from driftmap.pipeline.build import build
+    from driftmap.sources.synthetic import SyntheticLogConfig, generate_synthetic_log
+
+    other_log = generate_synthetic_log(tmp_path / "log", SyntheticLogConfig(n_frames=12, seed=8))
+    build(other_log, tmp_path / "other", poses_file=other_log / "groundtruth.txt", loop_closure=False)
+    _ok(run_cli("diagnose", tmp_path / "other", "--json", tmp_path / "other.json"))
+    _ok(run_cli("diagnose", room10["gt"], "--json", tmp_path / "own.json"))
+    q = parse_queries({"queries": [{"id": "a", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]], "radius_m": 0.2}]})
+    foreign = json.loads((tmp_path / "other.json").read_text())
+    with FrameStore.open(room10["gt"]) as store:
+        for given in (tmp_path / "other.json", str(tmp_path / "other.json"), foreign):
+            with pytest.raises(QueryError, match=r"double_walls is not of .*: its frame 10 is not in the store"):
+                decide(store, q, double_walls=given)
+        same_frames = {**foreign, "frames": json.loads((tmp_path / "own.json").read_text())["frames"]}
+        with pytest.raises(QueryError, match=r"it is of another store \(store_uuid "):
+            decide(store, q, double_walls=same_frames)  # frames alike (two logs of one length): the id decides
+        decide(store, q, double_walls=tmp_path / "own.json")
+        decide(store, q, double_walls=foreign["double_wall"]["regions"])  # a list names no store

@@ -188,30 +188,14 @@ def _check_diagnosis_frames(store, diagnosis: Path) -> bool:
     every frame id and stamp, hostile trial 24 B3). A diagnosis without a store id (an older one) is checked by its
     frames alone: False is returned (the caller warns). True otherwise (a malformed file too: its reader names the
     problem)."""
-    import json
-
-    import numpy as np
-
+    from driftmap.decisions.walls import diagnosis_mismatch
     from driftmap.errors import ConfigError
 
-    try:
-        data = json.loads(diagnosis.read_text(encoding="utf-8-sig"))
-        uuid = data.get("store_uuid")
-        frames = data.get("frames") or []
-        listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in frames}
-    except (OSError, ValueError, TypeError, KeyError, AttributeError, RecursionError):
-        return True  # unreadable or malformed: double_walls_of names the problem
-    ids, stamps = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
-    ours = dict(zip(ids.tolist(), stamps.tolist()))
-    for fid, stamp in listed.items():
-        if ours.get(fid) != stamp:
-            what = "is not in the store" if fid not in ours else f"has stamp {ours[fid]} ns in the store, {stamp} ns there"
-            raise ConfigError(f"{diagnosis}: --diagnosis is not of {store.path} (its frame {fid} {what}): diagnose "
-                              f"this store")
-    if isinstance(uuid, str) and uuid != store.uuid:  # after the frames: a frame that differs is the plainer reason
-        raise ConfigError(f"{diagnosis}: --diagnosis is of another store (store_uuid {uuid}), not of {store.path} "
-                          f"({store.uuid}): diagnose this store")
-    return isinstance(uuid, str)
+    reason, named = diagnosis_mismatch(diagnosis, store.ledger.frame_ids, store.ledger.stamps_ns, store.uuid)
+    if reason is not None:
+        raise ConfigError(f"{diagnosis}: --diagnosis is not of {store.path} (id {store.uuid}): {reason}; diagnose "
+                          f"this store")
+    return named
 
 
 def _precheck(store, query_set, volume, revisions: list[int], decide_config=None) -> None:

@@ -28,7 +28,7 @@ from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_q
 from driftmap.decisions.records import Decision, DecisionSet, Representation
 from driftmap.decisions.settings import DecideConfig, settings_hash
 from driftmap.decisions.voxel_normals import voxel_normals
-from driftmap.decisions.walls import double_walls_of
+from driftmap.decisions.walls import diagnosis_mismatch, double_walls_of
 from driftmap.store.unmerged import unmerged_sessions
 from driftmap.store.values import as_int
 from driftmap.volume.grid import BLOCK_RESOLUTION
@@ -137,6 +137,23 @@ def check_in_box(queries: Iterable[Query], lo_map: np.ndarray, hi_map: np.ndarra
                              query_id=q.id, field=field)
 
 
+def check_diagnosis_of(double_walls: Any, store: FrameStore) -> None:
+    """Double walls given as a diagnosis (a Diagnosis, a ``diagnose --json`` file or dict) are this store's, as
+    ``decide --diagnosis`` requires (:func:`~driftmap.decisions.walls.diagnosis_mismatch`): another store's put
+    its walls elsewhere and dropped the ones in reach (hostile trial 25 B5). One without a store id is checked by its
+    frames, with a warning. A bare list of regions names no store and is taken as given."""
+    if double_walls is None or isinstance(double_walls, list | tuple):
+        return
+    reason, named = diagnosis_mismatch(double_walls, store.ledger.frame_ids, store.ledger.stamps_ns, store.uuid)
+    what = str(double_walls) if isinstance(double_walls, (str, Path)) else "the diagnosis"
+    if reason is not None:
+        raise QueryError(f"{what}: double_walls is not of {store.path} (id {store.uuid}): {reason}; diagnose this "
+                         f"store", query_id=None)
+    if not named:
+        logger.warning("%s: the diagnosis names no store (no store_uuid: an older diagnose wrote it): only its frames "
+                       "and stamps are checked against %s", what, store.path)
+
+
 def check_layers_of(layers: Any, store: FrameStore, revision: int) -> None:
     """Layers given to :func:`decide` are this store's, of this revision: another store's (its id, or frames it does
     not hold) gave plausible, wrong decisions (hostile trial 25 B4), as did a revision id alone."""
@@ -174,6 +191,7 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
     qs = as_query_set(queries)
     rev = store.head if revision is None else as_int(revision, "revision")
     store.ledger.revision(rev)  # an unknown revision: a StoreError naming it, before any work
+    check_diagnosis_of(double_walls, store)
     walls = double_walls_of(double_walls, rev)
     t0 = time.perf_counter()
     if layers is None:
@@ -212,6 +230,8 @@ def decide_revisions(store: FrameStore, queries: QuerySet | Sequence[Query] | di
     if len(walls) != len(revisions):
         raise QueryError(f"double_walls: {len(walls)} entries for {len(revisions)} revisions (one per revision, None "
                          f"for none)", query_id=None)
+    for w in walls:
+        check_diagnosis_of(w, store)
     walls = [double_walls_of(w, int(r)) for w, r in zip(walls, revisions)]
     out: list[DecisionSet] = []
     layers = None

@@ -87,6 +87,38 @@ def double_walls_of(source: Any, revision: int | None = None) -> list[DoubleWall
     return out
 
 
+def diagnosis_mismatch(source: Any, frame_ids: Iterable[int], stamps_ns: Iterable[int],
+                       store_uuid: str) -> tuple[str | None, bool]:
+    """Whether a diagnosis (a Diagnosis, or the JSON ``diagnose --json`` wrote, as a path or dict) is of a store: the
+    reason it is not (None when it is) and whether it names its store (``store_uuid``; older diagnoses do not). Every
+    frame it lists must be in the store with the same stamp, and the store id it names the store's; a frame that
+    differs is named first (the plainer reason; hostile trials 6 W16, 24 B3). Unreadable or malformed input: (None,
+    True) -- :func:`double_walls_of` names the problem. A bare list of regions is not checked (it names no store)."""
+    data: Any = source
+    if isinstance(source, (str, Path)):
+        try:
+            data = json.loads(Path(source).read_text(encoding="utf-8-sig"))
+        except (OSError, ValueError, RecursionError):
+            return None, True
+    elif not isinstance(source, dict) and hasattr(source, "store_uuid") and hasattr(source, "to_json"):
+        data = source.to_json()
+    if not isinstance(data, dict):
+        return None, True
+    try:
+        uuid = data.get("store_uuid")
+        listed = {int(f["frame_id"]): int(f["stamp_ns"]) for f in (data.get("frames") or [])}
+    except (TypeError, ValueError, KeyError, AttributeError):
+        return None, True
+    ours = dict(zip((int(f) for f in frame_ids), (int(t) for t in stamps_ns)))
+    for fid, stamp in listed.items():
+        if ours.get(fid) != stamp:
+            what = "is not in the store" if fid not in ours else f"has stamp {ours[fid]} ns in the store, {stamp} ns there"
+            return f"its frame {fid} {what}", isinstance(uuid, str)
+    if isinstance(uuid, str) and uuid != store_uuid:
+        return f"it is of another store (store_uuid {uuid})", True
+    return None, isinstance(uuid, str)
+
+
 def _from_dict(r: Any, where: str, at: str) -> DoubleWall:
     if not isinstance(r, dict):
         raise QueryError(f"{where}: field '{at}' must be an object, got {type(r).__name__}", query_id=None, field=at)
