@@ -312,3 +312,21 @@ def test_t25_b5_decide_refuses_another_stores_diagnosis_as_the_cli_does(room10: 
             decide(store, q, double_walls=same_frames)  # frames alike (two logs of one length): the id decides
         decide(store, q, double_walls=tmp_path / "own.json")
         decide(store, q, double_walls=foreign["double_wall"]["regions"])  # a list names no store
+
+
+def test_t25_w10_compare_refuses_decision_sets_of_different_queries_under_one_id(room10: dict) -> None:
+    import pytest
+
+    from driftmap.decisions import compare, decide, parse_queries
+    from driftmap.decisions.errors import QueryError
+
+    def queries(point: list[float], radius: float):  # noqa: ANN202
+        return parse_queries({"queries": [{"id": "a", "kind": "clearance", "points_m": [point], "radius_m": radius}]})
+
+    with FrameStore.open(room10["gt"]) as store:
+        a = decide(store, queries([0.0, 0.0, 1.0], 0.2))
+        b = decide(store, queries([1.0, 0.1, 1.0], 0.9))
+        same = decide(store, queries([0.0, 0.0, 1.0], 0.2))
+    with pytest.raises(QueryError, match=r"query 'a' differs between the two decision sets \(points_m, radius_m\)"):
+        compare(a, b)
+    assert compare(a, same).flipped == []

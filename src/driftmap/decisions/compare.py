@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from driftmap.decisions.errors import QueryError
+from driftmap.decisions.query_file import query_to_json
 from driftmap.decisions.records import Decision, DecisionSet
 
 MOVED_M = 0.005
@@ -71,6 +72,13 @@ def compare(a: DecisionSet, b: DecisionSet) -> Comparison:
         raise QueryError(f"the two decision sets answer different queries (e.g. {missing}): compare the same query "
                          f"file", query_id=missing[0] if missing else None)
     queries = b.queries.by_id()
+    for qid, qa in a.queries.by_id().items():  # the same ids must ask the same (hostile trial 25 W10)
+        ja, jb = query_to_json(qa), query_to_json(queries[qid])
+        if ja != jb:
+            fields = sorted(k for k in set(ja) | set(jb) if ja.get(k) != jb.get(k))
+            raise QueryError(f"query {qid!r} differs between the two decision sets ({', '.join(fields)}): a change "
+                             f"of the query would read as a flip of the map; compare the same query file",
+                             query_id=qid, field=fields[0] if fields else None)
     flipped: list[Flip] = []
     deltas: dict[str, float | None] = {}
     for qid, before in da.items():
