@@ -330,3 +330,67 @@ def test_t25_w10_compare_refuses_decision_sets_of_different_queries_under_one_id
     with pytest.raises(QueryError, match=r"query 'a' differs between the two decision sets \(points_m, radius_m\)"):
         compare(a, b)
     assert compare(a, same).flipped == []
+
+
+def test_t25_b6_an_output_that_is_a_fifo_or_a_device_is_refused(room10: dict, tmp_path: Path) -> None:
+    """An output path that is a FIFO (or a link to one, as /dev/stdout is to a descriptor) was replaced by a regular
+    file without --overwrite: export, diagnose --json and perturb. Refused before any work now, and the atomic
+    writer refuses it too (the library path); the FIFO stays."""
+    import os
+    import stat
+
+    import pytest
+
+    from driftmap.errors import OutputWriteError
+    from driftmap.files import atomic_write
+
+    fifo = tmp_path / "out.fifo"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.tum"
+    link.symlink_to(fifo)
+    tum = tmp_path / "t.tum"
+    _ok(run_cli("export", room10["gt"], "--trajectory", tum))
+    for args in (("export", room10["gt"], "--trajectory", fifo), ("export", room10["gt"], "--trajectory", link),
+                 ("diagnose", room10["gt"], "--json", fifo), ("perturb", tum, fifo, "--drift-percent-per-m", "1")):
+        line = one_error(run_cli(*args))
+        assert "is a FIFO, not a file" in line, (args, line)
+    with pytest.raises(OutputWriteError, match="is a FIFO, not a file"):
+        with atomic_write(fifo, "test"):
+            pass
+    assert stat.S_ISFIFO(os.stat(fifo).st_mode) and link.is_symlink()
+
+
+def test_t25_b7_to_g2o_never_writes_into_a_store(room10: dict, tmp_path: Path) -> None:
+    import shutil
+
+    import pytest
+
+    from driftmap.errors import DriftmapError
+    from driftmap.posegraph import PoseGraph
+
+    store = tmp_path / "s"
+    shutil.copytree(room10["gt"], store)
+    segment = next(store.glob("segment-*.mcap"))
+    before = segment.read_bytes()
+    graph = PoseGraph()
+    graph.add_node(0, np.eye(4))
+    for target in (segment, store / "store.json", store / "new.g2o"):
+        with pytest.raises(DriftmapError, match="store"):
+            graph.to_g2o(target)
+    assert segment.read_bytes() == before and not (store / "new.g2o").exists()
+    graph.to_g2o(tmp_path / "ok.g2o")
+    assert PoseGraph.from_g2o(tmp_path / "ok.g2o").nodes.keys() == {0}
+
+
+def test_t25_w11_diagnose_refuses_a_kitti_file_of_one_row_per_stored_frame(sevenscenes_dir: Path, tmp_path: Path) -> None:
+    """A KITTI export of a store of frames 0, 3, ..., 57 given back as --gt: rows 0..19 were matched to the frame
+    ids below 20 (ATE 6 cm for the store's own trajectory, and a depth-scale warning); `correct` refused it. diagnose
+    refuses it the same way now."""
+    store = tmp_path / "s"
+    _ok(run_cli("build", sevenscenes_dir, "--frames", "0:60:3", "--out", store, "--threads", "1", "--no-loop-closure"))
+    _ok(run_cli("export", store, "--trajectory", tmp_path / "t.kitti", "--format", "kitti"))
+    for args in (("diagnose", store, "--gt", tmp_path / "t.kitti", "--gt-format", "kitti", "--json", tmp_path / "d.json"),
+                 ("correct", store, "--poses", tmp_path / "t.kitti", "--format", "kitti")):
+        line = one_error(run_cli(*args))
+        assert "20 rows for the 20 stored frames, but matching by index takes row i as frame_id i" in line, line
+    assert not (tmp_path / "d.json").exists()

@@ -15,6 +15,7 @@ import fcntl
 import logging
 import os
 import secrets
+import stat
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -104,6 +105,31 @@ def _put_in_place(tmp: Path, path: Path) -> None:
         os.replace(tmp, path)
 
 
+def special_file_kind(path: str | Path) -> str | None:
+    """What ``path`` (a link followed) is when it exists and is neither a regular file nor a folder -- "a FIFO", "a
+    character device" (``/dev/stdout``, ``/dev/null``), "a block device", "a socket" -- else None."""
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    for test, kind in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISSOCK, "a socket")):
+        if test(mode):
+            return kind
+    return None
+
+
+def refuse_special_file(path: str | Path, what: str) -> None:
+    """An output that exists as a FIFO, a device or a socket (or a link to one) is refused: an atomic write renames a
+    regular file over the name, which replaces it (hostile trial 25 B6: ``--trajectory /dev/stdout`` replaced the
+    machine's ``/dev/stdout`` link)."""
+    kind = special_file_kind(path)
+    if kind is not None:
+        raise OutputWriteError(f"{path}: is {kind}, not a file ({what}): driftmap writes its outputs as regular files "
+                               f"(a temporary file renamed into place), which would replace it; give a file path",
+                               path=Path(path), errno=None)
+
+
 @contextlib.contextmanager
 def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     """Yield a temporary path (same folder, same suffix, so format detection by extension still works) for the body
@@ -111,6 +137,7 @@ def atomic_write(path: str | Path, what: str) -> Iterator[Path]:
     is removed and ``path`` is untouched. ``what`` names the output in errors (a CLI flag or the function); an
     ``OSError`` becomes :class:`~driftmap.errors.OutputWriteError` naming ``path``."""
     path = Path(path)
+    refuse_special_file(path, what)
     stem = path.name if len(path.name) <= MAX_NAME_IN_TEMP else path.name[:MAX_NAME_IN_TEMP]
     tmp = path.with_name(f".{stem}.{secrets.token_hex(4)}.tmp{path.suffix[:16]}")
     try:

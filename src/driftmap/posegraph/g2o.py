@@ -15,11 +15,12 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial.transform import Rotation
 
 from driftmap import geometry
-from driftmap.errors import PoseGraphError
+from driftmap.errors import OutputWriteError, PoseGraphError
 from driftmap.posegraph.factors import gtsam_call
 from driftmap.posegraph.measurements import Edge
 from driftmap.posegraph.robust import RobustKernel
 from driftmap.posegraph.tangent import information_from_gtsam
+from driftmap.store.guards import atomic_output, refuse_inside_store
 
 __all__ = [
     "PLANAR_OUT_OF_PLANE_INFORMATION",
@@ -235,9 +236,11 @@ def write_g2o(path: Path, nodes: Mapping[int, NDArray[np.float64]], edges: Seque
     for edge in edges:
         info = " ".join(f"{v:.17g}" for v in edge.information_6x6[iu])
         lines.append(f"EDGE_SE3:QUAT {edge.key_from} {edge.key_to} {_g2o_pose(edge.T_from_to)} {info}")
+    refuse_inside_store(path, "PoseGraph.to_g2o")  # hostile trial 25 B7: it wrote over a store's segment
     try:
-        path.write_text("\n".join(lines) + "\n")
-    except OSError as exc:
+        with atomic_output(path, "PoseGraph.to_g2o", guard=False) as tmp:
+            tmp.write_text("\n".join(lines) + "\n")
+    except OutputWriteError as exc:
         raise PoseGraphError(f"cannot write {path}: {exc}") from exc
 
 

@@ -73,7 +73,7 @@ def import_poses(store: PoseFileStore, file: str | Path, *, format: TrajectoryFo
                           + ("its blocks end in 0 0 0 1: block i is frame_id i" if fmt is TrajectoryFormat.MATRIX_4X4
                              else "it names its frames by id") + "): match by index")
     if match is None and mode is PoseMatchMode.INDEX and fmt is not TrajectoryFormat.REDWOOD:
-        _refuse_rows_per_stored_frame(store, file, trajectory)
+        refuse_rows_per_stored_frame(store, file, trajectory)
     if rows_in_sensor_frame is not None:
         trajectory = rows_in_sensor_frame(trajectory, fmt.value)
     ledger = store.ledger
@@ -94,7 +94,7 @@ def import_poses(store: PoseFileStore, file: str | Path, *, format: TrajectoryFo
     return revision, matched
 
 
-def _refuse_rows_per_stored_frame(store: PoseFileStore, file: str | Path, trajectory: Trajectory) -> None:
+def refuse_rows_per_stored_frame(store: PoseFileStore, file: str | Path, trajectory: Trajectory) -> None:
     """Refuse a file that looks written one row per *stored* frame (a KITTI export of a sliced store) when it is
     to be read as one row per frame *id* (an explicit ``match="index"`` takes the rows as frame ids all the same)."""
     ids = store.ledger.frame_ids
