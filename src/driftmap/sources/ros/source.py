@@ -345,6 +345,13 @@ class RosLogSource(FrameSource):
         export = self._export or {}
         if export.get("sensor_kind"):
             kind = SensorKind(export["sensor_kind"])
+        n_measurements, invalid_counts = cloud.n_measurements, dict(cloud.invalid_counts)
+        pixels = 0 if raw.intrinsics is None else int(raw.intrinsics.width) * int(raw.intrinsics.height)
+        if kind is SensorKind.DEPTH_CAMERA and pixels > n_measurements and getattr(raw.cloud_msg, "height", 1) == 1:
+            # an unorganised cloud of a depth camera (convert writes the valid pixels only): the pixels without a
+            # point are invalid ones, not none (hostile trial 25 W3: "invalid-pixel fraction 0.000")
+            invalid_counts["no_point"] = invalid_counts.get("no_point", 0) + pixels - n_measurements
+            n_measurements = pixels
         return Frame(
             frame_id=frame_id,
             stamp_ns=raw.stamp_ns,
@@ -356,7 +363,7 @@ class RosLogSource(FrameSource):
             attributes=cloud.attributes,
             intrinsics=raw.intrinsics,
             depth_scale=export.get("depth_scale"),
-            quality=FrameQuality(cloud.n_measurements, len(cloud.points), cloud.invalid_counts, tuple(flags)),
+            quality=FrameQuality(n_measurements, len(cloud.points), invalid_counts, tuple(flags)),
             provenance=provenance,
             sensor_frame=raw.sensor_frame,
             base_frame=self.base_frame,
