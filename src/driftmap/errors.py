@@ -50,6 +50,11 @@ class SourceError(DriftmapError):
     """A data source (log, data-set folder, file) cannot be read."""
 
 
+class NoPointsError(SourceError):
+    """Every frame a new store received is empty (every depth pixel invalid, an empty scan): ``build`` removes the
+    store, as one of no frame is (hostile trial 25 W6)."""
+
+
 class NotACloudFile(SourceError):
     """The file has no PCD / PLY header at all (``reason`` says what was found instead)."""
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from driftmap import geometry
 from driftmap.config import DepthConfig
-from driftmap.errors import ConfigError, DriftmapError, SourceError, StoreError
+from driftmap.errors import ConfigError, DriftmapError, NoPointsError, SourceError, StoreError
 from driftmap.frame import Frame, PoseEstimate, PoseSource, SensorKind
 from driftmap.pipeline.build_config import (
     DEFAULT_POSES_MAX_DT_NS,
@@ -146,17 +146,13 @@ def build(
         n_stored = len(store)
         store.close()
         what = "interrupted" if isinstance(exc, KeyboardInterrupt) else "failed"
-        if new_store and (n_stored == 0 or isinstance(exc, _NoPointStored)):
+        if new_store and (n_stored == 0 or isinstance(exc, NoPointsError)):
             remove_new_store(out, out_existed, new_dirs)
         elif n_stored:
             logger.warning("build %s with %d frames stored; %s is kept (continue it with --resume)", what, n_stored, out)
         raise
     finally:
         store.close()
-
-
-class _NoPointStored(SourceError):
-    """Every frame a new store received is empty (hostile trial 25 W6): the store is removed, as one of no frame is."""
 
 
 def _check_pose_arguments(poses_file: str | Path | None, poses_from_source: bool, kitti_frame: str,
@@ -374,7 +370,7 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             raise SourceError(f"every frame read was skipped ({len(src.skipped)}; --lenient), so nothing was stored; "
                               f"the first, frame {frame_index}: {reason}")
     if n_new and n_pointless == n_new and n_new == len(store):
-        raise _NoPointStored(f"none of the {n_new} frames read holds a point (every depth pixel invalid or out of "
+        raise NoPointsError(f"none of the {n_new} frames read holds a point (every depth pixel invalid or out of "
                              f"range, or an empty scan), so no store was kept: check the frames (a depth image of "
                              f"zeros, the wrong --depth-scale or --format)")
     result = BuildResult(
