@@ -99,3 +99,37 @@ def test_the_covariance_is_propagated_to_the_evidence_point() -> None:
     assert marginal(fake, point, [1, 2, 3, 7]) == pytest.approx(0.02)  # median of 1, 2, 2 cm; frame 7 has none
     assert marginal(fake, pose[:3, :3] @ np.array([0.0, 0.0, 2.0]), [2]) == pytest.approx(0.0, abs=1e-12)  # on the axis
     assert marginal(fake, None, [1]) is None and marginal(fake, point, [7]) is None
+
+
+def test_dense_marginals_equal_gtsams_per_node_marginals() -> None:
+    """The dense inversion (the default up to DENSE_MARGINALS_MAX_DIM unknowns) gives GTSAM's marginals: a square
+    with a Huber-weighted true loop and a Cauchy-weighted wrong one (robust weights are part of the linearisation),
+    optimised; and a graph that cannot be factored fails both ways with a PoseGraphError."""
+    from driftmap import geometry
+    from driftmap.errors import PoseGraphError
+    from driftmap.posegraph import RobustKernel
+
+    rng = np.random.default_rng(3)
+    graph = PoseGraph()
+    truth = [geometry.make_transform(None, (float(np.cos(a)), float(np.sin(a)), 0.1 * a))
+             for a in np.linspace(0, 4 * np.pi, 40)]
+    info = np.diag([1e4] * 3 + [1e5] * 3)
+    for k, T in enumerate(truth):
+        graph.add_node(k, T @ geometry.se3_exp(rng.normal(0, 0.01, 6)))
+        if k:
+            graph.add_odometry(k - 1, k, geometry.invert(truth[k - 1]) @ T, info)
+    for a, b in ((0, 20), (5, 25), (10, 30), (15, 35)):
+        graph.add_loop(a, b, geometry.invert(truth[a]) @ truth[b], info, robust=RobustKernel.HUBER)
+    graph.add_loop(3, 33, geometry.make_transform(None, (1.0, 0.0, 0.0)), info, robust=RobustKernel.CAUCHY)
+    poses = graph.optimize().poses
+    dense, per_node = graph.marginal_covariances(poses, dense=True), graph.marginal_covariances(poses, dense=False)
+    assert dense.keys() == per_node.keys() == set(range(40))
+    for k in dense:
+        np.testing.assert_allclose(dense[k], per_node[k], rtol=1e-9, atol=1e-18)
+    assert graph.marginal_covariances(poses).keys() == dense.keys()  # the default for 240 unknowns: dense
+    split = PoseGraph()  # two nodes, no edge: the second is free
+    split.add_node(0, np.eye(4))
+    split.add_node(1, np.eye(4))
+    for dense_path in (True, False):
+        with pytest.raises(PoseGraphError, match=r"node\(s\) \[1\] have no edge and no prior"):
+            split.marginal_covariances({0: np.eye(4), 1: np.eye(4)}, dense=dense_path)

@@ -160,13 +160,29 @@ class PoseGraph:
             raise PoseGraphError(f"poses are missing {len(missing)} node(s), e.g. {sorted(missing)[:5]}")
         return values_from_poses({k: np.asarray(poses[k], dtype=np.float64) for k in self._nodes})
 
-    def marginal_covariances(self, poses: Mapping[int, ArrayLike]) -> dict[int, NDArray[np.float64]]:
-        """Each node's marginal covariance at ``poses`` (an optimum), from ``gtsam.Marginals`` of the graph
-        linearised there: 6x6 in driftmap order ``[translation, rotation]`` (m^2, rad^2), in the node's own frame
-        (GTSAM's right perturbation ``T Exp(xi)``), relative to the priors (the gauge). Raises
-        :class:`PoseGraphError` when GTSAM cannot factor the system (an under-constrained graph)."""
+    def marginal_covariances(self, poses: Mapping[int, ArrayLike], *, dense: bool | None = None
+                             ) -> dict[int, NDArray[np.float64]]:
+        """Each node's marginal covariance at ``poses`` (an optimum), of the graph linearised there: 6x6 in
+        driftmap order ``[translation, rotation]`` (m^2, rad^2), in the node's own frame (GTSAM's right perturbation
+        ``T Exp(xi)``), relative to the priors (the gauge). Raises :class:`PoseGraphError` when the system cannot be
+        factored (an under-constrained graph).
+
+        ``dense`` (default: when the system has at most :data:`DENSE_MARGINALS_MAX_DIM` unknowns): the diagonal
+        blocks of the inverse of GTSAM's Hessian at ``poses`` (its Cholesky factor inverted once), instead of
+        ``gtsam.Marginals.marginalCovariance`` per node. Equal to it to ~1e-14 relative (tested); on a graph whose loops
+        tie many visits of one place together GTSAM's per-node marginals grew 40 s -> 272 s from 167 to 334 nodes,
+        most of a long log's build (docs/scaling.md)."""
         graph, _ = self.to_gtsam()
         values = self._values_for(poses)
+        keys = list(self._nodes)
+        held = {p.key for p in self.effective_priors()} | {k for e in self._edges for k in (e.key_from, e.key_to)}
+        free = [k for k in keys if k not in held]
+        if free:
+            raise PoseGraphError(f"marginal covariances: node(s) {free[:5]} have no edge and no prior: their poses "
+                                 f"are not constrained (an under-constrained graph)")
+        use_dense = 6 * len(keys) <= DENSE_MARGINALS_MAX_DIM if dense is None else dense
+        if use_dense:
+            return _dense_marginals(graph, values, keys)
         marginals = gtsam_call("marginal covariances", lambda: gtsam.Marginals(graph, values))
         return {k: reorder_6x6(gtsam_call("marginal covariance", lambda k=k: marginals.marginalCovariance(k)),
                                TangentOrder.ROTATION_TRANSLATION, TangentOrder.TRANSLATION_ROTATION)
@@ -320,6 +336,40 @@ class PoseGraph:
         written (:meth:`from_g2o` re-derives the kinds from the keys).
         """
         write_g2o(Path(path), self._nodes, self._edges)
+
+
+DENSE_MARGINALS_MAX_DIM = 8000
+"""Up to this many unknowns (6 per node: ~1333 nodes, 512 MB a dense matrix) the marginal covariances come from one
+dense inversion (:meth:`PoseGraph.marginal_covariances`); beyond, from GTSAM per node."""
+
+
+def _dense_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, keys: list[int]
+                     ) -> dict[int, NDArray[np.float64]]:
+    """The diagonal 6x6 blocks of ``H^-1`` (``H``: the Hessian of ``graph`` linearised at ``values``, in ``keys``
+    order), reordered to driftmap order: ``H = L L^T``, ``H^-1 = L^-T L^-1``, block ``i`` = ``(L^-1)[:, i]^T
+    (L^-1)[:, i]`` over the rows from ``i`` down (``L^-1`` is lower triangular)."""
+    import scipy.linalg
+
+    ordering = gtsam.Ordering()
+    for k in keys:
+        ordering.push_back(k)
+    H = gtsam_call("marginal covariances", lambda: graph.linearize(values).hessian(ordering)[0])
+    if H.shape != (6 * len(keys), 6 * len(keys)):
+        raise PoseGraphError(f"marginal covariances: the linearised system has {H.shape[0]} unknowns, not 6 per node "
+                             f"({6 * len(keys)})")
+    try:  # in place: one dense matrix held at a time
+        L = scipy.linalg.cholesky(H, lower=True, overwrite_a=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        raise PoseGraphError("marginal covariances: the linearised system is not positive definite (an "
+                             "under-constrained graph)") from None
+    L_inv, info = scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
+    if info != 0:
+        raise PoseGraphError(f"marginal covariances: the Cholesky factor is singular (LAPACK dtrtri info {info})")
+    out = {}
+    for i, k in enumerate(keys):
+        col = L_inv[6 * i:, 6 * i:6 * i + 6]
+        out[k] = reorder_6x6(col.T @ col, TangentOrder.ROTATION_TRANSLATION, TangentOrder.TRANSLATION_ROTATION)
+    return out
 
 
 def _log_result(result: PoseGraphResult, warn: bool) -> None:
