@@ -169,9 +169,9 @@ class PoseGraph:
 
         ``dense`` (default: when the system has at most :data:`DENSE_MARGINALS_MAX_DIM` unknowns): the diagonal
         blocks of the inverse of GTSAM's Hessian at ``poses`` (its Cholesky factor inverted once), instead of
-        ``gtsam.Marginals.marginalCovariance`` per node. Equal to it to ~1e-14 relative (tested); on a graph whose loops
-        tie many visits of one place together GTSAM's per-node marginals grew 40 s -> 272 s from 167 to 334 nodes,
-        most of a long log's build (docs/scaling.md)."""
+        ``gtsam.Marginals.marginalCovariance`` per node. Equal to it to 1e-9 relative (tested; ~1e-15 seen); on a
+        graph whose loops tie many visits of one place together GTSAM's per-node marginals grew 40 s -> 272 s from
+        167 to 334 nodes, most of a long log's build (docs/scaling.md)."""
         graph, _ = self.to_gtsam()
         values = self._values_for(poses)
         keys = list(self._nodes)
@@ -357,7 +357,7 @@ def _dense_marginals(graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, ke
     if H.shape != (6 * len(keys), 6 * len(keys)):
         raise PoseGraphError(f"marginal covariances: the linearised system has {H.shape[0]} unknowns, not 6 per node "
                              f"({6 * len(keys)})")
-    try:  # in place: one dense matrix held at a time
+    try:  # overwriting H where LAPACK can (a C-ordered H may still be copied once)
         L = scipy.linalg.cholesky(H, lower=True, overwrite_a=True, check_finite=False)
     except np.linalg.LinAlgError:
         raise PoseGraphError("marginal covariances: the linearised system is not positive definite (an "
