@@ -121,11 +121,9 @@ def check_output(path: Optional[Path], flag: str, *, folder: bool = False) -> No
     from driftmap.store import refuse_inside_store
 
     refuse_inside_store(path, flag)  # no command writes into a store folder except through the store
-    from driftmap.files import special_file_kind
+    from driftmap.files import refuse_special_file
 
-    if (kind := special_file_kind(path)) is not None:  # before the work, not after it (hostile trial 25 B6)
-        raise ConfigError(f"{path}: is {kind}, not a file ({flag}): driftmap writes its outputs as regular files "
-                          f"(a temporary file renamed into place), which would replace it; give a file path")
+    refuse_special_file(path, flag)  # before the work, not after it (hostile trial 25 B6)
     if path.exists() and (path.is_dir() != folder):
         what = "a folder" if path.is_dir() else "a file"
         raise ConfigError(f"{path}: is {what}, but {flag} needs a {'folder' if folder else 'file'} path")

@@ -165,7 +165,8 @@ def check_layers_of(layers: Any, store: FrameStore, revision: int) -> None:
     if layers.store_uuid is not None and layers.store_uuid != store.uuid:
         raise QueryError(f"the layers given are of another store (id {layers.store_uuid}), not of {store.path} (id "
                          f"{store.uuid})", query_id=None)
-    foreign = sorted(set(layers.frame_hits) - {int(f) for f in store.frame_ids})
+    # layers that name no store (made by hand) are judged by their frames; an id that matches says enough
+    foreign = [] if layers.store_uuid is not None else sorted(set(layers.frame_hits) - {int(f) for f in store.frame_ids})
     if foreign:
         raise QueryError(f"the layers given integrate frames {store.path} does not hold ({foreign[:5]}"
                          f"{' ...' if len(foreign) > 5 else ''}): another store's layers", query_id=None)
