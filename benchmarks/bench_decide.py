@@ -567,11 +567,15 @@ def write_records(path: Path) -> None:
         store.close()
 
 
-def differences(a: list[dict], b: list[dict]) -> list[tuple]:
-    """Every field (path, a's value, b's value) in which two record lists differ; floats compared exactly."""
+def differences(a: list[dict], b: list[dict], tolerance: float = 0.0) -> list[tuple]:
+    """Every field (path, a's value, b's value) in which two record lists differ; floats compared exactly, or to
+    within ``tolerance`` (absolute, or relative to the larger magnitude, whichever is looser)."""
     out: list[tuple] = []
 
     def walk(x, y, where: str) -> None:
+        if (tolerance and isinstance(x, float) and isinstance(y, float)
+                and abs(x - y) <= tolerance * max(1.0, abs(x), abs(y))):
+            return
         if isinstance(x, dict) and isinstance(y, dict) and x.keys() == y.keys():
             for k in x:
                 walk(x[k], y[k], f"{where}.{k}")
@@ -597,11 +601,14 @@ if __name__ == "__main__":
                                                  "speed-up changes no decision (timing: run.py --only decide)")
     parser.add_argument("--records", type=Path, help="answer the 1,000 queries and write their records here")
     parser.add_argument("--compare", type=Path, nargs=2, metavar=("A", "B"), help="compare two records files")
+    parser.add_argument("--tolerance", type=float, default=0.0,
+                        help="--compare: floats within this (absolute, or relative above 1) count as equal (the "
+                             "frame spread's compiled pass rounds differently from numpy: 1e-12 m)")
     args = parser.parse_args()
     if args.records:
         write_records(args.records)
     if args.compare:
-        diff = differences(*(json.loads(p.read_text()) for p in args.compare))
+        diff = differences(*(json.loads(p.read_text()) for p in args.compare), tolerance=args.tolerance)
         for row in diff[:20]:
             print(*row)
         print(f"{len(diff)} differing fields")

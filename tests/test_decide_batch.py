@@ -16,7 +16,7 @@ import pytest
 from driftmap.decisions import decide, parse_queries
 from driftmap.decisions import space, surface
 from driftmap.decisions.query_file import QuerySet
-from driftmap.decisions.voxel_normals import VoxelNormals
+from driftmap.decisions.point_index import PointIndex
 from driftmap.pipeline.build import build
 from driftmap.store.frame_store import FrameStore
 from driftmap.volume import VolumeLayers
@@ -83,16 +83,16 @@ def test_answered_together_as_each_alone_on_the_reference_path(kitchen, monkeypa
     store, layers = kitchen
     qs = _queries(layers)
     shared_rows = []
-    lookup = VoxelNormals.lookup
+    box_with_voxels = PointIndex.box_with_voxels
 
-    def counting(self: VoxelNormals, cells: np.ndarray) -> np.ndarray:
-        rows = lookup(self, cells)
-        shared_rows.append(int((rows >= 0).sum()))
-        return rows
+    def counting(self: PointIndex, lo: np.ndarray, hi: np.ndarray, voxel_rows: np.ndarray) -> tuple:
+        out = box_with_voxels(self, lo, hi, voxel_rows)
+        shared_rows.append(len(out[2]))
+        return out
 
     with monkeypatch.context() as m:
         m.setattr(decide_module, "SHARED_NORMALS_MIN_QUERIES", 1)  # 48 queries: share the map's normals all the same
-        m.setattr(VoxelNormals, "lookup", counting)
+        m.setattr(PointIndex, "box_with_voxels", counting)
         together = decide(store, qs, layers=layers)
     assert sum(shared_rows) > 0, "no normal was taken from the map's voxel normals: the test checks nothing"
     assert {d.kind for d in together.decisions} == {"clearance", "collision", "grasp", "foothold", "explore"}

@@ -309,7 +309,7 @@ class DecideConfig(SettingsModel):
     grasp_max_normal_spread_deg: float = Field(20.0, ge=0.0, le=90.0, description="grasp: the normal is unstable when the 90th percentile of the angles between the points' normals and the dominant normal exceeds this (deg)")
     normal_radius_m: float = Field(0.03, gt=0.0, description="grasp and foothold: a point's normal is fitted to its neighbours within this radius (m)")
     normal_max_neighbors: int = Field(64, ge=5, le=1000, description="grasp and foothold: at most this many neighbours per normal")
-    normal_margin_m: float = Field(0.03, ge=0.0, description="grasp and foothold: points up to this far outside the region lend their neighbourhood to the normals of the points inside")
+    normal_margin_m: float = Field(0.03, ge=0.0, description="grasp and foothold: no longer used (kept so that files giving it still load): since stop 54 the normals take their neighbours among all the map's voxels, so a region's border does not tilt them")
     normal_voxel_m: float | None = Field(0.01, gt=0.0, description="grasp and foothold: the normals are fitted on the region's points averaged per voxel of this size (m; each point takes its voxel's normal), so that the normal_max_neighbors nearest span about normal_radius_m however many frames overlap; None: on every full-resolution point (slow where frames overlap). The point counts always use every point")
     foothold_min_points: int = Field(30, ge=3, le=100_000_000, description="foothold: fewer map points than this in the patch is too_few_points")
     foothold_max_flatness_m: float = Field(0.02, gt=0.0, description="foothold: RMS distance of the patch's points from their plane above which the patch is uneven (m)")

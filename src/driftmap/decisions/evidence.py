@@ -153,17 +153,8 @@ class DecisionContext:
         return self._spread[key]
 
     def _frame_spread_m(self, point: NDArray[np.float64], normal: NDArray[np.float64] | None) -> float | None:
-        pts, fids = self.points_in_ball(point, self.config.spread_radius_m)
-        if len(pts) < 2 * self.config.spread_min_points:
-            return None
-        if normal is None:
-            centred = pts - pts.mean(axis=0)
-            normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]
-        offsets = (pts - point) @ np.asarray(normal, dtype=np.float64)
-        placed = group_medians(offsets, fids, self.config.spread_min_points)
-        if len(placed) < 2:
-            return None
-        return float(placed.max() - placed.min())
+        """:meth:`PointIndex.spread` (compiled); :func:`frame_spread_numpy` is the same in numpy."""
+        return self.point_index.spread(point, self.config.spread_radius_m, normal, self.config.spread_min_points)
 
     def pose_marginal_m(self, point: NDArray[np.float64] | None, frames: list[int]) -> float | None:
         """The median over ``frames`` of the pose covariance propagated to ``point`` (module docstring); None
@@ -207,6 +198,23 @@ class DecisionContext:
                 "uncertainty": unc, "evidence_m": point,
                 "details": {"uncertainty_parts": parts, "frame_pose_revisions": self.pose_revisions(ids),
                             "double_walls_in_reach": [w.to_json() for w in walls]}}
+
+
+def frame_spread_numpy(pts: NDArray[np.float64], fids: NDArray[np.int64], point: NDArray[np.float64],
+                       normal: NDArray[np.float64] | None, min_count: int) -> float | None:
+    """The frame spread (module docstring) of the points ``pts`` (measured by the frames ``fids``) around ``point``
+    along ``normal`` (None: the smallest principal axis of the points), in numpy: what
+    :func:`driftmap.kernels.spread.frame_spread` computes (to a few units of rounding; the reference of its test)."""
+    if len(pts) < 2 * min_count:
+        return None
+    if normal is None:
+        centred = pts - pts.mean(axis=0)
+        normal = np.linalg.eigh(centred.T @ centred)[1][:, 0]
+    offsets = (pts - point) @ np.asarray(normal, dtype=np.float64)
+    placed = group_medians(offsets, fids, min_count)
+    if len(placed) < 2:
+        return None
+    return float(placed.max() - placed.min())
 
 
 def unique_ids(ids: NDArray[np.int64]) -> NDArray[np.int64]:

@@ -19,6 +19,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap.kernels.queries import ball_positions, box_positions, column_runs, frames_in_box, gather_in_map_order
+from driftmap.kernels.regions import gather_with_voxels
+from driftmap.kernels.spread import frame_spread
 from driftmap.voxels import ABSOLUTE_GRID
 
 if TYPE_CHECKING:
@@ -136,11 +138,33 @@ class PointIndex:
             return np.zeros((0, 3)), np.zeros(0, np.int64)
         return self._gather(box_positions(self.points, *self._column_runs(*self._cell_range(lo, hi)), lo, hi))
 
+    def box_with_voxels(self, lo: NDArray[np.float64], hi: NDArray[np.float64], voxel_rows: NDArray[np.integer]
+                        ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.int64]]:
+        """:meth:`box` and each point's entry of ``voxel_rows`` (one per index point, in the index's cell order)."""
+        lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        if np.any(hi < lo):
+            return np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        positions = box_positions(self.points, *self._column_runs(*self._cell_range(lo, hi)), lo, hi)
+        return gather_with_voxels(self.points, self.order, self.rows, self.frame_ids, voxel_rows, positions)
+
     def ball(self, centre: NDArray[np.float64], radius_m: float) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
         """The points with ``dx*dx + dy*dy + dz*dz <= radius_m**2`` (float64) and their frames, in map order."""
         c = np.asarray(centre, dtype=np.float64)
         runs = self._column_runs(*self._cell_range(c - radius_m, c + radius_m))
         return self._gather(ball_positions(self.points, *runs, c, float(radius_m) ** 2))
+
+    def spread(self, centre: NDArray[np.float64], radius_m: float, normal: NDArray[np.float64] | None,
+               min_count: int) -> float | None:
+        """The frame spread (m) of the points of :meth:`ball` around ``centre`` along ``normal`` (None: fitted to
+        them), as :mod:`driftmap.decisions.evidence` defines it, in one compiled pass
+        (:func:`driftmap.kernels.spread.frame_spread`); None where it cannot be measured."""
+        c = np.asarray(centre, dtype=np.float64)
+        positions = ball_positions(self.points, *self._column_runs(*self._cell_range(c - radius_m, c + radius_m)), c,
+                                   float(radius_m) ** 2)
+        fit = normal is None
+        n = np.zeros(3) if fit else np.ascontiguousarray(normal, dtype=np.float64).reshape(3)
+        value = frame_spread(self.points, self.rows, len(self.frame_ids), positions, c, n, fit, int(min_count))
+        return None if np.isnan(value) else float(value)
 
     def frames_in_box(self, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> NDArray[np.int64]:
         """The frames (sorted) with a point in the box ``lo .. hi``: every frame of a cell lying wholly inside it

@@ -6,9 +6,9 @@ and flatness).
 Normals are :func:`driftmap.preprocess.cloud.estimate_normals` (Open3D's covariance normals) over at most
 ``normal_max_neighbors`` neighbours within ``normal_radius_m``, fitted on the region's points averaged per
 ``normal_voxel_m`` voxel (world lattice; each point takes its voxel's normal), so that on a map where many frames
-overlap the neighbours span the intended radius rather than millimetres of depth noise -- points up to
-``normal_margin_m`` outside the region lend their neighbourhood, so a region's border does not tilt its normals --
-each oriented towards the sensor of the frame that measured the point. Point counts (``too_few_points``), the
+overlap the neighbours span the intended radius rather than millimetres of depth noise -- the neighbours are the
+map's voxels, inside the region or not, so a region's border does not tilt its normals
+(:mod:`driftmap.decisions.voxel_normals`) -- each oriented towards the sensor of the frame that measured the point. Point counts (``too_few_points``), the
 dominant normal's weights, the spread's percentile, the plane's offset and the flatness use every full-resolution
 point. The
 *dominant normal* is the principal direction of the points' normals (the eigenvector of the largest eigenvalue of
@@ -18,6 +18,7 @@ the points' normals and it (deg): a few degrees on a plane, tens of degrees acro
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -46,39 +47,65 @@ def voxel_means(pts: NDArray[np.float64], voxel_m: float) -> tuple[NDArray[np.fl
     return means, inv
 
 
-def _oriented_normals(ctx: DecisionContext, pts: NDArray[np.float64], which: NDArray[np.bool_],
-                      box: tuple[NDArray[np.float64], NDArray[np.float64]], p_in: NDArray[np.float64],
-                      f_in: NDArray[np.int64], frames: NDArray[np.int64]
-                      ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
-    """Normals of ``p_in = pts[which]`` (NaN where too few neighbours) and which are finite, each towards the sensor
-    origin of its frame (``f_in``; ``frames``: their sorted set): fitted on the voxel means of all of ``pts``
-    (``normal_voxel_m``; None: on every point), the points in the world box ``box``. A voxel whose whole
-    neighbourhood lies inside the box takes the map's normal of that voxel (:mod:`driftmap.decisions.voxel_normals`:
-    the same value); the others are fitted here (:func:`~driftmap.decisions.voxel_normals.fit_normals`). Each point
-    then takes its voxel's normal, turned towards its sensor (compiled:
+def _oriented(ctx: DecisionContext, normals: NDArray[np.floating], voxel_of: NDArray[np.int64],
+              p_in: NDArray[np.float64], f_in: NDArray[np.int64], frames: NDArray[np.int64]
+              ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Per point of ``p_in``, ``normals[voxel_of]`` turned towards the sensor origin of its frame (``f_in``;
+    ``frames``: their sorted set), and which are finite (compiled:
     :func:`driftmap.kernels.queries.oriented_point_normals`)."""
-    c = ctx.config
+    if len(p_in) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.bool_)
     origins = np.stack([ctx.origin(int(x)) for x in frames])
-    sensor_of = id_ranks(f_in, frames)
-    if c.normal_voxel_m is None:  # every point's own normal (Open3D over the whole region)
-        normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m).normals[which]
-        return oriented_point_normals(normals, np.arange(len(normals)), p_in, origins, sensor_of)
-    fit, inv, cells = voxel_cells(pts, c.normal_voxel_m)
-    inv_in = np.compress(which, inv)
-    held = np.bincount(inv_in, minlength=len(fit)) > 0  # only the voxels holding a point inside
-    at = np.flatnonzero(held)
-    normals = np.empty((len(at), 3), np.float32)
+    return oriented_point_normals(normals, voxel_of, p_in, origins, id_ranks(f_in, frames))
+
+
+def _region_normals(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[np.float64],
+                    select: Callable[[NDArray[np.float64], NDArray[np.int64]], tuple]
+                    ) -> tuple[NDArray[np.float64], NDArray[np.int64], NDArray[np.float64], NDArray[np.bool_]]:
+    """The region's points (``select(pts, fids) -> (mask, p_in, f_in)`` of the map points in the box ``lo .. hi``,
+    map order), their frames, and each one's normal (oriented, NaN where too few neighbours) and whether it is
+    finite: its ``normal_voxel_m`` voxel's normal among the map's voxel means (module docstring).
+
+    With the map's normals prepared (:mod:`driftmap.decisions.voxel_normals`, ``decide.prepare``) each point takes
+    its voxel's row. Otherwise they are fitted here on the voxel means of the region grown by ``normal_radius_m``
+    plus three voxels, among the voxels that box holds whole (by their lattice cells, one voxel in from its faces):
+    every voxel whose mean lies within the radius of a region voxel's mean is one of them, with the same points in
+    the same (map) order as in the map, so the same mean, neighbours and normal
+    (:func:`~driftmap.decisions.voxel_normals.fit_normals`; with ``normal_voxel_m`` None: Open3D's normal of every
+    point of the grown box)."""
+    c = ctx.config
     shared = voxel_normals(ctx.layers, c, build=False)  # as prepared for the run (decide.prepare)
-    rows = np.full(len(at), -1, np.int64)
-    if shared is not None and len(fit) >= c.normal_max_neighbors:  # fewer: the fit sums fewer columns
-        inner = shared.interior(fit[at], *box)
-        rows[inner] = shared.lookup(cells[at[inner]])
-        normals[rows >= 0] = shared.normals[rows[rows >= 0]]
-    own = rows < 0
-    if own.any():
-        normals[own] = fit_normals(fit, at[own], c.normal_max_neighbors, c.normal_radius_m)
-    rank = (np.cumsum(held) - 1).take(inv_in)  # each inside point: its voxel's rank in ``at``
-    return oriented_point_normals(normals, rank, p_in, origins, sensor_of)
+    if shared is not None:
+        pts, fids, vox = ctx.point_index.box_with_voxels(lo, hi, shared.index_rows)
+        mask, p_in, f_in = select(pts, fids)
+        frames = unique_ids(f_in)
+        normals, ok = _oriented(ctx, shared.normals, np.compress(mask, vox), p_in, f_in, frames)
+        return p_in, f_in, normals, ok
+    v = c.normal_voxel_m
+    grow = c.normal_radius_m + 3.0 * (v if v is not None else 0.0)
+    g_lo, g_hi = lo - grow, hi + grow
+    pts, fids = ctx.points_in_box(g_lo, g_hi)
+    inside = (pts >= lo).all(axis=1) & (pts <= hi).all(axis=1)
+    mask, p_in, f_in = select(np.compress(inside, pts, axis=0), np.compress(inside, fids))
+    which = np.flatnonzero(inside)[mask]
+    frames = unique_ids(f_in)
+    if v is None:  # every point's own normal (Open3D over the grown box)
+        normals = estimate_normals(pts, k=c.normal_max_neighbors, radius_m=c.normal_radius_m, at=which).normals
+        return p_in, f_in, *_oriented(ctx, normals, np.arange(len(which)), p_in, f_in, frames)
+    means, inv, cells = voxel_cells(pts, v)
+    whole = np.flatnonzero(np.all((cells > np.floor(g_lo / v)) & (cells < np.floor(g_hi / v)), axis=1))
+    rank = np.full(len(means), -1, np.int64)
+    rank[whole] = np.arange(len(whole))
+    inv_in = inv.take(which)
+    held = np.flatnonzero(np.bincount(inv_in, minlength=len(means)))  # the voxels of the region's points
+    fitted = fit_normals(means[whole], rank[held], c.normal_max_neighbors, c.normal_radius_m)
+    row = np.full(len(means), -1, np.int64)
+    row[held] = np.arange(len(held))
+    return p_in, f_in, *_oriented(ctx, fitted, row.take(inv_in), p_in, f_in, frames)
+
+
+CYLINDER_SLACK_M = 1e-6
+"""foothold: the cylinder's points are tested among those of its bounding box widened by this much"""
 
 
 def _finite_rows(normals: NDArray[np.float64], ok: NDArray[np.bool_]) -> NDArray[np.float64]:
@@ -109,14 +136,6 @@ def dominant_normal(normals: NDArray[np.float64], angles: bool = True
     return e, np.degrees(np.arccos(np.clip(normals @ e, -1.0, 1.0)))
 
 
-def _region_points(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[np.float64]) -> tuple:
-    """Points of the region grown by ``normal_margin_m`` (float64, map order), their frames and the grown box."""
-    m = ctx.config.normal_margin_m
-    box = (lo - m, hi + m)
-    pts, fids = ctx.points_in_box(*box)
-    return pts, fids, box
-
-
 # ------------------------------------------------------------------------------------------------ grasp
 def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
     """``too_few_points`` with fewer than ``min_points`` map points in the ROI; ``unstable_normal`` when the normal
@@ -128,8 +147,8 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
     max_spread = q.max_normal_spread_deg if q.max_normal_spread_deg is not None else c.grasp_max_normal_spread_deg
     lo, hi = q.roi_min_m, q.roi_max_m
 
-    pts, fids, box = _region_points(ctx, lo, hi)
-    inside, p_in, f_in = select_box(pts, fids, np.asarray(lo, np.float64), np.asarray(hi, np.float64))
+    lo64, hi64 = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    p_in, f_in, normals, ok = _region_normals(ctx, lo64, hi64, lambda pts, fids: select_box(pts, fids, lo64, hi64))
     n_in = len(p_in)
     frames = unique_ids(f_in)
     if n_in < min_points:
@@ -138,7 +157,6 @@ def grasp(ctx: DecisionContext, q: GraspQuery) -> dict:
         out["evidence_m"] = 0.5 * (q.roi_min_m + q.roi_max_m)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals, ok = _oriented_normals(ctx, pts, inside, box, p_in, f_in, frames)
     e, angles = dominant_normal(_finite_rows(normals, ok))
     spread = float(np.percentile(angles, 90))
     offset = float(np.median(p_in @ e))
@@ -166,9 +184,12 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
     r, centre = q.radius_m, q.center_m
 
     lo, hi = q.extent_m()
-    pts, fids, box = _region_points(ctx, lo, hi)
-    # inside: np.linalg.norm(p[:, :2] - centre[:2], axis=1) <= r and |z - centre_z| <= r
-    mask, p_in, f_in = select_cylinder(pts, fids, np.asarray(centre, np.float64), float(r))
+    c64 = np.asarray(centre, np.float64)
+    # inside: np.linalg.norm(p[:, :2] - centre[:2], axis=1) <= r and |z - centre_z| <= r, of the points of the
+    # cylinder's box widened by CYLINDER_SLACK_M (so that rounding of centre -+ r cuts none of them)
+    p_in, f_in, normals, ok = _region_normals(ctx, np.asarray(lo, np.float64) - CYLINDER_SLACK_M,
+                                              np.asarray(hi, np.float64) + CYLINDER_SLACK_M,
+                                              lambda pts, fids: select_cylinder(pts, fids, c64, float(r)))
     n_in = len(p_in)
     frames = unique_ids(f_in)
     if n_in < min_points:
@@ -176,7 +197,6 @@ def foothold(ctx: DecisionContext, q: FootholdQuery) -> dict:
         out.update(margin=None, evidence_m=centre)
         out["details"].update(n_points=n_in, min_points=min_points)
         return out
-    normals, ok = _oriented_normals(ctx, pts, mask, box, p_in, f_in, frames)
     e, _ = dominant_normal(_finite_rows(normals, ok), angles=False)
     if e[2] < 0:
         e = -e

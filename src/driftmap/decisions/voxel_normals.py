@@ -1,14 +1,11 @@
-"""The normals of the map's ``normal_voxel_m`` voxels, fitted once per revision and reused by every grasp and foothold
-whose region holds the voxel's whole neighbourhood.
+"""The normals of the map's ``normal_voxel_m`` voxels, fitted once per revision and read by every grasp and foothold.
 
-A region's normals (:mod:`driftmap.decisions.surface`) are fitted on the voxel means of the region's points (grown
-by ``normal_margin_m``): at a voxel, the covariance of the ``normal_max_neighbors`` nearest voxel means within
-``normal_radius_m``. A voxel lying wholly inside the grown box holds the same points, in the same (map) order, in the
-region as in the whole map, so its mean is the same float (``np.bincount`` sums in input order). When every voxel
-whose cube comes within the radius of a voxel's mean lies wholly inside the grown box (:meth:`VoxelNormals.interior`),
-that voxel's neighbours are the same means at the same distances in the region as in the map: its normal is the
-map's, computed by the same code (:func:`driftmap.preprocess.cloud.estimate_normals`, one row per voxel, each row's
-sums independent of the others). Only the voxels near the grown box's border are fitted per region.
+A point's normal (:mod:`driftmap.decisions.surface`) is its voxel's: the covariance of the ``normal_max_neighbors``
+nearest voxel means within ``normal_radius_m`` among all the map's voxel means (the means of the points of each
+voxel, summed in map order), its eigenvector of the smallest eigenvalue. It depends on the map, not on the query's
+box: a region's border does not tilt its normals. :func:`voxel_normals` fits them for every voxel of the map and
+records each indexed point's voxel, so a region only reads rows; a run of few grasps and footholds fits its regions'
+own (:func:`fit_normals`, the same neighbours and sums, hence the same floats; ``tests/test_decide_batch.py``).
 
 Built by :func:`voxel_normals` in ``decide.prepare`` when a run asks at least
 :data:`~driftmap.decisions.decide.SHARED_NORMALS_MIN_QUERIES` grasps and footholds (3-9 s on the shared 2-core machine
@@ -40,8 +37,6 @@ DENSE_PER_POINT = 8
 """voxel_means: a region whose box spans at most this many voxels per point ranks them from a dense table"""
 CHUNK_VOXELS = 1 << 16
 """the map's normals are fitted this many voxels at a time (bounds the (chunk, k, 3) neighbour offsets)"""
-EPS_M = 1e-6
-"""interior: the neighbourhood must stay this far inside the grown box's whole voxels (float slack of ``floor``)"""
 MIN_NEIGHBORS = 5
 """a normal fitted on fewer neighbours within the radius is NaN (``estimate_normals``' ``min_neighbors``)"""
 
@@ -78,44 +73,16 @@ def voxel_cells(pts: NDArray[np.float64], voxel_m: float
 
 @dataclass
 class VoxelNormals:
-    """The map's voxel normals (module docstring), keyed by lattice cell."""
+    """The map's voxel normals (module docstring), with each indexed point's voxel."""
 
     voxel_m: float
     radius_m: float
     k: int
-    base: NDArray[np.int64]
-    """the smallest lattice cell of the map (the keys are packed relative to it)"""
-    dims: NDArray[np.int64]
-    keys: NDArray[np.int64]
-    """per voxel, its packed cell (ascending)"""
     normals: NDArray[np.float32]
-    """per voxel, ``estimate_normals(...).normals`` of its mean among all the map's means (NaN: too few neighbours)"""
-
-    def _pack(self, cells: NDArray[np.int64]) -> NDArray[np.int64]:
-        c = cells - self.base
-        return (c[:, 0] * self.dims[1] + c[:, 1]) * self.dims[2] + c[:, 2]
-
-    def lookup(self, cells: NDArray[np.int64]) -> NDArray[np.int64]:
-        """Per lattice cell (M, 3), its row in :attr:`normals`, or -1 when the map has no such voxel."""
-        out = np.full(len(cells), -1, np.int64)
-        inside = np.all((cells >= self.base) & (cells < self.base + self.dims), axis=1)
-        packed = self._pack(cells[inside])
-        at = np.minimum(np.searchsorted(self.keys, packed), max(len(self.keys) - 1, 0))
-        found = self.keys[at] == packed if len(self.keys) else np.zeros(len(packed), bool)
-        rows = np.where(found, at, -1)
-        out[inside] = rows
-        return out
-
-    def interior(self, means: NDArray[np.float64], lo: NDArray[np.float64], hi: NDArray[np.float64]
-                 ) -> NDArray[np.bool_]:
-        """Which voxel means (of a region whose points are those in the box ``lo .. hi``) have every voxel within
-        the search radius wholly inside the box: their region normal is the map's. The whole voxels of the box are
-        taken one voxel in from the voxels holding its faces, so a rounding of ``floor`` at a face changes nothing."""
-        v = self.voxel_m
-        f_lo = (np.floor(lo / v) + 1.0) * v  # the lower face of the first whole voxel
-        f_hi = np.floor(hi / v) * v  # the upper face of the last whole voxel
-        r = self.radius_m + EPS_M
-        return np.all((means - r > f_lo) & (means + r < f_hi), axis=1)
+    """per voxel (in the order of their lattice cells), ``estimate_normals(...).normals`` of its mean among all the
+    map's means (NaN: too few neighbours)"""
+    index_rows: NDArray[np.int32]
+    """per point of the decisions' point index (its cell order), its voxel's row in :attr:`normals`"""
 
 
 def voxel_normals(layers: VolumeLayers, config: DecideConfig, *, build: bool = True) -> VoxelNormals | None:
@@ -134,20 +101,20 @@ def voxel_normals(layers: VolumeLayers, config: DecideConfig, *, build: bool = T
     if not build:
         return None
     index = point_index(layers, config.range_limited_points)
-    pts = np.asarray(index.world[np.sort(index.order)], dtype=np.float64)  # the map's points in map order
+    by_map = np.argsort(index.order)  # the index's points in map order
+    pts = np.asarray(index.world[index.order[by_map]], dtype=np.float64)  # the map's points in map order
     voxel_m, radius_m, k = settings[:3]
     if len(pts) == 0:
         result = None
     else:
-        means, _, cells = voxel_cells(pts, voxel_m)
-        base = cells.min(axis=0)
-        dims = cells.max(axis=0) - base + 1
+        means, inv, _ = voxel_cells(pts, voxel_m)
+        index_rows = np.empty(len(pts), np.int32)
+        index_rows[by_map] = inv
         normals = np.empty((len(means), 3), np.float32)
         for start in range(0, len(means), CHUNK_VOXELS):
             at = np.arange(start, min(start + CHUNK_VOXELS, len(means)))
             normals[at] = estimate_normals(means, k=k, radius_m=radius_m, at=at).normals
-        keys = ((cells[:, 0] - base[0]) * dims[1] + cells[:, 1] - base[1]) * dims[2] + cells[:, 2] - base[2]
-        result = VoxelNormals(voxel_m, radius_m, k, base, dims, keys, normals)
+        result = VoxelNormals(voxel_m, radius_m, k, normals, index_rows)
         logger.debug("voxel normals: %d voxels of %d points", len(means), len(pts))
     for old in [c for c in layers.cache if c.startswith("decisions_voxel_normals_")]:
         del layers.cache[old]  # one set at a time

@@ -574,7 +574,7 @@ def radix_sort(values, low_bit):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _in_map_order(order, positions):  # pragma: no cover - compiled
+def in_map_order(order, positions):  # pragma: no cover - compiled
     """``positions`` sorted by ``order[positions]`` (distinct map indices): each packed with its map index above bit
     32 and sorted by those bits (:func:`radix_sort`; a comparison sort of the packed values below 2,048 of them,
     where the radix's buckets would cost more), or argsorted when an index does not fit 32 bits."""
@@ -598,9 +598,9 @@ def _in_map_order(order, positions):  # pragma: no cover - compiled
 def gather_in_map_order(points, order, rows, frame_ids, positions):  # pragma: no cover - compiled
     """The points at ``positions`` of a cell-sorted index (``points``; ``order``: each one's index in map order;
     ``rows``: its frame's row in ``frame_ids``) in map order, as float64, and each one's frame: ``positions``
-    sorted by ``order`` (:func:`_in_map_order`), the rows read from the index's own arrays (a region's cells are a
+    sorted by ``order`` (:func:`in_map_order`), the rows read from the index's own arrays (a region's cells are a
     few contiguous runs of them: cache-friendly, where the map-order points are spread over every frame)."""
-    at = _in_map_order(order, positions)
+    at = in_map_order(order, positions)
     n = len(at)
     pts = np.empty((n, 3))
     fids = np.empty(n, np.int64)

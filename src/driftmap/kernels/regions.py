@@ -14,6 +14,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from driftmap.kernels.queries import in_map_order
+
 
 @numba.njit(cache=True, nogil=True)
 def _compact(pts, fids, mask, m):  # pragma: no cover - compiled
@@ -57,3 +59,21 @@ def select_cylinder(pts, fids, centre, radius):  # pragma: no cover - compiled
         mask[i] = ok
         m += ok
     return _compact(pts, fids, mask, m)
+
+
+@numba.njit(cache=True, nogil=True)
+def gather_with_voxels(points, order, rows, frame_ids, voxel_rows, positions):  # pragma: no cover - compiled
+    """:func:`driftmap.kernels.queries.gather_in_map_order` (the points at ``positions`` of a cell-sorted index in
+    map order, float64, and their frames) and each one's ``voxel_rows`` entry (its normal voxel's row)."""
+    at = in_map_order(order, positions)
+    n = len(at)
+    pts = np.empty((n, 3))
+    fids = np.empty(n, np.int64)
+    vox = np.empty(n, np.int64)
+    for i in range(n):
+        j = at[i]
+        for k in range(3):
+            pts[i, k] = np.float64(points[j, k])
+        fids[i] = frame_ids[rows[j]]
+        vox[i] = voxel_rows[j]
+    return pts, fids, vox
