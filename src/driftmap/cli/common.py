@@ -354,3 +354,25 @@ def writing_output(path: Path, flag: str) -> Iterator[None]:
         reason = exc.strerror or str(exc)
         raise OutputWriteError(f"{where}: writing {flag} failed: {reason}" + (f"; {hint}" if hint else ""),
                                path=where, errno=exc.errno) from exc
+
+
+def general_settings(config: Path | None, command: str, **overrides: Any) -> Any:
+    """:meth:`DriftmapConfig.load` of ``--config`` for a command that reads only its general tables (``depth``,
+    ``map``, ``volume``, ``decide``), with the rest of the file checked as ``build`` checks it, so that a misspelled
+    table (``[volum]``) or a stray key is refused, naming the file and the key, instead of silently changing nothing
+    (hostile trial 26 B2); a file holding build settings only (no general table) is refused as well: nothing in it
+    applies to ``command``."""
+    from driftmap.config import GENERAL_TABLES, DriftmapConfig, split_config_file
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.build_config import BuildConfig
+
+    settings = DriftmapConfig.load(config, **overrides)
+    if config is None:
+        return settings
+    general, build, prefix = split_config_file(config)
+    BuildConfig.load(config)  # the build settings (a bare file's every key) as build takes them: typos named
+    if not prefix and build:
+        raise ConfigError(f"{config}: holds no [{'] / ['.join(GENERAL_TABLES)}] table, only build settings "
+                          f"({', '.join(sorted(build))}), none of which applies to {command}: put its settings in "
+                          f"those tables (driftmap config --show lists them)")
+    return settings

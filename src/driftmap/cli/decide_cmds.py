@@ -19,6 +19,7 @@ from driftmap.cli.common import (
     app,
     bold,
     check_output,
+    general_settings,
     console,
     open_store,
     progress_bar,
@@ -66,7 +67,7 @@ def decide(
 ) -> None:
     """Decide what the map lets the robot do: clearance, collision, grasp, foothold and exploration queries, each
     with its margin, uncertainty, failure label, contributing frames, freshness and latency."""
-    from driftmap.config import DriftmapConfig, check_threads
+    from driftmap.config import check_threads
     from driftmap.decisions.query_file import load_queries
     from driftmap.decisions.walls import double_walls_of
 
@@ -100,7 +101,7 @@ def decide(
     if figure is not None:
         refuse_existing(figure, "--report", overwrite)
     query_set = load_queries(queries)  # every query checked before the store is opened
-    settings = DriftmapConfig.load(config)  # a config file's numbers must be written as numbers (check_written_types)
+    settings = general_settings(config, "decide")  # a config file's numbers must be written as numbers (check_written_types)
     if diagnosis is not None:
         _check_diagnosis_shape(diagnosis)
     volume, decide_config = settings.volume, settings.decide

@@ -17,6 +17,7 @@ from driftmap.cli.common import (
     KITTI_FRAME_HELP,
     app,
     check_output,
+    general_settings,
     choice,
     console,
     err_console,
@@ -156,7 +157,6 @@ def export(
 ) -> None:
     """Export the map (world frame of a revision), the trajectory, a Foxglove MCAP and the volumetric layers (TSDF
     mesh, OctoMap tree, 2-D occupancy map)."""
-    from driftmap.config import DriftmapConfig
 
     outputs_given = (map_path, trajectory, mcap_path, mesh_path, octomap_path, grid2d_path)
     if all(p is None for p in outputs_given):
@@ -186,7 +186,7 @@ def export(
     if voxel_size_m is not None and not 0 < voxel_size_m <= MAX_VOXEL_SIZE_M:
         raise typer.BadParameter(f"must be positive and at most {MAX_VOXEL_SIZE_M:g} m, got {voxel_size_m}",
                                  param_hint="--voxel-size-m")
-    settings = DriftmapConfig.load(config)  # validated also when --voxel-size-m is given
+    settings = general_settings(config, "export")  # validated also when --voxel-size-m is given
     if voxel_size_m is None:
         voxel_size_m = settings.map.export_voxel_size_m
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written

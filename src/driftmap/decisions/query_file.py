@@ -259,7 +259,9 @@ def parse_queries(data: Any, source: str = "<memory>") -> QuerySet:
         raise QueryError(f"{source}: 'queries' must be a list, got {type(items).__name__}", query_id=None)
     if not items:
         raise QueryError(f"{source}: the query list is empty", query_id=None)
-    items = [_from_numpy(item) for item in items]  # numpy values as Python ones (hostile trial 25 W5)
+    budget = [MAX_VALUES_PER_FILE]
+    items = [_from_numpy(item, _Budget(source, n, item, budget)) for n, item in enumerate(items)]  # numpy values as
+    # Python ones (hostile trial 25 W5), every value counted: YAML aliases expand (hostile trial 26 B1)
     queries: list[Query] = []
     seen: set[str] = set()
     from_yaml = source.lower().endswith((".yaml", ".yml"))
@@ -425,17 +427,52 @@ _BUILDERS = {"clearance": _clearance, "collision": _collision, "grasp": _grasp, 
 
 
 # ------------------------------------------------------------------------------------------------ values
-def _from_numpy(value: Any) -> Any:
+MAX_VALUES_PER_QUERY = 4 * MAX_POINTS_PER_QUERY + 100_000
+"""a query holding more values (numbers, strings, lists and mappings, its ignored fields included) is refused: a
+YAML file's aliases can name one list many times (431 bytes expand to 387M values), so the bytes do not bound it"""
+MAX_VALUES_PER_FILE = 40_000_000
+"""the values of all the queries of a file together (a 256 MB JSON file of coordinates holds about 25M)"""
+
+
+class _Budget:
+    """The values a query may still hold (:data:`MAX_VALUES_PER_QUERY`) and the file's (a one-item list, shared)."""
+
+    def __init__(self, source: str, n: int, item: Any, file_left: list[int]):
+        self.source, self.n, self.item, self.file_left = source, n, item, file_left
+        self.left = MAX_VALUES_PER_QUERY
+
+    def take(self) -> None:
+        self.left -= 1
+        self.file_left[0] -= 1
+        if self.left >= 0 and self.file_left[0] >= 0:
+            return
+        qid = self.item.get("id") if isinstance(self.item, Mapping) else None
+        name = f"query {qid!r}" if isinstance(qid, str) else f"query {self.n}"
+        what = (f"{name} holds more than {MAX_VALUES_PER_QUERY:,} values" if self.left < 0
+                else f"the queries up to {name} hold more than {MAX_VALUES_PER_FILE:,} values")
+        named = "" if self.source == "<memory>" else f"{self.source}: "
+        raise QueryError(f"{named}{what} (its fields, ignored ones included; YAML aliases expand to a copy each "
+                         f"time they are named): split the file or remove the repeated aliases",
+                         query_id=qid if isinstance(qid, str) else None)
+
+
+def _from_numpy(value: Any, budget: _Budget | None = None) -> Any:
     """Queries made in code hold numpy values: an array becomes its nested list, a numpy scalar its Python value (a
-    numpy bool a bool, a complex a complex: the checks below refuse them as numbers), in mappings and lists too."""
+    numpy bool a bool, a complex a complex: the checks below refuse them as numbers), in mappings and lists too.
+    ``budget``: every value counted against it (a :class:`QueryError` past it)."""
+    if budget is not None:
+        budget.take()
     if isinstance(value, np.ndarray):
+        if budget is not None:
+            for _ in range(min(value.size, MAX_VALUES_PER_QUERY + 1)):
+                budget.take()
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
     if isinstance(value, Mapping):
-        return {k: _from_numpy(v) for k, v in value.items()}
+        return {k: _from_numpy(v, budget) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_from_numpy(v) for v in value]
+        return [_from_numpy(v, budget) for v in value]
     return value
 
 
