@@ -573,3 +573,36 @@ def test_a_merged_store_whose_merge_revision_is_lost_says_its_sessions_are_not_m
     # ... and `merge --append` refuses to build on that head (it appended with the sessions left unaligned)
     line = one_error(run_cli("merge", store, merged["out"].parent / "B", "--append"))
     assert "an append would build on that head" in line and "shows session 1 at its own poses" in line, line
+
+
+def test_a_rollback_to_revision_0_is_labelled_unmerged_by_every_reader(merged: dict, tmp_path: Path) -> None:
+    """Hostile trial 26 W1: ``rollback --to 0`` of a merged store gives a head that holds each session in its own
+    world frame (B 1.1 m / 30 deg off A in the trial), and ``rollback``, ``info``, ``export`` and ``decide`` said
+    nothing: they say so as they do for a lost merge revision, naming the revision that restores the merge; decide's
+    decisions carry ``sessions_not_merged``; after ``rollback --to 1`` nothing is said."""
+    import shutil
+
+    store = tmp_path / "AB"
+    shutil.copytree(merged["out"], store)
+    out = run_cli("rollback", store, "--to", 0)
+    assert out.returncode == 0, out.stderr[-2000:]
+    said = " ".join((out.stdout + out.stderr).split())
+    assert "holds revision 0's poses for session 1" in said and "--to 1` restores the merge" in said, said
+    info = " ".join(run_cli("info", store).stdout.replace("\u2502", " ").split())
+    assert "sessions not merged revision 2 holds revision 0's poses for session 1" in info, info
+    out = run_cli("export", store, "--trajectory", tmp_path / "t.tum")
+    assert out.returncode == 0 and "holds revision 0's poses for session 1" in " ".join(out.stderr.split())
+    with FrameStore.open(store) as s:
+        T = s.poses(s.head)[-1]  # session 1's last camera: a point 0.8 m ahead of it, in the free space it saw
+        p = T[:3, 3] + 0.8 * T[:3, 2]
+    queries = tmp_path / "q.json"
+    queries.write_text(json.dumps({"queries": [{"id": "c", "kind": "clearance", "points_m": [p.tolist()],
+                                                "radius_m": 0.05}]}))
+    out = run_cli("decide", store, "--queries", queries, "--json", tmp_path / "d.json")
+    assert out.returncode == 0, out.stderr[-2000:]
+    record = json.loads((tmp_path / "d.json").read_text())
+    assert record["representation"]["sessions_not_merged"] == [1]
+    assert record["decisions"][0]["failure_label"] == "sessions_not_merged"
+    out = run_cli("rollback", store, "--to", 1)
+    assert out.returncode == 0 and "holds revision 0's poses" not in out.stdout + out.stderr
+    assert "sessions not merged" not in run_cli("info", store).stdout

@@ -205,6 +205,9 @@ LIDAR_VOXEL_PER_SCALE_M = 0.4
 (:func:`driftmap.preprocess.scene.lidar_odometry_scale`: the synthetic room 0.074 m)."""
 TRUNCATION_VOXELS = 4.0
 """Default TSDF truncation, in voxels (Open3D's examples use 4-8)."""
+MAX_TRUNCATION_VOXELS = 100.0
+"""volume.truncation_m may be at most this many voxels (a TSDF band is usually 3-10; trial 26 W3: 100 m gave a
+200 m grid whose error blamed the voxel size)"""
 
 
 def _physical_memory_mb() -> float | None:
@@ -265,6 +268,11 @@ class VolumeConfig(SettingsModel):
             raise ConfigError(f"volume.truncation_m ({self.truncation_m} m) must be at least one voxel "
                               f"(volume.voxel_size_m {voxel} m; default {TRUNCATION_VOXELS} voxels): a thinner band "
                               f"leaves the TSDF no zero crossing to mesh")
+        if self.truncation_m is not None and self.truncation_m > MAX_TRUNCATION_VOXELS * voxel:
+            raise ConfigError(f"volume.truncation_m ({self.truncation_m:g} m) must be at most {MAX_TRUNCATION_VOXELS:g} "
+                              f"voxels (volume.voxel_size_m {voxel:g} m; default {TRUNCATION_VOXELS:g}): the TSDF band "
+                              f"pads the grid by it on every side (a 3 m room grows to a "
+                              f"{3 + 2 * self.truncation_m:g} m grid)")
         if max_range is not None and not self.min_range_m < max_range:
             raise ConfigError(f"volume.min_range_m ({self.min_range_m} m) must be less than the max range "
                               f"({max_range} m, the sensor's): no ray would carve or mark anything")
@@ -511,8 +519,17 @@ def _check_env_tables() -> None:
     """``DRIFTMAP_X__...`` variables whose table X does not exist are refused (pydantic-settings ignores them);
     ``DRIFTMAP_BUILD__...`` are the build settings' (:func:`env_table`)."""
     known = {name.upper() for name in DriftmapConfig.model_fields} | {BUILD_TABLE.upper()}
+    tables = known | {DIAGNOSE_TABLE.upper()}
     for name in sorted(os.environ):
-        if not name.upper().startswith(ENV_PREFIX) or ENV_DELIMITER not in name:
+        if not name.upper().startswith(ENV_PREFIX):
+            continue
+        if ENV_DELIMITER not in name:  # DRIFTMAP_MAP_EXPORT_VOXEL_SIZE_M: one underscore, ignored by the settings
+            rest = name[len(ENV_PREFIX):]
+            table = next((t for t in sorted(tables) if rest.upper().startswith(t + "_")), None)
+            if table is not None:
+                meant = f"{ENV_PREFIX}{table}{ENV_DELIMITER}{rest[len(table) + 1:]}"
+                raise ConfigError(f"environment {name}: names no setting (a table and its key are joined by two "
+                                  f"underscores: {meant}?)")
             continue
         table = name[len(ENV_PREFIX):].split(ENV_DELIMITER)[0].upper()
         if table not in known:

@@ -315,9 +315,9 @@ def open_store(path: Path, mode: str = "r", *, reads_map: bool = False):
 
 def warn_unmerged(store, revisions, *, session: int | None = None) -> None:
     """Warn when a revision the command reads shows sessions at their own, unmerged poses because damage took the
-    merge revision (hostile trials 19 W6, 21 W6); not when it reads one session (``--session``) or revision 0,
-    which shows the sessions unmerged by design."""
-    if session is not None or not store.loss.revision_ids:
+    merge revision or the revision restored revision 0's poses (hostile trials 19 W6, 21 W6, 26 W1); not when it
+    reads one session (``--session``) or revision 0, which shows the sessions unmerged by design."""
+    if session is not None:
         return
     from driftmap.store.unmerged import unmerged_sessions
 

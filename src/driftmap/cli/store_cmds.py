@@ -126,6 +126,7 @@ def rollback(
         changed = store.diff(rev.parent_id, rev.revision_id).n_changed  # as `revisions` counts them (trial 16 W9)
         left_out = np.setdiff1d(placed_before, store.members(rev.revision_id))
         abandoned = abandon_interrupted_append(store.path, store)
+        warn_unmerged(store, [rev.revision_id])  # rolled back to revision 0 of a merged store (trial 26 W1)
     extra = (f"; {left_out.size} frames stored after revision {to} left out ({int(left_out[0])}..{int(left_out[-1])})"
              if left_out.size else "")
     console.print(f"revision {rev.revision_id}: poses of revision {to} restored ({changed} frames changed{extra})")
@@ -205,8 +206,9 @@ def export(
     for path, flag in ((trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap"), *volume_outputs):
         check_output(path, flag)
     outputs = [(trajectory, "--trajectory"), (map_path, "--map"), (mcap_path, "--mcap"), *volume_outputs]
-    if map_path is not None and voxel_size_m is not None:
-        outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)"))
+    if map_path is not None:  # written with voxels; without, an earlier export's would describe another map
+        outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)" if voxel_size_m is not None
+                        else "--map (the provenance file of an earlier voxelised export beside it)"))
     refuse_same_output([(p, f) for p, f in outputs if p is not None])
     _refuse_store_inputs(store_path, [(p, f) for p, f in outputs if p is not None])
     for path, flag in outputs:  # every output checked before anything is written
@@ -248,6 +250,10 @@ def export(
             del fused
             detail = f", voxel {voxel_size_m} m, per-voxel provenance in {map_path}.provenance.npz" if voxel_size_m else ""
             console.print(f"map (revision {rev}, {n_written:,} points{detail}): {map_path}", highlight=False)
+            stale = Path(f"{map_path}.provenance.npz")
+            if voxel_size_m is None and stale.is_file():  # --overwrite: an earlier voxelised export's (trial 26 W2)
+                stale.unlink()
+                console.print(f"removed {stale}: it described the map this export replaced", highlight=False)
         if volume is not None:
             _write_volume(volume, mesh_path, octomap_path, grid2d_path, band, prepared)
         if mcap_path is not None:
@@ -457,10 +463,10 @@ def info(store_path: Annotated[Path, typer.Argument(metavar="STORE", help="Frame
             table.add_row("frames in the head", f"{placed} of {len(store)} (the others are outside its map: {why})")
         if store.loss:
             table.add_row("lost to damage (driftmap recover)", str(store.loss))
-            from driftmap.pipeline.merge import sessions_left_unmerged
+        from driftmap.pipeline.merge import sessions_left_unmerged
 
-            if (unmerged := sessions_left_unmerged(store)) is not None:
-                table.add_row("sessions not merged", unmerged)
+        if (unmerged := sessions_left_unmerged(store)) is not None:  # damage, or a rollback to 0 (trial 26 W1)
+            table.add_row("sessions not merged", unmerged)
         from driftmap.store.unmerged import missing_merge_records
 
         if (missing := missing_merge_records(store)) is not None:  # hostile trial 22 W4

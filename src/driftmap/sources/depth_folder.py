@@ -149,11 +149,29 @@ def read_depth_png(file: Path, frame_id: int) -> NDArray[np.uint16]:
         if 0 <= depth.min() and depth.max() <= 65535:
             depth = depth.astype(np.uint16)  # older Pillow opens 16-bit PNGs in mode "I"
     if depth.ndim != 2 or depth.dtype != np.uint16:
-        raise SourceError(
-            f"{file}: depth image of frame {frame_id} must be a single-channel 16-bit PNG, got mode {mode!r} "
-            f"(dtype {depth.dtype}, shape {depth.shape})"
-        )
+        stated = png_stated_type(file)
+        got = (f"the file is {stated} (Pillow opens it as mode {mode!r}, dtype {depth.dtype}, shape {depth.shape})"
+               if stated else f"got mode {mode!r} (dtype {depth.dtype}, shape {depth.shape})")
+        raise SourceError(f"{file}: depth image of frame {frame_id} must be a single-channel 16-bit PNG, {got}: save "
+                          f"the depth as one 16-bit grey channel")
     return depth
+
+
+_PNG_COLOUR_NAMES = {0: "grey", 2: "RGB", 3: "palette", 4: "grey + alpha", 6: "RGBA"}
+
+
+def png_stated_type(file: Path) -> str | None:
+    """What a PNG's IHDR says it holds ("16-bit RGB (3 channels)"), or None for a file that is no PNG (Pillow may
+    open a 16-bit RGB PNG as 8-bit RGB: the header says what the file is; hostile trial 26 W5)."""
+    with open(file, "rb") as f:
+        head = f.read(len(PNG_SIGNATURE) + 8 + 13)
+    if not head.startswith(PNG_SIGNATURE) or head[len(PNG_SIGNATURE) + 4:len(PNG_SIGNATURE) + 8] != b"IHDR":
+        return None
+    bit_depth, colour = head[len(PNG_SIGNATURE) + 16], head[len(PNG_SIGNATURE) + 17]
+    channels = _PNG_CHANNELS.get(colour)
+    if channels is None:
+        return None
+    return f"{bit_depth}-bit {_PNG_COLOUR_NAMES[colour]} ({channels} channel{'s' if channels > 1 else ''})"
 
 
 def read_color_image(file: Path, frame_id: int) -> NDArray[np.uint8]:

@@ -1,12 +1,13 @@
-"""A merged store whose merge revision was lost to damage: which sessions a revision shows at their own, unmerged
-poses (hostile trials 19 W6 and 21 W6).
+"""A merged store whose merge revision was lost to damage, or whose head restored revision 0: which sessions a
+revision shows at their own, unmerged poses (hostile trials 19 W6, 21 W6 and 26 W1).
 
 A merged store's revision 0 holds each session in its own world frame; the merge revision (1, and each append's)
 places them in session 0's. When damage takes a merge revision, the stand-in that keeps its place holds the poses of
 the revision before it, so every revision on top of it shows session ``k`` at its own origin: its map laid over
 session 0's without alignment (2.1 m apart in trial 19), which ``diagnose`` reads as misaligned seams and
-``decide`` as obstacles where there are none. Revision 0 itself shows the sessions unmerged by design and is not
-reported. The store layer answers the question so that every reader (export, diagnose, decide, merge --append) asks
+``decide`` as obstacles where there are none. A later revision that restores revision 0's poses (``rollback --to
+0``) shows the same and is reported alike (with the merge revision that restores the merge). Revision 0 itself shows
+the sessions unmerged by design and is not reported. The store layer answers the question so that every reader (export, diagnose, decide, merge --append) asks
 the same one."""
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ class UnmergedSessions:
     revision: int
     lost_merges: tuple[int, ...]
     sessions: tuple[int, ...]
+    merge_revisions: tuple[int, ...] = ()
+    """the merge revisions the store still holds (with no lost merge: the revision restored revision 0's poses)"""
 
     def frame_mask(self, frame_ids: np.ndarray) -> np.ndarray:
         """Which of ``frame_ids`` belong to the unmerged sessions."""
@@ -44,6 +47,13 @@ class UnmergedSessions:
 
     def __str__(self) -> str:
         which = ", ".join(map(str, self.sessions))
+        if not self.lost_merges:  # a rollback to revision 0 (or a correction that restored its poses)
+            back = (f": `driftmap rollback STORE --to {max(self.merge_revisions)}` restores the merge"
+                    if self.merge_revisions else "")
+            return (f"revision {self.revision} holds revision 0's poses for session {which} (each session in its own "
+                    f"world frame), not aligned with session 0 as the merge placed "
+                    f"{'it' if len(self.sessions) == 1 else 'them'}, so the map lays the sessions over each other "
+                    f"misaligned{back}")
         return (f"revision {', '.join(map(str, self.lost_merges))}, the merge that placed the sessions in one world "
                 f"frame, was lost to damage: revision {self.revision} shows session {which} at "
                 f"{'its' if len(self.sessions) == 1 else 'their'} own poses (revision 0, each session in its own world "
@@ -64,22 +74,25 @@ def _merge_revisions(store: FrameStore) -> set[int]:
 
 def unmerged_sessions(store: FrameStore, revision: int | None = None) -> UnmergedSessions | None:
     """The sessions other than 0 whose every frame ``revision`` (default: the head) places sits at its revision-0
-    pose, on a merged store that lost a merge revision to damage; None when none does, when no merge revision was
-    lost, or for revision 0 (unmerged by design)."""
+    pose, on a merged store: because damage took a merge revision, or because the revision restored revision 0's
+    poses (``rollback --to 0``; hostile trial 26 W1); None when none does, or for revision 0 (unmerged by
+    design)."""
     rev = store.head if revision is None else int(revision)
+    if rev == 0 or not (store.path / MERGE_SUMMARY_FILE).is_file():
+        return None
     lost = set(store.loss.revision_ids)
-    if rev == 0 or not lost or not (store.path / MERGE_SUMMARY_FILE).is_file():
-        return None
-    lost_merges = sorted(_merge_revisions(store) & lost)
-    if not lost_merges:
-        return None
+    merges = _merge_revisions(store)
+    lost_merges = sorted(merges & lost)
+    held = {r.revision_id for r in store.revisions}
     ids = np.asarray(store.frame_ids, dtype=np.int64)
     placed = np.isin(ids, store.members(rev))
     at_own = placed & np.all(store.poses(rev) == store.poses(0), axis=(1, 2))
     session = ids // SESSION_ID_STRIDE
     unmerged = tuple(int(k) for k in np.unique(session[placed])
                      if k != 0 and at_own[session == k].sum() == placed[session == k].sum())
-    return UnmergedSessions(rev, tuple(lost_merges), unmerged) if unmerged else None
+    if not unmerged:
+        return None
+    return UnmergedSessions(rev, tuple(lost_merges), unmerged, tuple(sorted(r for r in merges if r in held and r != rev)))
 
 
 def missing_merge_records(store: FrameStore) -> str | None:
