@@ -8,11 +8,10 @@ Normals are :func:`driftmap.preprocess.cloud.estimate_normals` (Open3D's covaria
 ``normal_voxel_m`` voxel (world lattice; each point takes its voxel's normal), so that on a map where many frames
 overlap the neighbours span the intended radius rather than millimetres of depth noise -- the neighbours are the
 map's voxels, inside the region or not, so a region's border does not tilt its normals
-(:mod:`driftmap.decisions.voxel_normals`) -- each oriented towards the sensor of the frame that measured the point. Point counts (``too_few_points``), the
-dominant normal's weights, the spread's percentile, the plane's offset and the flatness use every full-resolution
-point. The
-*dominant normal* is the principal direction of the points' normals (the eigenvector of the largest eigenvalue of
-``sum n n^T``), pointing the way most of them do; the *normal spread* is the 90th percentile of the angles between
+(:mod:`driftmap.decisions.voxel_normals`) -- each oriented towards the sensor of the frame that measured the point.
+Point counts (``too_few_points``), the dominant normal's weights, the spread's percentile, the plane's offset and the
+flatness use every full-resolution point. The *dominant normal* is the principal direction of the points' normals
+(the eigenvector of the largest eigenvalue of ``sum n n^T``), pointing the way most of them do; the *normal spread* is the 90th percentile of the angles between
 the points' normals and it (deg): a few degrees on a plane, tens of degrees across an edge or a corner.
 """
 
@@ -98,6 +97,7 @@ def _region_normals(ctx: DecisionContext, lo: NDArray[np.float64], hi: NDArray[n
     rank[whole] = np.arange(len(whole))
     inv_in = inv.take(which)
     held = np.flatnonzero(np.bincount(inv_in, minlength=len(means)))  # the voxels of the region's points
+    assert np.all(rank[held] >= 0), "a region voxel not held whole by a box grown by 3 voxels"  # floor is monotonic
     fitted = fit_normals(means[whole], rank[held], c.normal_max_neighbors, c.normal_radius_m)
     row = np.full(len(means), -1, np.int64)
     row[held] = np.arange(len(held))
