@@ -185,8 +185,8 @@ def _nearest_rows(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps:
 
 def _warn_ties(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps: NDArray[np.int64],
                frame_idx: NDArray[np.intp], row_of: NDArray[np.intp], where: str) -> None:
-    """A warning naming the matched rows that lie exactly as close to another frame as to theirs (the earlier frame
-    took them: a guess; hostile trial 26 W6). (A tolerance of half the spacing alone is common -- TUM's 20 ms at
+    """A warning naming the matched rows that lie exactly as close to another frame as to theirs (the order rule
+    chose between them: a guess; hostile trial 26 W6). (A tolerance of half the spacing alone is common -- TUM's 20 ms at
     30 Hz -- and not warned about.)"""
     if len(stamps) < 2 or len(frame_idx) == 0:
         return
@@ -202,8 +202,8 @@ def _warn_ties(row_stamps: NDArray[np.int64], ids: NDArray[np.int64], stamps: ND
         tie |= ok & (other != stamps[frame_idx]) & (np.abs(other - row_t) == dt)
     if tie.any():
         first = int(np.flatnonzero(tie)[0])
-        logger.warning("%s: %d pose row(s) lie exactly as far from two frames and went to the earlier one (first: "
-                       "stamp %d ns, frame %d, %.3g ms from each): the match is a guess; give a --max-dt-ms below "
+        logger.warning("%s: %d pose row(s) lie exactly as far from two frames (first: stamp %d ns, matched to "
+                       "frame %d, %.3g ms from each): which frame each belongs to is a guess; give a --max-dt-ms below "
                        "half the frames' spacing (%.3g ms) or rows stamped at the frames", where, int(tie.sum()),
                        int(row_t[first]), int(ids[frame_idx[first]]), dt[first] / 1e6, spacing / 2e6)
 

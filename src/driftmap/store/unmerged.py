@@ -7,8 +7,8 @@ the revision before it, so every revision on top of it shows session ``k`` at it
 session 0's without alignment (2.1 m apart in trial 19), which ``diagnose`` reads as misaligned seams and
 ``decide`` as obstacles where there are none. A later revision that restores revision 0's poses (``rollback --to
 0``) shows the same and is reported alike (with the merge revision that restores the merge). Revision 0 itself shows
-the sessions unmerged by design and is not reported. The store layer answers the question so that every reader (export, diagnose, decide, merge --append) asks
-the same one."""
+the sessions unmerged by design and is not reported. The store layer answers the question so that every reader
+(export, diagnose, decide, merge --append) asks the same one."""
 
 from __future__ import annotations
 
