@@ -26,7 +26,7 @@ from driftmap.decisions.evidence import DecisionContext
 from driftmap.decisions.point_index import point_index
 from driftmap.decisions.query_file import Query, QuerySet, load_queries, parse_queries
 from driftmap.decisions.records import Decision, DecisionSet, Representation
-from driftmap.decisions.settings import DecideConfig, settings_hash
+from driftmap.decisions.settings import DecideConfig, for_sensor, settings_hash
 from driftmap.decisions.voxel_normals import voxel_normals
 from driftmap.decisions.walls import diagnosis_mismatch, double_walls_of
 from driftmap.store.unmerged import unmerged_sessions
@@ -281,6 +281,7 @@ def _answer_all(ctx: DecisionContext, qs: QuerySet, threads: int, tick: Progress
 def _decide_on(store: FrameStore, qs: QuerySet, layers: VolumeLayers, cfg: DecideConfig, walls: list,
                progress: ProgressCallback | None, layers_s: float, threads: int = 1) -> DecisionSet:
     tick = progress or (lambda stage, done, total: None)
+    cfg = for_sensor(cfg, layers.sensor_kind, float(layers.grid.voxel_size_m))  # LiDAR: lengths at its scale
     ctx = DecisionContext(store, layers.revision, layers, cfg, walls)
     t_all = time.perf_counter()
     prepare(layers, cfg, kinds=[q.kind for q in qs])

@@ -10,7 +10,7 @@ from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import ConfigDict, Field
+from pydantic import ConfigDict, Field, field_validator
 
 from driftmap.config import SettingsModel
 
@@ -41,6 +41,15 @@ class DoubleWallConfig(SettingsModel):
     kmeans_iterations: int = Field(8, ge=1, le=100, description="Lloyd iterations of the 1-D two-layer split (a 1-D split converges in a few)")
     visit_gap_m: float = Field(1.0, gt=0.0, description="a surface seen again after this much travel without seeing it is a new visit (m)")
     merge_angle_deg: float = Field(25.0, gt=0.0, description="flagged voxels merge into one region when their normals agree within this")
+
+    @field_validator("voxel_sizes_m")
+    @classmethod
+    def _distinct_sizes(cls, sizes: tuple[float, ...]) -> tuple[float, ...]:
+        repeated = sorted({v for v in sizes if sizes.count(v) > 1})
+        if repeated:  # hostile trial 27 B1: a scale given twice was counted twice (6 / 4048 instead of 3 / 2024)
+            raise ValueError(f"each voxel size once: {', '.join(f'{v:g}' for v in repeated)} m given more than once "
+                             f"(each scale is evaluated and counted once per mention)")
+        return sizes
 
 
 @dataclass(frozen=True)

@@ -279,6 +279,9 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
 FOCAL_RANGE_PX = (1.0, 1e6)
 MAX_PLAUSIBLE_FOV_DEG = 150.0
 """A pinhole field of view wider than this (deg, horizontal) is warned about: a unit or image-size mistake."""
+MIN_PLAUSIBLE_FOV_DEG = 20.0
+"""A pinhole field of view narrower than this (deg, horizontal) is warned about: a focal length in other units or for
+another image size (hostile trial 27 B2: fx 10x and 1000x too large built "tracking ok" on pencil-thin clouds)."""
 
 
 def intrinsics_problem(intrinsics: PinholeIntrinsics) -> str | None:
@@ -303,6 +306,10 @@ def checked_intrinsics(intrinsics: PinholeIntrinsics, what: str | Path) -> Pinho
         logger.warning("%s: fx=%g px gives a %.0f deg horizontal field of view over %d px (pinhole depth cameras see "
                        "55-120 deg): is fx in other units, or for another image size?", what, intrinsics.fx, fov_deg,
                        intrinsics.width)
+    elif fov_deg < MIN_PLAUSIBLE_FOV_DEG:
+        logger.warning("%s: fx=%g px gives a %.2g deg horizontal field of view over %d px (pinhole depth cameras see "
+                       "55-120 deg): is fx in other units, or for another image size? Every point would lie in a "
+                       "cone this narrow", what, intrinsics.fx, fov_deg, intrinsics.width)
     return intrinsics
 
 
