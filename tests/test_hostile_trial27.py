@@ -76,3 +76,54 @@ def test_t27_b3_footholds_and_a_grasp_on_a_kitti_road_measure_it_as_a_plane_fit_
         assert abs(d.details["flatness_m"] - np.sqrt(w[0] / len(patch))) < 0.01, (d.id, d.details["flatness_m"])
         assert d.decision != "too_steep", d.id
     assert decisions[-1].decision == "graspable" and decisions[-1].details["normal_spread_deg"] < 10.0
+
+
+def test_t27_w3_w4_the_layers_api_refuses_what_it_would_misread(room10: dict[str, Path]) -> None:
+    """``decide(config=..., layers=...)`` ignored a config the layers were not built with; ``states_flat(-1)`` read the
+    last voxel, ``mesh(nan)`` gave an empty mesh, ``equals(None)`` raised AttributeError and a 1e300 coordinate leaked
+    a numpy warning from ``states`` (``observers`` refused it): each is a ConfigError naming the argument."""
+    import warnings
+
+    from driftmap.config import VolumeConfig
+    from driftmap.decisions import decide
+    from driftmap.errors import ConfigError
+    from driftmap.store.frame_store import FrameStore
+    from driftmap.volume import VolumeLayers
+
+    with FrameStore.open(room10["gt"]) as store:
+        layers = VolumeLayers.from_store(store, store.head)
+        q = {"queries": [{"id": "c", "kind": "clearance", "points_m": [[0.0, 0.0, 1.0]], "radius_m": 0.1}]}
+        with pytest.raises(ConfigError, match=r"config sets voxel_size_m 0.1 \(the layers: 0.02\)"):
+            decide(store, q, config=VolumeConfig(voxel_size_m=0.1), layers=layers)
+        same = decide(store, q, config=VolumeConfig(voxel_size_m=layers.config.voxel_size_m), layers=layers)
+        assert same.decisions[0].decision == decide(store, q, layers=layers).decisions[0].decision
+        n = layers.grid.n_voxels
+        for bad in ([-1], [n]):
+            with pytest.raises(ConfigError, match=rf"states_flat: flat voxel indices must be integers in 0 .. {n - 1}"):
+                layers.states_flat(np.array(bad))
+            with pytest.raises(ConfigError, match="tsdf_flat"):
+                layers.tsdf_flat(np.array(bad))
+        assert layers.states_flat(np.array([0, n - 1])).shape == (2,)
+        for bad in (float("nan"), -1.0):
+            with pytest.raises(ConfigError, match="weight_threshold must be a finite number >= 0"):
+                layers.mesh(bad)
+        with pytest.raises(ConfigError, match="equals: compares VolumeLayers with VolumeLayers, got NoneType"):
+            layers.equals(None)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            for call in (layers.states, layers.observers):
+                with pytest.raises(ConfigError, match=r"within \+-1e\+09 m of the world origin"):
+                    call(np.array([[1e300, 0.0, 0.0]]))
+
+
+def test_t27_w6_the_ate_row_says_how_many_frames_it_covers(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``diagnose --gt`` with ground truth for 3 of the 10 frames printed "ATE / RPE 0.00 cm / 0.00 cm" as if for the
+    whole map (only a log line said the others were left out): the row says over how many of the frames."""
+    rows = [line for line in (room10["log"] / "groundtruth.txt").read_text().splitlines() if not line.startswith("#")]
+    (tmp_path / "gt3.txt").write_text("\n".join(rows[:3]) + "\n")
+    out = run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json", "--gt", tmp_path / "gt3.txt")
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = " ".join(out.stdout.replace("\u2502", " ").split())
+    assert "(over 3 of the 10 frames: the others have no ground truth)" in text, text[-3000:]
+    out = run_cli("diagnose", room10["gt"], "--json", tmp_path / "e.json", "--gt", room10["log"] / "groundtruth.txt")
+    assert out.returncode == 0 and "ATE / RPE" in out.stdout and "the others have no ground truth" not in out.stdout

@@ -119,7 +119,10 @@ def _diagnosis_rows(run: DiagnoseRun) -> list[tuple[str, str]]:
         rows.append(("revisit check", _revisit_row(result.revisits)))
     if result.trajectory is not None:
         tr = result.trajectory
-        rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, {tr['rpe_rot_rmse_deg']:.3f} deg"))
+        n_gt, n_all = int(tr.get("n_poses", 0)), int(data.get("n_frames", 0))
+        over = f" (over {n_gt} of the {n_all} frames: the others have no ground truth)" if 0 < n_gt < n_all else ""
+        rows.append(("ATE / RPE", f"{100 * tr['ate_rmse_m']:.2f} cm / {100 * tr['rpe_trans_rmse_m']:.2f} cm, "
+                                  f"{tr['rpe_rot_rmse_deg']:.3f} deg{over}"))  # trial 27 W6: say when it is a part
     if other is not None:  # with its own coverage verdict, and the frames it is over when they differ (trial 21 W5)
         cmp = data["comparison"]
         value = f"{1000 * other.smearing_score_m:.2f} mm"

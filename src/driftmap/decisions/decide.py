@@ -174,6 +174,23 @@ def check_layers_of(layers: Any, store: FrameStore, revision: int) -> None:
         raise QueryError(f"the layers given are of revision {layers.revision}, not {revision}", query_id=None)
 
 
+LAYER_BUDGET_SETTINGS = frozenset({"memory_budget_mb", "keep_frame_voxels"})
+"""volume settings that bound how the layers are kept, not what they hold: not compared by :func:`check_config_of`"""
+
+
+def check_config_of(layers: VolumeLayers, config: VolumeConfig | None) -> None:
+    """``config`` given with ``layers``: every setting it sets must be the layers' (hostile trial 27 W3: a 0.1 m
+    voxel in ``config`` was ignored for the layers' 0.02 m without a word); a :class:`ConfigError` naming them."""
+    if config is None:
+        return
+    differ = [f"{k} {getattr(config, k)!r} (the layers: {getattr(layers.config, k)!r})"
+              for k in sorted(config.model_fields_set - LAYER_BUDGET_SETTINGS)
+              if getattr(config, k) is not None and getattr(config, k) != getattr(layers.config, k)]
+    if differ:
+        raise ConfigError(f"config sets {', '.join(differ)}, which the layers given were not built with: give layers "
+                          f"built with this config (VolumeLayers.from_store(store, revision, config)), or no config")
+
+
 def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str | Path, revision: int | None = None,
            config: VolumeConfig | None = None, *, decide_config: DecideConfig | None = None,
            layers: VolumeLayers | None = None, double_walls: Any = None,
@@ -203,6 +220,7 @@ def decide(store: FrameStore, queries: QuerySet | Sequence[Query] | dict | str |
         layers = VolumeLayers.from_store(store, rev, config, progress=progress)
     else:
         check_layers_of(layers, store, rev)
+        check_config_of(layers, config)
     layers_s = time.perf_counter() - t0
     check_on_map(qs, layers, decide_config)
     return _decide_on(store, qs, layers, decide_config or DecideConfig(), walls, progress, layers_s, threads)

@@ -155,4 +155,13 @@ def world_points(points_m: object, what: str) -> NDArray[np.float64]:
     if not np.all(np.isfinite(pts)):
         bad = int(np.flatnonzero(~np.isfinite(pts).all(axis=1))[0])
         raise ConfigError(f"{what}: points must be finite real (N, 3) metres; point {bad} is {pts[bad].tolist()}")
+    if len(pts) and float(np.abs(pts).max()) > MAX_WORLD_COORDINATE_M:  # floor(p / voxel) overflows int64 (trial 27 W4)
+        bad = int(np.flatnonzero(np.abs(pts).max(axis=1) > MAX_WORLD_COORDINATE_M)[0])
+        raise ConfigError(f"{what}: points must lie within +-{MAX_WORLD_COORDINATE_M:g} m of the world origin; point "
+                          f"{bad} is {pts[bad].tolist()}")
     return pts
+
+
+MAX_WORLD_COORDINATE_M = 1e9
+"""A layers query's points farther than this from the origin are refused (their voxel index would overflow; a
+million kilometres is beyond any map)"""

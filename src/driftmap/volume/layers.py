@@ -422,24 +422,37 @@ class VolumeLayers:
 
     def states_flat(self, flats: NDArray[np.int64]) -> NDArray[np.int8]:
         """:data:`OCCUPIED` / :data:`FREE` / :data:`UNKNOWN` of grid voxels (flat indices)."""
-        flats = np.asarray(flats, dtype=np.int64)
+        return self._states(self._flat_indices(flats, "states_flat"))
+
+    def _states(self, flats: NDArray[np.int64]) -> NDArray[np.int8]:
         seen = (self.arrays.hits[flats] + self.arrays.misses[flats]) > 0
         occ = self.log_odds_flat(flats) >= self.config.log_odds_threshold
         return np.where(seen, np.where(occ, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
+
+    def _flat_indices(self, flats: NDArray[np.integer], what: str) -> NDArray[np.int64]:
+        """Flat voxel indices, each within ``0 .. n_voxels - 1`` (numpy would read -1 as the last voxel; hostile trial
+        27 W4); a :class:`ConfigError` naming ``what`` and the range otherwise."""
+        flats = np.asarray(flats)
+        if flats.size and (not np.issubdtype(flats.dtype, np.integer) or flats.min() < 0
+                           or flats.max() >= self.grid.n_voxels):
+            raise ConfigError(f"{what}: flat voxel indices must be integers in 0 .. {self.grid.n_voxels - 1}, got "
+                              f"{flats.dtype} values in {flats.min()} .. {flats.max()}")
+        return flats.astype(np.int64, copy=False)
 
     def states(self, points_m: NDArray[np.floating]) -> NDArray[np.int8]:
         """The state of the voxel holding each world point (outside the grid: unknown)."""
         idx, inside = self.grid.grid_index(world_points(points_m, "states"))
         out = np.full(len(idx), UNKNOWN, dtype=np.int8)
-        out[inside] = self.states_flat(self.grid.flat(idx[inside]))
+        out[inside] = self._states(self.grid.flat(idx[inside]))
         return out
 
     def state_grid(self) -> NDArray[np.int8]:
         """Every voxel's state, shaped as the grid (x, y, z)."""
-        return self.states_flat(np.arange(self.grid.n_voxels, dtype=np.int64)).reshape(self.grid.shape)
+        return self._states(np.arange(self.grid.n_voxels, dtype=np.int64)).reshape(self.grid.shape)
 
     def tsdf_flat(self, flats: NDArray[np.int64]) -> tuple[NDArray[np.float32], NDArray[np.int32]]:
         """The TSDF (normalised, -1..1; NaN where unobserved) and its observation count at grid voxels."""
+        flats = self._flat_indices(flats, "tsdf_flat")
         count = self.arrays.tsdf_count[flats]
         with np.errstate(invalid="ignore", divide="ignore"):
             tsdf = (self.arrays.tsdf_sum[flats] / kernels.TSDF_QUANTUM / count).astype(np.float32)
@@ -495,6 +508,10 @@ class VolumeLayers:
         """The TSDF's triangle mesh (:func:`driftmap.volume.mesh.triangle_mesh`)."""
         from driftmap.volume.mesh import DEFAULT_WEIGHT_THRESHOLD, triangle_mesh
 
+        if weight_threshold is not None and not (isinstance(weight_threshold, (int, float, np.number))
+                                                 and np.isfinite(weight_threshold) and weight_threshold >= 0):
+            raise ConfigError(f"mesh: weight_threshold must be a finite number >= 0 (observations a voxel needs), got "
+                              f"{weight_threshold!r}")  # NaN gave an empty mesh without a word (trial 27 W4)
         return triangle_mesh(self, DEFAULT_WEIGHT_THRESHOLD if weight_threshold is None else weight_threshold)
 
     def clearance_m(self, points_m: NDArray[np.floating], unknown_is: str | None = None,
@@ -512,6 +529,8 @@ class VolumeLayers:
 
     def equals(self, other: VolumeLayers) -> bool:
         """Bit-for-bit equal layers over the union of both grids (voxels outside a grid count as unobserved)."""
+        if not isinstance(other, VolumeLayers):
+            raise ConfigError(f"equals: compares VolumeLayers with VolumeLayers, got {type(other).__name__}")
         lo = np.minimum(self.grid.min_m, other.grid.min_m)
         hi = np.maximum(self.grid.max_m, other.grid.max_m) - 0.5 * self.grid.voxel_size_m
         common = GridSpec.covering(lo, hi, self.grid.voxel_size_m)
