@@ -90,6 +90,13 @@ def unmerged_sessions(store: FrameStore, revision: int | None = None) -> Unmerge
     session = ids // SESSION_ID_STRIDE
     unmerged = tuple(int(k) for k in np.unique(session[placed])
                      if k != 0 and at_own[session == k].sum() == placed[session == k].sum())
+    if unmerged and not lost_merges:  # a restored revision 0: only the sessions a merge revision had placed (the
+        # frames of an interrupted append sit at their own poses until it is finished: not a rollback's doing)
+        aligned: set[int] = set()
+        for m in merges & held:
+            moved = np.isin(ids, store.members(m)) & ~np.all(store.poses(m) == store.poses(0), axis=(1, 2))
+            aligned |= {int(k) for k in np.unique(session[moved])}
+        unmerged = tuple(k for k in unmerged if k in aligned)
     if not unmerged:
         return None
     return UnmergedSessions(rev, tuple(lost_merges), unmerged, tuple(sorted(r for r in merges if r in held and r != rev)))
