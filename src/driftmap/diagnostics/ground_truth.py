@@ -68,6 +68,14 @@ def segment_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float
         return SegmentErrors(L, 100.0 * t_err / np.maximum(count, 1), r_err / np.maximum(count, 1), count)
 
 
+RPE_UNRELATED_STEP_FRACTION = 0.5
+"""An RPE over consecutive frames above this share of the median ground-truth step (and above
+:data:`RPE_UNRELATED_FLOOR_M`), or above :data:`RPE_UNRELATED_DEG`, is warned about: no odometry is that far off on
+every step (ours: about 1 %); the ground truth is likely another log's."""
+RPE_UNRELATED_FLOOR_M = 0.05
+RPE_UNRELATED_DEG = 5.0
+
+
 def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.float64], *,
                         segment_lengths_m: tuple[float, ...] | None = None) -> dict:
     """ATE (rigid Umeyama), RPE over consecutive frames and KITTI segment errors as a JSON-ready dict.
@@ -84,6 +92,13 @@ def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.
         logger.warning("ATE %.2f m over a path of %.2f m estimated and %.2f m in the ground truth: is the ground truth "
                        "for these frames (the same sequence, frame numbering and sensor frame)?",
                        errs.ate_rmse_m, est_path, total)
+    step_m = float(np.median(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    if errs.rpe_trans_rmse_m > max(RPE_UNRELATED_STEP_FRACTION * step_m, RPE_UNRELATED_FLOOR_M) or (
+            errs.rpe_rot_rmse_deg > RPE_UNRELATED_DEG):  # hostile trial 27 W5: another log's file, 24 cm / 13.7 deg
+        logger.warning("RPE %.3g m / %.3g deg from one frame to the next, against a median ground-truth step of %.3g m: "
+                       "the ground truth's frame-to-frame motion does not fit the estimate's (another log's ground "
+                       "truth with the same stamps? an estimate that jumps?); the ATE then compares unrelated "
+                       "trajectories", errs.rpe_trans_rmse_m, errs.rpe_rot_rmse_deg, step_m)
     return {
         "ate_rmse_m": errs.ate_rmse_m,
         "ate_max_m": errs.ate_max_m,

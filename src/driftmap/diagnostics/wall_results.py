@@ -10,7 +10,7 @@ from typing import Annotated
 
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import ConfigDict, Field, field_validator
+from pydantic import ConfigDict, Field, field_validator, model_validator
 
 from driftmap.config import SettingsModel
 
@@ -50,6 +50,16 @@ class DoubleWallConfig(SettingsModel):
             raise ValueError(f"each voxel size once: {', '.join(f'{v:g}' for v in repeated)} m given more than once "
                              f"(each scale is evaluated and counted once per mention)")
         return sizes
+
+    @model_validator(mode="after")
+    def _separation_within_reach(self) -> DoubleWallConfig:
+        largest = max(self.voxel_sizes_m)
+        if self.min_separation_m >= largest:  # hostile trial 27 W1: min_separation_m = 5 read as a clean map
+            raise ValueError(
+                f"min_separation_m = {self.min_separation_m:g} m is not below the largest voxel size ({largest:g} m): "
+                f"two layers of one voxel are never that far apart, so no double wall could be flagged and every map "
+                f"would read clean; keep it below the voxel sizes (default 0.01 m)")
+        return self
 
 
 @dataclass(frozen=True)
