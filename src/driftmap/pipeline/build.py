@@ -273,6 +273,39 @@ def _warn_a_wider_step(src: FrameSource, existing: set[int], first_new: int) -> 
                        "stored step", src.uri, last, first_new, first_new - last, step)
 
 
+def _warn_a_mixed_step(src: FrameSource, existing: set[int], previous_id: int, first_new: int) -> None:
+    """``--resume`` whose selection steps otherwise than the stored frames do: tracked on (trial 21 B1), but the store
+    then mixes two frame spacings, which no uninterrupted build of one selection gives (hostile trial 27 W2:
+    ``--frames 0:16:2`` after ``0:6`` stored frames 0..6 one apart, then 8..14 two apart, exit 0 without a word)."""
+    ids = np.array(sorted(existing))
+    if len(ids) < 2:
+        return  # no stored step to compare with
+    stored_step = max(int(np.median(np.diff(ids))), 1)
+    new_step = first_new - previous_id
+    if new_step == stored_step:
+        return
+    logger.warning("%s: --resume adds frame %d %d frame(s) after frame %d, while the stored frames are %d apart: the "
+                   "store will mix both spacings, which no uninterrupted build of one --frames selection gives (rates, "
+                   "drift per frame and frame-spacing settings read it as one log). Resume with the stored selection's "
+                   "start and step for a store like an uninterrupted build's", src.uri, first_new, new_step,
+                   previous_id, stored_step)
+
+
+def _check_image_size(src: FrameSource, stored: Frame, frame: Frame) -> None:
+    """``--resume``: the new frames' depth images must be read at the stored frames' size (the same pixel stride):
+    else the store mixes point densities (a ROS log's depth topic is read at ``build.pixel_stride`` since hostile
+    trial 27's follow-up; a store built before read it at every pixel)."""
+    a, b = stored.intrinsics, frame.intrinsics
+    if a is None or b is None or (a.width, a.height) == (b.width, b.height):
+        return
+    raise ConfigError(f"{src.uri}: --resume would store frame {frame.frame_id} as a {b.width}x{b.height} image, while "
+                      f"the stored frames (the last: {stored.frame_id}) are {a.width}x{a.height} (another pixel "
+                      f"stride: build.pixel_stride, chosen automatically as 2 for images 640 px wide or more); the "
+                      f"store would mix two point densities. Nothing new was stored; resume with `[build] "
+                      f"pixel_stride = {max(round(int(getattr(src, 'pixel_stride', 1)) * b.width / a.width), 1)}` "
+                      f"in --config, or build into another --out")
+
+
 STORED_POSE_TOLERANCE_M = 1e-6
 """``--resume`` with given poses: a stored frame's pose and the source's may differ by this (m, and rad) at most."""
 
@@ -345,6 +378,9 @@ def _build(src: FrameSource, store: FrameStore, config: BuildConfig, pose_of: Ca
             _refuse_a_gap(src, existing, frame.frame_id)
         elif existing and n_new == 0 and poser.source is PoseSource.ODOMETRY:
             _warn_a_wider_step(src, existing, frame.frame_id)
+        if existing and n_new == 0:
+            _warn_a_mixed_step(src, existing, last_stored if previous_id is None else previous_id, frame.frame_id)
+            _check_image_size(src, store.frame(last_stored), frame)
         t_b = time.perf_counter()
         T, health = poser.pose(frame)
         t_c = time.perf_counter()

@@ -95,11 +95,17 @@ def open_build_source(source: str | Path, format: str | None, frames: str | None
         options["pixel_stride"] = config.pixel_stride if config.pixel_stride is not None else 0  # 0: decide below
     src = open_source(path, fmt, **{k: v for k, v in options.items() if k != "pixel_stride" or v})
     require_frames(src, path, fmt, frames, {k: v for k, v in options.items() if k not in ("frames", "pixel_stride")})
-    if "pixel_stride" in params and not config.pixel_stride:
-        first = src.frame(0)
-        stride = 2 if first.intrinsics is not None and first.intrinsics.width >= 640 else 1
+    # a ROS log's depth-image topic takes the stride as a data set does (its opener cannot declare it: the format does
+    # not tell whether the topic is one); a 640 px log converted to MCAP was read at every pixel, its folder at every
+    # second (4x the points, other odometry and volume results from one recording)
+    log_depth = "pixel_stride" not in params and bool(getattr(src, "reads_depth_images", False))
+    if ("pixel_stride" in params or log_depth) and not config.pixel_stride:
+        first = src.frame(0) if "pixel_stride" in params else next(iter(src), None)
+        stride = 2 if first is not None and first.intrinsics is not None and first.intrinsics.width >= 640 else 1
         if stride != 1:
             src = open_source(path, fmt, **{**options, "pixel_stride": stride})
+    elif log_depth and config.pixel_stride != 1:
+        src = open_source(path, fmt, **{**options, "pixel_stride": config.pixel_stride})
     return src
 
 

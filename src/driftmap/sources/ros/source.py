@@ -127,6 +127,8 @@ class RosLogSource(FrameSource):
         self.topic = choose_sensor_topic(self.path, self._topics, first_message, topic)
         info = self._topics[self.topic]
         self.msgtype = info.msgtype
+        self.reads_depth_images = self.msgtype == IMAGE
+        """the topic is a depth image topic (``build`` applies ``build.pixel_stride`` to it as to a data set's)"""
         if self.pixel_stride != 1 and self.msgtype != IMAGE:
             raise SourceError(f"{self.path}: pixel_stride applies to depth images; {self.topic} is a {self.msgtype}")
         self._backend.check_decodable(self.topic)
