@@ -117,6 +117,8 @@ class ColoredMap:
     layers: VolumeLayers | None = None
     sessions: tuple[SessionColor, ...] | None = None
     """Colour ``session``: every session of the store with its colour (one entry for a store that no merge made)."""
+    double_wall_caveats: tuple[str, ...] = ()
+    """Colour ``double-wall``: why the flagged count is no verdict (empty: the surfaces allow one)."""
 
     @property
     def n_points(self) -> int:
@@ -266,8 +268,10 @@ def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now:
 
 
 def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32],
-                        points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult]:
-    """|separation| of the finest flagged double-wall voxel containing each point (NaN: none)."""
+                        points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult, list[str]]:
+    """|separation| of the finest flagged double-wall voxel containing each point (NaN: none), the detector's result
+    and why its count is no verdict (:func:`~driftmap.diagnostics.coverage.detector_caveats`)."""
+    from driftmap.diagnostics.coverage import detector_caveats
     from driftmap.diagnostics.detector import detect_double_walls
     from driftmap.diagnostics.diagnose_config import DiagnoseConfig
     from driftmap.diagnostics.samples import DiagnosticCloud
@@ -276,7 +280,9 @@ def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.flo
     sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
     cloud = DiagnosticCloud.from_store(store, sampling, frame_ids=store.members(revision))  # the revision's frames
     poses = store.poses(revision)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
-    result = detect_double_walls(cloud.place(poses), cfg.double_wall)
+    placed = cloud.place(poses)
+    result = detect_double_walls(placed, cfg.double_wall)
+    caveats = detector_caveats(placed, result, cfg.coverage)
     values = np.full(len(points), np.nan)
     done = np.zeros(len(points), bool)
     for scale in sorted(result.scales, key=lambda s: s.voxel_size_m):  # finest first: it localises best
@@ -295,7 +301,7 @@ def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.flo
         hit = (uniq[pos] == pk) & ~done
         values[hit] = sep_max[pos[hit]]
         done |= hit
-    return values, result
+    return values, result, caveats
 
 
 def colored_map(store: FrameStore, *, revision: int | None = None, color: str = "frame", voxel_size_m: float | None = None,
@@ -338,6 +344,7 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     rows = np.searchsorted(store.frame_ids, frame_ids)
     cmap = _palette(color)
     walls = None
+    caveats: list[str] = []
     legend = None
     if color == "session":
         values, colors, legend = session_colours(store, frame_ids)
@@ -366,7 +373,7 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 99)), 1e-6) if finite.size else 1e-3)
     else:
-        values, walls = _double_wall_values(store, rev, points, double_wall_points_budget)
+        values, walls, caveats = _double_wall_values(store, rev, points, double_wall_points_budget)
         label = "double-wall separation (m)"
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 95)), 0.01) if finite.size else 0.05)
@@ -375,7 +382,8 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
     if color != "session":
         colors = _apply_palette(values, value_range, cmap)
     return ColoredMap(rev, color, points, frame_ids, colors, values, label, value_range, cmap, n_map, vs, kind,
-                      _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls, sessions=legend)
+                      _up_axis(poses, kind), poses[:, :3, 3].copy(), ref, walls, sessions=legend,
+                      double_wall_caveats=tuple(caveats))
 
 
 def state_map(store: FrameStore, revision: int | None = None, *, voxel_size_m: float | None = None,

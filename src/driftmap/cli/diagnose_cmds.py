@@ -267,6 +267,10 @@ def view(
                   f"backend {result.backend}")
     if result.n_double_wall_voxels is not None:
         console.print(f"  double-wall voxels flagged: {result.n_double_wall_voxels}")
+        caveats = result.colored.double_wall_caveats if result.colored is not None else ()
+        if caveats:  # hostile trial 27 W7: "flagged: 0" on a map diagnose cannot judge, without a word
+            console.print(Text(f"  the detector cannot judge this map, the count is no verdict: {'; '.join(caveats)} "
+                               f"(driftmap diagnose also checks revisits beyond its range)", style="yellow"))
     if result.sessions is not None:
         _print_session_colours(result.sessions)
     for name, path in result.files.items():

@@ -251,3 +251,12 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     if not result.valid:
         logger.warning("diagnosis cannot judge everything: %s", "; ".join(result.reasons))
     return result
+
+
+def detector_caveats(placed: PlacedCloud, walls: DoubleWallResult, config: CoverageConfig | None = None) -> list[str]:
+    """Why the double-wall detector's count on ``placed`` is no verdict (empty: it is one, as far as the surfaces tell):
+    the reasons :func:`assess` gives its fraction flagged and smearing score, without the revisit check and the drift
+    fit (``driftmap view --color double-wall`` read "flagged: 0" on a map that ``diagnose`` cannot judge, hostile trial
+    27 W7)."""
+    cov = assess(placed, walls, drift_frames=0, config=config)
+    return list(dict.fromkeys(r for name in ("fraction_flagged", "smearing_score") for r in cov.measures[name]["reasons"]))
