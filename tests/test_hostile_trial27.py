@@ -127,3 +127,139 @@ def test_t27_w6_the_ate_row_says_how_many_frames_it_covers(room10: dict[str, Pat
     assert "(over 3 of the 10 frames: the others have no ground truth)" in text, text[-3000:]
     out = run_cli("diagnose", room10["gt"], "--json", tmp_path / "e.json", "--gt", room10["log"] / "groundtruth.txt")
     assert out.returncode == 0 and "ATE / RPE" in out.stdout and "the others have no ground truth" not in out.stdout
+
+
+def test_t27_w1_a_min_separation_that_blinds_the_detector_is_refused(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``[diagnose.double_wall] min_separation_m = 5`` (over 10x the largest voxel, 0.4 m: no double wall can be
+    flagged) read as a clean, valid map: refused naming the setting and the largest voxel size, nothing written."""
+    cfg = tmp_path / "blind.toml"
+    cfg.write_text("[diagnose.double_wall]\nmin_separation_m = 0.4\n")
+    err = one_error(run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json", "--config", cfg))
+    assert "diagnose.double_wall" in err and "min_separation_m = 0.4 m is not below the largest voxel size (0.4 m)" \
+        in err, err
+    assert not (tmp_path / "d.json").exists()
+    cfg.write_text("[diagnose.double_wall]\nmin_separation_m = 0.39\n")
+    assert run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json", "--config", cfg).returncode == 0
+
+
+def test_t27_w2_a_resume_with_another_step_says_that_the_store_mixes_spacings(room10: dict[str, Path],
+                                                                             tmp_path: Path) -> None:
+    """``--resume --frames 0:10:2`` after ``--frames 0:4`` stored frames 0..3 one apart, then 4, 6, 8 two apart,
+    exit 0 without a word: still tracked on (trial 21 B1), but said; a resume with the stored step is not."""
+    said = {}
+    for frames in ("0:10:2", "0:10"):
+        store = tmp_path / frames.replace(":", "_")
+        _ok = run_cli("build", room10["log"], "--out", store, "--frames", "0:4", "--threads", 1, "--no-loop-closure")
+        assert _ok.returncode == 0, _ok.stderr[-2000:]
+        out = run_cli("build", room10["log"], "--out", store, "--frames", frames, "--threads", 1, "--no-loop-closure",
+                      "--resume")
+        assert out.returncode == 0, out.stderr[-2000:]
+        said[frames] = " ".join(out.stderr.split())
+    assert "--resume adds frame 4 2 frame(s) after frame 2, while the stored frames are 1 apart: the store will mix " \
+           "both spacings" in said["0:10:2"], said["0:10:2"]
+    assert "mix both spacings" not in said["0:10"], said["0:10"]
+
+
+def test_t27_w7_the_double_wall_view_says_when_the_detector_cannot_judge(room10: dict[str, Path],
+                                                                        tmp_path: Path) -> None:
+    """``view --color double-wall`` printed "double-wall voxels flagged: 0" on a map ``diagnose`` cannot judge (a
+    short log: no surface seen on two visits): the line carries the detector's reasons, the same ones the diagnosis
+    gives its fraction flagged and smearing score."""
+    import json
+
+    out = run_cli("view", room10["gt"], "--headless", "--out", tmp_path / "v", "--color", "double-wall",
+                  "--backend", "software")
+    assert out.returncode == 0, out.stderr[-2000:]
+    text = " ".join(out.stdout.split())
+    assert "double-wall voxels flagged: 0" in text, text
+    assert run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json").returncode == 0
+    d = json.loads((tmp_path / "d.json").read_text())
+    reasons = [r for name in ("fraction_flagged", "smearing_score")  # the view runs no revisit check
+               for r in d["coverage"]["measures"][name]["reasons"] if "(revisit check;" not in r]
+    assert reasons, d["coverage"]["measures"]  # this short log is one the diagnosis cannot judge
+    assert "the detector cannot judge this map, the count is no verdict:" in text, text
+    for reason in dict.fromkeys(reasons):
+        assert " ".join(reason.split()) in text, (reason, text)
+
+
+def test_t27_w8_two_builds_of_one_recording_are_not_merged_as_two_sessions(room10: dict[str, Path],
+                                                                          tmp_path: Path) -> None:
+    """``merge`` of a ground-truth build and an odometry build of one log made a store of every frame twice (other
+    uuids, so the same-store check let them through): refused, naming both stores and the first shared frame;
+    nothing is written. Builds of two frame ranges of the log that do not overlap are no such case."""
+    other = tmp_path / "odom"
+    assert run_cli("build", room10["log"], "--out", other, "--frames", "4:10", "--threads", 1,
+                   "--no-loop-closure").returncode == 0
+    err = one_error(run_cli("merge", room10["gt"], other, "--out", tmp_path / "m"))
+    assert "the same recording built twice, not two sessions: 6 of their frames were read from the same files at " \
+           "the same stamps (the first: frame 4 of" in err, err
+    assert not (tmp_path / "m").exists()
+    from driftmap.pipeline.same_recording import frame_readings, refuse_same_recording
+    from driftmap.store.frame_store import FrameStore
+
+    with FrameStore.open(room10["gt"]) as a, FrameStore.open(other) as b:
+        ra, rb = frame_readings(a), frame_readings(b)
+    assert len(ra) == 10 and len(rb) == 6
+    refuse_same_recording([("first", {k: v for k, v in ra.items() if v < 4}), ("second", rb)])  # no overlap: fine
+
+
+def test_t27_w5_another_logs_ground_truth_with_the_same_stamps_is_warned_about(room10: dict[str, Path],
+                                                                              tmp_path: Path) -> None:
+    """``diagnose --gt`` with another synthetic log's ground truth (the same stamps, the room's circle gone round in 6
+    frames instead of 10) printed a large ATE / RPE without a hint: an RPE far beyond what any odometry does on every
+    step is warned about; this log's own ground truth is not."""
+    assert run_cli("synth", tmp_path / "other", "--seed", 3, "--frames", 6).returncode == 0
+    out = run_cli("diagnose", room10["gt"], "--json", tmp_path / "d.json", "--gt", tmp_path / "other" / "groundtruth.txt")
+    assert out.returncode == 0, out.stderr[-2000:]
+    err = " ".join(out.stderr.split())
+    assert "the ground truth's frame-to-frame motion does not fit the estimate's (another log's ground truth with the " \
+           "same stamps?" in err, err[-3000:]
+    out = run_cli("diagnose", room10["gt"], "--json", tmp_path / "e.json", "--gt", room10["log"] / "groundtruth.txt")
+    assert out.returncode == 0 and "frame-to-frame motion does not fit" not in " ".join(out.stderr.split())
+
+
+def test_a_640_px_depth_image_log_is_read_at_the_data_sets_pixel_stride(sevenscenes_dir: Path,
+                                                                          tmp_path: Path) -> None:
+    """A 640 px 7-Scenes folder is built at every second pixel (the automatic ``build.pixel_stride``), but the same
+    depth images in an MCAP log (sensor_msgs/Image + CameraInfo) were built at every pixel, and ``[build]
+    pixel_stride`` was ignored there without a word (the ROS opener cannot declare the stride: the format does not
+    tell whether its topic is a depth image). Both now store the same points; an explicit stride applies to the log
+    too, and a resume at another stride than the stored frames' is refused before anything is stored."""
+    from PIL import Image
+
+    from driftmap.export import write_depth_image_mcap
+    from driftmap.frame import PinholeIntrinsics
+    from driftmap.store.frame_store import FrameStore
+
+    log = tmp_path / "d7"
+    log.mkdir()
+    for i in range(3):
+        shutil.copy(sevenscenes_dir / f"frame-{i:06d}.depth.png", log)
+        (log / f"frame-{i:06d}.pose.txt").write_text("1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n")
+    shutil.copy(sevenscenes_dir / "camera-intrinsics.txt", log)
+    depths = [np.array(Image.open(log / f"frame-{i:06d}.depth.png")) for i in range(3)]
+    K = PinholeIntrinsics(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
+    mcap = write_depth_image_mcap(tmp_path / "d7.mcap", depths, [1_700_000_000_000_000_000 + k * 33_333_333
+                                                                  for k in range(3)], K, compression="none")["out"]
+    for name, src in (("folder", log), ("mcap", mcap)):
+        out = run_cli("build", src, "--out", tmp_path / name, "--no-loop-closure", "--frames", "0:2",
+                      *(("--poses-from-source",) if name == "folder" else ()))
+        assert out.returncode == 0, out.stderr[-2000:]
+    with FrameStore.open(tmp_path / "folder") as a, FrameStore.open(tmp_path / "mcap") as b:
+        fa, fb = a.frame(int(a.frame_ids[0])), b.frame(int(b.frame_ids[0]))
+        assert fa.intrinsics.width == fb.intrinsics.width == 320
+        assert len(fa.points_sensor) == len(fb.points_sensor) > 10_000
+        assert np.allclose(fa.points_sensor, fb.points_sensor, atol=1e-6)
+    cfg = tmp_path / "s4.toml"
+    cfg.write_text("[build]\npixel_stride = 4\n")
+    out = run_cli("build", mcap, "--out", tmp_path / "m4", "--no-loop-closure", "--config", cfg)
+    assert out.returncode == 0, out.stderr[-2000:]
+    with FrameStore.open(tmp_path / "m4") as s:
+        assert s.frame(int(s.frame_ids[0])).intrinsics.width == 160
+    cfg.write_text("[build]\npixel_stride = 1\n")
+    err = one_error(run_cli("build", mcap, "--out", tmp_path / "mcap", "--no-loop-closure", "--config", cfg,
+                            "--resume"))
+    assert "--resume would store frame 2 as a 640x480 image, while the stored frames (the last: 1) are 320x240" in err
+    assert "pixel_stride = 2" in err, err
+    with FrameStore.open(tmp_path / "mcap") as s:
+        assert len(s) == 2

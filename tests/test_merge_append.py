@@ -539,3 +539,16 @@ def test_t23_b1_a_damaged_merge_summary_never_makes_up_a_lost_revision(appended:
     assert "nothing to do" in out.stdout, out.stdout
     with FrameStore.open(store) as s:
         assert not s.loss and (s.head, len(s.revisions)) == before[:2] and (s.poses() == before[2]).all()
+
+
+def test_t27_w8_a_second_build_of_a_placed_sessions_frames_is_not_appended(room: dict, tmp_path: Path) -> None:
+    """Hostile trial 27 W8, the append path: a new build of frames session 0 already holds (its own uuid) would put
+    them in the map twice: refused naming the session and the new store, the merged store unchanged."""
+    store = _copy_ab(room, "AB_w8")
+    again = tmp_path / "A_again"
+    build(room["log"], again, poses_from_source=True, frames="5:15", loop_closure=False)
+    before = _hashes(store)
+    line = one_error(run_cli("merge", store, again, "--append", "--config", room["root"] / "fast.toml"))
+    assert f"{store} (session 0) and {again}: the same recording built twice, not two sessions: 10 of their frames" \
+        in line, line
+    assert _hashes(store) == before

@@ -63,6 +63,7 @@ from driftmap.pipeline.merge_loops import (
     find_pair_loops,
 )
 from driftmap.pipeline.resume import recorded_odometry
+from driftmap.pipeline.same_recording import frame_readings, refuse_same_recording
 from driftmap.preprocess.scene import sample_positions
 from driftmap.registration.loops import Keyframe, LoopClosureConfig, select_keyframes
 from driftmap.registration.odometry import OdometryConfig
@@ -435,6 +436,7 @@ def _check_sessions(paths: list[Path], sources: list[FrameStore]) -> list[str]:
         if f.sensor_name != f0.sensor_name:
             logger.warning("%s and %s: sensor names differ (%r, %r); merging them as one %s", paths[0], paths[k],
                            f0.sensor_name, f.sensor_name, f0.sensor_kind.value)
+    refuse_same_recording([(f"{p} (session {k})", frame_readings(s)) for k, (p, s) in enumerate(zip(paths, sources))])
     return uuids
 
 

@@ -60,6 +60,7 @@ from driftmap.pipeline.merge import (
     SESSION_ID_STRIDE,
     SessionReport,
     copy_frames,
+    frame_origin,
     keyframe_range,
     odometry_config,
     record_graph_verdicts,
@@ -69,6 +70,7 @@ from driftmap.pipeline.merge import (
     store_sessions,
 )
 from driftmap.pipeline.merge_loops import MIN_CONSISTENT_LOOPS, PairLoops, drop_graph_rejected, find_pair_loops
+from driftmap.pipeline.same_recording import frame_readings, refuse_same_recording
 from driftmap.registration.loops import CandidateKind, Keyframe, LoopClosureConfig, select_keyframes, verify
 from driftmap.registration.place import scan_context_distance, yaw_guess
 from driftmap.store.frame_store import FrameStore
@@ -277,7 +279,19 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
             kind = {True: "none", False: "pinhole"}
             raise ConfigError(f"{merged} and {p}: different intrinsics (intrinsics {kind[first.intrinsics is None]} "
                               f"vs {kind[f.intrinsics is None]}); append sessions of the merged store's sensor kind")
+    # a session the head leaves out may come anew, and an interrupted append's sessions are being finished
+    head = set(np.asarray(store.members(), np.int64).tolist())
+    pending = {int(s["session"]) for s in (summary.get(PENDING_KEY) or {}).get("sessions", [])}
+    placed = [(f"{merged} (session {k})", frame_readings(store, [f for f in ids if f in head], _origin_reading))
+              for k, ids in sorted(store_sessions(store).items()) if k not in pending]
+    refuse_same_recording([*placed, *((str(p), frame_readings(s)) for p, s in zip(paths, sources, strict=True))])
     return uuids
+
+
+def _origin_reading(provenance: dict[str, Any]) -> tuple[str | None, int | None] | None:
+    """A merged store's frame: the source URI and index its origin was read from (None: not a merged frame)."""
+    origin = frame_origin(provenance)
+    return None if origin is None else (origin.source_uri, origin.index)
 
 
 def interrupted_append(merged: Path, head: int) -> str | None:
