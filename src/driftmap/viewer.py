@@ -60,6 +60,7 @@ from driftmap.render import (  # noqa: E402,F401
     render_software,
 )
 from driftmap.viewer_sessions import SessionColor, latest_state_of, session_colours, store_session_ids  # noqa: E402,F401
+from driftmap.viewer_walls import double_wall_values  # noqa: E402
 from driftmap.voxels import ABSOLUTE_GRID, random_per_key, voxel_keys  # noqa: E402
 
 if TYPE_CHECKING:
@@ -267,43 +268,6 @@ def _displacement_m(points: NDArray[np.float32], rows: NDArray[np.int64], T_now:
     return np.linalg.norm(p_ref - p, axis=1), moved_frame[rows]
 
 
-def _double_wall_values(store: FrameStore, revision: int, points: NDArray[np.float32],
-                        points_budget: int | None) -> tuple[NDArray[np.float64], DoubleWallResult, list[str]]:
-    """|separation| of the finest flagged double-wall voxel containing each point (NaN: none), the detector's result
-    and why its count is no verdict (:func:`~driftmap.diagnostics.coverage.detector_caveats`)."""
-    from driftmap.diagnostics.coverage import detector_caveats
-    from driftmap.diagnostics.detector import detect_double_walls
-    from driftmap.diagnostics.diagnose_config import DiagnoseConfig
-    from driftmap.diagnostics.samples import DiagnosticCloud
-
-    cfg = DiagnoseConfig.for_store(store)
-    sampling = cfg.sampling if points_budget is None else cfg.sampling.model_copy(update={"points_budget": points_budget})
-    cloud = DiagnosticCloud.from_store(store, sampling, frame_ids=store.members(revision))  # the revision's frames
-    poses = store.poses(revision)[np.searchsorted(store.frame_ids, cloud.frame_ids)]
-    placed = cloud.place(poses)
-    result = detect_double_walls(placed, cfg.double_wall)
-    caveats = detector_caveats(placed, result, cfg.coverage)
-    values = np.full(len(points), np.nan)
-    done = np.zeros(len(points), bool)
-    for scale in sorted(result.scales, key=lambda s: s.voxel_size_m):  # finest first: it localises best
-        if not scale.flagged.any():
-            continue
-        size = scale.voxel_size_m
-        flagged_keys = voxel_keys(scale.centers_m[scale.flagged], size, grid=ABSOLUTE_GRID, what="double-wall")
-        seps = np.abs(scale.separation_m[scale.flagged])
-        order = np.argsort(flagged_keys)
-        flagged_keys, seps = flagged_keys[order], seps[order]
-        # several groups (two surfaces, two sensor sides) can share a voxel: keep the largest separation
-        uniq, start = np.unique(flagged_keys, return_index=True)
-        sep_max = np.maximum.reduceat(seps, start)
-        pk = voxel_keys(points, size, grid=ABSOLUTE_GRID, what="double-wall")  # looked up among the flagged keys
-        pos = np.clip(np.searchsorted(uniq, pk), 0, len(uniq) - 1)
-        hit = (uniq[pos] == pk) & ~done
-        values[hit] = sep_max[pos[hit]]
-        done |= hit
-    return values, result, caveats
-
-
 def colored_map(store: FrameStore, *, revision: int | None = None, color: str = "frame", voxel_size_m: float | None = None,
                 reference_revision: int | None = None, max_points: int = 3_000_000, double_wall_points_budget: int | None = None,
                 seed: int = 0, latest_state: bool = False) -> ColoredMap:
@@ -373,7 +337,7 @@ def colored_map(store: FrameStore, *, revision: int | None = None, color: str = 
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 99)), 1e-6) if finite.size else 1e-3)
     else:
-        values, walls, caveats = _double_wall_values(store, rev, points, double_wall_points_budget)
+        values, walls, caveats = double_wall_values(store, rev, points, double_wall_points_budget)
         label = "double-wall separation (m)"
         finite = values[np.isfinite(values)]
         value_range = (0.0, max(float(np.percentile(finite, 95)), 0.01) if finite.size else 0.05)

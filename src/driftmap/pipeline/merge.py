@@ -103,6 +103,11 @@ class FrameOrigin:
     """the frame's own provenance in the source store (data set file, log and topic), if it had one"""
     index: int | None = None
 
+    @property
+    def reading(self) -> tuple[str | None, int | None]:
+        """(source URI, index) the frame was read from before the merge."""
+        return self.source_uri, self.index
+
 
 def frame_origin(provenance: Provenance | dict | None) -> FrameOrigin | None:
     """The session and source of a merged store's frame from its provenance (a :class:`Provenance` or the stored

@@ -282,16 +282,11 @@ def _check_new(merged: Path, store: FrameStore, summary: dict[str, Any], paths: 
     # a session the head leaves out may come anew, and an interrupted append's sessions are being finished
     head = set(np.asarray(store.members(), np.int64).tolist())
     pending = {int(s["session"]) for s in (summary.get(PENDING_KEY) or {}).get("sessions", [])}
-    placed = [(f"{merged} (session {k})", frame_readings(store, [f for f in ids if f in head], _origin_reading))
+    origin = lambda provenance: getattr(frame_origin(provenance), "reading", None)  # noqa: E731 - a merged frame's own
+    placed = [(f"{merged} (session {k})", frame_readings(store, [f for f in ids if f in head], origin))
               for k, ids in sorted(store_sessions(store).items()) if k not in pending]
     refuse_same_recording([*placed, *((str(p), frame_readings(s)) for p, s in zip(paths, sources, strict=True))])
     return uuids
-
-
-def _origin_reading(provenance: dict[str, Any]) -> tuple[str | None, int | None] | None:
-    """A merged store's frame: the source URI and index its origin was read from (None: not a merged frame)."""
-    origin = frame_origin(provenance)
-    return None if origin is None else (origin.source_uri, origin.index)
 
 
 def interrupted_append(merged: Path, head: int) -> str | None:
