@@ -230,6 +230,21 @@ def refuse_output_on_input(path: Path, flag: str, inputs: list[tuple[Path, str]]
             raise ConfigError(f"{path}: {flag} is {what} itself; write the output to another path")
 
 
+def refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:
+    """No output replaces what the store was built from (its source folder or log, a file in that folder, its
+    --poses or --calib file), --overwrite or not: ``--resume`` and ``--poses-from-source`` read them again
+    (``export``, ``decide``, ``diagnose``: hostile trial 28 B1 replaced a log's ground truth by a diagnosis)."""
+    from driftmap.errors import ConfigError
+    from driftmap.pipeline.resume import recorded_inputs
+
+    for source, what in recorded_inputs(store_path):
+        src = source.resolve()
+        for path, flag in outputs:
+            dst = path.resolve()
+            if dst == src or (src.is_dir() and src in dst.parents):
+                raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
+
+
 def refuse_existing(path: Path, flag: str, overwrite: bool) -> None:
     """An existing output file is kept unless ``--overwrite`` (as ``export`` does)."""
     from driftmap.errors import ConfigError

@@ -25,6 +25,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     refuse_same_output,
+    refuse_store_inputs,
     stage_ticker,
     warn_unmerged,
 )
@@ -92,7 +93,7 @@ def decide(
     outputs = [(json_path, "--json")] + ([(report, "--report"), (figure, "--report")] if report is not None else [])
     for store_dir in (store_path, against):
         if store_dir is not None:
-            _refuse_store_inputs(store_dir, outputs)
+            refuse_store_inputs(store_dir, outputs)
     refuse_same_output([(json_path, "--json"), *inputs] + ([(report, "--report"), (figure, "--report")] if figure else []),
                        folders=("--report",))
     check_output(json_path, "--json")
@@ -229,20 +230,6 @@ def _refuse_same_input(inputs: list[tuple[Path, str]]) -> None:
         seen[key] = flag
 
 
-def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:
-    """No output replaces what the store was built from (its source folder or log, a file in that folder, its
-    --poses or --calib file), --overwrite or not: ``--resume`` and ``--poses-from-source`` read them again."""
-    from driftmap.errors import ConfigError
-    from driftmap.pipeline.resume import recorded_inputs
-
-    for source, what in recorded_inputs(store_path):
-        src = source.resolve()
-        for path, flag in outputs:
-            dst = path.resolve()
-            if dst == src or (src.is_dir() and src in dst.parents):
-                raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
-
-
 def _check_same_log(store, other, other_path: Path, same_log: bool = False, rev: int | None = None,
                     other_rev: int | None = None) -> None:
     """--against: the two stores must hold the same log -- frames in common (by id), each with the same stamp in
@@ -255,6 +242,12 @@ def _check_same_log(store, other, other_path: Path, same_log: bool = False, rev:
 
     ids_a, st_a = np.asarray(store.ledger.frame_ids), np.asarray(store.ledger.stamps_ns)
     ids_b, st_b = np.asarray(other.ledger.frame_ids), np.asarray(other.ledger.stamps_ns)
+    if len(ids_a) and len(ids_b):  # (hostile trial 28 W3: --same-log over two sensors read 35 of 60 decisions flipped)
+        fa, fb = store.frame(int(ids_a[0])), other.frame(int(ids_b[0]))
+        if fa.sensor_kind is not fb.sensor_kind:
+            raise ConfigError(f"--against {other_path}: the stores hold different sensors ({fa.sensor_kind.value} in "
+                              f"{store.path}, {fb.sensor_kind.value} in {other_path}): their decisions differ by what "
+                              f"each sensor sees, not by a pose; compare stores of one sensor")
     shared, ia, ib = np.intersect1d(ids_a, ids_b, assume_unique=True, return_indices=True)
     if len(shared) == 0:
         def span(ids) -> str:

@@ -26,6 +26,7 @@ from driftmap.cli.common import (
     refuse_existing,
     refuse_output_on_input,
     refuse_same_output,
+    refuse_store_inputs,
     stage_ticker,
     warn_unmerged,
     writing_output,
@@ -69,6 +70,7 @@ def diagnose(
     refuse_same_output([(p, f) for p, f in ((json_path, "--json"), (report, "--report"), (gt, "--gt"),
                                             (config, "--config"), (calib, "--calib"))
                         if p is not None], folders=("--report",))  # an output never replaces an input, nor another output
+    refuse_store_inputs(store_path, [(p, f) for p, f in ((json_path, "--json"), (report, "--report")) if p is not None])
     if json_path.is_file() and not is_diagnosis_file(json_path):
         refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it

@@ -27,6 +27,7 @@ from driftmap.cli.common import (
     progress_bar,
     refuse_existing,
     refuse_same_output,
+    refuse_store_inputs,
     warn_unmerged,
 )
 
@@ -142,7 +143,7 @@ def export(
     revision: Annotated[Optional[int], typer.Option("--revision", help="Revision (default: the latest).")] = None,
     map_path: Annotated[Optional[Path], typer.Option("--map", help="Write the map: OUT.ply or OUT.pcd.")] = None,
     voxel_size_m: Annotated[Optional[float], typer.Option("--voxel-size-m", callback=finite, help="Voxel-deduplicate the map (default: map.export_voxel_size_m if set, else every point; --mcap: 0.02 m).")] = None,
-    trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file.")] = None,
+    trajectory: Annotated[Optional[Path], typer.Option("--trajectory", help="Write the trajectory to this file (a name ending .kitti or .tum must match --format).")] = None,
     format: Annotated[str, typer.Option("--format", help="Trajectory format: tum | kitti")] = "tum",
     mcap_path: Annotated[Optional[Path], typer.Option("--mcap", help="Write OUT.mcap for Foxglove: fused map, trajectory and every frame with the revision's poses.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
@@ -184,6 +185,11 @@ def export(
         raise typer.BadParameter(f"{grid2d_path}: name the map's YAML file (OUT.yaml or .yml; its image is written "
                                  f"beside it as OUT.pgm)", param_hint="--grid2d")
     format = choice(format, ("tum", "kitti"), "--format")
+    named = {".kitti": "kitti", ".tum": "tum"}.get(trajectory.suffix.lower()) if trajectory is not None else None
+    if named is not None and named != format:  # hostile trial 28 W5: X.kitti written as TUM without a word
+        raise typer.BadParameter(f"{trajectory}: the name says {named}, but the trajectory is written as {format} "
+                                 f"(--format {format}); pass --format {named}, or name the file otherwise",
+                                 param_hint="--trajectory")
     if voxel_size_m is not None and not 0 < voxel_size_m <= MAX_VOXEL_SIZE_M:
         raise typer.BadParameter(f"must be positive and at most {MAX_VOXEL_SIZE_M:g} m, got {voxel_size_m}",
                                  param_hint="--voxel-size-m")
@@ -209,8 +215,8 @@ def export(
     if map_path is not None:  # written with voxels; without, an earlier export's would describe another map
         outputs.append((Path(f"{map_path}.provenance.npz"), "--map (its provenance file)" if voxel_size_m is not None
                         else "--map (the provenance file of an earlier voxelised export beside it)"))
-    refuse_same_output([(p, f) for p, f in outputs if p is not None])
-    _refuse_store_inputs(store_path, [(p, f) for p, f in outputs if p is not None])
+    refuse_same_output([(p, f) for p, f in [*outputs, (config, "--config")] if p is not None])  # (trial 28 B2)
+    refuse_store_inputs(store_path, [(p, f) for p, f in outputs if p is not None])
     for path, flag in outputs:  # every output checked before anything is written
         if path is not None:
             refuse_existing(path, flag, overwrite)
@@ -297,20 +303,6 @@ def _print_mcap_sessions(colors: dict[int, tuple[int, int, int]], sessions: Opti
 
 MAX_VOXEL_SIZE_M = 1000.0
 """--voxel-size-m of export and view: a voxel larger than this is no map (checked after 'finite', so inf says so)."""
-
-
-def _refuse_store_inputs(store_path: Path, outputs: list[tuple[Path, str]]) -> None:
-    """No export replaces what the store was built from (its source, a file in its source folder, its --poses or
-    --calib file), --overwrite or not: ``--resume`` and ``--poses-from-source`` read them again."""
-    from driftmap.errors import ConfigError
-    from driftmap.pipeline.resume import recorded_inputs
-
-    for source, what in recorded_inputs(store_path):
-        src = source.resolve()
-        for path, flag in outputs:
-            dst = path.resolve()
-            if dst == src or (src.is_dir() and src in dst.parents):
-                raise ConfigError(f"{flag} {path}: would replace {what} ({source}); write it elsewhere")
 
 
 def _band(text: Optional[str]) -> Optional[tuple[float, float]]:
