@@ -1019,7 +1019,7 @@ def test_a_pcd_in_millimetres_is_refused_as_a_units_problem(kitti_dir: Path, tmp
     code, said = _cli(["build", folder, "--out", tmp_path / "store", "--no-loop-closure"])
     assert code != 0, said
     assert f"{folder / 'scan_0.pcd'} (frame 0): the median point lies 1.008e+04 m from the sensor" in said, said
-    assert "look like millimetres (the median would be 10.1 m)" in said and "read in metres" in said
+    assert "look like millimetres or centimetres (the median would be 10.1 m in millimetres" in said and "read in metres" in said
     scan = _kitti_scan(kitti_dir, 0, 10)
     part = scan.copy()
     part[: len(part) // 5, :3] *= 5000.0  # a fifth of the cloud beyond 10 km (the median stays in range)

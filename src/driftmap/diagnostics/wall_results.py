@@ -15,6 +15,10 @@ from pydantic import ConfigDict, Field, field_validator, model_validator
 from driftmap.config import SettingsModel
 
 
+SAME_SIZE_M = 1e-6
+"""Two ``voxel_sizes_m`` within this are one scale (each would count the same voxels)."""
+
+
 class DoubleWallConfig(SettingsModel):
     """Parameters of the double-wall detector and the smearing score (indoor RGB-D defaults)."""
 
@@ -45,10 +49,11 @@ class DoubleWallConfig(SettingsModel):
     @field_validator("voxel_sizes_m")
     @classmethod
     def _distinct_sizes(cls, sizes: tuple[float, ...]) -> tuple[float, ...]:
-        repeated = sorted({v for v in sizes if sizes.count(v) > 1})
+        repeated = sorted({v for k, v in enumerate(sizes) for w in sizes[:k] if abs(v - w) <= SAME_SIZE_M})
         if repeated:  # hostile trial 27 B1: a scale given twice was counted twice (6 / 4048 instead of 3 / 2024)
             raise ValueError(f"each voxel size once: {', '.join(f'{v:g}' for v in repeated)} m given more than once "
-                             f"(each scale is evaluated and counted once per mention)")
+                             f"(each scale is evaluated and counted once per mention; sizes within "
+                             f"{SAME_SIZE_M:g} m are one: hostile trial 28 W1)")
         return sizes
 
     @model_validator(mode="after")

@@ -279,6 +279,8 @@ def read_open3d_intrinsics(file: Path) -> PinholeIntrinsics:
 FOCAL_RANGE_PX = (1.0, 1e6)
 MAX_PLAUSIBLE_FOV_DEG = 150.0
 """A pinhole field of view wider than this (deg, horizontal) is warned about: a unit or image-size mistake."""
+MAX_FOCAL_RATIO = 2.0
+"""fx / fy beyond this (or below its inverse) is warned about (hostile trial 28 B3: fy 100x fx built "tracking ok")."""
 MIN_PLAUSIBLE_FOV_DEG = 20.0
 """A pinhole field of view narrower than this (deg, horizontal) is warned about: a focal length in other units or for
 another image size (hostile trial 27 B2: fx 10x and 1000x too large built "tracking ok" on pencil-thin clouds)."""
@@ -296,20 +298,37 @@ def intrinsics_problem(intrinsics: PinholeIntrinsics) -> str | None:
     return None
 
 
+_WARNED: set[tuple[str, PinholeIntrinsics]] = set()
+"""Intrinsics already checked (and warned about) per source, so that each warning is given once per process."""
+
+
 def checked_intrinsics(intrinsics: PinholeIntrinsics, what: str | Path) -> PinholeIntrinsics:
     """``intrinsics``, or :class:`SourceError` naming ``what`` (where they come from) and :func:`intrinsics_problem`."""
     problem = intrinsics_problem(intrinsics)
     if problem is not None:
         raise SourceError(f"{what}: unusable camera intrinsics ({problem})")
-    fov_deg = 2.0 * np.degrees(np.arctan(0.5 * intrinsics.width / intrinsics.fx))
-    if fov_deg > MAX_PLAUSIBLE_FOV_DEG:
-        logger.warning("%s: fx=%g px gives a %.0f deg horizontal field of view over %d px (pinhole depth cameras see "
-                       "55-120 deg): is fx in other units, or for another image size?", what, intrinsics.fx, fov_deg,
-                       intrinsics.width)
-    elif fov_deg < MIN_PLAUSIBLE_FOV_DEG:
-        logger.warning("%s: fx=%g px gives a %.2g deg horizontal field of view over %d px (pinhole depth cameras see "
-                       "55-120 deg): is fx in other units, or for another image size? Every point would lie in a "
-                       "cone this narrow", what, intrinsics.fx, fov_deg, intrinsics.width)
+    i = intrinsics
+    if (str(what), i) in _WARNED:
+        return intrinsics  # said once (a source opened twice, for its pixel stride: hostile trial 28 W10)
+    _WARNED.add((str(what), i))
+    for name, f, size, axis in (("fx", i.fx, i.width, "horizontal"), ("fy", i.fy, i.height, "vertical")):
+        fov_deg = 2.0 * np.degrees(np.arctan(0.5 * size / f))  # (hostile trial 28 B3: fy was never looked at)
+        if fov_deg > MAX_PLAUSIBLE_FOV_DEG:
+            logger.warning("%s: %s=%g px gives a %.0f deg %s field of view over %d px (pinhole depth cameras see "
+                           "55-120 deg): is %s in other units, or for another image size?", what, name, f, fov_deg,
+                           axis, size, name)
+        elif fov_deg < MIN_PLAUSIBLE_FOV_DEG:
+            logger.warning("%s: %s=%g px gives a %.2g deg %s field of view over %d px (pinhole depth cameras see "
+                           "55-120 deg): is %s in other units, or for another image size? Every point would lie in a "
+                           "cone this narrow", what, name, f, fov_deg, axis, size, name)
+    if not 1.0 / MAX_FOCAL_RATIO <= i.fx / i.fy <= MAX_FOCAL_RATIO:
+        logger.warning("%s: fx=%g and fy=%g px differ %.3g-fold (a camera's pixels are near square): is one of them "
+                       "in other units, or mistyped?", what, i.fx, i.fy, max(i.fx / i.fy, i.fy / i.fx))
+    if not (0.0 < i.cx < i.width and 0.0 < i.cy < i.height):
+        logger.warning("%s: the principal point cx=%g, cy=%g px lies on the edge of or outside the %dx%d image (a "
+                       "camera's optical "
+                       "axis meets its image near the centre): are cx, cy in other units, for another image size, "
+                       "or swapped with fx, fy?", what, i.cx, i.cy, i.width, i.height)
     return intrinsics
 
 

@@ -107,8 +107,9 @@ def check_units(points: NDArray, what: str) -> None:
     if median is None or not MAX_MEDIAN_RANGE_M < median <= MILLIMETRE_MEDIAN_RANGE_M:
         return
     raise SourceError(f"{what}: the median point lies {median:.4g} m from the sensor, which no LiDAR scan in metres "
-                      f"does (at most {MAX_MEDIAN_RANGE_M:g} m): the coordinates look like millimetres (the median "
-                      f"would be {median / 1000:.3g} m), or the points are not in the sensor's frame; LiDAR points are "
+                      f"does (at most {MAX_MEDIAN_RANGE_M:g} m): the coordinates look like millimetres or centimetres "
+                      f"(the median would be {median / 1000:.3g} m in millimetres, {median / 100:.3g} m in centimetres; "
+                      f"hostile trial 28 W12), or the points are not in the sensor's frame; LiDAR points are "
                       f"read in metres, in the sensor's frame: convert the file's coordinates to metres; the cloud is "
                       f"refused")
 
