@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Results folder (created).")] = Path("results/demo"),
-    frames: Annotated[Optional[int], typer.Option("--frames", min=2, help="Use only the first N frames.")] = None,
+    frames: Annotated[Optional[int], typer.Option("--frames", min=3, help="Use only the first N frames (at least 3: the ATE against the ground truth needs them).")] = None,
     log: Annotated[Optional[Path], typer.Option("--log", help="Another synthetic log folder instead of the embedded one.")] = None,
 ) -> None:
     """Run the whole story on the embedded synthetic drifting-robot log: build -> diagnose -> loop closure
@@ -237,6 +237,11 @@ def synth(
     if scene != "room" and (door_open or move_chair):
         raise typer.BadParameter("the door and the chair are the room's (--scene room)",
                                  param_hint="--door-open" if door_open else "--move-chair")
+    if stop_frames and not stops:  # (hostile trial 28 W8: taken, and a log without a stop written)
+        raise typer.BadParameter("sets how long each stop lasts: give --stops K with it", param_hint="--stop-frames")
+    if (turn_deg_per_frame or turn_frames) and not (turns or turn_at):
+        raise typer.BadParameter("sets the in-place turns: give --turns K or --turn-at FRACTION with it",
+                                 param_hint="--turn-deg-per-frame" if turn_deg_per_frame else "--turn-frames")
     if frames is not None and speed_m_per_s is not None:
         raise typer.BadParameter("give the frame count or the speed, not both (the speed sets the frame count)",
                                  param_hint="--speed-m-per-s")

@@ -285,8 +285,12 @@ def expand_inputs(inputs: list[str] | tuple[str, ...], *, exclude: Path | None =
             resolved = path.resolve()
             if skip is not None:
                 _refuse_out_among_inputs(exclude, skip, path, resolved, where)
-                if resolved == skip or skip in resolved.parents:
+                if (resolved == skip or skip in resolved.parents) and (skip / MARKER).is_file():
                     continue  # an earlier batch's folder (or its contents) that a glob like logs/* matched
+                if skip in resolved.parents:  # (hostile trial 28 W6: it read "no log among the inputs")
+                    raise ConfigError(f"{where}: the input {path} lies inside --out {exclude}, which is no earlier "
+                                      f"batch's folder: the batch would write its results among the logs it reads; "
+                                      f"choose an --out outside the inputs")
             spec = LogSpec(name=options.get("name") or log_name(resolved), input=str(resolved),
                            origin=where, **{k: v for k, v in options.items() if k != "name"})
             key = tuple(sorted(spec.options_record().items())) + (spec.name,)
