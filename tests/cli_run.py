@@ -20,3 +20,15 @@ def one_error(out: subprocess.CompletedProcess) -> str:
     assert out.returncode in (1, 2), (out.returncode, out.stdout[-1500:], out.stderr[-1500:])
     assert "Traceback" not in out.stderr and "Traceback" not in out.stdout
     return " ".join(out.stderr.split())
+
+
+def small_sevenscenes_log(sevenscenes_dir: Path, log: Path, n_frames: int) -> Path:
+    """A 7-Scenes folder of the first ``n_frames`` frames (depth images, poses, the intrinsics file) at ``log``."""
+    import shutil
+
+    log.mkdir(parents=True)
+    for i in range(n_frames):
+        for kind in ("depth.png", "pose.txt"):
+            shutil.copy(sevenscenes_dir / f"frame-{i:06d}.{kind}", log)
+    shutil.copy(sevenscenes_dir / "camera-intrinsics.txt", log)
+    return log

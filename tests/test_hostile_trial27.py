@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from cli_run import one_error, run_cli
+from cli_run import one_error, run_cli, small_sevenscenes_log
 
 
 def test_t27_b1_a_diagnose_voxel_size_given_twice_is_refused(room10: dict[str, Path], tmp_path: Path) -> None:
@@ -27,12 +27,7 @@ def test_t27_b2_a_focal_length_for_a_pencil_thin_field_of_view_is_warned_about(s
     """``--intrinsics 5850,...`` (10x the 7-Scenes focal length: a 6 deg field of view) and ``585e3`` (0.06 deg) built
     "tracking ok" without a word (only a field of view over 150 deg was warned about): a horizontal field of view
     under 20 deg is warned about, naming fx; the right focal length is not."""
-    log = tmp_path / "d7"
-    log.mkdir()
-    for i in range(2):
-        for kind in ("depth.png", "pose.txt"):
-            shutil.copy(sevenscenes_dir / f"frame-{i:06d}.{kind}", log)
-    shutil.copy(sevenscenes_dir / "camera-intrinsics.txt", log)
+    log = small_sevenscenes_log(sevenscenes_dir, tmp_path / "d7", 2)
     out = run_cli("build", log, "--out", tmp_path / "s", "--intrinsics", f"{fx},{fx},320,240", "--poses-from-source",
                   "--no-loop-closure")
     err = " ".join(out.stderr.split())
