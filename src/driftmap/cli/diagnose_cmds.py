@@ -304,7 +304,7 @@ MIN_DIRECTION_NORM = 1e-9
 @app.command()
 def perturb(
     poses_in: Annotated[Path, typer.Argument(metavar="POSES_IN", help="Pose file to perturb.")],
-    poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format).")],
+    poses_out: Annotated[Path, typer.Argument(metavar="POSES_OUT", help="Perturbed pose file (same format; of an EuRoC CSV the stamp, position and quaternion columns: the velocity and bias columns would be the unperturbed ones, so they are left out).")],
     format: Annotated[str, typer.Option("--format", help="tum | kitti | euroc")] = "tum",
     step_frame: Annotated[Optional[int], typer.Option("--step-frame", min=0, help="Row index of the first frame after the step (KITTI: = frame_id).")] = None,
     step_m: Annotated[Optional[str], typer.Option("--step-m", help="Translation step 'x,y,z' (m, world frame).")] = None,
