@@ -146,3 +146,19 @@ def test_t28_w6_a_batch_whose_out_holds_its_input_says_so(room10: dict[str, Path
     line = one_error(run_cli("batch", parent / "room", "--out", parent))
     assert f"the input {parent / 'room'} lies inside --out {parent}, which is no earlier batch's folder" in line, line
     assert not (parent / "fleet.json").exists()
+
+
+def test_t29_b2_a_ball_query_too_large_to_square_is_refused(room10: dict[str, Path]) -> None:
+    """Hostile trial 29 B2 / W4: ``MapView.query_radius`` with a radius of 1e155 m raised a raw ``OverflowError``
+    (squaring it), and took a 1e200 m centre that ``nearest`` refuses: both are ConfigErrors; an infinite radius still
+    takes every point."""
+    from driftmap.errors import ConfigError
+    from driftmap.map.view import MapView
+    from driftmap.store.frame_store import FrameStore
+
+    with FrameStore.open(room10["gt"]) as store:
+        view = MapView.from_store(store, store.head)
+        for center, radius in (([0.0, 0.0, 1.0], 1e155), ([1e200, 0.0, 0.0], 1.0)):
+            with pytest.raises(ConfigError, match=r"query_radius: center_m and radius_m must lie within \+-1e\+150 m"):
+                view.query_radius(center, radius)
+        assert len(view.query_radius([0.0, 0.0, 1.0], float("inf")).points_world) == len(view.points_world)

@@ -579,6 +579,11 @@ class MapView:
         c = vec3_arg("query_radius", "center_m", center_m)
         if not radius_m >= 0:
             raise ConfigError(f"query_radius: radius_m must be a number >= 0, got {radius_m}")
+        if (np.isfinite(radius_m) and radius_m > NEAREST_MAX_COORDINATE_M) or not np.all(
+                np.abs(c) <= NEAREST_MAX_COORDINATE_M):  # (hostile trial 29 B2, W4: radius**2 raised OverflowError)
+            raise ConfigError(f"query_radius: center_m and radius_m must lie within +-{NEAREST_MAX_COORDINATE_M:g} m "
+                              f"(squares would overflow; radius_m inf takes every point), got {c.tolist()}, "
+                              f"{radius_m}")
         z_lo, z_hi = (-np.inf, np.inf) if z_range_m is None else z_range_arg("query_radius", z_range_m)
         return self._select(QUERY_BALL, np.array([c[0], c[1], c[2], radius_m**2, z_lo, z_hi], np.float64))
 
