@@ -182,18 +182,10 @@ class Coverage:
         }
 
 
-def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None,
-           revisits: RevisitCheck | None = None, drift_percent_per_m: float | None = None,
-           drift_deg_per_m: float | None = None) -> Coverage:
-    """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
-    ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
-    disagree with the earlier map beyond what the detector sees, no headline figure is a verdict; when their
-    corrections beyond a registration floor (``drift_check_floor_m`` / ``_deg``) per metre of travel exceed
-    ``drift_percent_per_m`` (the drift rate's fit) by more than
-    ``drift_check_factor`` times plus ``drift_check_margin_percent``, the drift rate is not one (its residuals are
-    gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift); the same for the
-    rotation against ``drift_deg_per_m`` (trial 12: 0.18 deg/m fitted on 1 deg/m of injected drift)."""
-    cfg = config or CoverageConfig()
+def _surface_reasons(placed: PlacedCloud, walls: DoubleWallResult,
+                     cfg: CoverageConfig) -> tuple[Coverage, list[str], list[str]]:
+    """The coverage of the surfaces (no measure yet) and the reasons the fraction flagged and the smearing score are
+    no verdict, as far as the surfaces tell (:func:`assess`, :func:`detector_caveats`)."""
     scales = [scale_coverage(placed, s, walls.config.min_points, cfg.smeared_separations) for s in walls.scales]
     counts = placed.samples.sample_counts
     drawn = int(counts[:, 0].sum()) if counts is not None else placed.samples.n_points
@@ -221,6 +213,22 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     if revisited < cfg.min_groups_revisited:
         smear.append(f"{revisited} surface groups were seen on two visits ({walls.config.visit_gap_m:g} m of travel "
                      f"apart; at least {cfg.min_groups_revisited} needed): drift cannot show in the smearing score")
+    return result, surfaces, smear
+
+
+def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, config: CoverageConfig | None = None,
+           revisits: RevisitCheck | None = None, drift_percent_per_m: float | None = None,
+           drift_deg_per_m: float | None = None) -> Coverage:
+    """The coverage of ``walls`` (detected on ``placed``) and whether each headline figure is a verdict;
+    ``drift_frames`` is the number of frames the drift rate was fitted on. ``revisits``: when its revisiting frames
+    disagree with the earlier map beyond what the detector sees, no headline figure is a verdict; when their
+    corrections beyond a registration floor (``drift_check_floor_m`` / ``_deg``) per metre of travel exceed
+    ``drift_percent_per_m`` (the drift rate's fit) by more than
+    ``drift_check_factor`` times plus ``drift_check_margin_percent``, the drift rate is not one (its residuals are
+    gated, so it misses drift larger than the gate: trial 11 read 0.0-0.1 %/m on 2-5 %/m of drift); the same for the
+    rotation against ``drift_deg_per_m`` (trial 12: 0.18 deg/m fitted on 1 deg/m of injected drift)."""
+    cfg = config or CoverageConfig()
+    result, surfaces, smear = _surface_reasons(placed, walls, cfg)
     drift = [] if drift_frames >= cfg.min_drift_frames else [
         (f"the drift rate rests on {drift_frames} frames compared with earlier parts of the map (at least "
          f"{cfg.min_drift_frames} needed): too little of the map was seen again")]
@@ -247,7 +255,7 @@ def assess(placed: PlacedCloud, walls: DoubleWallResult, drift_frames: int, conf
     measures = {name: {"valid": not reasons, "reasons": reasons} for name, reasons in (
         ("fraction_flagged", surfaces), ("fraction_inconsistent", surfaces), ("smearing_score", smear),
         ("drift_rate", drift))}
-    result = Coverage(scales, samples, n_refused, measures)
+    result = Coverage(result.scales, result.samples, result.frames_with_refused_normals, measures)
     if not result.valid:
         logger.warning("diagnosis cannot judge everything: %s", "; ".join(result.reasons))
     return result
@@ -258,5 +266,5 @@ def detector_caveats(placed: PlacedCloud, walls: DoubleWallResult, config: Cover
     the reasons :func:`assess` gives its fraction flagged and smearing score, without the revisit check and the drift
     fit (``driftmap view --color double-wall`` read "flagged: 0" on a map that ``diagnose`` cannot judge, hostile trial
     27 W7)."""
-    cov = assess(placed, walls, drift_frames=0, config=config)
-    return list(dict.fromkeys(r for name in ("fraction_flagged", "smearing_score") for r in cov.measures[name]["reasons"]))
+    _, surfaces, smear = _surface_reasons(placed, walls, config or CoverageConfig())
+    return list(dict.fromkeys([*surfaces, *smear]))

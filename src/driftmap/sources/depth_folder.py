@@ -326,8 +326,7 @@ def checked_intrinsics(intrinsics: PinholeIntrinsics, what: str | Path) -> Pinho
                        "in other units, or mistyped?", what, i.fx, i.fy, max(i.fx / i.fy, i.fy / i.fx))
     if not (0.0 < i.cx < i.width and 0.0 < i.cy < i.height):
         logger.warning("%s: the principal point cx=%g, cy=%g px lies on the edge of or outside the %dx%d image (a "
-                       "camera's optical "
-                       "axis meets its image near the centre): are cx, cy in other units, for another image size, "
+                       "camera's optical axis meets its image near the centre): are cx, cy in other units, for another image size, "
                        "or swapped with fx, fy?", what, i.cx, i.cy, i.width, i.height)
     return intrinsics
 
