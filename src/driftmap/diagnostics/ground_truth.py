@@ -83,7 +83,8 @@ def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.
     Segment lengths default to 1/8 .. 8/8 of the ground-truth path (KITTI's 100..800 m on a long drive)."""
     errs = trajectory_errors(estimate, ground_truth)
     gt = np.asarray(ground_truth, dtype=np.float64)
-    total = float(np.sum(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    steps = np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1)  # ground-truth frame-to-frame travel (m)
+    total = float(np.sum(steps)) if len(gt) > 1 else 0.0
     lengths = segment_lengths_m or tuple(total * k / 8.0 for k in range(1, 8)) if total > 0 else ()
     seg = segment_errors(estimate, ground_truth, lengths_m=lengths, step_frames=1) if lengths else None
     est_path = float(np.sum(np.linalg.norm(np.diff(np.asarray(estimate)[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
@@ -92,7 +93,7 @@ def ground_truth_errors(estimate: NDArray[np.float64], ground_truth: NDArray[np.
         logger.warning("ATE %.2f m over a path of %.2f m estimated and %.2f m in the ground truth: is the ground truth "
                        "for these frames (the same sequence, frame numbering and sensor frame)?",
                        errs.ate_rmse_m, est_path, total)
-    step_m = float(np.median(np.linalg.norm(np.diff(gt[:, :3, 3], axis=0), axis=1))) if len(gt) > 1 else 0.0
+    step_m = float(np.median(steps)) if len(gt) > 1 else 0.0
     if errs.rpe_trans_rmse_m > max(RPE_UNRELATED_STEP_FRACTION * step_m, RPE_UNRELATED_FLOOR_M) or (
             errs.rpe_rot_rmse_deg > RPE_UNRELATED_DEG):  # hostile trial 27 W5: another log's file, 24 cm / 13.7 deg
         logger.warning("RPE %.3g m / %.3g deg from one frame to the next, against a median ground-truth step of %.3g m: "
