@@ -17,7 +17,7 @@ from scipy.spatial.transform import Rotation
 from driftmap import geometry
 from driftmap.errors import OutputWriteError, PoseGraphError
 from driftmap.posegraph.factors import gtsam_call
-from driftmap.posegraph.measurements import Edge
+from driftmap.posegraph.measurements import MAX_NODE_KEY, Edge
 from driftmap.posegraph.robust import RobustKernel
 from driftmap.posegraph.tangent import information_from_gtsam
 from driftmap.store.guards import atomic_output, refuse_inside_store
@@ -102,7 +102,7 @@ _G2O_LAYOUT = {  # tag: (ids, pose numbers, information numbers: the upper trian
     "VERTEX_SE2": (1, 3, 0),
     "EDGE_SE2": (2, 3, 6),
 }
-MAX_G2O_ID = 2**63 - 1
+MAX_G2O_ID = MAX_NODE_KEY  # a g2o id becomes a node key
 """The largest vertex id read (GTSAM keys are unsigned 64-bit; driftmap's are signed)."""
 
 
