@@ -283,6 +283,7 @@ def test_latest_state_layers_show_the_newest_world(merged: dict) -> None:
             latest_state_layers(store, sessions, 1, cfg, order=[0])
         with pytest.raises(ConfigError, match="read-only"):
             latest.layers.apply(2, store)
+        assert latest.layers.store_uuid == store.uuid  # decide refuses them for another store by id
     L, s0, s1 = latest.layers, latest.session_layers[0], latest.session_layers[1]
     old_seat, new_seat = _samples(_box("chair_seat")), _samples(_box("chair_seat", chair_moved=True))
     door = _samples(_box("door_panel"))

@@ -313,6 +313,18 @@ class VolumeLayers:
         self.grid, self.arrays, self._token = new, arrays, 0
 
     # ------------------------------------------------------------------------------------------- corrections
+    def _check_store(self, store: FrameStore) -> None:
+        """``store`` is the one the layers were built from (hostile trial 29 B1: another build of the same log was
+        taken, and the layers then answered for the other map; another log's store ended in a raw numpy error)."""
+        if self.store_uuid is not None and self.store_uuid != store.uuid:
+            raise ConfigError(f"VolumeLayers.apply: the layers are of another store (id {self.store_uuid}), not of "
+                              f"{store.path} (id {store.uuid}): apply a revision of the store they were built from")
+        if self.store_uuid is None and self.view is not None:
+            foreign = sorted(set(int(f) for f in self.view.frame_ids) - {int(f) for f in store.frame_ids})
+            if foreign:
+                raise ConfigError(f"VolumeLayers.apply: the layers integrate frames {store.path} does not hold "
+                                  f"({foreign[:5]}{' ...' if len(foreign) > 5 else ''}): another store's layers")
+
     def apply(self, revision: int, store: FrameStore | None = None) -> VolumeChange:
         """Update the layers to ``revision`` of the store they were built from: the old contribution of every frame
         whose points move is taken out and the new one put in (a rollback is a revision like any other). Returns the
@@ -322,6 +334,7 @@ class VolumeLayers:
         if self.cache.get("latest_state"):
             raise ConfigError("latest-state layers (driftmap.volume.sessions) are read-only: build them again for "
                               "another revision")
+        self._check_store(store)
         t0 = time.perf_counter()
         store.ledger.revision(revision)
         old_rev = self.revision

@@ -118,7 +118,8 @@ def latest_state_layers(store: FrameStore, sessions: dict[int, Sequence[int]], r
         mine = decide == s
         for name in ("hits", "misses", "tsdf_sum", "tsdf_count"):
             getattr(arrays, name)[mine] = getattr(layers.arrays, name)[mine]
-    merged = VolumeLayers(cfg, grid, per[0].sensor_kind, rev, arrays, view=per[0].view)
+    merged = VolumeLayers(cfg, grid, per[0].sensor_kind, rev, arrays, view=per[0].view,
+                          store_uuid=per[0].store_uuid)
     for s, layers in zip(seq, per):
         _take_hits(merged, layers, decide == s)
     merged.cache[READ_ONLY] = True

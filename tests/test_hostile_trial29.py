@@ -1,0 +1,83 @@
+"""Hostile trial 29: its findings, each through the path the user took (docs/bad-input.md, trial 29)."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+import pytest
+from cli_run import one_error, run_cli
+
+from driftmap.errors import ConfigError
+from driftmap.pipeline.build import build
+from driftmap.store.frame_store import FrameStore
+from driftmap.volume import VolumeConfig, VolumeLayers
+
+
+def test_t29_b1_layers_apply_refuses_another_store(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``VolumeLayers.apply(revision, other_store)`` took a second build of the same log and answered for it (its
+    frames, same ids, placed elsewhere); another log's store ended in a raw numpy error. The layers name their store:
+    another one is a ConfigError naming both ids, and the layers are left as they were."""
+    build(room10["log"], tmp_path / "second", loop_closure=False)
+    with FrameStore.open(room10["gt"]) as mine, FrameStore.open(tmp_path / "second") as other:
+        layers = VolumeLayers.from_store(mine, config=VolumeConfig(voxel_size_m=0.1))
+        hits = layers.arrays.hits.copy()
+        assert np.array_equal(sorted(other.frame_ids), sorted(mine.frame_ids))  # the frames alone cannot tell
+        with pytest.raises(ConfigError, match=rf"another store \(id {mine.uuid}\).*{other.uuid}"):
+            layers.apply(other.head, other)
+        assert np.array_equal(layers.arrays.hits, hits) and layers.revision == mine.head
+        layers.apply(mine.head, mine)  # its own store: taken (nothing moved)
+        assert np.array_equal(layers.arrays.hits, hits)
+        # layers that name no store (made by hand) are judged by their frames: a store without some of them is
+        # another store
+        anonymous = dataclasses.replace(layers, store_uuid=None)
+    build(room10["log"], tmp_path / "half", loop_closure=False, frames="0:5")
+    with FrameStore.open(tmp_path / "half") as half:
+        with pytest.raises(ConfigError, match=r"integrate frames .* does not hold \(\[5, 6, 7, 8, 9\]\)"):
+            anonymous.apply(half.head, half)
+
+
+
+def test_t29_w2_a_batch_config_is_taken_by_every_command(room10: dict[str, Path], tmp_path: Path) -> None:
+    """A batch config (a ``[fleet]`` table next to the tables of build, diagnose and export) was refused by every
+    command but ``batch`` ("unknown top-level settings ['fleet']"): each takes its own tables from it and leaves
+    ``[fleet]`` to batch; a file holding only ``[fleet]`` is refused where nothing in it applies."""
+    cfg = tmp_path / "fleet.toml"
+    cfg.write_text('[fleet]\nexports = ["trajectory", "map"]\nloop_closure = false\n\n[build]\npixel_stride = 1\n\n'
+                   '[map]\nexport_voxel_size_m = 0.25\n\n[diagnose.sampling]\npoints_budget = 200000\n')
+    shown = run_cli("config", "--file", cfg)
+    assert shown.returncode == 0, shown.stderr[-800:]
+    assert "export_voxel_size_m" in shown.stdout and "0.25" in shown.stdout
+    built = run_cli("build", room10["log"], "--out", tmp_path / "store", "--config", cfg, "--no-loop-closure")
+    assert built.returncode == 0, built.stderr[-800:]
+    coarse, fine = tmp_path / "coarse.ply", tmp_path / "fine.ply"
+    for out, extra in ((coarse, ["--config", cfg]), (fine, [])):
+        done = run_cli("export", room10["gt"], "--map", out, *extra)
+        assert done.returncode == 0, done.stderr[-800:]
+    import open3d as o3d
+
+    n_coarse = len(o3d.io.read_point_cloud(str(coarse)).points)
+    assert 0 < n_coarse < len(o3d.io.read_point_cloud(str(fine)).points)  # the [map] table applied
+    diagnosed = run_cli("diagnose", room10["gt"], "--config", cfg, "--json", tmp_path / "d.json")
+    assert diagnosed.returncode == 0, diagnosed.stderr[-800:]
+    only = tmp_path / "only.toml"
+    only.write_text('[fleet]\nexports = ["map"]\n')
+    line = one_error(run_cli("export", room10["gt"], "--config", only, "--map", tmp_path / "x.ply"))
+    assert "holds only a [fleet] table" in line and "batch" in line, line
+
+
+def test_t29_build_settings_are_checked_as_written(tmp_path: Path) -> None:
+    """A build table's settings are checked as the file wrote them, as the other tables' are: ``loop_closure =
+    false`` (a table's settings given one flag) read "environment DRIFTMAP_BUILD: build: loop_closure: expected
+    LoopClosureConfig" although no environment variable was set; a number in quotes was taken as the number."""
+    cases = [("[build]\nloop_closure = false\n",
+              "build.loop_closure: expected a table of settings ([build.loop_closure] ...), got false"),
+             ('[build]\npixel_stride = "2"\n', "build.pixel_stride: expected a number, got '2' (text, in quotes"),
+             ("pixel_stride = true\n", "pixel_stride: expected a number, got true")]
+    for k, (text, expected) in enumerate(cases):
+        path = tmp_path / f"c{k}.toml"
+        path.write_text(text)
+        line = one_error(run_cli("config", "--file", path))
+        assert line == f"error: {path}: {expected}" or line.startswith(f"error: {path}: {expected}"), line
+        assert "environment" not in line, line
