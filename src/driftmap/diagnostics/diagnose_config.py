@@ -129,6 +129,7 @@ class DiagnoseConfig(SettingsModel):
         from driftmap.config import (
             BUILD_TABLE,
             DIAGNOSE_TABLE,
+            FLEET_TABLE,
             GENERAL_TABLES,
             read_config_file,
             validation_problems,
@@ -138,7 +139,7 @@ class DiagnoseConfig(SettingsModel):
         prefix: tuple[str, ...] = ()
         if DIAGNOSE_TABLE in data:
             data, prefix = data[DIAGNOSE_TABLE], (DIAGNOSE_TABLE,)
-        elif {BUILD_TABLE, *GENERAL_TABLES} & set(data):  # a build config without a [diagnose] table: defaults
+        elif {BUILD_TABLE, FLEET_TABLE, *GENERAL_TABLES} & set(data):  # no [diagnose] table: the defaults
             return defaults
         if not isinstance(data, dict):
             raise ConfigError(f"{path}: [diagnose] must be a table of settings")

@@ -29,6 +29,7 @@ from driftmap._version import __version__
 from driftmap.config import (
     BUILD_TABLE,
     DIAGNOSE_TABLE,
+    FLEET_TABLE,
     GENERAL_TABLES,
     DriftmapConfig,
     SettingsModel,
@@ -43,7 +44,6 @@ from driftmap.pipeline.build import BuildConfig
 
 __all__ = ["EXPORTS", "FLEET_TABLE", "BatchConfig", "FleetSettings", "config_hash", "load_batch_config"]
 
-FLEET_TABLE = "fleet"
 CONFIG_FILE = "fleet_config.json"
 """The batch's config without its ``[fleet]`` table, in ``DIR``: what each log's build and diagnose read."""
 

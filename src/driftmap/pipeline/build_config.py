@@ -61,6 +61,7 @@ class BuildConfig(SettingsModel):
 
         from driftmap.config import (
             BUILD_TABLE,
+            check_written_types,
             env_table,
             has_setting,
             merge_settings,
@@ -69,6 +70,8 @@ class BuildConfig(SettingsModel):
         )
 
         data, prefix = ({}, (BUILD_TABLE,)) if path is None else split_config_file(path)[1:]
+        if path is not None:
+            check_written_types(data, cls, path, "".join(f"{p}." for p in prefix))
         env = env_table(BUILD_TABLE)
         try:
             return cls(**merge_settings(data, env))
