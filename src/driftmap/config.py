@@ -179,6 +179,7 @@ class MapConfig(SettingsModel):
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     export_voxel_size_m: float | None = Field(None, gt=0.0, description="voxel size of 'export --map' / '--mcap' without --voxel-size-m (m); None: every point (--map), 0.02 m (--mcap)")
+    mesh_weight_threshold: float = Field(3.0, gt=0.0, le=1e6, description="the TSDF mesh ('export --mesh' without --mesh-weight-threshold, the MCAP's mesh, batch's mesh export) meshes only voxels observed by at least this many frames (Open3D's default 3; lower it for a log of a few frames)")
 
 
 # ---------------------------------------------------------------------------------------- volumetric layers

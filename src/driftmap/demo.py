@@ -135,6 +135,7 @@ class _DemoRun:
     log: SyntheticLog
     store_dir: Path
     map_voxel_m: float
+    mesh_weight_threshold: float
     build_kwargs: dict[str, Any]
     stages: _Stages
     files: dict[str, str]
@@ -221,7 +222,8 @@ def _prepare(out_dir: str | Path, log_path: str | Path | None, max_frames: int |
         shutil.rmtree(store_dir)
     build_kwargs = dict(poses_from_source=True, frames=f"0:{n}", config=DEMO_BUILD_CONFIG, progress=stages.tick,
                         depth=config.depth)
-    return _DemoRun(out, log, store_dir, map_voxel_m, build_kwargs, stages, {"store": str(store_dir)})
+    return _DemoRun(out, log, store_dir, map_voxel_m, config.map.mesh_weight_threshold, build_kwargs, stages,
+                    {"store": str(store_dir)})
 
 
 def _check_results_folder(out: Path) -> None:
@@ -409,7 +411,8 @@ def _volume(run: _DemoRun, config: VolumeConfig, rev: int | None) -> VolumeSumma
 def _write_volume_mesh(run: _DemoRun, layers: VolumeLayers) -> int | None:
     """The TSDF mesh of the layers' revision as PLY; None (logged) when there is no surface to mesh."""
     try:
-        mesh = write_mesh(layers, run.out / f"volume_mesh_rev{layers.revision}.ply")
+        mesh = write_mesh(layers, run.out / f"volume_mesh_rev{layers.revision}.ply",
+                          weight_threshold=run.mesh_weight_threshold)
     except EmptyExportError as exc:
         logger.warning("demo: no TSDF mesh: %s", exc)
         return None

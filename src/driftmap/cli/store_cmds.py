@@ -149,6 +149,7 @@ def export(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace existing output files (--map, --trajectory, --mcap); without it an existing file is refused before anything is written.")] = False,
     config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML) whose [map] table sets map.export_voxel_size_m (DRIFTMAP_MAP__EXPORT_VOXEL_SIZE_M overrides it, --voxel-size-m both) and whose [volume] table the volumetric layers (--mesh, --octomap, --grid2d, --mcap).")] = None,
     mesh_path: Annotated[Optional[Path], typer.Option("--mesh", help="Write the TSDF mesh of the revision's volumetric layers: OUT.ply, .obj or .stl.")] = None,
+    mesh_weight_threshold: Annotated[Optional[float], typer.Option("--mesh-weight-threshold", callback=finite, metavar="N", help="The mesh (--mesh, and the --mcap's) covers only voxels observed by at least N frames (default: map.mesh_weight_threshold if set, else 3, Open3D's; 1 for a log of a few frames).")] = None,
     octomap_path: Annotated[Optional[Path], typer.Option("--octomap", help="Write the occupancy as an OctoMap binary tree OUT.bt (octovis, ROS octomap_server).")] = None,
     grid2d_path: Annotated[Optional[Path], typer.Option("--grid2d", help="Write a 2-D occupancy map OUT.yaml + OUT.pgm (ROS map_server format, trinary free / occupied / unknown) of the --band-m height band.")] = None,
     band_m: Annotated[Optional[str], typer.Option("--band-m", metavar="ZMIN,ZMAX", help="World-z band of --grid2d and of the MCAP's 2-D grid (m; default: every observed height).")] = None,
@@ -196,6 +197,14 @@ def export(
     settings = general_settings(config, "export")  # validated also when --voxel-size-m is given
     if voxel_size_m is None:
         voxel_size_m = settings.map.export_voxel_size_m
+    if mesh_weight_threshold is not None and not 0 < mesh_weight_threshold <= 1e6:
+        raise typer.BadParameter(f"a count of observations, above 0 and at most 1e6, got {mesh_weight_threshold:g}",
+                                 param_hint="--mesh-weight-threshold")
+    if mesh_weight_threshold is not None and mesh_path is None and (mcap_path is None or no_volume):
+        raise typer.BadParameter("the TSDF mesh's threshold: give --mesh or --mcap (without --no-volume) with it",
+                                 param_hint="--mesh-weight-threshold")
+    if mesh_weight_threshold is None:
+        mesh_weight_threshold = settings.map.mesh_weight_threshold
     if map_path is not None and map_path.suffix.lower() not in (".ply", ".pcd"):  # before anything is written
         raise typer.BadParameter(f"{map_path}: the map is written as .ply or .pcd", param_hint="--map")
     from driftmap.volume.export import MESH_SUFFIXES, OCTOMAP_SUFFIX
@@ -241,7 +250,7 @@ def export(
         volume, prepared = None, {}
         if any(p is not None for p, _ in volume_outputs) or (mcap_path is not None and not no_volume):
             volume = _volume_layers(store, rev, settings.volume, latest_state=latest_state)
-            prepared = _prepare_volume(volume, mesh_path, octomap_path, grid2d_path, band)
+            prepared = _prepare_volume(volume, mesh_path, octomap_path, grid2d_path, band, mesh_weight_threshold)
         if map_path is not None:
             from driftmap.map.view import MapView
 
@@ -279,7 +288,7 @@ def export(
                     overwrite=overwrite, volume=volume,
                     grid2d_band_m=None if volume is None else (band or _observed_band(volume)),
                     progress=lambda stage, done, total: progress.update(task, description=f"foxglove mcap: {stage}", completed=done, total=total),
-                    color=color, sessions=mcap_sessions,
+                    color=color, sessions=mcap_sessions, mesh_weight_threshold=mesh_weight_threshold,
                 )
             console.print(f"foxglove mcap (revision {rev}, {summary.n_frames} frames, {summary.n_map_points:,} map points, "
                           f"{summary.bytes / 1e6:.1f} MB): {mcap_path}  (open in Foxglove, 3D panel, display frame 'world')")
@@ -357,13 +366,13 @@ def _volume_layers(store, revision: int, config, *, latest_state: bool = False):
 
 
 def _prepare_volume(layers, mesh_path: Optional[Path], octomap_path: Optional[Path], grid2d_path: Optional[Path],  # noqa: ANN001
-                    band: Optional[tuple[float, float]]) -> dict:
+                    band: Optional[tuple[float, float]], mesh_weight_threshold: float) -> dict:
     """The mesh, OctoMap tree and 2-D grid to write, made and checked before any file is written (trial 24 W3)."""
     from driftmap.volume.export import occupancy_grid2d, prepare_mesh, prepare_octomap
 
     prepared: dict = {}
     if mesh_path is not None:
-        prepared["mesh"] = prepare_mesh(layers, mesh_path)
+        prepared["mesh"] = prepare_mesh(layers, mesh_path, weight_threshold=mesh_weight_threshold)
     if octomap_path is not None:
         prepared["octomap"] = prepare_octomap(layers, octomap_path)
     if grid2d_path is not None:

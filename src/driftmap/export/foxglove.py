@@ -269,7 +269,7 @@ def _frame_sessions(store: FrameStore, frame_ids: NDArray[np.int64],
 def _plan(store: FrameStore, path: Path, revision: Revision,
           double_walls: DoubleWallResult | Sequence[DoubleWallRegion] | None, volume: VolumeLayers | None,
           grid2d_band_m: tuple[float, float] | None, color: str = "frame",
-          sessions: Mapping[int, Sequence[int]] | None = None) -> _Plan:
+          sessions: Mapping[int, Sequence[int]] | None = None, mesh_weight_threshold: float | None = None) -> _Plan:
     """The frames in time order (frame id breaks ties), their poses in ``revision`` and the volume outputs; an
     empty store, a negative stamp, a band that selects nothing or a mesh too large for a message is refused
     here, before anything is written."""
@@ -292,7 +292,7 @@ def _plan(store: FrameStore, path: Path, revision: Revision,
 
         if grid2d_band_m is not None:
             plan.grid2d = occupancy_grid2d(volume, grid2d_band_m, flag="--band-m")
-        plan.mesh = tsdf_mesh(volume)
+        plan.mesh = tsdf_mesh(volume, mesh_weight_threshold)
         if len(plan.mesh.triangles) == 0:
             logger.warning("foxglove export: the TSDF mesh of revision %d is empty; %s left out", rev, TOPIC_MESH)
             plan.mesh = None
@@ -450,6 +450,7 @@ def export_foxglove_mcap(
     progress: ProgressCallback | None = None,
     color: str = "frame",
     sessions: Mapping[int, Sequence[int]] | None = None,
+    mesh_weight_threshold: float | None = None,
 ) -> FoxgloveExportSummary:
     """Write one revision of ``store`` (default: the head) as a Foxglove-ready MCAP file at ``path``.
 
@@ -467,6 +468,7 @@ def export_foxglove_mcap(
     ``session``: each session in its own colour on ``/map`` and ``/points`` (module docstring), the sessions given
     as ``sessions = {session: [frame ids]}`` (every frame of the store exactly once;
     ``driftmap.pipeline.merge.store_sessions`` of a merged store), None or empty: one session, one colour.
+    ``mesh_weight_threshold``: the mesh's (``map.mesh_weight_threshold``; None: Open3D's 3).
 
     Raises :class:`~driftmap.errors.StoreError` for an unknown revision, :class:`~driftmap.errors.ConfigError`
     for a non-positive voxel size or unknown compression, volume layers of another revision, a
@@ -486,7 +488,7 @@ def export_foxglove_mcap(
     if sessions is not None and color != "session":
         raise ConfigError("sessions= colours the export by session: give color='session' with it (CLI: --color session)")
     _check_output(path, overwrite)
-    plan = _plan(store, path, rev_info, double_walls, volume, grid2d_band_m, color, sessions)
+    plan = _plan(store, path, rev_info, double_walls, volume, grid2d_band_m, color, sessions, mesh_weight_threshold)
     tick = progress or (lambda stage, done, total: None)
     with atomic_write(path, "Foxglove MCAP export path") as tmp, open(tmp, "wb") as fh:
         out = _TopicWriter(Writer(fh, compression=chunk_compression))

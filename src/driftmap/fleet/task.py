@@ -98,10 +98,13 @@ def _exports(store: Any, folder: Path, config: BatchConfig, layers: Any) -> dict
         from driftmap.volume.export import write_grid2d, write_mesh, write_octomap
 
         layers = layers if layers is not None else VolumeLayers.from_store(store, rev, config.settings.volume)
-        for name, file, write in (("mesh", "mesh.ply", write_mesh), ("octomap", "octomap.bt", write_octomap)):
-            if name in exports:
-                write(layers, folder / file, flag=f"[fleet] exports {name}")
-                files[name] = file
+        weight = config.settings.map.mesh_weight_threshold
+        if "mesh" in exports:
+            write_mesh(layers, folder / "mesh.ply", flag="[fleet] exports mesh", weight_threshold=weight)
+            files["mesh"] = "mesh.ply"
+        if "octomap" in exports:
+            write_octomap(layers, folder / "octomap.bt", flag="[fleet] exports octomap")
+            files["octomap"] = "octomap.bt"
         if "grid2d" in exports:
             write_grid2d(layers, folder / "grid2d.yaml", _observed_band(layers), flag="[fleet] exports grid2d")
             files["grid2d"] = "grid2d.yaml"
@@ -110,7 +113,7 @@ def _exports(store: Any, folder: Path, config: BatchConfig, layers: Any) -> dict
 
             export_foxglove_mcap(store, folder / "foxglove.mcap", revision=rev, volume=layers,
                                  map_voxel_size_m=voxel if voxel is not None else 0.02,
-                                 grid2d_band_m=_observed_band(layers))
+                                 grid2d_band_m=_observed_band(layers), mesh_weight_threshold=weight)
             files["mcap"] = "foxglove.mcap"
     return files
 

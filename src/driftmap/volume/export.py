@@ -159,7 +159,9 @@ def prepare_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: fl
         raise EmptyExportError(f"{flag} {path}: the TSDF of revision {layers.revision} has no surface to mesh "
                                f"({int(np.count_nonzero(counts))} voxels with a TSDF sample, "
                                f"{int(np.count_nonzero(counts >= threshold))} of them observed at least {threshold:g} "
-                               f"times; {layers.grid.describe()}); nothing written")
+                               f"times; {layers.grid.describe()}); nothing written. A log of few frames: lower the "
+                               f"weight threshold (export --mesh-weight-threshold, or map.mesh_weight_threshold in a "
+                               f"config file; 1 meshes every observed voxel)")
     return mesh
 
 

@@ -11,12 +11,14 @@ import numpy as np
 import open3d as o3d
 import open3d.core as o3c
 
+from driftmap.config import MapConfig
 from driftmap.kernels.volume import TSDF_QUANTUM
 from driftmap.volume.grid import BLOCK_RESOLUTION
 from driftmap.volume.protocol import Layers
 
-DEFAULT_WEIGHT_THRESHOLD = 3.0
-"""Marching cubes uses samples observed at least this many times (Open3D's default for ``extract_triangle_mesh``)."""
+DEFAULT_WEIGHT_THRESHOLD = float(MapConfig.model_fields["mesh_weight_threshold"].default)
+"""Marching cubes uses samples observed at least this many times (Open3D's default for ``extract_triangle_mesh``;
+``map.mesh_weight_threshold``)."""
 
 
 def to_voxel_block_grid(layers: Layers) -> o3d.t.geometry.VoxelBlockGrid:
