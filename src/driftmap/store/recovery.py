@@ -55,6 +55,7 @@ from driftmap.store.manifest import (
 from driftmap.store.merge_records import lost_append_revisions
 from driftmap.store.opening import load_segments, replay
 from driftmap.store.reading import decode_frame
+from driftmap.store.renamed_segments import restore_segment_names
 from driftmap.store.segment import SegmentWriter
 from driftmap.store.segment_format import EVENT_DATA_LOST
 from driftmap.store.segment_scan import SegmentScan, iter_payload_bytes, read_store_uuid, scan_segment
@@ -74,6 +75,7 @@ def recover_store(path: Path) -> list[RecoveryEvent]:
     try:
         if rebuilt_because is not None:
             run.replace_manifest()
+        run.events += restore_segment_names(path, run.segments)  # (trial 29 W1) before any is judged damaged
         for index, seg in enumerate(run.segments):
             run.check_segment(index, seg)
         run.forget_missing_segments()
