@@ -162,3 +162,49 @@ def test_t29_b2_a_ball_query_too_large_to_square_is_refused(room10: dict[str, Pa
             with pytest.raises(ConfigError, match=r"query_radius: center_m and radius_m must lie within \+-1e\+150 m"):
                 view.query_radius(center, radius)
         assert len(view.query_radius([0.0, 0.0, 1.0], float("inf")).points_world) == len(view.points_world)
+
+
+def test_t28_w4_a_steady_turn_is_no_jump() -> None:
+    """``diagnose --points-per-frame 100000000`` named a 64 cm "pose error" between frames 12 and 14 of a synthetic
+    room built every other frame: turning 40 deg per step, its world-frame steps differed from their neighbours' by
+    60-97 cm, every one read as a jump, and a registration that slid on one as its measure. The steps are compared in
+    the frame of the frame they leave: a steady turn makes none, a 10 cm pose error still makes one of 10 cm."""
+    from types import SimpleNamespace
+
+    from scipy.spatial.transform import Rotation
+
+    from driftmap.diagnostics.jumps import find_jumps
+    from driftmap.diagnostics.revisit_config import RevisitCheckConfig
+
+    n, poses = 20, []
+    for k in range(n):
+        T = np.eye(4)
+        T[:3, :3] = Rotation.from_euler("z", 40 * k, degrees=True).as_matrix()
+        T[:3, 3] = [1.2 * np.cos(np.radians(40 * k)), 1.2 * np.sin(np.radians(40 * k)), 0.0]
+        poses.append(T)
+    poses = np.array(poses)
+    rows = np.arange(n)
+    cfg = RevisitCheckConfig()
+    assert find_jumps(SimpleNamespace(poses=poses, frame_ids=rows), rows, cfg) == []
+    moved = poses.copy()
+    moved[10:, :3, 3] += [0.0, 0.0, 0.1]  # a 10 cm error from frame 10 on
+    jumps = find_jumps(SimpleNamespace(poses=moved, frame_ids=rows), rows, cfg)
+    assert [(j.before_frame_id, j.frame_id) for _, j in jumps] == [(9, 10)], jumps
+    assert abs(jumps[0][1].excess_m - 0.1) < 1e-6 and jumps[0][1].excess_deg < 1e-6
+
+
+def test_t28_w4_the_revisit_cell_counts_the_group_its_verdict_rests_on() -> None:
+    """The diagnose table read "NOT FIT (3 of 5 revisiting frames fit the earlier map; 3 needed)": it counted the
+    pairs and the whole-map probes at once, while the verdict rests on one group (2 of 3 pairs fit)."""
+    from driftmap.diagnostics.revisits import MAP, STRETCH, RevisitCheck, RevisitCheckConfig, RevisitProbe
+
+    def probe(k: int, counted: bool, kind: str) -> RevisitProbe:
+        return RevisitProbe(100 + k, 0.8, 0.6, 0.02, 0.3, 0.01, 0.2, counted, k, k, 5.0, kind)
+
+    probes = [probe(0, True, STRETCH), probe(1, True, STRETCH), probe(2, False, STRETCH),
+              probe(3, True, MAP), probe(4, False, MAP)]
+    check = RevisitCheck(RevisitCheckConfig(), probes, 5, ())
+    assert check.unfit and not check.judged and len(check.counted) == 3
+    group = check.deciding_group()
+    assert (sum(p.counted for p in group), len(group)) == (2, 3)
+    assert check.reason().startswith("only 2 of 3 revisiting frames fit"), check.reason()

@@ -180,8 +180,9 @@ def _revisit_row(check: RevisitCheck) -> str:
     """The revisit check in one cell: the disagreement and the detector's range, or why there is none."""
     cfg = check.config
     if not check.judged:
-        return (f"{'NOT FIT' if check.unfit else '-'} ({len(check.counted)} of {len(check.probes)} revisiting frames "
-                f"fit the earlier map; {cfg.min_probes} needed)")
+        group = check.deciding_group()  # the group the verdict rests on (step and floor probes are no revisits)
+        return (f"{'NOT FIT' if check.unfit else '-'} ({sum(p.counted for p in group)} of {len(group)} revisiting "
+                f"frames fit the earlier map; {cfg.min_probes} needed)")
     verdict = "BEYOND the detector's range" if check.beyond_detector else "within the detector's range"
     return (f"{100 * check.disagreement_m:.1f} cm / {check.disagreement_deg:.2f} deg over {len(check.counted)} "
             f"revisiting frames ({verdict}: {100 * cfg.max_detectable_m:.0f} cm / {cfg.max_detectable_deg:g} deg)")

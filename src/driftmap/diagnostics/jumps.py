@@ -54,7 +54,11 @@ def find_jumps(placed: PlacedCloud, rows: NDArray[np.int64], cfg: RevisitCheckCo
     if cfg.max_step_checks == 0 or n < 3:
         return []
     poses = placed.poses[rows]
-    step = np.diff(poses[:, :3, 3], axis=0)  # step[k - 1]: from rows[k - 1] to rows[k]
+    # step[k - 1]: from rows[k - 1] to rows[k], in the frame of rows[k - 1]: a robot turning at a steady rate makes
+    # the same relative step every frame, while its world-frame steps turn with it (hostile trial 28 W4: a synthetic
+    # room turning 20 deg per frame read as a 64 cm "jump" at every other frame, and a registration that slid on it
+    # as "a pose error there")
+    step = np.einsum("kji,kj->ki", poses[:-1, :3, :3], np.diff(poses[:, :3, 3], axis=0))
     turn = np.degrees(geometry.relative_rotation_angle_rad(poses[:-1], poses[1:]))
     half = 3
     index = np.clip(np.arange(len(step))[:, None] + np.r_[-half:0, 1:half + 1][None, :], 0, len(step) - 1)

@@ -176,6 +176,17 @@ class RevisitCheck:
     def judged(self) -> bool:
         return self._group_judged(False) or self._group_judged(True)
 
+    def deciding_group(self) -> list[RevisitProbe]:
+        """The probes a verdict of "not judged" rests on: when :attr:`unfit`, the group (pairs, or whole-map probes)
+        with enough registered and the fewest fitting; else the group with the most fitting. Counting every probe at
+        once read "3 of 5 revisiting frames fit; 3 needed" beside NOT FIT (2 of 3 pairs, 1 of 2 whole-map)."""
+        groups = [self._group(m) for m in (False, True)]
+        if self.unfit:
+            enough = [g for g in groups if len(g) >= self.config.min_probes]
+            if enough:
+                return min(enough, key=lambda g: sum(p.counted for p in g))
+        return max(groups, key=lambda g: (sum(p.counted for p in g), len(g)))
+
     def group_disagreement(self, whole_map: bool, degrees: bool = False) -> float | None:
         """The ``min_probes``-th largest counted correction (m, or deg) of the pairs (``whole_map`` False) or of the
         whole-map probes (None: fewer counted)."""
@@ -309,8 +320,7 @@ class RevisitCheck:
                     f"{100 * cfg.coarse_gate_m:.0f} cm gate): a pose error larger than the check and the double-wall "
                     f"detector measure cannot be ruled out")
         if self.unfit:
-            group = min((self._group(m) for m in (False, True) if len(self._group(m)) >= cfg.min_probes),
-                        key=lambda g: sum(p.counted for p in g))
+            group = self.deciding_group()
             return (f"only {sum(p.counted for p in group)} of {len(group)} revisiting frames fit the earlier frames they "
                     f"revisit (revisit check; {cfg.min_probes} needed, GICP from a {100 * cfg.coarse_gate_m:.0f} cm "
                     f"gate): a pose error larger than the check and the double-wall detector measure cannot be ruled "
