@@ -208,3 +208,45 @@ def test_t29_w1_a_recovery_stopped_while_renaming_is_finished(rolled: Path, tmp_
     assert {p.name: p.read_bytes() for p in store.glob("segment-*.mcap")} == originals
     with FrameStore.open(store) as s:
         assert len(s.ledger.revisions) == 4
+
+
+def test_a_converted_depth_log_holds_the_points_a_build_of_its_source_stores(sevenscenes_dir: Path, kitti_dir: Path,
+                                                                            tmp_path: Path) -> None:
+    """``driftmap convert`` of a 640 px depth data set wrote every pixel as PointCloud2, and a build of the MCAP keeps
+    every point of a cloud: 4x the points of a build of the folder (read at every second pixel). convert reads depth
+    images as build does (``--pixel-stride N`` overrides; 1 keeps every pixel), on a data set folder and on a ROS log
+    of depth images alike; on a source of point clouds the flag is refused."""
+    from PIL import Image
+
+    from cli_run import small_sevenscenes_log
+    from driftmap.export import write_depth_image_mcap
+    from driftmap.frame import PinholeIntrinsics
+
+    log = small_sevenscenes_log(sevenscenes_dir, tmp_path / "d7", 2)
+    depths = [np.array(Image.open(log / f"frame-{i:06d}.depth.png")) for i in range(2)]
+    K = PinholeIntrinsics(fx=585.0, fy=585.0, cx=320.0, cy=240.0, width=640, height=480)
+    ros = write_depth_image_mcap(tmp_path / "d7-images.mcap", depths, [1_700_000_000_000_000_000 + k * 33_333_333
+                                                                       for k in range(2)], K, compression="none")["out"]
+    built = run_cli("build", log, "--out", tmp_path / "folder", "--no-loop-closure", "--poses-from-source")
+    assert built.returncode == 0, built.stderr[-1500:]
+    with FrameStore.open(tmp_path / "folder") as s:
+        folder_points = s.frame(int(s.frame_ids[0])).points_sensor
+    for name, src in (("from-folder", log), ("from-images", ros)):
+        for stride, expected in ((None, 2), (1, 1), (4, 4)):
+            out = tmp_path / f"{name}-{stride}.mcap"
+            done = run_cli("convert", src, out, *(("--pixel-stride", stride) if stride else ()))
+            assert done.returncode == 0, done.stderr[-1500:]
+            assert f"pixel stride {expected}" in " ".join(done.stdout.split()), done.stdout
+            store = tmp_path / f"{name}-{stride}"
+            built = run_cli("build", out, "--out", store, "--no-loop-closure")
+            assert built.returncode == 0, built.stderr[-1500:]
+            with FrameStore.open(store) as s:
+                points = s.frame(int(s.frame_ids[0])).points_sensor
+            if stride is None:  # the points a build of the folder stores
+                assert len(points) == len(folder_points) > 10_000
+                assert np.allclose(points, folder_points, atol=1e-6)
+            else:
+                assert abs(len(points) * expected ** 2 / (len(folder_points) * 4) - 1) < 0.05, (stride, len(points))
+    line = one_error(run_cli("convert", kitti_dir, tmp_path / "k.mcap", "--frames", "0:1", "--pixel-stride", "2"))
+    assert "--pixel-stride" in line and "holds point clouds, not depth images" in line, line
+    assert not (tmp_path / "k.mcap").exists()

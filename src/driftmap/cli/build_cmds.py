@@ -300,6 +300,7 @@ def convert(
     lenient: Annotated[bool, typer.Option("--lenient", help=LENIENT_HELP)] = False,
     period_s: Annotated[Optional[float], typer.Option("--period-s", callback=finite, help=PERIOD_HELP)] = None,
     point_layout: Annotated[Optional[str], typer.Option("--point-layout", help=POINT_LAYOUT_HELP)] = None,
+    pixel_stride: Annotated[Optional[int], typer.Option("--pixel-stride", min=1, max=64, metavar="N", help="Depth images: back-project every N-th pixel in both directions (default: as build reads them, 2 for images 640 px wide or more, else 1; 1 keeps every pixel). A build of the MCAP keeps every point it holds.")] = None,
 ) -> None:
     """Convert any source to an MCAP log (ROS 2 PointCloud2 / CameraInfo / TF) that Foxglove opens."""
     from driftmap.export.mcap import convert as convert_source
@@ -314,7 +315,7 @@ def convert(
     options = source_options(sensor, topic, pose_from_tf, pose_from_odometry, lenient, period_s, point_layout)
     check_source_options(source, format, options)
     with console.status(f"converting {source}"), writing_output(out, "OUT.mcap"):
-        summary = convert_source(source, out, format=format, frames=frames, **options)
+        summary = convert_source(source, out, format=format, frames=frames, pixel_stride=pixel_stride, **options)
     extra = {k: v for k, v in summary.items()
              if k not in ("out", "source", "frames", "points", "bytes", "skipped") and not isinstance(v, (dict, list))}
     console.print(f"wrote {out} ({summary.get('bytes', 0) / 1e6:.1f} MB): {summary.get('frames')} frames, "

@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import __version__, geometry
-from driftmap.errors import ExportError
+from driftmap.errors import ConfigError, ExportError
 from driftmap.export.ros_messages import (
     MsgdefSchemas,
     camera_info_msg,
@@ -55,7 +55,7 @@ from driftmap.export.ros_messages import (
     transform_stamped,
 )
 from driftmap.frame import Frame, PoseSource, SensorKind
-from driftmap.sources.base import FrameSource, open_source
+from driftmap.sources.base import FrameSource, auto_pixel_stride, open_source, reads_depth_pixels
 from driftmap.sources.ros import (
     CAMERA_INFO,
     EXPORT_METADATA_NAME,
@@ -365,21 +365,45 @@ def _sensor_metadata(s: _SensorState) -> dict[str, Any]:
 
 def convert(
     src_path: str | Path, out_path: str | Path, *, format: str | None = None, frames: str | slice | None = None,
-    **options: Any,
+    pixel_stride: int | None = None, **options: Any,
 ) -> dict[str, Any]:
-    """``driftmap convert SOURCE OUT.mcap [--format F] [--frames START:STOP[:STEP]]``: open any registered
-    source and export its frames (and its ground truth, if it has one, on a separate topic) to MCAP.
+    """``driftmap convert SOURCE OUT.mcap [--format F] [--frames START:STOP[:STEP]] [--pixel-stride N]``: open any
+    registered source and export its frames (and its ground truth, if it has one, on a separate topic) to MCAP.
     ``options`` go to the source's opener (e.g. ``sensor="lidar"``, ``topic=``).
 
-    Returns the :func:`export_mcap` summary plus ``source``, ``source_format`` and ``skipped``.
+    Depth images are back-projected at ``pixel_stride`` (None: as ``build`` reads them, every second pixel from 640 px
+    wide on: :func:`~driftmap.sources.base.auto_pixel_stride`), so that a build of the MCAP stores the points a build
+    of the source does (it keeps every point of a PointCloud2; before, a 640 px data set converted held 4x the points
+    of its folder's build). A ``pixel_stride`` for a source of point clouds is a :class:`ConfigError`.
+
+    Returns the :func:`export_mcap` summary plus ``source``, ``source_format``, ``skipped`` and, for depth images,
+    ``pixel_stride``.
     """
     src_path, out_path = Path(src_path), Path(out_path)
     if out_path.exists() and src_path.exists() and out_path.resolve() == src_path.resolve():
         raise ExportError(f"{out_path}: output would overwrite the source")
+    if pixel_stride is not None and (isinstance(pixel_stride, bool) or not isinstance(pixel_stride, int)
+                                     or not 1 <= pixel_stride <= 64):
+        raise ConfigError(f"pixel_stride: a whole number of pixels from 1 to 64, got {pixel_stride!r}")
     source = open_source(src_path, format=format, frames=frames, **options)
+    stride = None
+    if reads_depth_pixels(source):
+        first = source.frame(0) if getattr(source, "reads_depth_images", None) is None else next(iter(source), None)
+        stride = pixel_stride if pixel_stride is not None else auto_pixel_stride(first)
+        if stride != int(getattr(source, "pixel_stride", 1)):
+            close = getattr(source, "close", None)
+            if callable(close):
+                close()
+            options = {**options, "pixel_stride": stride}
+            source = open_source(src_path, format=format, frames=frames, **options)
+    elif pixel_stride is not None:
+        raise ConfigError(f"--pixel-stride: {src_path} holds point clouds, not depth images (format "
+                          f"{source.format_name}): there are no pixels to skip")
     ground_truth = source.ground_truth()
     summary = export_mcap(source, out_path, ground_truth=ground_truth, origin=source_origin(source, options))
     summary.update(source=str(src_path), source_format=source.format_name, skipped=len(source.skipped))
+    if stride is not None:
+        summary["pixel_stride"] = stride
     close = getattr(source, "close", None)
     if callable(close):
         close()

@@ -10,7 +10,7 @@ from typing import Any
 
 from driftmap.errors import ConfigError, SourceError
 from driftmap.pipeline.build_config import BuildConfig
-from driftmap.sources.base import FrameSource, accepted_options, open_source, registered_formats
+from driftmap.sources.base import FrameSource, accepted_options, auto_pixel_stride, open_source, registered_formats
 
 logger = logging.getLogger(__name__)
 
@@ -101,7 +101,7 @@ def open_build_source(source: str | Path, format: str | None, frames: str | None
     log_depth = "pixel_stride" not in params and bool(getattr(src, "reads_depth_images", False))
     if ("pixel_stride" in params or log_depth) and not config.pixel_stride:
         first = src.frame(0) if "pixel_stride" in params else next(iter(src), None)
-        stride = 2 if first is not None and first.intrinsics is not None and first.intrinsics.width >= 640 else 1
+        stride = auto_pixel_stride(first)
         if stride != 1:
             src = open_source(path, fmt, **{**options, "pixel_stride": stride})
     elif log_depth and config.pixel_stride != 1:

@@ -161,6 +161,25 @@ class SourceFormat:
     """For a log that may have been converted from another data set (MCAP): the origin it names, read cheaply."""
 
 
+AUTO_STRIDE_MIN_WIDTH_PX = 640
+"""depth images this wide or wider are read at every second pixel unless a pixel stride is given (``build.pixel_stride``
+None, ``convert --pixel-stride`` unset): a 640 x 480 image back-projects to 300k points, far denser than odometry,
+the volume or the diagnosis use"""
+
+
+def auto_pixel_stride(first: Frame | None) -> int:
+    """The pixel stride a depth source is read at when none is given: 2 from :data:`AUTO_STRIDE_MIN_WIDTH_PX` on
+    (the width of ``first``, the source's first frame), else 1."""
+    return 2 if first is not None and first.intrinsics is not None and first.intrinsics.width >= AUTO_STRIDE_MIN_WIDTH_PX else 1
+
+
+def reads_depth_pixels(source: FrameSource) -> bool:
+    """Whether ``source`` back-projects depth images (its opener takes ``pixel_stride`` for them): a data set folder,
+    or a ROS log whose topic is a depth image (not its PointCloud2 topics)."""
+    flag = getattr(source, "reads_depth_images", None)
+    return bool(flag) if flag is not None else hasattr(source, "pixel_stride")
+
+
 def same_file_or_copy(a: str | Path, b: str | Path) -> bool:
     """``a`` is the file ``b`` (paths resolved) or a byte-identical copy of it (a data set's own pose file
     passed from another place); ``False`` when either cannot be read."""
