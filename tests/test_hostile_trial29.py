@@ -250,3 +250,44 @@ def test_a_converted_depth_log_holds_the_points_a_build_of_its_source_stores(sev
     line = one_error(run_cli("convert", kitti_dir, tmp_path / "k.mcap", "--frames", "0:1", "--pixel-stride", "2"))
     assert "--pixel-stride" in line and "holds point clouds, not depth images" in line, line
     assert not (tmp_path / "k.mcap").exists()
+
+
+def test_t30_b1_segment_files_left_mid_rename_are_never_declared_lost(rolled: Path, tmp_path: Path) -> None:
+    """Hostile trial 30 B1 / W1: a segment file left as ``*.renaming`` with the rename journal gone (deleted by hand
+    after a recovery was killed, or renamed so) was declared lost by ``recover`` ("file not found"), a permanent
+    ``data_lost`` record although its bytes were there; an unreadable journal blocked ``recover`` for good. Files
+    mid-rename are placed by what they hold; an unreadable journal is removed."""
+    import shutil
+
+    originals = {p.name: p.read_bytes() for p in rolled.glob("segment-*.mcap")}
+    cases = {
+        # its own name is missing
+        "own": lambda s: (s / "segment-000001.mcap").rename(s / "segment-000001.mcap.renaming"),
+        # killed between the two moves of a swap back: 2 holds its own bytes, 1's bytes wait under 2's name
+        "other": lambda s: (s / "segment-000001.mcap").rename(s / "segment-000002.mcap.renaming"),
+        # the first move of a swap, then the journal damaged
+        "journal": lambda s: ((s / "segment-000000.mcap").rename(s / "segment-000000.mcap.renaming"),
+                              (s / "recover-renames.json").write_text("{not json")),
+        # a damaged journal and nothing mid-rename
+        "stale": lambda s: (s / "recover-renames.json").write_text('{"moves": [["../x", "y"]], "next": 0}'),
+    }
+    for name, damage in cases.items():
+        store = tmp_path / name
+        shutil.copytree(rolled, store)
+        damage(store)
+        done = run_cli("recover", store)
+        assert done.returncode == 0, (name, done.stderr[-800:])
+        assert "lost" not in done.stdout, (name, done.stdout)
+        assert {p.name: p.read_bytes() for p in store.glob("segment-*.mcap")} == originals, name
+        assert not list(store.glob("*.renaming")) and not (store / "recover-renames.json").exists(), name
+        assert run_cli("info", store).returncode == 0
+
+
+def test_t30_w2_layers_refresh_refuses_another_store(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``VolumeLayers.refresh(other_store)`` did nothing without a word, while ``apply`` refused it."""
+    build(room10["log"], tmp_path / "second", loop_closure=False, frames="0:5")
+    with FrameStore.open(room10["gt"]) as mine, FrameStore.open(tmp_path / "second") as other:
+        layers = VolumeLayers.from_store(mine, config=VolumeConfig(voxel_size_m=0.1))
+        with pytest.raises(ConfigError, match=r"VolumeLayers.refresh: the layers are of another store"):
+            layers.refresh(other)
+        assert len(layers.refresh(mine).frame_ids) == 0  # its own store: nothing new

@@ -8,7 +8,9 @@ damaged records, "corrected" them and the store still failed to open, every comm
 
 The renames go through a journal (``recover-renames.json``: the moves, and the next one to make), written before the
 first move and after each one, so a recovery stopped half-way is finished by the next: a move whose source is gone
-was made already, and no move re-creates its own source."""
+was made already, and no move re-creates its own source. Without a readable journal (deleted, damaged), files left
+mid-rename (``*.renaming``) are placed by what they hold: under their own name where that segment is missing, else
+under the missing segment whose record they hold -- never declared lost (hostile trial 30 B1)."""
 
 from __future__ import annotations
 
@@ -36,6 +38,7 @@ def restore_segment_names(path: Path, segments: list[SegmentEntry]) -> list[Reco
     """Finish the renames of a stopped recovery, then give segments holding another entry's record that entry's name
     back (module docstring). One event per segment renamed."""
     events = _finish_journal(path)
+    events += _adopt_orphans(path, segments)
     plan = _renames(path, segments)
     if not plan:
         return events
@@ -78,6 +81,46 @@ def _renames(path: Path, segments: list[SegmentEntry]) -> list[tuple[str, str]]:
     return sorted(plan.items())
 
 
+def _adopt_orphans(path: Path, segments: list[SegmentEntry]) -> list[RecoveryEvent]:
+    """Segment files named ``*.renaming`` with no journal (deleted by hand after a recovery stopped while renaming,
+    or renamed so by hand) are segment data, never a loss: each goes back under its own name where that segment is
+    missing, else under the name of the missing segment whose record it holds; one that fits no missing segment is
+    a :class:`StoreCorruptError` naming it (hostile trial 30 B1: recover declared frames lost whose bytes were there)."""
+    orphans = sorted(p for p in path.glob("segment-*" + RENAMING_SUFFIX)
+                     if SEGMENT_FILE.fullmatch(p.name.removesuffix(RENAMING_SUFFIX)) and p.is_file())
+    if not orphans:
+        return []
+    missing = {s.name: s for s in segments if not (path / s.name).exists()}
+    events = []
+    for orphan in list(orphans):
+        own = orphan.name.removesuffix(RENAMING_SUFFIX)
+        if own in missing:
+            os.replace(orphan, path / own)
+            fsync_dir(path)
+            del missing[own]
+            orphans.remove(orphan)
+            events.append(RecoveryEvent(own, f"was named {orphan.name}: renamed back", 0, 0, 0,
+                                        "a segment left mid-rename (no rename journal)"))
+    for orphan in orphans:
+        scan = scan_segment(orphan, verify=False, stop_on_error=False)
+        held = (held_ids(scan), scan.size)
+        owners = [name for name, s in missing.items() if s.recorded_ids() is not None
+                  and (s.recorded_ids(), s.bytes) == held]
+        if len(owners) != 1:
+            raise StoreCorruptError(f"{orphan}: a segment file left mid-rename that holds no missing segment's "
+                                    f"recorded frames and revisions (missing: {preview(sorted(missing)) or 'none'}); "
+                                    f"rename it to the segment it belongs to and run driftmap recover again",
+                                    path=orphan, offset=None)
+        os.replace(orphan, path / owners[0])
+        fsync_dir(path)
+        del missing[owners[0]]
+        events.append(RecoveryEvent(owners[0], f"was named {orphan.name}: renamed back", 0, 0, 0,
+                                    f"{orphan.name} held what the manifest records for {owners[0]}"))
+    for event in events:
+        logger.warning("%s: %s", path, event.action)
+    return events
+
+
 def _run(path: Path, moves: list[tuple[str, str]], start: int) -> None:
     journal = path / JOURNAL
     atomic_write_json(journal, {"moves": [list(m) for m in moves], "next": start})
@@ -102,9 +145,7 @@ def _finish_journal(path: Path) -> list[RecoveryEvent]:
     try:
         data = json.loads(journal.read_bytes())
     except (OSError, ValueError, RecursionError) as exc:
-        raise StoreCorruptError(f"{journal}: the renames an earlier recovery was making cannot be read ({exc}); "
-                                f"segment files may be named *{RENAMING_SUFFIX}: rename them by the frames they hold",
-                                path=journal, offset=None) from exc
+        data = exc
     moves = data.get("moves") if isinstance(data, dict) else None
     start = data.get("next") if isinstance(data, dict) else None
 
@@ -114,9 +155,13 @@ def _finish_journal(path: Path) -> list[RecoveryEvent]:
     if (not isinstance(moves, list) or not all(isinstance(m, list) and len(m) == 2 and all(map(name_ok, m))
                                                for m in moves)
             or not isinstance(start, int) or isinstance(start, bool) or not 0 <= start <= len(moves)):
-        raise StoreCorruptError(f"{journal}: not a list of segment renames with the next one to make; segment files "
-                                f"may be named *{RENAMING_SUFFIX}: rename them by the frames they hold", path=journal,
-                                offset=None)
+        # (hostile trial 30 W1: an unreadable journal blocked recover for good) the files mid-rename are placed by
+        # what they hold instead (_adopt_orphans), and any rename still to make is found again the same way
+        why = data if isinstance(data, Exception) else "not a list of segment renames with the next one to make"
+        logger.warning("%s: unreadable (%s): removed; the segment files are placed by what they hold", journal, why)
+        journal.unlink()
+        fsync_dir(path)
+        return []
     logger.warning("%s: an earlier recovery stopped while renaming segments; finishing %d of its %d moves", path,
                    len(moves) - start, len(moves))
     _run(path, [(str(a), str(b)) for a, b in moves], start)

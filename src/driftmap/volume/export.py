@@ -161,7 +161,7 @@ def prepare_mesh(layers: VolumeLayers, path: str | Path, *, weight_threshold: fl
                                f"{int(np.count_nonzero(counts >= threshold))} of them observed at least {threshold:g} "
                                f"times; {layers.grid.describe()}); nothing written. A log of few frames: lower the "
                                f"weight threshold (export --mesh-weight-threshold, or map.mesh_weight_threshold in a "
-                               f"config file; 1 meshes every observed voxel)")
+                               f"config file or DRIFTMAP_MAP__MESH_WEIGHT_THRESHOLD; 1 meshes every observed voxel)")
     return mesh
 
 

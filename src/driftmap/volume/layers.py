@@ -313,16 +313,16 @@ class VolumeLayers:
         self.grid, self.arrays, self._token = new, arrays, 0
 
     # ------------------------------------------------------------------------------------------- corrections
-    def _check_store(self, store: FrameStore) -> None:
+    def _check_store(self, store: FrameStore, what: str) -> None:
         """``store`` is the one the layers were built from (hostile trial 29 B1: another build of the same log was
         taken, and the layers then answered for the other map; another log's store ended in a raw numpy error)."""
         if self.store_uuid is not None and self.store_uuid != store.uuid:
-            raise ConfigError(f"VolumeLayers.apply: the layers are of another store (id {self.store_uuid}), not of "
-                              f"{store.path} (id {store.uuid}): apply a revision of the store they were built from")
+            raise ConfigError(f"VolumeLayers.{what}: the layers are of another store (id {self.store_uuid}), not of "
+                              f"{store.path} (id {store.uuid}): give the store they were built from")
         if self.store_uuid is None and self.view is not None:
             foreign = sorted(set(int(f) for f in self.view.frame_ids) - {int(f) for f in store.frame_ids})
             if foreign:
-                raise ConfigError(f"VolumeLayers.apply: the layers integrate frames {store.path} does not hold "
+                raise ConfigError(f"VolumeLayers.{what}: the layers integrate frames {store.path} does not hold "
                                   f"({foreign[:5]}{' ...' if len(foreign) > 5 else ''}): another store's layers")
 
     def apply(self, revision: int, store: FrameStore | None = None) -> VolumeChange:
@@ -334,7 +334,7 @@ class VolumeLayers:
         if self.cache.get("latest_state"):
             raise ConfigError("latest-state layers (driftmap.volume.sessions) are read-only: build them again for "
                               "another revision")
-        self._check_store(store)
+        self._check_store(store, "apply")
         t0 = time.perf_counter()
         store.ledger.revision(revision)
         old_rev = self.revision
@@ -399,6 +399,7 @@ class VolumeLayers:
         rebuild bit for bit; returns the :class:`VolumeChange` (the new frames, their boxes, the flipped voxels)."""
         if self.view is None:
             raise ConfigError("VolumeLayers.refresh needs the layers' map view (build them with from_store)")
+        self._check_store(store, "refresh")  # (hostile trial 30 W2: another store did nothing without a word)
         t0 = time.perf_counter()
         view, rev = self.view, self.revision
         last = int(view.frame_ids[-1]) if len(view.frame_ids) else None
