@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import __version__, geometry
-from driftmap.errors import ConfigError, ExportError
+from driftmap.errors import ConfigError, ExportError, SourceError
 from driftmap.export.ros_messages import (
     MsgdefSchemas,
     camera_info_msg,
@@ -388,7 +388,8 @@ def convert(
     source = open_source(src_path, format=format, frames=frames, **options)
     stride = None
     if reads_depth_pixels(source):
-        first = source.frame(0) if getattr(source, "reads_depth_images", None) is None else next(iter(source), None)
+        first = None if _known_empty(source) else (
+            source.frame(0) if getattr(source, "reads_depth_images", None) is None else next(iter(source), None))
         stride = pixel_stride if pixel_stride is not None else auto_pixel_stride(first)
         if stride != int(getattr(source, "pixel_stride", 1)):
             close = getattr(source, "close", None)
@@ -408,6 +409,14 @@ def convert(
     if callable(close):
         close()
     return summary
+
+
+def _known_empty(source: FrameSource) -> bool:
+    """Whether ``source`` selects no frame (an empty ``--frames``: export_mcap names it; its length may be unknown)."""
+    try:
+        return len(source) == 0
+    except SourceError:
+        return False
 
 
 __all__ = [
