@@ -291,3 +291,18 @@ def test_t30_w2_layers_refresh_refuses_another_store(room10: dict[str, Path], tm
         with pytest.raises(ConfigError, match=r"VolumeLayers.refresh: the layers are of another store"):
             layers.refresh(other)
         assert len(layers.refresh(mine).frame_ids) == 0  # its own store: nothing new
+
+
+def test_t30_w4_diagnose_names_a_bare_build_config(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``diagnose --config`` of a bare build config (build settings, no table) said only "pixel_stride: unknown
+    setting", as if a diagnose setting were misspelt: it says that the file holds build settings only, as export does;
+    a bare file of diagnose settings is still taken."""
+    bare = tmp_path / "bare.toml"
+    bare.write_text("pixel_stride = 2\n")
+    line = one_error(run_cli("diagnose", room10["gt"], "--config", bare, "--json", tmp_path / "d.json"))
+    assert "holds only build settings (pixel_stride; a bare build config)" in line and "diagnose" in line, line
+    assert not (tmp_path / "d.json").exists()
+    own = tmp_path / "own.toml"
+    own.write_text("[sampling]\npoints_budget = 200000\n")
+    done = run_cli("diagnose", room10["gt"], "--config", own, "--json", tmp_path / "e.json")
+    assert done.returncode == 0, done.stderr[-800:]

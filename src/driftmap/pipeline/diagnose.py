@@ -85,12 +85,29 @@ def check_ground_truth(store: FrameStore, path: str | Path, frame_ids: NDArray[n
     return reason
 
 
+def _refuse_bare_build_config(path: Path) -> None:
+    """A file of build settings without tables (a bare build config) holds nothing diagnose reads: said so, as
+    ``export`` says it (hostile trial 30 W4: "pixel_stride: unknown setting", as if a diagnose setting were misspelt)."""
+    from driftmap.config import split_config_file
+    from driftmap.pipeline.build_config import BuildConfig
+
+    _, build, prefix = split_config_file(path)
+    if prefix or not build:
+        return
+    keys = set(build)
+    if keys <= set(BuildConfig.model_fields) and not keys & set(DiagnoseConfig.model_fields):
+        raise ConfigError(f"{path}: holds only build settings ({', '.join(sorted(keys))}; a bare build config), none "
+                          f"of which applies to diagnose: diagnose reads a [diagnose] table (or a file of diagnose "
+                          f"settings alone)")
+
+
 def diagnose_config(store: FrameStore, config_file: str | Path | None = None,
                     points_per_frame: int | None = None) -> DiagnoseConfig:
     """The scene's defaults for ``store`` (:meth:`DiagnoseConfig.for_store`), then a config file's ``[diagnose]``
     table, then ``points_per_frame``."""
     cfg = DiagnoseConfig.for_store(store)
     if config_file is not None:
+        _refuse_bare_build_config(Path(config_file))
         cfg = DiagnoseConfig.load(config_file, cfg)
     if points_per_frame is not None:
         cfg = cfg.model_copy(update={"sampling": cfg.sampling.model_copy(update={"points_per_frame": points_per_frame})})
