@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from driftmap import __version__, geometry
-from driftmap.errors import ConfigError, ExportError, SourceError
+from driftmap.errors import ConfigError, ExportError
 from driftmap.export.ros_messages import (
     MsgdefSchemas,
     camera_info_msg,
@@ -55,7 +55,7 @@ from driftmap.export.ros_messages import (
     transform_stamped,
 )
 from driftmap.frame import Frame, PoseSource, SensorKind
-from driftmap.sources.base import FrameSource, auto_pixel_stride, open_source, reads_depth_pixels
+from driftmap.sources.base import FrameSource, auto_pixel_stride, first_depth_frame, open_source, reads_depth_pixels
 from driftmap.sources.ros import (
     CAMERA_INFO,
     EXPORT_METADATA_NAME,
@@ -388,9 +388,7 @@ def convert(
     source = open_source(src_path, format=format, frames=frames, **options)
     stride = None
     if reads_depth_pixels(source):
-        first = None if _known_empty(source) else (
-            source.frame(0) if getattr(source, "reads_depth_images", None) is None else next(iter(source), None))
-        stride = pixel_stride if pixel_stride is not None else auto_pixel_stride(first)
+        stride = pixel_stride if pixel_stride is not None else auto_pixel_stride(first_depth_frame(source))
         if stride != int(getattr(source, "pixel_stride", 1)):
             close = getattr(source, "close", None)
             if callable(close):
@@ -409,14 +407,6 @@ def convert(
     if callable(close):
         close()
     return summary
-
-
-def _known_empty(source: FrameSource) -> bool:
-    """Whether ``source`` selects no frame (an empty ``--frames``: export_mcap names it; its length may be unknown)."""
-    try:
-        return len(source) == 0
-    except SourceError:
-        return False
 
 
 __all__ = [

@@ -10,7 +10,7 @@ from typing import Any
 
 from driftmap.errors import ConfigError, SourceError
 from driftmap.pipeline.build_config import BuildConfig
-from driftmap.sources.base import FrameSource, accepted_options, auto_pixel_stride, open_source, registered_formats
+from driftmap.sources.base import FrameSource, accepted_options, auto_pixel_stride, first_depth_frame, open_source, registered_formats
 
 logger = logging.getLogger(__name__)
 
@@ -100,8 +100,7 @@ def open_build_source(source: str | Path, format: str | None, frames: str | None
     # second (4x the points, other odometry and volume results from one recording)
     log_depth = "pixel_stride" not in params and bool(getattr(src, "reads_depth_images", False))
     if ("pixel_stride" in params or log_depth) and not config.pixel_stride:
-        first = src.frame(0) if "pixel_stride" in params else next(iter(src), None)
-        stride = auto_pixel_stride(first)
+        stride = auto_pixel_stride(first_depth_frame(src))
         if stride != 1:
             src = open_source(path, fmt, **{**options, "pixel_stride": stride})
     elif log_depth and config.pixel_stride != 1:

@@ -173,6 +173,18 @@ def auto_pixel_stride(first: Frame | None) -> int:
     return 2 if first is not None and first.intrinsics is not None and first.intrinsics.width >= AUTO_STRIDE_MIN_WIDTH_PX else 1
 
 
+def first_depth_frame(source: FrameSource) -> Frame | None:
+    """The first frame of a source that :func:`reads_depth_pixels` (what :func:`auto_pixel_stride` looks at), or None
+    when it selects none (an empty ``--frames``: left to the caller to name). A data set folder reads it by index; a
+    ROS log by iterating (its length may be unknown)."""
+    try:
+        if len(source) == 0:
+            return None
+    except SourceError:
+        pass
+    return source.frame(0) if getattr(source, "reads_depth_images", None) is None else next(iter(source), None)
+
+
 def reads_depth_pixels(source: FrameSource) -> bool:
     """Whether ``source`` back-projects depth images (its opener takes ``pixel_stride`` for them): a data set folder,
     or a ROS log whose topic is a depth image (not its PointCloud2 topics)."""
