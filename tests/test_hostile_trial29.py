@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import numpy as np
@@ -306,3 +307,57 @@ def test_t30_w4_diagnose_names_a_bare_build_config(room10: dict[str, Path], tmp_
     own.write_text("[sampling]\npoints_budget = 200000\n")
     done = run_cli("diagnose", room10["gt"], "--config", own, "--json", tmp_path / "e.json")
     assert done.returncode == 0, done.stderr[-800:]
+
+
+def test_t30_b2_depth_odometry_flags_a_slide_along_a_bare_wall(tmp_path: Path) -> None:
+    """Hostile trial 30 B2: on the default synthetic room log the depth odometry's first step (no velocity known yet)
+    slid 21 cm along a bare wall (the true pose fits 0.839 of the points, the slid one 0.837) and every later frame
+    followed it, all "tracking ok". Along the direction the frame barely constrains, a registration that moved
+    more than ``gicp_degenerate_shift_m`` from the prediction keeps the prediction's translation and the frame is
+    reported degenerate: through the CLI, every step of the first 10 frames within 2 cm of the ground truth's."""
+    from driftmap.trajectory import read_tum
+
+    log, out = tmp_path / "log", tmp_path / "store"
+    assert run_cli("synth", log).returncode == 0
+    built = run_cli("build", log, "--out", out, "--frames", "0:10", "--no-loop-closure", "--threads", "1")
+    assert built.returncode == 0, built.stderr[-2000:]
+    assert "degenerate" in built.stderr + built.stdout
+    per_frame = json.loads((out / "build_summary.json").read_text())["tracking"]["per_frame"]
+    assert per_frame[1]["status"] == "degenerate" and "barely constrains" in per_frame[1]["reason"], per_frame[1]
+    assert run_cli("export", out, "--trajectory", tmp_path / "est.tum").returncode == 0
+    est = read_tum(tmp_path / "est.tum").poses
+    gt = read_tum(log / "groundtruth.txt").poses[:10]
+    step_error_m = [np.linalg.norm((np.linalg.inv(est[k]) @ est[k + 1])[:3, 3] - (np.linalg.inv(gt[k]) @ gt[k + 1])[:3, 3])
+                    for k in range(9)]
+    assert max(step_error_m) < 0.02, step_error_m
+    # the same build without the bridge (a [build.odometry] setting) slides as the trial saw: the test can fail
+    (tmp_path / "off.toml").write_text("[build.odometry]\ngicp_degenerate_shift_m = 1e9\n")
+    off = run_cli("build", log, "--out", tmp_path / "off", "--frames", "0:2", "--no-loop-closure", "--threads", "1",
+                  "--config", tmp_path / "off.toml")
+    assert off.returncode == 0, off.stderr[-2000:]
+    assert json.loads((tmp_path / "off" / "build_summary.json").read_text())["tracking"]["per_frame"][1]["status"] == "ok"
+
+
+def test_t30_b2_a_depth_store_built_before_the_bridge_resumes_without_it(room10: dict[str, Path], tmp_path: Path) -> None:
+    """``--resume`` of a depth store whose recorded odometry settings predate ``gicp_degenerate_shift_m`` (or that
+    recorded none) continues as it was built: without the bridge."""
+    from driftmap.pipeline.resume import recorded_odometry
+
+    store = tmp_path / "store"
+    first = build(room10["log"], store, frames="0:3", loop_closure=False)
+    assert first.odometry_config["method"] == "gicp_map" and first.odometry_config["gicp_degenerate_shift_m"] == 0.1
+    summary_file = store / "build_summary.json"
+    summary = json.loads(summary_file.read_text())
+    old = {k: v for k, v in summary["odometry_config"].items() if k != "gicp_degenerate_shift_m"}
+    summary_file.write_text(json.dumps({**summary, "odometry_config": old}))
+    with FrameStore.open(store) as opened:
+        recorded = recorded_odometry(opened)
+    assert recorded is not None and recorded.gicp_degenerate_shift_m is None
+    assert recorded.gicp_map_voxel_m == old["gicp_map_voxel_m"]
+    del summary["odometry_config"]
+    summary_file.write_text(json.dumps(summary))
+    with FrameStore.open(store) as opened:
+        legacy = recorded_odometry(opened)
+    assert legacy is not None and legacy.method.value == "gicp_map" and legacy.gicp_degenerate_shift_m is None
+    resumed = build(room10["log"], store, frames="0:5", resume=True, loop_closure=False)
+    assert resumed.n_frames_new == 2 and resumed.odometry_config["gicp_degenerate_shift_m"] is None

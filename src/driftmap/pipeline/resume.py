@@ -167,6 +167,8 @@ def remove_new_store(out: Path, out_existed: bool, new_dirs: list[Path]) -> None
 
 PRE_DEGENERATE_BRIDGE = {"tracking_degenerate_below": 0.0}
 """The KISS-ICP settings of builds recorded before ``tracking_degenerate_below`` existed: resumed without it."""
+PRE_GICP_DEGENERATE_BRIDGE = {"gicp_degenerate_shift_m": None}
+"""The ``gicp_map`` settings of builds recorded before ``gicp_degenerate_shift_m`` existed: resumed without it."""
 PRE_PLANE_REFINE_KISS = {"kiss_refine_plane": False, "tracking_min_fitness": 0.5, **PRE_DEGENERATE_BRIDGE}
 """The KISS-ICP settings of builds recorded before ``kiss_refine_plane`` existed: resumed as they were built."""
 
@@ -179,7 +181,8 @@ def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
         summary = json.loads((store.path / "build_summary.json").read_text())
         if "odometry_config" not in summary:  # written before the settings were recorded: the sensor's defaults
             recorded = OdometryConfig.for_sensor(store.frame(int(store.frame_ids[0])).sensor_kind).model_dump(mode="json")
-            recorded = {k: v for k, v in recorded.items() if k not in PRE_PLANE_REFINE_KISS}
+            recorded = {k: v for k, v in recorded.items()
+                        if k not in PRE_PLANE_REFINE_KISS and k not in PRE_GICP_DEGENERATE_BRIDGE}
         else:
             recorded = summary["odometry_config"]
         if recorded is None:
@@ -188,6 +191,8 @@ def recorded_odometry(store: FrameStore) -> OdometryConfig | None:
             recorded = {**recorded, **PRE_PLANE_REFINE_KISS}
         if recorded.get("method") == "kiss" and "tracking_degenerate_below" not in recorded:  # before the bridge
             recorded = {**recorded, **PRE_DEGENERATE_BRIDGE}
+        if recorded.get("method") == "gicp_map" and "gicp_degenerate_shift_m" not in recorded:  # before its bridge
+            recorded = {**recorded, **PRE_GICP_DEGENERATE_BRIDGE}
         return OdometryConfig.model_validate(recorded)
     except (OSError, ValueError, AttributeError):
         return None
