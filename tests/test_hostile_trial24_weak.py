@@ -114,3 +114,55 @@ def test_t24_w8_a_query_error_names_the_query_file(room10: dict, tmp_path: Path)
     line = one_error(run_cli("decide", room10["gt"], "--queries", q, "--json", tmp_path / "o.json"))
     assert f"{q}: " in line and "'wide'" in line and "voxel columns" in line, line
     assert not (tmp_path / "o.json").exists()
+
+
+def test_t24_w4_whole_grid_states_and_the_octomap_in_chunks_are_unchanged(room10: dict[str, Path], tmp_path: Path,
+                                                                          monkeypatch) -> None:  # noqa: ANN001
+    """Hostile trial 24 W4 (the budget bounded the grid, not the peak): ``state_grid`` and the OctoMap export work in
+    chunks now; with chunks far smaller than the grid the states are every voxel's own and the .bt file is the same
+    to the byte."""
+    import numpy as np
+
+    from driftmap.volume import VolumeConfig, VolumeLayers
+    from driftmap.volume import export as volume_export
+    from driftmap.volume import layers as volume_layers
+
+    with FrameStore.open(room10["gt"]) as store:
+        layers = VolumeLayers.from_store(store, config=VolumeConfig(voxel_size_m=0.1))
+        whole = layers.state_grid().ravel()
+        volume_export.write_octomap(layers, tmp_path / "whole.bt")
+        monkeypatch.setattr(volume_layers, "STATE_CHUNK_VOXELS", 1000)
+        monkeypatch.setattr(volume_export, "_OCTOMAP_CHUNK", 777)
+        assert layers.grid.n_voxels > 20 * 1000
+        chunked = layers.state_grid().ravel()
+        volume_export.write_octomap(layers, tmp_path / "chunked.bt")
+    a = layers.arrays
+    seen = (a.hits.astype(np.int64) + a.misses) > 0
+    occupied = layers.log_odds_flat(np.arange(layers.grid.n_voxels)) >= layers.config.log_odds_threshold
+    expected = np.where(seen, np.where(occupied, 1, 0), -1)
+    assert np.array_equal(whole, expected) and np.array_equal(chunked, expected)
+    assert set(np.unique(whole)) == {-1, 0, 1}
+    assert (tmp_path / "whole.bt").read_bytes() == (tmp_path / "chunked.bt").read_bytes()
+
+
+
+def test_t24_w4_the_distance_field_beyond_the_memory_budget_is_refused(room10: dict[str, Path]) -> None:
+    """The unknown-space distance field behind ``clearance_m`` (SciPy's exact EDT, ~50 bytes a voxel at its peak
+    beside the grid's 24) is refused before any work when it would take the layers beyond
+    ``volume.memory_budget_mb``, naming the budget; the same grid within a budget that holds it answers."""
+    import pytest
+
+    from driftmap.errors import ConfigError
+    from driftmap.trajectory import read_tum
+    from driftmap.volume import VolumeConfig, VolumeLayers
+
+    T = read_tum(room10["log"] / "groundtruth.txt").poses[0]
+    ahead = T[:3, 3] + 1.0 * T[:3, 2]  # 1 m in front of the first camera: observed free space
+    with FrameStore.open(room10["gt"]) as store:
+        tight = VolumeLayers.from_store(store, config=VolumeConfig(voxel_size_m=0.04, memory_budget_mb=100))
+        assert tight.grid.nbytes < 100 * 2**20 < tight.grid.nbytes + 50 * tight.grid.n_voxels  # the grid fits, its EDT not
+        with pytest.raises(ConfigError, match=r"unknown-space distance field .* more than volume\.memory_budget_mb = 100"):
+            tight.clearance_m([ahead])
+        roomy = VolumeLayers.from_store(store, config=VolumeConfig(voxel_size_m=0.04, memory_budget_mb=400))
+        clearance = roomy.clearance_m([ahead])
+    assert 0.0 < float(clearance[0]) < 5.0
