@@ -338,6 +338,44 @@ def test_t30_b2_depth_odometry_flags_a_slide_along_a_bare_wall(tmp_path: Path) -
     assert json.loads((tmp_path / "off" / "build_summary.json").read_text())["tracking"]["per_frame"][1]["status"] == "ok"
 
 
+def test_t30_w3_a_config_file_holding_nothing_a_command_reads_is_refused(room10: dict[str, Path], tmp_path: Path) -> None:
+    """Hostile trial 30 W3: a ``[map]``-only file was taken silently by build, diagnose, decide and merge, a
+    ``[build]``-only one by export, while a ``[fleet]``-only one was refused. Every command refuses a file whose
+    tables it never reads, naming the tables it holds and the ones the command reads; one table it reads is enough."""
+    map_only, build_only = tmp_path / "map.toml", tmp_path / "build.toml"
+    map_only.write_text("[map]\nexport_voxel_size_m = 0.25\n")
+    build_only.write_text("[build]\npixel_stride = 1\n[depth]\nmax_depth_m = 3.0\n")
+    queries = tmp_path / "q.json"
+    queries.write_text('{"queries": [{"id": "c", "kind": "clearance", "points_m": [[0, 0, 0]], "radius_m": 0.2}]}')
+    store = room10["gt"]
+    runs = {
+        "build": (map_only, ["build", room10["log"], "--out", tmp_path / "s", "--no-loop-closure"], "[build] / [depth]"),
+        "diagnose": (map_only, ["diagnose", store, "--json", tmp_path / "d.json"], "[diagnose] / [volume]"),
+        "decide": (map_only, ["decide", store, "--queries", queries, "--json", tmp_path / "q_out.json"],
+                   "[volume] / [decide]"),
+        "merge": (map_only, ["merge", store, store, "--out", tmp_path / "m"], "[build]"),
+        "export": (build_only, ["export", store, "--map", tmp_path / "m.ply"], "[map] / [volume]"),
+    }
+    for command, (cfg, args, reads) in runs.items():
+        line = one_error(run_cli(*args, "--config", cfg))
+        held = "[map] table" if cfg == map_only else "[build] / [depth] tables"
+        assert f"holds only the {held}, none of which driftmap {command} reads (it reads {reads})" in line, line
+        assert str(cfg) in line, line
+    assert not (tmp_path / "s").exists() and not (tmp_path / "m").exists() and not (tmp_path / "m.ply").exists()
+    # one table the command reads is enough: the other tables are left to the commands that read them
+    both = tmp_path / "both.toml"
+    both.write_text("[build]\npixel_stride = 1\n[map]\nexport_voxel_size_m = 0.25\n")
+    done = run_cli("export", store, "--map", tmp_path / "m.ply", "--config", both)
+    assert done.returncode == 0, done.stderr[-800:]
+    # diagnose reads [volume] too (its report's volumetric layers, as export builds them; before, the table was
+    # silently ignored there)
+    volume = tmp_path / "volume.toml"
+    volume.write_text("[volume]\nvoxel_size_m = 0.2\n")
+    diagnosed = run_cli("diagnose", store, "--json", tmp_path / "d.json", "--report", tmp_path / "r", "--config", volume)
+    assert diagnosed.returncode == 0, diagnosed.stderr[-800:]
+    assert json.loads((tmp_path / "d.json").read_text())["volume"]["voxel_size_m"] == 0.2
+
+
 def test_t30_b2_a_depth_store_built_before_the_bridge_resumes_without_it(room10: dict[str, Path], tmp_path: Path) -> None:
     """``--resume`` of a depth store whose recorded odometry settings predate ``gicp_degenerate_shift_m`` (or that
     recorded none) continues as it was built: without the bridge."""

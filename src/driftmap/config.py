@@ -470,6 +470,37 @@ def read_config_file(path: str | Path) -> dict[str, Any]:
     return data
 
 
+COMMAND_TABLES: dict[str, tuple[str, ...]] = {
+    "build": (BUILD_TABLE, "depth"),
+    "merge": (BUILD_TABLE,),
+    "diagnose": (DIAGNOSE_TABLE, "volume"),
+    "export": ("map", "volume"),
+    "decide": ("volume", "decide"),
+}
+"""The tables of a config file each command reads (``batch`` reads every one, and its own ``[fleet]``)."""
+
+
+def refuse_unread_tables(path: str | Path, command: str) -> None:
+    """A config file whose tables ``command`` never reads (:data:`COMMAND_TABLES`) is refused, naming the file, its
+    tables and the ones the command reads: nothing in it would change the result (hostile trial 30 W3: a
+    ``[map]``-only file was taken silently by build, diagnose, decide and merge, a ``[build]``-only one by export,
+    while a ``[fleet]``-only one was refused). A file without any known table is a bare config, judged by the
+    command's own loader."""
+    data = read_config_file(path)
+    known = (BUILD_TABLE, DIAGNOSE_TABLE, FLEET_TABLE, *GENERAL_TABLES)
+    present = [t for t in known if t in data]
+    reads = COMMAND_TABLES[command]
+    if set(present) == {FLEET_TABLE}:
+        raise ConfigError(f"{path}: holds only a [{FLEET_TABLE}] table, driftmap batch's settings, none of which "
+                          f"applies here (driftmap batch --config takes it)")
+    if not present or set(present) & set(reads) or set(data) - set(known):
+        return  # a bare config, one the command reads, or an unknown table its loader names
+    held = "] / [".join(present)
+    raise ConfigError(f"{path}: holds only the [{held}] table{'s' if len(present) > 1 else ''}, none of which driftmap "
+                      f"{command} reads (it reads [{'] / ['.join(reads)}]): nothing in the file would change its "
+                      f"result (driftmap config --show lists each table's settings)")
+
+
 def split_config_file(path: str | Path) -> tuple[dict[str, Any], dict[str, Any], tuple[str, ...]]:
     """``(general tables, build settings, the build settings' key prefix)`` of a config file.
 
@@ -483,8 +514,7 @@ def split_config_file(path: str | Path) -> tuple[dict[str, Any], dict[str, Any],
     if FLEET_TABLE in data and not isinstance(data[FLEET_TABLE], dict):
         raise ConfigError(f"{path}: '{FLEET_TABLE}' must be a table of settings, not {type(data[FLEET_TABLE]).__name__}")
     if set(data) == {FLEET_TABLE}:
-        raise ConfigError(f"{path}: holds only a [{FLEET_TABLE}] table, driftmap batch's settings, none of which "
-                          f"applies here (driftmap batch --config takes it)")
+        refuse_unread_tables(path, "build")
     for name, why in _REMOVED_TABLES.items():
         if name in data:
             raise ConfigError(f"{path}: {name}: {why}")

@@ -469,6 +469,10 @@ def build(
         problems.append(str(exc))
     if problems:
         raise ConfigError("\n".join(dict.fromkeys(problems)))
+    if config is not None:
+        from driftmap.config import refuse_unread_tables
+
+        refuse_unread_tables(config, "build")
     if threads is not None:
         from driftmap.config import check_threads
 

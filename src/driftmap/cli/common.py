@@ -377,7 +377,7 @@ def general_settings(config: Path | None, command: str, **overrides: Any) -> Any
     table (``[volum]``) or a stray key is refused, naming the file and the key, instead of silently changing nothing
     (hostile trial 26 B2); a file holding build settings only (no general table) is refused as well: nothing in it
     applies to ``command``."""
-    from driftmap.config import GENERAL_TABLES, DriftmapConfig, split_config_file
+    from driftmap.config import GENERAL_TABLES, DriftmapConfig, refuse_unread_tables, split_config_file
     from driftmap.errors import ConfigError
     from driftmap.pipeline.build_config import BuildConfig
 
@@ -390,4 +390,5 @@ def general_settings(config: Path | None, command: str, **overrides: Any) -> Any
         raise ConfigError(f"{config}: holds no [{'] / ['.join(GENERAL_TABLES)}] table, only build settings "
                           f"({', '.join(sorted(build))}), none of which applies to {command}: put its settings in "
                           f"those tables (driftmap config --show lists them)")
+    refuse_unread_tables(config, command)
     return settings

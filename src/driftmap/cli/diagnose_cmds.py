@@ -59,7 +59,7 @@ def diagnose(
     kitti_frame: Annotated[str, typer.Option("--kitti-frame", help=KITTI_FRAME_HELP)] = "auto",
     calib: Annotated[Optional[Path], typer.Option("--calib", help=CALIB_HELP)] = None,
     verify: Annotated[bool, typer.Option("--verify", help="Re-measure every double-wall region from the stored full-resolution frames with Open3D (adds \"verification\" per region and double_wall.verified).")] = False,
-    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [diagnose] table (or the whole file without one) sets diagnose's own lengths over the scene's defaults: [diagnose.double_wall] voxel_sizes_m, visit_gap_m, ..., [diagnose.attribution], [diagnose.sampling], [diagnose.entropy] (the JSON's \"config\" lists every field); a build config's other tables are ignored.")] = None,
+    config: Annotated[Optional[Path], typer.Option("--config", help="Config file (JSON or TOML): its [diagnose] table (or the whole file without one) sets diagnose's own lengths over the scene's defaults: [diagnose.double_wall] voxel_sizes_m, visit_gap_m, ..., [diagnose.attribution], [diagnose.sampling], [diagnose.entropy] (the JSON's \"config\" lists every field); its [volume] table sets the report's volumetric layers (as for export); the other tables are left to the commands that read them, and a file holding none of these is refused.")] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing --json file that is not an earlier diagnosis (an earlier diagnosis is replaced without it).")] = False,
 ) -> None:
     """Find double walls (where, how far apart, which frames), the smearing score, MME/MPV, per-frame
@@ -71,6 +71,11 @@ def diagnose(
                                             (config, "--config"), (calib, "--calib"))
                         if p is not None], folders=("--report",))  # an output never replaces an input, nor another output
     refuse_store_inputs(store_path, [(p, f) for p, f in ((json_path, "--json"), (report, "--report")) if p is not None])
+    from driftmap.config import DriftmapConfig, refuse_unread_tables
+
+    volume_config = DriftmapConfig.load(config).volume  # the report's volumetric layers, as export builds them
+    if config is not None:
+        refuse_unread_tables(config, "diagnose")
     if json_path.is_file() and not is_diagnosis_file(json_path):
         refuse_existing(json_path, "--json (not an earlier diagnosis)", overwrite)
     check_output(json_path, "--json")  # before the diagnosis, not after it
@@ -87,7 +92,8 @@ def diagnose(
 
         run = run_diagnose(store, json_path, revision=revision, gt=gt, gt_format=gt_format, report_dir=report,
                            compare_revision=compare_revision, points_per_frame=points_per_frame,
-                           kitti_frame=kitti_frame, calib=calib, verify=verify, config_file=config, progress=tick)
+                           kitti_frame=kitti_frame, calib=calib, verify=verify, config_file=config, progress=tick,
+                           volume_config=volume_config)
     _render_diagnosis(run, store_path)
     console.print(bold("diagnosis: ", json_path))
 

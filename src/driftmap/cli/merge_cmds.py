@@ -32,6 +32,10 @@ def merge(
         raise typer.BadParameter("merge needs --out OUT (a new merged store), or --append to add sessions to the "
                                  "merged store given first", param_hint="--out")
     cfg = BuildConfig.load(config)
+    if config is not None:
+        from driftmap.config import refuse_unread_tables
+
+        refuse_unread_tables(config, "merge")
     if append:
         _append(stores, cfg)
         return
