@@ -99,7 +99,7 @@ def unknown_distance_grid(layers: Layers) -> NDArray[np.float32]:
 
     Refused (:class:`ConfigError`) before any work when the layers' grid and the transform's working memory
     (:data:`EDT_BYTES_PER_VOXEL`) would exceed ``volume.memory_budget_mb``: the budget bounds the peak, not only the
-    grid (hostile trial 24 W4: a grid checked at 2.6 GB peaked at 5.7 GB in decide)."""
+    grid (hostile trial 24 W4: a 2.6 GB grid within the budget took a process to 5.5-5.7 GB)."""
     def build() -> NDArray[np.float32]:
         grid, budget_mb = layers.grid, layers.config.memory_budget_mb
         need_mib = (grid.nbytes + grid.n_voxels * EDT_BYTES_PER_VOXEL) / 2**20
