@@ -347,14 +347,11 @@ class GicpMapOdometry:
                                                                       self.config.tracking_degenerate_below)
         if weak is None or weak.replaced_m <= shift_m:
             return T, status, reason
-        directions = "; ".join(f"({x:+.2f}, {y:+.2f}, {z:+.2f})" for x, y, z in weak.directions_world)
-        why = (f"the frame barely constrains motion along {directions} (world; degeneracy {weak.degeneracy:.3f} < "
+        why = (f"the frame barely constrains motion along {weak.directions_text()} (world; degeneracy {weak.degeneracy:.3f} < "
                f"{self.config.tracking_degenerate_below:g}) and the registration moved {100 * weak.replaced_m:.1f} cm "
                f"along it from the prediction (more than {100 * shift_m:g} cm): the prediction's translation kept there")
         logger.warning("frame %d: %s", frame_id, why)
-        if status is TrackingStatus.OK:
-            return _nearest_rigid(bridged), TrackingStatus.DEGENERATE, why
-        return _nearest_rigid(bridged), status, f"{reason}; {why}" if reason else why
+        return _nearest_rigid(bridged), *tracking.degenerate_status(status, reason, why)
 
     def _insert(self, fine: small_gicp.PointCloud, coarse: small_gicp.PointCloud, T: NDArray[np.float64]) -> None:
         self._fine.insert(fine, T)
@@ -644,15 +641,12 @@ class KissOdometry:
                                                                  self.config.tracking_degenerate_below)
         if weak is None:
             return attempt, status, reason
-        directions = "; ".join(f"({x:+.2f}, {y:+.2f}, {z:+.2f})" for x, y, z in weak.directions_world)
-        why = (f"the scan barely constrains motion along {directions} (world; degeneracy {weak.degeneracy:.3f} < "
+        why = (f"the scan barely constrains motion along {weak.directions_text()} (world; degeneracy {weak.degeneracy:.3f} < "
                f"{self.config.tracking_degenerate_below:g}): {100 * weak.replaced_m:.1f} cm of the registration along "
                f"it replaced by the prediction")
         logger.info("frame %d: %s", frame_id, why)
         bridged = tracking.Attempt(attempt.hypothesis, attempt.T_init, T, evaluate(T))
-        if status is TrackingStatus.OK:
-            return bridged, TrackingStatus.DEGENERATE, why
-        return bridged, status, f"{reason}; {why}" if reason else why
+        return bridged, *tracking.degenerate_status(status, reason, why)
 
     def _refine(self, attempt: tracking.Attempt, scan_down: NDArray[np.float64], map_points: NDArray[np.float64],
                 evaluate: Callable[[NDArray[np.float64]], tracking.MapFit]) -> tracking.Attempt:

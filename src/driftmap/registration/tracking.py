@@ -107,6 +107,18 @@ class WeakDirections:
     degeneracy: float
     replaced_m: float
 
+    def directions_text(self) -> str:
+        """The weak directions as ``(x, y, z); ...`` for a frame's reason."""
+        return "; ".join(f"({x:+.2f}, {y:+.2f}, {z:+.2f})" for x, y, z in self.directions_world)
+
+
+def degenerate_status(status: TrackingStatus, reason: str, why: str) -> tuple[TrackingStatus, str]:
+    """A frame bridged along weak directions (``why``): an ``ok`` one becomes ``degenerate``; another keeps its status
+    with ``why`` added to its reason."""
+    if status is TrackingStatus.OK:
+        return TrackingStatus.DEGENERATE, why
+    return status, f"{reason}; {why}" if reason else why
+
 
 def keep_prediction_along_weak_directions(T: NDArray[np.float64], predicted: NDArray[np.float64],
                                           H: NDArray[np.float64], min_degeneracy: float
